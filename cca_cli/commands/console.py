@@ -1,0 +1,103 @@
+"""Rich console, progress bars and the one-line error convention."""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import logging
+from typing import Iterator
+
+import typer
+from rich.console import Console
+from rich.logging import RichHandler
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from cca_cli.errors import CcaError
+from cca_cli.stages.progress import ProgressEvent
+
+__all__ = ["console", "err_console", "handle_errors", "progress_reporter", "summary_table", "configure_logging"]
+
+console = Console()
+err_console = Console(stderr=True)
+
+
+def configure_logging(verbose: bool = False) -> None:
+    """Route library warnings through rich (the only place logging is configured)."""
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(message)s",
+                        handlers=[RichHandler(console=err_console, show_path=False, show_time=False)], force=True)
+
+
+def handle_errors(func):
+    """Turn expected failures into one red line on stderr and a non-zero exit code."""
+
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        try:
+            return func(*args, **kwargs)
+        except CcaError as exc:
+            err_console.print(f"[bold red]error:[/] {exc}", highlight=False, soft_wrap=True)
+            raise typer.Exit(exc.exit_code) from None
+        except KeyboardInterrupt:
+            err_console.print("[bold red]interrupted:[/] no partial output was kept; re-run to resume",
+                              highlight=False)
+            raise typer.Exit(130) from None
+
+    return wrapper
+
+
+@contextlib.contextmanager
+def progress_reporter(enabled: bool = True) -> Iterator:
+    """A progress callback drawing one rich bar per (stage, task)."""
+    columns = (TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+               TextColumn("{task.fields[info]}"))
+    with Progress(*columns, console=err_console, disable=not enabled, transient=False) as bars:
+        tasks: dict[tuple[str, str], int] = {}
+
+        def report(event: ProgressEvent) -> None:
+            key = (event.stage, event.task)
+            if key not in tasks:
+                tasks[key] = bars.add_task(f"{event.stage}: {event.task}", total=event.total, info="")
+            info = "  ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in event.info.items())
+            bars.update(tasks[key], completed=event.done, total=event.total, info=info)
+
+        yield report
+        for task_id in tasks.values():
+            task = bars.tasks[task_id]
+            if task.completed < (task.total or 0):
+                bars.update(task_id, total=task.completed)
+
+
+def summary_table(summary: dict, title: str = "Result") -> Table:
+    """A two-column table of the headline numbers of a report."""
+    table = Table(title=title, show_header=True, header_style="bold")
+    table.add_column("quantity")
+    table.add_column("value", justify="right")
+    rows = [
+        ("synthetic aperture ratio", "sar", "{:.2f}"),
+        ("images", "n_images", "{}"),
+        ("engine / iterations", None, None),
+        ("reconstruction time (s)", "seconds", "{:.1f}"),
+        ("spot size at sensor (µm)", "spot_size_sensor_m", "1e6"),
+        ("spot size at object (mm)", "spot_size_object_m", "1e3"),
+        ("MTF20 observed (px)", "mtf20_observed_px", "{}"),
+        ("MTF20 recovered (px)", "mtf20_recovered_px", "{}"),
+        ("resolution gain", "resolution_gain", "{:.2f}"),
+        ("RMSE observed", "rmse_observed", "{:.4f}"),
+        ("RMSE recovered", "rmse_recovered", "{:.4f}"),
+    ]
+    for label, key, fmt in rows:
+        if key is None:
+            table.add_row(label, f"{summary.get('engine')} / {summary.get('iterations')}")
+            continue
+        if key not in summary:
+            continue
+        value = summary[key]
+        if value is None:
+            text = "—"
+        elif fmt in ("1e6", "1e3"):
+            text = f"{value * float(fmt):.2f}"
+        else:
+            text = fmt.format(value)
+        table.add_row(label, text)
+    return table

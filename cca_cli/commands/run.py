@@ -1,0 +1,42 @@
+"""`cca run [CONFIG]`: every configured stage, resuming where a previous run stopped."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from cca_cli.commands.console import console, err_console, handle_errors, progress_reporter, summary_table
+from cca_cli.commands.options import Force, OptionalConfigArg, Quiet
+from cca_cli.config.load import load_config
+from cca_cli.stages.runner import default_out_dir, run_pipeline
+
+
+@handle_errors
+def run_cli(
+    config: OptionalConfigArg = None,
+    out_dir: Annotated[Optional[Path], typer.Option("--out-dir", help="Override run.out_dir.")] = None,
+    force: Force = False,
+    quiet: Quiet = False,
+) -> None:
+    """Run the pipeline of CONFIG (default: the paper's headline simulation) into ./cca-runs/."""
+    cfg = load_config(config)
+    directory = out_dir or cfg.run.out_dir or default_out_dir(config)
+
+    def on_stage(plan, status):
+        if status == "skipped":
+            err_console.print(f"[dim]{plan.name}: {plan.output} is up to date, skipped[/]")
+
+    with progress_reporter(not quiet) as progress:
+        outcomes = run_pipeline(cfg, Path(directory), force=force, progress=progress, on_stage=on_stage)
+    report = next((o for o in outcomes if o.name == "report"), None)
+    if report is not None:
+        summary = report.result
+        if summary is None:
+            import json
+
+            summary = json.loads((report.output / "report.json").read_text())
+        console.print(summary_table(summary, title=f"cca run → {directory}"))
+    for outcome in outcomes:
+        console.print(f"{outcome.name:12s} {outcome.status:8s} {outcome.output}  ({outcome.seconds:.1f} s)")

@@ -1,0 +1,86 @@
+"""`cca simulate`, `cca reconstruct`, `cca report`: one stage each."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from cca_cli.commands.console import console, handle_errors, progress_reporter, summary_table
+from cca_cli.commands.options import ConfigArg, Force, Quiet
+from cca_cli.config.load import load_config
+from cca_cli.config.model import ReconstructSection, ReportSection
+from cca_cli.errors import ConfigError
+from cca_cli.io.h5 import Provenance, check_output
+from cca_cli.stages import reconstruct as reconstruct_stage
+from cca_cli.stages import report as report_stage
+from cca_cli.stages import simulate as simulate_stage
+from cca_cli.stages.runner import config_hash, pick_sections, section_yaml
+
+
+@handle_errors
+def simulate_cli(
+    config: ConfigArg,
+    output: Annotated[Path, typer.Option("--output", "-o", help="captures file to write.")] = Path("captures.h5"),
+    force: Force = False,
+    quiet: Quiet = False,
+) -> None:
+    """Simulate the captures of CONFIG's array and scene → captures.h5."""
+    cfg = load_config(config)
+    check_output(output, force=force)
+    sections = pick_sections(cfg, simulate_stage.SECTIONS)
+    provenance = Provenance.make("simulate", section_yaml(sections), config_hash(sections))
+    with progress_reporter(not quiet) as progress:
+        sim = simulate_stage.run(cfg, output, provenance=provenance, force=force, progress=progress)
+    g = sim.geometry
+    console.print(f"{output}: {g.n_images} captures of {sim.intensity.shape[-1]}² px, SAR {g.synthetic_aperture_ratio:.2f}, "
+                  f"pupil radius {g.pupil_radius_px:.2f} spectrum px")
+
+
+@handle_errors
+def reconstruct_cli(
+    captures: Annotated[Path, typer.Argument(help="captures.h5 (from simulate, hdr or register).", show_default=False)],
+    output: Annotated[Path, typer.Option("--output", "-o", help="recon file to write.")] = Path("recon.h5"),
+    config: Annotated[Optional[Path], typer.Option("--config", "-c", help="Take the reconstruct section from this YAML.")] = None,
+    engine: Annotated[Optional[str], typer.Option(help="Engine name (altmin, …).")] = None,
+    tau: Annotated[Optional[float], typer.Option(help="Tikhonov weight τ.")] = None,
+    iterations: Annotated[Optional[int], typer.Option(help="Maximum iterations.")] = None,
+    tol: Annotated[Optional[float], typer.Option(help="Relative-change stopping tolerance.")] = None,
+    force: Force = False,
+    quiet: Quiet = False,
+) -> None:
+    """Recover the high-resolution object from CAPTURES → recon.h5."""
+    section = load_config(config).reconstruct if config else ReconstructSection()
+    overrides = {k: v for k, v in dict(engine=engine, tau=tau, iterations=iterations, tol=tol).items() if v is not None}
+    if overrides:
+        from pydantic import ValidationError
+
+        try:
+            section = ReconstructSection.model_validate({**section.model_dump(), **overrides})
+        except ValidationError as exc:
+            err = exc.errors()[0]
+            raise ConfigError(f"--{'.'.join(str(p) for p in err['loc']) or 'engine'}: {err['msg'].removeprefix('Value error, ')}") from None
+    check_output(output, force=force)
+    sections = {"reconstruct": section}
+    provenance = Provenance.make("reconstruct", section_yaml(sections), config_hash(sections), [captures])
+    with progress_reporter(not quiet) as progress:
+        recovery = reconstruct_stage.run(captures, section, output, provenance=provenance, force=force, progress=progress)
+    console.print(f"{output}: {recovery.engine}, {recovery.history.iterations} iterations in {recovery.seconds:.1f} s, "
+                  f"{recovery.layout.hires_size}² output")
+
+
+@handle_errors
+def report_cli(
+    recon: Annotated[Path, typer.Argument(help="recon.h5 from reconstruct.", show_default=False)],
+    output: Annotated[Path, typer.Option("--output", "-o", help="Report directory.")] = Path("report"),
+    threshold: Annotated[float, typer.Option(help="Contrast threshold of the resolution limit.")] = 0.2,
+    force: Force = False,
+) -> None:
+    """Metrics (report.json) and figures (PNG) of RECON → a report directory."""
+    section = ReportSection(mtf_threshold=threshold)
+    check_output(output, force=force)
+    sections = {"report": section}
+    provenance = Provenance.make("report", section_yaml(sections), config_hash(sections), [recon])
+    summary = report_stage.run(recon, section, output, provenance=provenance, force=force)
+    console.print(summary_table(summary, title=f"cca report → {output}"))

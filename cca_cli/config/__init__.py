@@ -1,0 +1,1 @@
+"""Run configuration: pydantic models and the YAML loader."""

@@ -1,0 +1,109 @@
+"""YAML → :class:`RunConfig`, with one-line errors that name the file and the key."""
+
+from __future__ import annotations
+
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import BaseModel, ValidationError
+
+from cca_cli.config.model import RunConfig
+from cca_cli.errors import ConfigError
+
+__all__ = ["load_config", "parse_config", "dump_config", "preset_path", "PRESETS", "apply_overrides"]
+
+#: Built-in presets shipped with the package.
+PRESETS = ("headline",)
+
+
+def preset_path(name: str = "headline") -> Path:
+    """Path of a built-in preset YAML."""
+    if name not in PRESETS:
+        raise ConfigError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
+    return Path(str(resources.files("cca_cli.config") / "presets" / f"{name}.yaml"))
+
+
+def _section_keys(model: type[BaseModel], loc: tuple) -> list[str]:
+    """Accepted keys of the (sub)model that ``loc`` points into."""
+    current: Any = model
+    for part in loc[:-1]:
+        field = getattr(current, "model_fields", {}).get(part)
+        if field is None:
+            return []
+        current = field.annotation
+    return sorted(getattr(current, "model_fields", {}))
+
+
+def _describe(error: dict, source: str) -> str:
+    loc = tuple(str(p) for p in error["loc"])
+    key = ".".join(loc) or "(top level)"
+    kind = error["type"]
+    if kind == "extra_forbidden":
+        accepted = _section_keys(RunConfig, loc)
+        return f"{source}: {key}: unknown key; accepted keys here: {', '.join(accepted)}"
+    value = error.get("input")
+    message = error["msg"]
+    if message.startswith("Value error, "):
+        message = message[len("Value error, "):]
+    if kind.startswith(("float", "int")) or kind in ("greater_than", "less_than", "greater_than_equal", "less_than_equal"):
+        return f"{source}: {key}: {message} (got {value!r})"
+    if kind == "literal_error":
+        return f"{source}: {key}: {message} (got {value!r})"
+    return f"{source}: {key}: {message}"
+
+
+def parse_config(data: Any, *, source: str = "config") -> RunConfig:
+    """Validate a parsed YAML mapping.
+
+    Raises
+    ------
+    ConfigError
+        One line naming ``source``, the key and the accepted values.
+    """
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: the top level must be a mapping of sections, got {type(data).__name__}")
+    try:
+        return RunConfig.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(_describe(exc.errors()[0], source)) from None
+
+
+def load_config(path: str | Path | None = None) -> RunConfig:
+    """Read and validate a YAML config; ``None`` loads the built-in headline preset."""
+    path = preset_path() if path is None else Path(path)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: config file not found; give an existing YAML file or omit it for the built-in default") from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read config ({exc.strerror})") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" line {mark.line + 1}" if mark else ""
+        raise ConfigError(f"{path}:{where}: not valid YAML ({getattr(exc, 'problem', exc)})") from None
+    return parse_config(data, source=str(path))
+
+
+def dump_config(config: BaseModel) -> str:
+    """Resolved config (or section) as YAML text, for provenance and `--write-config`."""
+    return yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False)
+
+
+def apply_overrides(config: RunConfig, overrides: dict[str, Any], *, source: str = "--set") -> RunConfig:
+    """A copy of ``config`` with dotted keys (``array.overlap``) replaced, re-validated."""
+    data = config.model_dump(mode="json")
+    for dotted, value in overrides.items():
+        parts = dotted.split(".")
+        node = data
+        for part in parts[:-1]:
+            if not isinstance(node.get(part), dict):
+                raise ConfigError(f"{source}: {dotted}: no such section {part!r}")
+            node = node[part]
+        node[parts[-1]] = value
+    return parse_config(data, source=source)

@@ -1,0 +1,1 @@
+"""Phase-retrieval engines: iteration only, no I/O, progress through callbacks."""

@@ -1,0 +1,108 @@
+"""The engine contract and the driver loop that watches it.
+
+An engine exposes one iteration (:meth:`IterativeEngine.update`) and a stopping
+test (:meth:`IterativeEngine.done`). :func:`run_engine` owns the loop, timing
+and history, and reports each iteration through an ``on_iteration`` callback;
+engines never print.
+"""
+
+from __future__ import annotations
+
+import time
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+__all__ = ["IterationRecord", "History", "IterativeEngine", "run_engine"]
+
+
+@dataclass(frozen=True)
+class IterationRecord:
+    """What one iteration reports.
+
+    Attributes
+    ----------
+    iteration : int
+        1-based iteration number.
+    residual : float
+        Relative data misfit ``‖w (|ψ| − √I)‖ / ‖w √I‖`` before the update.
+    change : float
+        Relative change of the spectrum ``‖S_new − S‖ / ‖S‖``.
+    seconds : float
+        Wall time since the run started.
+    """
+
+    iteration: int
+    residual: float
+    change: float
+    seconds: float
+
+
+@dataclass
+class History:
+    """Per-iteration records of one run (kept apart from the engine's options)."""
+
+    records: list[IterationRecord] = field(default_factory=list)
+
+    @property
+    def iterations(self) -> int:
+        """Number of iterations run."""
+        return len(self.records)
+
+    def array(self, name: str) -> np.ndarray:
+        """One column of the history (``residual``, ``change`` or ``seconds``) as float64."""
+        return np.array([getattr(r, name) for r in self.records], dtype=np.float64)
+
+
+class IterativeEngine(ABC):
+    """One phase-retrieval algorithm's state and iteration."""
+
+    #: Name used in configs and on the command line.
+    name: str = ""
+
+    @abstractmethod
+    def update(self) -> tuple[float, float]:
+        """Run one iteration; return ``(residual, change)``."""
+
+    @abstractmethod
+    def done(self) -> bool:
+        """Whether the stopping rule is met."""
+
+    @abstractmethod
+    def spectrum(self) -> np.ndarray:
+        """Current estimate of the centred high-resolution spectrum (complex64, M x M)."""
+
+    def close(self) -> None:
+        """Release worker threads or buffers (optional)."""
+
+
+def run_engine(engine: IterativeEngine, *, on_iteration: Callable[[IterationRecord], None] | None = None
+               ) -> tuple[np.ndarray, History]:
+    """Iterate ``engine`` until it is done.
+
+    Parameters
+    ----------
+    engine : IterativeEngine
+    on_iteration : callable, optional
+        Called with an :class:`IterationRecord` after every iteration (progress bars, logging).
+
+    Returns
+    -------
+    spectrum : ndarray, complex64, (M, M)
+    history : History
+    """
+    history = History()
+    start = time.perf_counter()
+    try:
+        while not engine.done():
+            residual, change = engine.update()
+            record = IterationRecord(history.iterations + 1, float(residual), float(change),
+                                     time.perf_counter() - start)
+            history.records.append(record)
+            if on_iteration is not None:
+                on_iteration(record)
+    finally:
+        engine.close()
+    return engine.spectrum(), history

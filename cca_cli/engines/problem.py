@@ -1,0 +1,104 @@
+"""The data an engine works on: forward model, measured amplitudes, validity weights."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from cca_cli.optics import fft
+from cca_cli.optics.forward import ForwardModel, to_model_layout, to_sensor_layout
+
+__all__ = ["PhaseRetrievalProblem", "initial_spectrum"]
+
+
+@dataclass(frozen=True)
+class PhaseRetrievalProblem:
+    """Measurements prepared for the forward model.
+
+    Attributes
+    ----------
+    model : ForwardModel
+    amplitudes : ndarray, float32, (K, m, m)
+        ``√I`` in model units and field layout.
+    weights : ndarray, float32, (K, m, m) or None
+        Per-pixel confidence in [0, 1] (0: the pixel does not constrain the
+        magnitude update), field layout; None means all pixels count fully.
+    """
+
+    model: ForwardModel
+    amplitudes: np.ndarray
+    weights: np.ndarray | None = None
+
+    def __post_init__(self):
+        expected = (self.model.n_images,) + self.model.field_shape
+        if self.amplitudes.shape != expected:
+            raise ValueError(f"amplitudes must have shape {expected}, got {self.amplitudes.shape}")
+        if self.weights is not None and self.weights.shape != expected:
+            raise ValueError(f"weights must have shape {expected}, got {self.weights.shape}")
+
+    @classmethod
+    def from_sensor_images(cls, model: ForwardModel, images: np.ndarray, weights: np.ndarray | None = None
+                           ) -> "PhaseRetrievalProblem":
+        """Prepare captures recorded on the sensor grid.
+
+        Parameters
+        ----------
+        model : ForwardModel
+        images : ndarray, (K, N, N)
+            Sensor intensities (irradiance units, centred sensor layout). When
+            ``N`` exceeds the model grid m they are reduced exactly by Fourier
+            cropping (the intensity band fits in m); negative values (noise)
+            are clipped to 0.
+        weights : ndarray, (K, N, N), optional
+            Validity weights in [0, 1] on the same grid (resampled by area when N > m).
+        """
+        images = np.asarray(images)
+        m = model.layout.lowres_size
+        k = model.n_images
+        if images.ndim != 3 or images.shape[0] != k or images.shape[1] != images.shape[2]:
+            raise ValueError(f"captures must have shape ({k}, N, N), got {images.shape}")
+        if images.shape[-1] < m:
+            raise ValueError(f"captures are {images.shape[-1]} px, smaller than the model grid {m}")
+        amplitudes = np.empty((k, m, m), np.float32)
+        scale = np.float32(model.intensity_scale)
+        for start in range(0, k, 32):
+            block = fft.fourier_resample(images[start:start + 32], m)
+            np.clip(block, 0, None, out=block)
+            amplitudes[start:start + 32] = to_model_layout(np.sqrt(block * scale))
+        resampled_weights = None
+        if weights is not None:
+            resampled_weights = to_model_layout(_area_resample(np.asarray(weights, np.float32), m))
+        return cls(model=model, amplitudes=amplitudes, weights=resampled_weights)
+
+    def sensor_intensities(self) -> np.ndarray:
+        """Measured intensities back in sensor units and layout on the model grid (K, m, m)."""
+        return to_sensor_layout(self.amplitudes.astype(np.float32) ** 2) / np.float32(self.model.intensity_scale)
+
+
+def _area_resample(weights: np.ndarray, size: int) -> np.ndarray:
+    n = weights.shape[-1]
+    if n == size:
+        return np.clip(weights, 0, 1)
+    from scipy import ndimage
+
+    factor = size / n
+    out = np.stack([ndimage.zoom(w, factor, order=1, grid_mode=True, mode="nearest") for w in weights])
+    return np.clip(out[:, :size, :size], 0, 1).astype(np.float32)
+
+
+def initial_spectrum(problem: PhaseRetrievalProblem) -> np.ndarray:
+    """The paper's start: the scaled Fourier transform of the mean low-resolution image.
+
+    The amplitude ``√mean(I)`` is interpolated (band-limited) to the M x M grid,
+    given zero phase and transformed; its scale matches the measurements.
+
+    Returns
+    -------
+    ndarray, complex64, (M, M)
+    """
+    model = problem.model
+    mean_intensity = to_sensor_layout(np.mean(problem.amplitudes.astype(np.float32) ** 2, axis=0))
+    mean_intensity /= model.intensity_scale
+    amplitude = np.sqrt(np.clip(fft.fourier_resample(mean_intensity[None], model.layout.hires_size)[0], 0, None))
+    return fft.fft2c(amplitude.astype(np.complex64)).astype(np.complex64)

@@ -1,0 +1,1 @@
+"""File formats: the HDF5 schema, atomic writes with provenance, image files."""

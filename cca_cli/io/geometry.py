@@ -1,0 +1,46 @@
+"""Read and write :class:`~cca_cli.sampling.geometry.CaptureGeometry` as the /geometry group."""
+
+from __future__ import annotations
+
+import h5py
+import numpy as np
+
+from cca_cli.errors import InputError
+from cca_cli.io.h5 import write_dataset
+from cca_cli.io.schema import GEOMETRY_ATTRS
+from cca_cli.sampling.geometry import CaptureGeometry
+
+__all__ = ["write_geometry", "read_geometry"]
+
+_SCALARS = ("wavelength_m", "focal_length_m", "aperture_diameter_m", "pixel_pitch_m", "distance_m",
+            "field_width_m", "pupil_radius_px", "overlap")
+_ARRAYS = ("aperture_centres_yx_m", "spectrum_centres_yx_px", "grid_indices")
+
+
+def write_geometry(handle: h5py.File, geometry: CaptureGeometry) -> None:
+    """Write ``geometry`` under /geometry with SI units as attributes."""
+    group = handle.require_group("geometry")
+    for name in _SCALARS:
+        group.attrs[name] = float(getattr(geometry, name))
+    group.attrs["centre_index"] = geometry.centre_index
+    group.attrs["synthetic_aperture_ratio"] = geometry.synthetic_aperture_ratio
+    group.attrs["units"] = ", ".join(f"{k}: {v}" for k, v in GEOMETRY_ATTRS.items())
+    for name in _ARRAYS:
+        write_dataset(group, name, getattr(geometry, name))
+
+
+def read_geometry(handle: h5py.File) -> CaptureGeometry:
+    """Read /geometry; a missing or malformed group raises a one-line InputError."""
+    if "geometry" not in handle:
+        raise InputError(f"{handle.filename}: no /geometry group; the file was not written by cca simulate/ingest")
+    group = handle["geometry"]
+    try:
+        values = {name: float(group.attrs[name]) for name in _SCALARS}
+        arrays = {name: np.asarray(group[name]) for name in _ARRAYS}
+    except KeyError as exc:
+        raise InputError(f"{handle.filename}: /geometry lacks {exc.args[0]}; the file is incomplete") from None
+    k = arrays["spectrum_centres_yx_px"].shape[0]
+    for name, arr in arrays.items():
+        if arr.shape != (k, 2):
+            raise InputError(f"{handle.filename}: /geometry/{name} has shape {arr.shape}, expected ({k}, 2)")
+    return CaptureGeometry(**values, **arrays)

@@ -1,0 +1,29 @@
+"""Image-quality metrics: bar contrast / MTF20 limit, RMSE, USAF reading.
+
+Depends only on numpy, scipy and :mod:`cca_cli.targets`.
+"""
+
+from cca_cli.metrics.contrast import (
+    ContrastTable,
+    bar_contrast,
+    contrast_table,
+    mtf_limit,
+    resolution_gain,
+)
+from cca_cli.metrics.error import amplitude_rmse, relative_error, rmse
+from cca_cli.metrics.usaf import UsafElementContrast, UsafReading, usaf_gain, usaf_resolution
+
+__all__ = [
+    "ContrastTable",
+    "bar_contrast",
+    "contrast_table",
+    "mtf_limit",
+    "resolution_gain",
+    "amplitude_rmse",
+    "relative_error",
+    "rmse",
+    "UsafElementContrast",
+    "UsafReading",
+    "usaf_gain",
+    "usaf_resolution",
+]

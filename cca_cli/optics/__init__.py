@@ -1,0 +1,1 @@
+"""Physics of one capture: FFTs, pupils, the forward model and sensor noise."""

@@ -1,0 +1,239 @@
+"""The camera-array forward operator and its adjoint.
+
+Capture ``i`` sees the object's spectrum ``S`` through its pupil ``P_i``
+centred at ``c_i`` (Fraunhofer):
+
+    ψ_i = F⁻¹{ P_i(k − c_i) · S(k) },        image_i = |ψ_i|²
+
+Only the pupil box of ``S`` matters to capture ``i``, so ψ_i is computed on
+the small m x m grid that holds its intensity band (``m > 4 R``) rather than
+on the full M x M grid, in batches, in complex64.
+
+Layouts
+-------
+*Spectrum*: centred M x M (DC at ``M // 2``), orthonormal with the object:
+``S = fft2c(object)``.
+*Fields* (what :meth:`ForwardModel.forward_into` returns): m x m with the image
+origin at index 0 (FFT order) and multiplied by ``(-1)^(y+x)``. Magnitude
+operations do not see the sign pattern; :func:`to_model_layout` /
+:func:`to_sensor_layout` convert intensities between this order and the
+sensor's centred order.
+
+Units
+-----
+With orthonormal transforms, ``|ψ|²`` is ``(M/m)²`` times the sensor
+irradiance (which equals 1 for an unobstructed unit plane wave). Use
+:attr:`ForwardModel.intensity_scale` to convert.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.lib.stride_tricks import as_strided
+
+from cca_cli.optics import fft
+from cca_cli.sampling.grid import BandLayout
+
+__all__ = ["ForwardModel", "Workspace", "to_model_layout", "to_sensor_layout", "chunk_slices"]
+
+
+def to_model_layout(images: np.ndarray) -> np.ndarray:
+    """Centred sensor images → field layout (origin at index 0)."""
+    return np.fft.ifftshift(images, axes=(-2, -1))
+
+
+def to_sensor_layout(images: np.ndarray) -> np.ndarray:
+    """Field layout (origin at index 0) → centred sensor images."""
+    return np.fft.fftshift(images, axes=(-2, -1))
+
+
+def chunk_slices(n_items: int, chunk: int) -> list[slice]:
+    """Split ``range(n_items)`` into nearly equal contiguous slices of at most ``chunk`` items."""
+    chunk = max(1, int(chunk))
+    count = max(1, math.ceil(n_items / chunk))
+    size = math.ceil(n_items / count)
+    return [slice(start, min(start + size, n_items)) for start in range(0, n_items, size)]
+
+
+class Workspace:
+    """Scratch space for one thread: a field buffer planned for in-place FFTs.
+
+    Parameters
+    ----------
+    chunk : int
+        Number of captures the buffer holds.
+    size : int
+        Per-capture grid m.
+    threads : int, optional
+        FFT threads for this buffer.
+    """
+
+    def __init__(self, chunk: int, size: int, *, threads: int | None = None):
+        self.fields = fft.zeros((chunk, size, size), np.complex64)
+        self.fft = fft.InPlaceFFT2(self.fields, threads=threads)
+
+    @property
+    def capacity(self) -> int:
+        """Number of captures the buffer holds."""
+        return self.fields.shape[0]
+
+
+class ForwardModel:
+    """Spectrum → per-capture sensor fields, with adjoint and normal diagonal.
+
+    Parameters
+    ----------
+    layout : BandLayout
+        Grid sizes and pupil boxes.
+    pupils : ndarray, (K, b, b) or (1, b, b), float32 or complex64
+        Pupil function of each capture on its box (see
+        :func:`~cca_cli.optics.pupil.circular_pupils`).
+
+    Notes
+    -----
+    The operator ``A_i = F_m⁻¹ · P_i · R_i`` (crop, pupil, inverse FFT) has the
+    adjoint ``A_iᴴ = R_iᵀ · P_i* · F_m`` and the normal operator
+    ``Σ A_iᴴ A_i = Σ R_iᵀ |P_i|² R_i``, a diagonal; the paper's Tikhonov update
+    divides by it.
+    """
+
+    def __init__(self, layout: BandLayout, pupils: np.ndarray):
+        pupils = np.asarray(pupils)
+        b = layout.box_size
+        if pupils.ndim != 3 or pupils.shape[1:] != (b, b) or pupils.shape[0] not in (1, layout.n_images):
+            raise ValueError(
+                f"pupils must have shape ({layout.n_images} or 1, {b}, {b}), got {pupils.shape}"
+            )
+        pupils = np.broadcast_to(pupils, (layout.n_images, b, b)).astype(np.complex64)
+        self.layout = layout
+        self.pupils = pupils
+        m = layout.lowres_size
+        # Orthonormal scaling folded into the pupils: raw FFTs then need no extra pass.
+        self._pupil_forward = (pupils / m).astype(np.complex64)
+        self._pupil_adjoint = (np.conj(pupils) / m).astype(np.complex64)
+        self._origins = [tuple(int(v) for v in o) for o in layout.box_origins]
+        self._oy = layout.box_origins[:, 0].copy()
+        self._ox = layout.box_origins[:, 1].copy()
+
+    # ------------------------------------------------------------------ shapes
+    @property
+    def n_images(self) -> int:
+        """Number of captures K."""
+        return self.layout.n_images
+
+    @property
+    def field_shape(self) -> tuple[int, int]:
+        """Shape (m, m) of one capture's field."""
+        return (self.layout.lowres_size, self.layout.lowres_size)
+
+    @property
+    def spectrum_shape(self) -> tuple[int, int]:
+        """Shape (M, M) of the high-resolution spectrum."""
+        return (self.layout.hires_size, self.layout.hires_size)
+
+    @property
+    def intensity_scale(self) -> float:
+        """``|ψ|²`` per unit sensor irradiance: ``(M / m)²``."""
+        return (self.layout.hires_size / self.layout.lowres_size) ** 2
+
+    def workspace(self, chunk: int | None = None, *, threads: int | None = None) -> Workspace:
+        """A :class:`Workspace` sized for ``chunk`` captures (default: all)."""
+        return Workspace(chunk or self.n_images, self.layout.lowres_size, threads=threads)
+
+    # --------------------------------------------------------------- operators
+    def forward_into(self, spectrum: np.ndarray, images: slice, workspace: Workspace) -> np.ndarray:
+        """Fields of captures ``images`` for ``spectrum``, written into the workspace.
+
+        Parameters
+        ----------
+        spectrum : ndarray, complex64, (M, M)
+            Centred high-resolution spectrum.
+        images : slice
+            Contiguous range of capture indices (at most the workspace capacity).
+        workspace : Workspace
+
+        Returns
+        -------
+        ndarray, complex64, (k, m, m)
+            A view of the workspace buffer (field layout, see module notes).
+        """
+        b = self.layout.box_size
+        s = self.layout.lowres_box_start
+        start, stop, _ = images.indices(self.n_images)
+        k = stop - start
+        fields = workspace.fields
+        fields[:k].fill(0)
+        windows = as_strided(
+            spectrum,
+            shape=(spectrum.shape[0] - b + 1, spectrum.shape[1] - b + 1, b, b),
+            strides=spectrum.strides * 2,
+            writeable=False,
+        )
+        np.multiply(windows[self._oy[images], self._ox[images]], self._pupil_forward[images],
+                    out=fields[:k, s:s + b, s:s + b])
+        workspace.fft.inverse()
+        return fields[:k]
+
+    def adjoint_into(self, workspace: Workspace, images: slice, accumulator: np.ndarray) -> None:
+        """Add ``Σ A_iᴴ ψ_i`` for captures ``images`` to ``accumulator``.
+
+        The fields are read from (and destroyed in) the workspace buffer.
+
+        Parameters
+        ----------
+        workspace : Workspace
+            Holds the fields of ``images`` in its first ``k`` slots.
+        images : slice
+            The same contiguous range passed to :meth:`forward_into`.
+        accumulator : ndarray, complex64, (M, M)
+            Centred spectrum that receives the back-projection.
+        """
+        b = self.layout.box_size
+        s = self.layout.lowres_box_start
+        start, stop, _ = images.indices(self.n_images)
+        k = stop - start
+        workspace.fft.forward()
+        boxes = workspace.fields[:k, s:s + b, s:s + b]
+        boxes *= self._pupil_adjoint[images]
+        for j, (y0, x0) in enumerate(self._origins[start:stop]):
+            accumulator[y0:y0 + b, x0:x0 + b] += boxes[j]
+
+    def normal_diagonal(self) -> np.ndarray:
+        """``Σ_i R_iᵀ |P_i|²`` on the M x M spectrum grid (float32)."""
+        b = self.layout.box_size
+        out = np.zeros(self.spectrum_shape, dtype=np.float32)
+        power = np.abs(self.pupils) ** 2
+        for i, (y0, x0) in enumerate(self._origins):
+            out[y0:y0 + b, x0:x0 + b] += power[i]
+        return out
+
+    # ------------------------------------------------------------ conveniences
+    def forward(self, spectrum: np.ndarray, *, chunk: int = 64) -> np.ndarray:
+        """All K fields (field layout), complex64 (K, m, m). Allocates; not for hot loops."""
+        out = np.empty((self.n_images,) + self.field_shape, np.complex64)
+        ws = self.workspace(min(chunk, self.n_images))
+        for sl in chunk_slices(self.n_images, ws.capacity):
+            out[sl] = self.forward_into(spectrum, sl, ws)
+        return out
+
+    def adjoint(self, fields: np.ndarray, *, chunk: int = 64) -> np.ndarray:
+        """``Σ A_iᴴ ψ_i`` for fields in field layout, complex64 (M, M). Does not modify ``fields``."""
+        acc = np.zeros(self.spectrum_shape, np.complex64)
+        ws = self.workspace(min(chunk, self.n_images))
+        for sl in chunk_slices(self.n_images, ws.capacity):
+            k = sl.stop - sl.start
+            ws.fields[:k] = fields[sl]
+            self.adjoint_into(ws, sl, acc)
+        return acc
+
+    def sensor_intensity(self, spectrum: np.ndarray, *, chunk: int = 64) -> np.ndarray:
+        """Noise-free captures in sensor units and centred sensor layout, float32 (K, m, m)."""
+        out = np.empty((self.n_images,) + self.field_shape, np.float32)
+        ws = self.workspace(min(chunk, self.n_images))
+        scale = 1.0 / self.intensity_scale
+        for sl in chunk_slices(self.n_images, ws.capacity):
+            fields = self.forward_into(spectrum, sl, ws)
+            out[sl] = to_sensor_layout(np.square(np.abs(fields)) * scale)
+        return out

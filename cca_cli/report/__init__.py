@@ -1,0 +1,1 @@
+"""Numbers (JSON) and figures (PNG) people look at."""

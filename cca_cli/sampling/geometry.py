@@ -1,0 +1,110 @@
+"""Capture geometry: where every capture's pupil sits, in SI and in spectrum pixels."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from cca_cli.sampling.grid import square_scan
+from cca_cli.sampling.overlap import step_m, synthetic_aperture_ratio
+from cca_cli.units import FourierScale, object_pixel_pitch_m
+
+__all__ = ["CaptureGeometry", "camera_scan_geometry"]
+
+
+@dataclass(frozen=True)
+class CaptureGeometry:
+    """Optics and per-capture pupil positions of a capture set.
+
+    Attributes
+    ----------
+    wavelength_m, focal_length_m, aperture_diameter_m, pixel_pitch_m, distance_m : float
+        The camera (SI).
+    field_width_m : float
+        Object-plane width covered by the sensor images (m).
+    aperture_centres_yx_m : ndarray, float64, (K, 2)
+        Aperture centres in the aperture plane (m).
+    spectrum_centres_yx_px : ndarray, float64, (K, 2)
+        The same positions in spectrum pixels relative to DC.
+    grid_indices : ndarray, int32, (K, 2)
+        Grid [row, column] of each capture.
+    pupil_radius_px : float
+        Pupil radius in spectrum pixels.
+    overlap : float
+        Linear overlap of neighbouring apertures (nan when not a regular grid).
+    """
+
+    wavelength_m: float
+    focal_length_m: float
+    aperture_diameter_m: float
+    pixel_pitch_m: float
+    distance_m: float
+    field_width_m: float
+    aperture_centres_yx_m: np.ndarray
+    spectrum_centres_yx_px: np.ndarray
+    grid_indices: np.ndarray
+    pupil_radius_px: float
+    overlap: float = float("nan")
+
+    @property
+    def n_images(self) -> int:
+        """Number of captures K."""
+        return int(self.spectrum_centres_yx_px.shape[0])
+
+    @property
+    def centre_index(self) -> int:
+        """The capture whose pupil is nearest DC (what a single on-axis camera records)."""
+        c = self.spectrum_centres_yx_px
+        return int(np.argmin(np.hypot(c[:, 0], c[:, 1])))
+
+    @property
+    def synthetic_aperture_ratio(self) -> float:
+        """Span of all pupils along the wider axis over one pupil diameter."""
+        c = self.spectrum_centres_yx_px
+        span = max(np.ptp(c[:, 0]), np.ptp(c[:, 1]))
+        return float((span + 2.0 * self.pupil_radius_px) / (2.0 * self.pupil_radius_px))
+
+    @property
+    def grid_shape(self) -> tuple[int, int]:
+        """(rows, columns) of the capture grid."""
+        return (int(self.grid_indices[:, 0].max()) + 1, int(self.grid_indices[:, 1].max()) + 1)
+
+
+def camera_scan_geometry(*, wavelength_m: float, focal_length_m: float, aperture_diameter_m: float,
+                         pixel_pitch_m: float, distance_m: float, field_width_m: float, grid: int,
+                         overlap: float) -> tuple[CaptureGeometry, int]:
+    """Geometry of an ``grid x grid`` aperture scan and the sensor pixels across the field.
+
+    The sensor sees ``N = round(field_width / (pixel_pitch · z / f))`` pixels
+    across the field of view; the field width is then taken as ``N`` object
+    pixels exactly so that sensor pixels and object pixels coincide.
+
+    Returns
+    -------
+    geometry : CaptureGeometry
+    sensor_pixels : int
+        N.
+    """
+    object_pixel = object_pixel_pitch_m(pixel_pitch_m, focal_length_m, distance_m)
+    sensor_pixels = int(round(field_width_m / object_pixel))
+    if sensor_pixels < 8:
+        raise ValueError(f"the field of view spans only {sensor_pixels} sensor pixels; widen the scene or use smaller pixels")
+    field_width = sensor_pixels * object_pixel
+    scale = FourierScale.fraunhofer(wavelength_m, distance_m, field_width)
+    scan = square_scan(grid, step_m(aperture_diameter_m, overlap))
+    geometry = CaptureGeometry(
+        wavelength_m=wavelength_m,
+        focal_length_m=focal_length_m,
+        aperture_diameter_m=aperture_diameter_m,
+        pixel_pitch_m=pixel_pitch_m,
+        distance_m=distance_m,
+        field_width_m=field_width,
+        aperture_centres_yx_m=scan.centres_yx_m,
+        spectrum_centres_yx_px=scale.to_pixels(scan.centres_yx_m),
+        grid_indices=scan.indices.astype(np.int32),
+        pupil_radius_px=scale.pupil_radius_px(aperture_diameter_m),
+        overlap=overlap,
+    )
+    assert abs(geometry.synthetic_aperture_ratio - synthetic_aperture_ratio(grid, overlap)) < 1e-9
+    return geometry, sensor_pixels

@@ -1,0 +1,146 @@
+"""Stage `reconstruct`: captures → recovered high-resolution object (recon.h5)."""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from cca_cli.config.model import ReconstructSection
+from cca_cli.engines.base import History, IterationRecord, run_engine
+from cca_cli.engines.problem import PhaseRetrievalProblem
+from cca_cli.engines.registry import get_engine
+from cca_cli.errors import ConfigError, InputError
+from cca_cli.io.geometry import read_geometry, write_geometry
+from cca_cli.io.h5 import Provenance, atomic_h5, check_output, open_input, require, write_dataset
+from cca_cli.optics import fft
+from cca_cli.optics.forward import ForwardModel
+from cca_cli.optics.pupil import circular_pupils
+from cca_cli.sampling.geometry import CaptureGeometry
+from cca_cli.sampling.grid import BandLayout, band_layout
+from cca_cli.stages.progress import ProgressEvent, ProgressFn, silent
+
+__all__ = ["SECTIONS", "Captures", "Recovery", "read_captures", "build_model", "reconstruct", "run"]
+
+SECTIONS = ("reconstruct",)
+
+
+@dataclass(frozen=True)
+class Captures:
+    """Measurements and geometry read from a captures file."""
+
+    path: Path
+    intensity: np.ndarray
+    weight: np.ndarray | None
+    geometry: CaptureGeometry
+    truth: dict
+
+
+@dataclass(frozen=True)
+class Recovery:
+    """Result of a reconstruction."""
+
+    spectrum: np.ndarray
+    layout: BandLayout
+    history: History
+    engine: str
+    options: dict
+    seconds: float
+
+
+def read_captures(path: Path) -> Captures:
+    """Read /measurements, /geometry and (if present) /truth, checking shapes and values."""
+    with open_input(path) as handle:
+        dataset = require(handle, "/measurements/intensity", ndim=3)
+        geometry = read_geometry(handle)
+        intensity = np.asarray(dataset, dtype=np.float32)
+        weight = np.asarray(handle["/measurements/weight"], np.float32) if "/measurements/weight" in handle else None
+        truth = {}
+        if "truth" in handle:
+            truth = {name: np.asarray(handle["truth"][name]) for name in handle["truth"]}
+    k, h, w = intensity.shape
+    if h != w:
+        raise InputError(f"{path}: /measurements/intensity images are {h}x{w}; crop them square (register.crop)")
+    if k != geometry.n_images:
+        raise InputError(f"{path}: {k} images but /geometry describes {geometry.n_images} positions")
+    if not np.all(np.isfinite(intensity)):
+        bad = int(np.argmax(~np.isfinite(intensity).reshape(k, -1).all(axis=1)))
+        raise InputError(f"{path}: image {bad} of /measurements/intensity contains NaN or Inf; fix or mask it")
+    if weight is not None and weight.shape != intensity.shape:
+        raise InputError(f"{path}: /measurements/weight has shape {weight.shape}, expected {intensity.shape}")
+    return Captures(path=Path(path), intensity=intensity, weight=weight, geometry=geometry, truth=truth)
+
+
+def build_model(geometry: CaptureGeometry, sensor_pixels: int, *, hires_size: int | None = None) -> ForwardModel:
+    """The forward model of a capture set on the smallest grids its band allows."""
+    layout = band_layout(geometry.spectrum_centres_yx_px, geometry.pupil_radius_px,
+                         sensor_size=sensor_pixels, hires_size=hires_size)
+    return ForwardModel(layout, circular_pupils(layout.box_size, layout.box_centres, layout.pupil_radius_px))
+
+
+def engine_options(section: ReconstructSection):
+    """The engine's options object from the reconstruct section."""
+    entry = get_engine(section.engine)
+    try:
+        return entry.options(tau=section.tau, max_iterations=section.iterations, tol=section.tol, **section.options)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"reconstruct.options: {exc}") from None
+
+
+def reconstruct(captures: Captures, section: ReconstructSection, *, progress: ProgressFn = silent) -> Recovery:
+    """Run the configured engine on ``captures``."""
+    try:
+        model = build_model(captures.geometry, captures.intensity.shape[-1])
+    except ValueError as exc:
+        raise InputError(f"{captures.path}: {exc}") from None
+    problem = PhaseRetrievalProblem.from_sensor_images(model, captures.intensity, captures.weight)
+    options = engine_options(section)
+    engine = get_engine(section.engine).engine(problem, options)
+    total = options.max_iterations
+
+    def on_iteration(record: IterationRecord) -> None:
+        progress(ProgressEvent("reconstruct", "iterations", record.iteration, total,
+                               {"residual": record.residual, "change": record.change}))
+
+    start = time.perf_counter()
+    spectrum, history = run_engine(engine, on_iteration=on_iteration)
+    return Recovery(spectrum=spectrum, layout=model.layout, history=history, engine=section.engine,
+                    options=asdict(options), seconds=time.perf_counter() - start)
+
+
+def write_recon(path: Path, captures: Captures, recovery: Recovery, provenance: Provenance, *, force: bool = False) -> None:
+    """Write ``recon.h5`` atomically: recovery, history, centre capture, truth and geometry."""
+    obj = fft.ifft2c(recovery.spectrum).astype(np.complex64)
+    layout = recovery.layout
+    with atomic_h5(path, provenance, force=force) as handle:
+        write_dataset(handle, "/recon/spectrum", recovery.spectrum)
+        write_dataset(handle, "/recon/object", obj)
+        write_dataset(handle, "/recon/intensity", (np.abs(obj) ** 2).astype(np.float32))
+        for name in ("residual", "change", "seconds"):
+            write_dataset(handle, f"/history/{name}", recovery.history.array(name))
+        write_dataset(handle, "/observed/centre", captures.intensity[captures.geometry.centre_index])
+        for name, data in captures.truth.items():
+            write_dataset(handle, f"/truth/{name}", data)
+        write_geometry(handle, captures.geometry)
+        recon = handle["recon"]
+        recon.attrs["engine"] = recovery.engine
+        recon.attrs["engine_options"] = json.dumps(recovery.options)
+        recon.attrs["iterations"] = recovery.history.iterations
+        recon.attrs["seconds"] = recovery.seconds
+        recon.attrs["hires_size"] = layout.hires_size
+        recon.attrs["lowres_size"] = layout.lowres_size
+        recon.attrs["pixel_pitch_object_m"] = captures.geometry.field_width_m / layout.hires_size
+        recon.attrs["fft_backend"] = fft.backend_name()
+
+
+def run(captures_path: Path, section: ReconstructSection, output: Path, *, provenance: Provenance,
+        force: bool = False, progress: ProgressFn = silent) -> Recovery:
+    """Read captures, reconstruct, write ``output``."""
+    check_output(output, force=force)
+    captures = read_captures(captures_path)
+    recovery = reconstruct(captures, section, progress=progress)
+    write_recon(output, captures, recovery, provenance, force=force)
+    return recovery

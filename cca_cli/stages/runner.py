@@ -1,0 +1,154 @@
+"""Run the configured stages in order, skipping those whose output is up to date.
+
+A stage's output is up to date when it exists and records the same hash of
+the config sections the stage reads and the same SHA-256 of its input files.
+Outputs appear atomically, so an interrupted run resumes at the first stage
+without a complete, matching output.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import yaml
+from pydantic import BaseModel
+
+from cca_cli.config.model import RunConfig
+from cca_cli.errors import OutputExistsError
+from cca_cli.io.h5 import Provenance, file_sha256, read_provenance
+from cca_cli.stages import reconstruct as reconstruct_stage
+from cca_cli.stages import report as report_stage
+from cca_cli.stages import simulate as simulate_stage
+from cca_cli.stages.progress import ProgressFn, silent
+
+__all__ = ["StagePlan", "StageOutcome", "plan_stages", "config_hash", "section_yaml", "pick_sections", "is_up_to_date", "run_pipeline", "default_out_dir"]
+
+OUTPUTS = {"simulate": "captures.h5", "reconstruct": "recon.h5", "report": "report"}
+INPUTS = {"simulate": (), "reconstruct": ("captures.h5",), "report": ("recon.h5",)}
+SECTIONS = {"simulate": simulate_stage.SECTIONS, "reconstruct": reconstruct_stage.SECTIONS,
+            "report": report_stage.SECTIONS}
+
+
+@dataclass(frozen=True)
+class StagePlan:
+    """One stage of a run: its output, inputs and the config sections it reads."""
+
+    name: str
+    output: Path
+    inputs: tuple[Path, ...]
+    sections: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class StageOutcome:
+    """What happened to a stage: ``ran`` or ``skipped`` (up to date)."""
+
+    name: str
+    status: str
+    output: Path
+    seconds: float
+    result: object = None
+
+
+def default_out_dir(config_path: Path | None) -> Path:
+    """``./cca-runs/<config name>`` (``headline`` for the built-in default)."""
+    return Path("cca-runs") / (config_path.stem if config_path else "headline")
+
+
+def plan_stages(config: RunConfig, out_dir: Path) -> list[StagePlan]:
+    """The stages of ``config.run.stages`` with their files under ``out_dir``."""
+    return [StagePlan(name, out_dir / OUTPUTS[name], tuple(out_dir / f for f in INPUTS[name]), SECTIONS[name])
+            for name in config.run.stages]
+
+
+def pick_sections(config: RunConfig, names: tuple[str, ...]) -> dict[str, BaseModel]:
+    """The named sections of ``config``."""
+    return {name: getattr(config, name) for name in names}
+
+
+def section_yaml(sections: dict[str, BaseModel]) -> str:
+    """YAML of config sections, as stored in provenance."""
+    return yaml.safe_dump({k: v.model_dump(mode="json") for k, v in sections.items()}, sort_keys=False)
+
+
+def config_hash(sections: dict[str, BaseModel]) -> str:
+    """SHA-256 of the JSON form of config sections."""
+    data = {k: v.model_dump(mode="json") for k, v in sections.items()}
+    return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
+
+
+def _recorded_provenance(output: Path) -> dict:
+    if output.is_dir():
+        try:
+            return json.loads((output / report_stage.REPORT_JSON).read_text()).get("provenance", {})
+        except (OSError, ValueError):
+            return {}
+    return read_provenance(output) if output.exists() else {}
+
+
+def is_up_to_date(plan: StagePlan, digest: str) -> bool:
+    """Whether ``plan.output`` exists with the same config hash and input hashes."""
+    recorded = _recorded_provenance(plan.output)
+    if recorded.get("config_hash") != digest:
+        return False
+    try:
+        inputs = json.loads(recorded.get("inputs", "[]"))
+        return [i["sha256"] for i in inputs] == [file_sha256(p) for p in plan.inputs]
+    except (OSError, ValueError, KeyError, TypeError):
+        return False
+
+
+def run_pipeline(config: RunConfig, out_dir: Path, *, force: bool = False, progress: ProgressFn = silent,
+                 on_stage=None) -> list[StageOutcome]:
+    """Run the configured stages; skip up-to-date ones unless ``force``.
+
+    Parameters
+    ----------
+    config : RunConfig
+    out_dir : Path
+        Directory of the stage files.
+    force : bool
+        Recompute every stage and overwrite existing outputs.
+    progress : callable
+        Receives :class:`~cca_cli.stages.progress.ProgressEvent` objects.
+    on_stage : callable, optional
+        Called with ``(plan, "start" | "skipped")`` before each stage.
+
+    Raises
+    ------
+    OutputExistsError
+        If an output exists but was made from another config or inputs and ``force`` is not set.
+    """
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    outcomes = []
+    for plan in plan_stages(config, out_dir):
+        sections = pick_sections(config, plan.sections)
+        digest = config_hash(sections)
+        if not force and plan.output.exists():
+            if is_up_to_date(plan, digest):
+                if on_stage:
+                    on_stage(plan, "skipped")
+                outcomes.append(StageOutcome(plan.name, "skipped", plan.output, 0.0))
+                continue
+            raise OutputExistsError(
+                f"{plan.output}: exists but was made from another config or inputs; "
+                "use --force to recompute it, or choose another run.out_dir")
+        if on_stage:
+            on_stage(plan, "start")
+        start = time.perf_counter()
+        provenance = Provenance.make(plan.name, section_yaml(sections), digest, list(plan.inputs))
+        if plan.name == "simulate":
+            result = simulate_stage.run(config, plan.output, provenance=provenance, force=True, progress=progress)
+        elif plan.name == "reconstruct":
+            result = reconstruct_stage.run(plan.inputs[0], config.reconstruct, plan.output, provenance=provenance,
+                                           force=True, progress=progress)
+        else:
+            result = report_stage.run(plan.inputs[0], config.report, plan.output, provenance=provenance,
+                                      force=True, progress=progress)
+        outcomes.append(StageOutcome(plan.name, "ran", plan.output, time.perf_counter() - start, result))
+    return outcomes
