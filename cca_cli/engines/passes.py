@@ -18,7 +18,7 @@ from cca_cli.optics.forward import ForwardModel, chunk_slices
 
 __all__ = ["ChunkedPass"]
 
-#: operation(fields, images, scratch) -> float statistic summed over chunks
+#: operation(fields, images, scratch (2, k, m, m) float32) -> float statistic summed over chunks
 ChunkOperation = Callable[[np.ndarray, slice, np.ndarray], float]
 
 
@@ -44,7 +44,7 @@ class ChunkedPass:
         capacity = max(s.stop - s.start for s in self.slices)
         self.threads = max(1, min(threads or fft.cpu_count(), len(self.slices)))
         self.workspaces = [model.workspace(capacity, threads=1) for _ in range(self.threads)]
-        self.scratch = [np.empty((capacity,) + model.field_shape, np.float32) for _ in range(self.threads)]
+        self.scratch = [np.empty((2, capacity) + model.field_shape, np.float32) for _ in range(self.threads)]
         self.accumulators = [np.zeros(model.spectrum_shape, np.complex64) for _ in range(self.threads)]
         self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
 
@@ -66,7 +66,7 @@ class ChunkedPass:
         total = 0.0
         for sl in self.slices[t::self.threads]:
             fields = self.model.forward_into(spectrum, sl, ws)
-            total += operation(fields, sl, scratch[: sl.stop - sl.start])
+            total += operation(fields, sl, scratch[:, : sl.stop - sl.start])
             self.model.adjoint_into(ws, sl, acc)
         return total
 

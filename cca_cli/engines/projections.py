@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["project_magnitudes"]
+__all__ = ["project_magnitudes", "project_grouped_magnitudes"]
 
 
 def project_magnitudes(fields: np.ndarray, amplitudes: np.ndarray, scratch: np.ndarray, *,
@@ -19,8 +19,8 @@ def project_magnitudes(fields: np.ndarray, amplitudes: np.ndarray, scratch: np.n
         Fields ψ, modified in place.
     amplitudes : ndarray, float32, (k, m, m)
         Measured amplitudes A.
-    scratch : ndarray, float32, (k, m, m)
-        Work array (overwritten).
+    scratch : ndarray, float32, (2, k, m, m)
+        Work arrays (overwritten).
     weights : ndarray, float32, (k, m, m), optional
         Per-pixel confidence in [0, 1].
     eps : float
@@ -31,15 +31,66 @@ def project_magnitudes(fields: np.ndarray, amplitudes: np.ndarray, scratch: np.n
     float
         ``Σ w (|ψ| − A)²`` over the chunk, before the projection.
     """
-    magnitude = np.abs(fields, out=scratch)
-    misfit = magnitude - amplitudes
+    magnitude = np.abs(fields, out=scratch[0])
+    misfit = np.subtract(magnitude, amplitudes, out=scratch[1])
     if weights is not None:
         misfit *= np.sqrt(weights)
-    squared = float(np.vdot(misfit.ravel(), misfit.ravel()))
-    np.maximum(magnitude, eps, out=magnitude)
+    flat = misfit.reshape(-1)
+    squared = float(np.dot(flat, flat))
+    magnitude += np.float32(eps)
     ratio = np.divide(amplitudes, magnitude, out=magnitude)
     if weights is not None:
         ratio *= weights
         ratio += 1.0 - weights
     fields *= ratio
+    return squared
+
+
+def project_grouped_magnitudes(fields: np.ndarray, amplitudes: np.ndarray, scratch: np.ndarray,
+                               offsets: np.ndarray, *, weights: np.ndarray | None = None,
+                               eps: float = 1e-12) -> float:
+    """Joint magnitude projection of fields whose intensities add up to one measurement.
+
+    For each group ``g`` (fields ``offsets[g]:offsets[g+1]``) with measured
+    amplitude ``A_g = √I_g``: ``ψ_i ← w · A_g / √(Σ_j |ψ_j|²) · ψ_i + (1 − w) · ψ_i``
+    for every ``i`` in the group. With one field per group this is
+    :func:`project_magnitudes`.
+
+    Parameters
+    ----------
+    fields : ndarray, complex64, (k, m, m)
+        Fields ψ of consecutive virtual captures, modified in place.
+    amplitudes : ndarray, float32, (g, m, m)
+        Measured amplitudes of the g groups.
+    scratch : ndarray, float32, (k, m, m) or (2, k, m, m)
+        Work array(s) (overwritten; only the first is used).
+    offsets : ndarray, int, (g + 1,)
+        Group boundaries within ``fields`` (``offsets[0] == 0``, ``offsets[-1] == k``).
+    weights : ndarray, float32, (g, m, m), optional
+        Per-pixel confidence of each measurement in [0, 1].
+    eps : float
+        Floor on the modelled amplitude ``√(Σ |ψ|²)``.
+
+    Returns
+    -------
+    float
+        ``Σ w (√(Σ_j |ψ_j|²) − A_g)²`` over the groups, before the projection.
+    """
+    power = np.abs(fields, out=scratch[0] if scratch.ndim == 4 else scratch)
+    np.square(power, out=power)
+    squared = 0.0
+    for g in range(len(offsets) - 1):
+        lo, hi = int(offsets[g]), int(offsets[g + 1])
+        magnitude = np.sqrt(power[lo:hi].sum(axis=0) if hi - lo > 1 else power[lo])
+        misfit = magnitude - amplitudes[g]
+        if weights is not None:
+            misfit *= np.sqrt(weights[g])
+        flat = misfit.reshape(-1)
+        squared += float(np.dot(flat, flat))
+        magnitude += np.float32(eps)
+        ratio = np.divide(amplitudes[g], magnitude, out=magnitude)
+        if weights is not None:
+            ratio *= weights[g]
+            ratio += 1.0 - weights[g]
+        fields[lo:hi] *= ratio
     return squared
