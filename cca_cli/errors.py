@@ -61,5 +61,5 @@ class CheckerboardNotFound(InputError):
         super().__init__(
             f"{source}: no {pattern[0]}x{pattern[1]} checkerboard (inner corners) found; "
             "check the pattern size in the manifest, the lighting, or allow dropping views "
-            "with register.drop_missing: true"
+            "with registration.drop_missing: true (cca register --drop-missing)"
         )

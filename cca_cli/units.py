@@ -118,6 +118,34 @@ class FourierScale:
         """Radius (spectrum pixels) of a circular aperture of the given diameter."""
         return float(self.to_pixels(aperture_diameter_m / 2.0))
 
+    def illumination_shift_px(self, source_offset_m, source_distance_m: float, object_distance_m: float):
+        """Spectrum shift (pixels) made by a point source off the optical axis.
+
+        A source ``x_s`` metres off axis at ``z_s`` metres from the object tilts
+        the illuminating plane wave by ``x_s / z_s`` radians, which moves the
+        object's spectrum by ``(x_s / z_s) / λ`` cycles/m, i.e. by the same
+        amount as moving the aperture ``(x_s / z_s) · z`` metres in the
+        aperture plane at the object distance ``z``.
+
+        Parameters
+        ----------
+        source_offset_m : array_like
+            Transverse source position(s) relative to the optical axis (m).
+        source_distance_m : float
+            Distance from the sources to the object (m).
+        object_distance_m : float
+            Distance from the object to the aperture plane (m), the ``z`` of this scale.
+
+        Returns
+        -------
+        ndarray, float64
+            Shift(s) in spectrum pixels, same shape as ``source_offset_m``.
+        """
+        if not source_distance_m > 0:
+            raise ValueError(f"source distance must be positive, got {source_distance_m}")
+        offsets = np.asarray(source_offset_m, dtype=np.float64)
+        return self.to_pixels(offsets / source_distance_m * object_distance_m)
+
 
 def led_fourier_scale(wavelength_m: float, field_width_m: float) -> FourierScale:
     """Spectrum scale of an LED-array (angle-scan) microscope, in units of numerical aperture.

@@ -85,6 +85,10 @@ def summary_table(summary: dict, title: str = "Result") -> Table:
         ("resolution gain", "resolution_gain", "{:.2f}"),
         ("RMSE observed", "rmse_observed", "{:.4f}"),
         ("RMSE recovered", "rmse_recovered", "{:.4f}"),
+        ("multiplexed images (P·T)", "multiplex_measurements", "{}"),
+        ("spectrum holes (share of band)", "coverage_zero_fraction", "{:.1%}"),
+        ("spectrum seen by one image only", "coverage_single_fraction", "{:.1%}"),
+        ("images per spectrum px (mean)", "coverage_mean", "{:.2f}"),
     ]
     for label, key, fmt in rows:
         if key is None:

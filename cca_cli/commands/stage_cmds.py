@@ -34,6 +34,12 @@ def simulate_cli(
     with progress_reporter(not quiet) as progress:
         sim = simulate_stage.run(cfg, output, provenance=provenance, force=force, progress=progress)
     g = sim.geometry
+    if cfg.multiplex is not None:
+        mux = sim.multiplex
+        console.print(f"{output}: {mux.n_measurements} multiplexed images ({mux.n_cameras} cameras x "
+                      f"{mux.n_patterns} patterns) of {sim.intensity.shape[-1]}² px summing {g.n_images} regions, "
+                      f"SAR {g.synthetic_aperture_ratio:.2f}, pupil radius {g.pupil_radius_px:.2f} spectrum px")
+        return
     console.print(f"{output}: {g.n_images} captures of {sim.intensity.shape[-1]}² px, SAR {g.synthetic_aperture_ratio:.2f}, "
                   f"pupil radius {g.pupil_radius_px:.2f} spectrum px")
 

@@ -87,7 +87,15 @@ def load_config(path: str | Path | None = None) -> RunConfig:
         mark = getattr(exc, "problem_mark", None)
         where = f" line {mark.line + 1}" if mark else ""
         raise ConfigError(f"{path}:{where}: not valid YAML ({getattr(exc, 'problem', exc)})") from None
-    return parse_config(data, source=str(path))
+    return _resolve_relative_paths(parse_config(data, source=str(path)), path.parent)
+
+
+def _resolve_relative_paths(config: RunConfig, base: Path) -> RunConfig:
+    """Paths that name input files (ingest.manifest) are relative to the config file's directory."""
+    if config.ingest is not None and not config.ingest.manifest.is_absolute():
+        ingest = config.ingest.model_copy(update={"manifest": base / config.ingest.manifest})
+        config = config.model_copy(update={"ingest": ingest})
+    return config
 
 
 def dump_config(config: BaseModel) -> str:

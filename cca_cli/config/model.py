@@ -9,7 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, PositiveInt, model_validator
+from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, PositiveInt, field_validator, model_validator
 
 __all__ = [
     "STAGES",
@@ -21,12 +21,21 @@ __all__ = [
     "SimulateSection",
     "ReconstructSection",
     "ReportSection",
+    "BaselineSpec",
+    "SweepSection",
+    "MultiplexSection",
+    "IngestSection",
+    "HdrSection",
+    "RegisterSection",
+    "DEFAULT_STAGES",
     "RunConfig",
 ]
 
-#: Stage names in pipeline order.
-STAGES = ("simulate", "reconstruct", "report")
-StageName = Literal["simulate", "reconstruct", "report"]
+#: Stage names in pipeline order (simulate and ingest are alternative sources of captures).
+STAGES = ("simulate", "ingest", "hdr", "register", "reconstruct", "report")
+StageName = Literal["simulate", "ingest", "hdr", "register", "reconstruct", "report"]
+#: The stages a config runs when run.stages is not given.
+DEFAULT_STAGES = ("simulate", "reconstruct", "report")
 
 
 class Section(BaseModel):
@@ -39,13 +48,15 @@ class RunSection(Section):
     """Which stages run and where their files go."""
 
     out_dir: Path | None = Field(None, description="Output directory; default ./cca-runs/<config name>.")
-    stages: list[StageName] = Field(list(STAGES), description="Stages to run, in pipeline order.")
+    stages: list[StageName] = Field(list(DEFAULT_STAGES), description="Stages to run, in pipeline order.")
 
     @model_validator(mode="after")
     def _stages_in_order(self):
         order = [STAGES.index(s) for s in self.stages]
         if order != sorted(order) or len(set(order)) != len(order):
             raise ValueError(f"stages must be distinct and in the order {', '.join(STAGES)}")
+        if "simulate" in self.stages and "ingest" in self.stages:
+            raise ValueError("simulate and ingest are alternative sources of captures; list only one")
         return self
 
 
@@ -62,14 +73,25 @@ class OpticsSection(Section):
 class SceneSection(Section):
     """The object: a built-in chart or an image file, and its physical width."""
 
-    kind: Literal["resolution_chart", "usaf", "image"] = Field(
-        "resolution_chart", description="resolution_chart (bars 20…1 px), usaf (USAF-1951) or image.")
+    kind: Literal["resolution_chart", "usaf", "image", "natural", "fingerprint", "face", "label"] = Field(
+        "resolution_chart",
+        description="resolution_chart (bars 20…1 px), usaf (USAF-1951), image, or natural (synthetic portrait-like photo).")
     size_px: PositiveInt = Field(512, description="Scene pixels across (chart or resampled image).")
     field_width_m: PositiveFloat = Field(0.064, description="Object-plane width of the scene (m).")
     widths_px: list[PositiveInt] | None = Field(None, description="Bar widths of the resolution chart (px).")
     image_path: Path | None = Field(None, description="Amplitude image (any OpenImageIO format) for kind=image.")
     phase_path: Path | None = Field(None, description="Optional phase image, scaled to [0, phase_max_rad].")
     phase_max_rad: float = Field(3.141592653589793, description="Phase of a white phase-image pixel (rad).")
+    usaf_groups: list[int] | None = Field(None, description="USAF-1951 groups to draw for kind=usaf (default -2…3).")
+    ridge_period_m: PositiveFloat = Field(0.5e-3, description="Ridge period of kind=fingerprint (m).")
+    chart_inset_px: PositiveInt | None = Field(
+        None, description="fingerprint/face/label: a bar chart this many scene px square in the lower-right corner "
+                          "(widths_px, or the largest set that fits), so MTF20 can be measured.")
+    surface_phase: Literal["none", "random"] = Field(
+        "none", description="random: a rough, diffuse surface (random phase) that makes speckle.")
+    surface_roughness_rad: float = Field(3.0, ge=0.0, description="RMS of the random surface phase (rad).")
+    surface_correlation_px: float = Field(0.0, ge=0.0, description="Gaussian correlation length of the surface phase (simulation px; 0 = per pixel).")
+    surface_seed: int = Field(0, description="Seed of the random surface phase.")
 
     @model_validator(mode="after")
     def _image_needs_path(self):
@@ -118,18 +140,54 @@ class ReconstructSection(Section):
     tol: float = Field(1e-5, ge=0.0, description="Stop when the relative spectrum change is below this.")
     options: dict[str, Any] = Field(default_factory=dict, description="Engine-specific options.")
 
-    @model_validator(mode="after")
-    def _known_engine(self):
+    # Field validators (not a model validator) so that errors point at reconstruct.engine / .options.
+    @field_validator("engine")
+    @classmethod
+    def _known_engine(cls, engine):
         from cca_cli.engines.registry import ENGINES, engine_names
 
-        if self.engine not in ENGINES:
-            raise ValueError(f"{self.engine!r} is not an engine; choose one of {', '.join(engine_names())}")
-        accepted = set(ENGINES[self.engine].option_names()) - {"tau", "max_iterations", "tol"}
-        unknown = sorted(set(self.options) - accepted)
+        if engine not in ENGINES:
+            raise ValueError(f"{engine!r} is not an engine; choose one of {', '.join(engine_names())}")
+        return engine
+
+    @field_validator("options")
+    @classmethod
+    def _known_options(cls, options, info):
+        from cca_cli.engines.registry import ENGINES
+
+        engine = info.data.get("engine")
+        if engine not in ENGINES:
+            return options
+        accepted = set(ENGINES[engine].option_names()) - {"tau", "max_iterations", "tol"}
+        unknown = sorted(set(options) - accepted)
         if unknown:
-            raise ValueError(f"unknown option(s) {', '.join(unknown)} for engine {self.engine}; "
+            raise ValueError(f"unknown option(s) {', '.join(unknown)} for engine {engine}; "
                              f"accepted: {', '.join(sorted(accepted)) or 'none'}")
+        return options
+
+
+class BaselineSpec(Section):
+    """A single-lens baseline image computed from the ground truth."""
+
+    kind: Literal["passive_incoherent", "lens"] = Field(
+        ..., description="passive_incoherent: the array's own lens under incoherent light; lens: a lens of aperture_diameter_m.")
+    aperture_diameter_m: PositiveFloat | None = Field(None, description="Aperture of the lens (kind=lens) (m).")
+    illumination: Literal["coherent", "incoherent"] = Field("incoherent", description="Light of a kind=lens baseline.")
+    name: str | None = Field(None, description="Label in the report (default from kind, aperture and light).")
+
+    @model_validator(mode="after")
+    def _lens_needs_aperture(self):
+        if self.kind == "lens" and self.aperture_diameter_m is None:
+            raise ValueError("a baseline of kind 'lens' needs aperture_diameter_m")
         return self
+
+    def label(self) -> str:
+        """The report's key for this baseline."""
+        if self.name:
+            return self.name
+        if self.kind == "passive_incoherent":
+            return "passive_incoherent"
+        return f"lens_{self.aperture_diameter_m * 1e3:g}mm_{self.illumination}"
 
 
 class ReportSection(Section):
@@ -137,6 +195,111 @@ class ReportSection(Section):
 
     mtf_threshold: float = Field(0.2, gt=0.0, lt=1.0, description="Contrast threshold of the resolution limit (MTF20: 0.2).")
     figures: bool = Field(True, description="Write PNG figures.")
+    baselines: list[BaselineSpec] = Field(
+        default_factory=list, description="Single-lens images to compare with: passive_incoherent (the same lens) or lens.")
+    speckle_region: list[float] | None = Field(
+        None, min_length=4, max_length=4,
+        description="Uniform object region [y0, y1, x0, x1] as fractions of the field (0…1) for speckle contrast.")
+
+
+class SweepSection(Section):
+    """A parameter study: many runs of the config above with some keys changed (`cca sweep`)."""
+
+    study: Literal["grid", "overlap", "sar", "noise"] = Field(
+        "grid", description="Study kind: grid (any keys), or the paper's overlap, sar and noise studies.")
+    points: list[dict[str, Any]] = Field(
+        default_factory=list, description="Explicit points: override dicts of dotted keys (keys that change together).")
+    parameters: dict[str, list[Any]] = Field(
+        default_factory=dict, description="Dotted key → values; the cartesian product is crossed with `points`.")
+    x: str | None = Field(None, description="Table column on the x axis of the line plots (default: the study's).")
+    group: str | None = Field(None, description="Table column that separates the lines of a plot.")
+    highlight: list[float] | None = Field(
+        None, description="Values of x whose contrast curves and recovered crops are drawn (default: all, up to 8).")
+    figures: bool = Field(True, description="Write the sweep's PNG figures.")
+
+
+class MultiplexSection(Section):
+    """A single-shot camera array lit by several mutually incoherent sources (paper Section VII).
+
+    The cameras use the optics section's lens; ``array`` is ignored when this
+    section is present. Sources are given either by the overlap their spectrum
+    regions make (``source_overlap``) or by their pitch and distance.
+    """
+
+    camera_grid: tuple[PositiveInt, PositiveInt] = Field((7, 7), description="Cameras (rows, columns).")
+    camera_pitch_m: PositiveFloat | Literal["abutting"] = Field(
+        "abutting", description="Distance between camera centres (m), or 'abutting' (= aperture diameter).")
+    source_grid: tuple[PositiveInt, PositiveInt] = Field((7, 7), description="Sources (rows, columns).")
+    source_overlap: float | None = Field(
+        None, lt=1.0, description="Linear overlap of the spectrum regions of neighbouring sources, in (0, 1).")
+    source_pitch_m: PositiveFloat | None = Field(None, description="Distance between neighbouring sources (m).")
+    source_distance_m: PositiveFloat | None = Field(None, description="Distance from the sources to the object (m).")
+    n_mux: PositiveInt = Field(1, description="Active sources per illumination pattern N_mux.")
+    patterns: PositiveInt = Field(1, description="Number of illumination patterns T (random, see pattern_seed).")
+    pattern_seed: int = Field(0, description="Seed of the random patterns.")
+    pattern_list: list[list[int]] | None = Field(
+        None, description="Explicit patterns: lists of source indices (row-major, 0…Q−1); overrides n_mux/patterns.")
+
+    @property
+    def n_sources(self) -> int:
+        """Q."""
+        return self.source_grid[0] * self.source_grid[1]
+
+    @model_validator(mode="after")
+    def _sources_and_patterns(self):
+        by_overlap = self.source_overlap is not None
+        by_position = self.source_pitch_m is not None or self.source_distance_m is not None
+        if by_overlap == by_position:
+            raise ValueError("give either source_overlap or both source_pitch_m and source_distance_m")
+        if by_position and (self.source_pitch_m is None or self.source_distance_m is None):
+            raise ValueError("source positions need both source_pitch_m and source_distance_m")
+        if by_overlap and self.source_overlap <= 0:
+            raise ValueError(f"source_overlap {self.source_overlap} makes sources produce no overlap between "
+                             "neighbouring spectrum regions, so phases cannot be retrieved; use a value in (0, 1), e.g. 0.66")
+        q = self.n_sources
+        if self.pattern_list is None:
+            if self.n_mux > q:
+                raise ValueError(f"n_mux {self.n_mux} is larger than the {q} sources of the "
+                                 f"{self.source_grid[0]}x{self.source_grid[1]} illumination array; use n_mux ≤ {q}")
+            return self
+        if not self.pattern_list:
+            raise ValueError("pattern_list is empty; list at least one pattern or remove the key")
+        for t, pattern in enumerate(self.pattern_list):
+            bad = [s for s in pattern if not 0 <= s < q]
+            if bad:
+                raise ValueError(f"pattern_list[{t}] names source {bad[0]}, which does not exist; "
+                                 f"sources are numbered 0…{q - 1} (row-major over {self.source_grid[0]}x{self.source_grid[1]})")
+            if not pattern or len(set(pattern)) != len(pattern):
+                raise ValueError(f"pattern_list[{t}] must list distinct sources, got {pattern}")
+        return self
+
+
+class IngestSection(Section):
+    """Recorded captures: a manifest of image files (README, "Real captures")."""
+
+    manifest: Path = Field(..., description="Capture manifest (YAML, or CSV with a YAML sidecar); "
+                                            "relative to the config file's directory.")
+
+
+class HdrSection(Section):
+    """Merging exposure brackets into linear radiance."""
+
+    saturation_level: PositiveFloat | None = Field(
+        None, description="Clipping level in black-subtracted counts (default: from the manifest's sensor/bit depth).")
+    noise_floor: float = Field(0.0, ge=0.0, description="Counts at or below this are noise and ignored.")
+    min_weight: float = Field(1e-3, gt=0.0, le=1.0, description="Smallest weight of a valid pixel.")
+    saturation_margin: float = Field(0.01, ge=0.0, lt=1.0,
+                                     description="Values ≥ saturation_level·(1 − margin) count as saturated.")
+
+
+class RegisterSection(Section):
+    """Aligning views to the centre view with the checkerboard (config key ``registration``)."""
+
+    crop_xywh: tuple[int, int, PositiveInt, PositiveInt] | None = Field(
+        None, description="Square object rectangle [x0, y0, width, height] in reference pixels (default: whole frame).")
+    drop_missing: bool = Field(False, description="Drop (with a warning) views where the board is not found.")
+    ransac_threshold_px: PositiveFloat = Field(1.0, description="RANSAC inlier threshold (reference px).")
+    interpolation: Literal["linear", "cubic", "lanczos"] = Field("cubic", description="Warp kernel.")
 
 
 class RunConfig(Section):
@@ -150,3 +313,15 @@ class RunConfig(Section):
     simulate: SimulateSection = SimulateSection()
     reconstruct: ReconstructSection = ReconstructSection()
     report: ReportSection = ReportSection()
+    sweep: SweepSection | None = None
+    multiplex: MultiplexSection | None = None
+    ingest: IngestSection | None = None
+    hdr: HdrSection | None = None
+    # The register stage's section: "register" would shadow BaseModel.register (ABCMeta).
+    registration: RegisterSection | None = None
+
+    @model_validator(mode="after")
+    def _ingest_needs_manifest(self):
+        if "ingest" in self.run.stages and self.ingest is None:
+            raise ValueError("run.stages lists ingest but there is no ingest section; add ingest: {manifest: FILE}")
+        return self

@@ -59,6 +59,14 @@ class AltMinOptions:
             raise ValueError(f"max_iterations must be ≥ 1, got {self.max_iterations}")
         if self.tol < 0:
             raise ValueError(f"tol must be ≥ 0, got {self.tol}")
+        if not _is_count(self.chunk):
+            raise ValueError(f"chunk must be an integer ≥ 1, got {self.chunk!r}")
+        if self.threads is not None and not _is_count(self.threads):
+            raise ValueError(f"threads must be an integer ≥ 1 or null, got {self.threads!r}")
+
+
+def _is_count(value) -> bool:
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= 1
 
 
 class AlternatingMinimization(IterativeEngine):
@@ -82,12 +90,16 @@ class AlternatingMinimization(IterativeEngine):
         self._spectrum = (initial_spectrum(problem) if spectrum is None else spectrum).astype(np.complex64)
         self._next = np.empty_like(self._spectrum)
         self._inverse_normal = (1.0 / (model.normal_diagonal() + np.float32(options.tau + 1e-30))).astype(np.float32)
-        self._pass = ChunkedPass(model, chunk=options.chunk, threads=options.threads)
+        self._pass = ChunkedPass(model, chunk=options.chunk, threads=options.threads, slices=self._pass_slices())
         amplitudes = problem.amplitudes
         self._data_norm = float(np.vdot(amplitudes.ravel(), amplitudes.ravel()))
         self._eps = float(1e-6 * np.mean(amplitudes)) or 1e-12
         self._iteration = 0
         self._change = np.inf
+
+    def _pass_slices(self) -> list[slice] | None:
+        """Capture ranges processed together (None: plain chunks); subclasses keep groups whole."""
+        return None
 
     def _project(self, fields: np.ndarray, images: slice, scratch: np.ndarray) -> float:
         weights = None if self.problem.weights is None else self.problem.weights[images]

@@ -9,7 +9,7 @@ import numpy as np
 from cca_cli.optics import fft
 from cca_cli.optics.forward import ForwardModel, to_model_layout, to_sensor_layout
 
-__all__ = ["PhaseRetrievalProblem", "initial_spectrum"]
+__all__ = ["PhaseRetrievalProblem", "initial_spectrum", "sensor_amplitudes"]
 
 
 @dataclass(frozen=True)
@@ -53,27 +53,52 @@ class PhaseRetrievalProblem:
         weights : ndarray, (K, N, N), optional
             Validity weights in [0, 1] on the same grid (resampled by area when N > m).
         """
-        images = np.asarray(images)
-        m = model.layout.lowres_size
-        k = model.n_images
-        if images.ndim != 3 or images.shape[0] != k or images.shape[1] != images.shape[2]:
-            raise ValueError(f"captures must have shape ({k}, N, N), got {images.shape}")
-        if images.shape[-1] < m:
-            raise ValueError(f"captures are {images.shape[-1]} px, smaller than the model grid {m}")
-        amplitudes = np.empty((k, m, m), np.float32)
-        scale = np.float32(model.intensity_scale)
-        for start in range(0, k, 32):
-            block = fft.fourier_resample(images[start:start + 32], m)
-            np.clip(block, 0, None, out=block)
-            amplitudes[start:start + 32] = to_model_layout(np.sqrt(block * scale))
-        resampled_weights = None
-        if weights is not None:
-            resampled_weights = to_model_layout(_area_resample(np.asarray(weights, np.float32), m))
+        amplitudes, resampled_weights = sensor_amplitudes(model, images, weights, count=model.n_images)
         return cls(model=model, amplitudes=amplitudes, weights=resampled_weights)
 
     def sensor_intensities(self) -> np.ndarray:
         """Measured intensities back in sensor units and layout on the model grid (K, m, m)."""
         return to_sensor_layout(self.amplitudes.astype(np.float32) ** 2) / np.float32(self.model.intensity_scale)
+
+
+def sensor_amplitudes(model: ForwardModel, images: np.ndarray, weights: np.ndarray | None = None, *,
+                      count: int | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    """Sensor images (and weights) → amplitudes ``√I`` in model units and field layout on the m grid.
+
+    Parameters
+    ----------
+    model : ForwardModel
+        Supplies the grid m and the intensity scale.
+    images : ndarray, (k, N, N)
+        Sensor intensities, centred; reduced exactly by Fourier cropping when
+        ``N > m``; negative values (noise) are clipped to 0.
+    weights : ndarray, (k, N, N), optional
+        Validity weights in [0, 1], resampled by area when ``N > m``.
+    count : int, optional
+        Required number of images k.
+
+    Returns
+    -------
+    amplitudes : ndarray, float32, (k, m, m)
+    weights : ndarray, float32, (k, m, m) or None
+    """
+    images = np.asarray(images)
+    m = model.layout.lowres_size
+    k = images.shape[0] if count is None else count
+    if images.ndim != 3 or images.shape[0] != k or images.shape[1] != images.shape[2]:
+        raise ValueError(f"captures must have shape ({k}, N, N), got {images.shape}")
+    if images.shape[-1] < m:
+        raise ValueError(f"captures are {images.shape[-1]} px, smaller than the model grid {m}")
+    amplitudes = np.empty((k, m, m), np.float32)
+    scale = np.float32(model.intensity_scale)
+    for start in range(0, k, 32):
+        block = fft.fourier_resample(images[start:start + 32], m)
+        np.clip(block, 0, None, out=block)
+        amplitudes[start:start + 32] = to_model_layout(np.sqrt(block * scale))
+    resampled_weights = None
+    if weights is not None:
+        resampled_weights = to_model_layout(_area_resample(np.asarray(weights, np.float32), m))
+    return amplitudes, resampled_weights
 
 
 def _area_resample(weights: np.ndarray, size: int) -> np.ndarray:

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, fields
 
 from cca_cli.engines.altmin import AlternatingMinimization, AltMinOptions
+from cca_cli.engines.momentum import MomentumOptions, SequentialMomentum
 
 __all__ = ["EngineEntry", "ENGINES", "get_engine", "engine_names"]
 
@@ -23,6 +24,7 @@ class EngineEntry:
 
 ENGINES: dict[str, EngineEntry] = {
     "altmin": EngineEntry(AlternatingMinimization, AltMinOptions),
+    "momentum": EngineEntry(SequentialMomentum, MomentumOptions),
 }
 
 

@@ -24,6 +24,8 @@ def write_geometry(handle: h5py.File, geometry: CaptureGeometry) -> None:
         group.attrs[name] = float(getattr(geometry, name))
     group.attrs["centre_index"] = geometry.centre_index
     group.attrs["synthetic_aperture_ratio"] = geometry.synthetic_aperture_ratio
+    group.attrs["kind"] = geometry.kind
+    group.attrs["numerical_aperture"] = float(geometry.numerical_aperture)
     group.attrs["units"] = ", ".join(f"{k}: {v}" for k, v in GEOMETRY_ATTRS.items())
     for name in _ARRAYS:
         write_dataset(group, name, getattr(geometry, name))
@@ -39,6 +41,9 @@ def read_geometry(handle: h5py.File) -> CaptureGeometry:
         arrays = {name: np.asarray(group[name]) for name in _ARRAYS}
     except KeyError as exc:
         raise InputError(f"{handle.filename}: /geometry lacks {exc.args[0]}; the file is incomplete") from None
+    kind = group.attrs.get("kind", "camera_scan")
+    values["kind"] = kind.decode() if isinstance(kind, bytes) else str(kind)
+    values["numerical_aperture"] = float(group.attrs.get("numerical_aperture", float("nan")))
     k = arrays["spectrum_centres_yx_px"].shape[0]
     for name, arr in arrays.items():
         if arr.shape != (k, 2):

@@ -39,6 +39,10 @@ DATASETS: tuple[DatasetSpec, ...] = (
     DatasetSpec("/truth/bars", "int32", "(B, 8)", "px",
                 "Resolution-chart layout: group, width_px, orientation (0 horizontal, 1 vertical), "
                 "role (0 bar, 1 gap), y0, y1, x0, x1 on the truth grid."),
+    DatasetSpec("/truth/usaf", "float64", "(B, 11)", "px, lp/mm",
+                "USAF-1951 chart layout: group, element, lp_per_mm, width_px (exact), orientation "
+                "(0 horizontal, 1 vertical), role (0 bar, 1 gap, 2 group box), y0, y1, x0, x1, size: boxes on the "
+                "size x size grid the chart was drawn on (scene.size_px); images are resampled to it to be read."),
     DatasetSpec("/recon/spectrum", "complex64", "(M, M)", "√irradiance · px",
                 "Recovered high-resolution spectrum, centred (DC at M//2), orthonormal FFT of the object."),
     DatasetSpec("/recon/object", "complex64", "(M, M)", "√irradiance", "Recovered complex object field."),
@@ -49,6 +53,43 @@ DATASETS: tuple[DatasetSpec, ...] = (
                 "Relative data misfit ‖w(|ψ| − √I)‖ / ‖w √I‖ per iteration."),
     DatasetSpec("/history/change", "float64", "(iterations,)", "1", "Relative spectrum change per iteration."),
     DatasetSpec("/history/seconds", "float64", "(iterations,)", "s", "Wall time at the end of each iteration."),
+    DatasetSpec("/multiplex/camera_centres_px", "float64", "(P, 2)", "spectrum px",
+                "Multiplexed runs: camera aperture centre [y, x] relative to DC. With /multiplex present, "
+                "/measurements/intensity holds G = P·T images (pattern-major, then camera) and /geometry "
+                "describes the V virtual captures (one per camera, pattern and active source)."),
+    DatasetSpec("/multiplex/source_shifts_px", "float64", "(Q, 2)", "spectrum px",
+                "Spectrum shift [y, x] made by each illumination source (row-major over the source grid)."),
+    DatasetSpec("/multiplex/pattern_sources", "int32", "(Σ N_mux,)", "1",
+                "Active sources of every pattern, concatenated; pattern t is "
+                "pattern_sources[pattern_offsets[t]:pattern_offsets[t+1]]."),
+    DatasetSpec("/multiplex/pattern_offsets", "int64", "(T + 1,)", "1", "Start of each pattern in pattern_sources."),
+    DatasetSpec("/multiplex/group_offsets", "int64", "(G + 1,)", "1",
+                "Image g is the sum of virtual captures group_offsets[g]:group_offsets[g+1]."),
+    DatasetSpec("/multiplex/virtual_centres_px", "float64", "(V, 2)", "spectrum px",
+                "Pupil centre c_p + s_q of each virtual capture (equals /geometry/spectrum_centres_yx_px)."),
+    DatasetSpec("/multiplex/virtual_camera", "int32", "(V,)", "1", "Camera of each virtual capture."),
+    DatasetSpec("/multiplex/virtual_source", "int32", "(V,)", "1", "Source of each virtual capture."),
+    DatasetSpec("/multiplex/virtual_pattern", "int32", "(V,)", "1", "Pattern of each virtual capture."),
+    DatasetSpec("/multiplex/virtual_group", "int32", "(V,)", "1", "Image (measurement) of each virtual capture."),
+    DatasetSpec("/multiplex/measurement_camera", "int32", "(G,)", "1", "Camera of each image."),
+    DatasetSpec("/multiplex/measurement_pattern", "int32", "(G,)", "1", "Pattern of each image."),
+    DatasetSpec("/raw/frames", "float32", "(K, E, H, W)", "counts",
+                "Recorded images (ingest): linear sensor counts, black level subtracted, clipped at the white level; "
+                "position k, exposure e (ascending). Attribute saturation_level: clipping level in these counts. "
+                "With one exposure per position, ingest also writes /measurements (intensity in counts/s)."),
+    DatasetSpec("/raw/exposure_s", "float64", "(K, E)", "s", "Exposure time of each frame."),
+    DatasetSpec("/capture/labels", "str", "(K,)", "", "Readable name of each position (stage position, first file)."),
+    DatasetSpec("/hdr/dynamic_range_gain", "float64", "(K,)", "1",
+                "Dynamic range of the merged radiance over the best single exposure's, per position. With hdr, "
+                "/measurements/intensity is radiance in counts/s (relative units: the recovery is scale-free) and "
+                "/measurements/weight the merge's validity weight (0 = saturated or below the noise floor)."),
+    DatasetSpec("/hdr/valid_fraction", "float64", "(K,)", "1", "Share of pixels with a usable exposure, per position."),
+    DatasetSpec("/registration/homography", "float64", "(K, 3, 3)", "px",
+                "Homography mapping each view's pixels onto the reference (centre) view's, from the checkerboard."),
+    DatasetSpec("/registration/rms_px", "float64", "(K,)", "px", "RMS reprojection error of the board corners."),
+    DatasetSpec("/registration/kept_index", "int32", "(K,)", "1", "Index of each registered view among the ingested ones."),
+    DatasetSpec("/registration/corners", "float32", "(K, N, 2)", "px", "Detected inner corners (x, y) in each view."),
+    DatasetSpec("/registration/dropped", "str", "(D,)", "", "Positions lost because no checkerboard was found."),
 )
 
 #: Attributes of /geometry (all SI).

@@ -11,7 +11,14 @@ from cca_cli.metrics.contrast import (
     resolution_gain,
 )
 from cca_cli.metrics.error import amplitude_rmse, relative_error, rmse
-from cca_cli.metrics.usaf import UsafElementContrast, UsafReading, usaf_gain, usaf_resolution
+from cca_cli.metrics.speckle import speckle_contrast
+from cca_cli.metrics.usaf import (
+    UsafElementContrast,
+    UsafReading,
+    three_bar_contrast,
+    usaf_gain,
+    usaf_resolution,
+)
 
 __all__ = [
     "ContrastTable",
@@ -22,8 +29,10 @@ __all__ = [
     "amplitude_rmse",
     "relative_error",
     "rmse",
+    "speckle_contrast",
     "UsafElementContrast",
     "UsafReading",
+    "three_bar_contrast",
     "usaf_gain",
     "usaf_resolution",
 ]

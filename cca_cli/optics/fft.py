@@ -39,6 +39,7 @@ __all__ = [
     "ifft2c",
     "fourier_resample",
     "InPlaceFFT2",
+    "BandedFFT2",
 ]
 
 #: Array module used by the numeric core.
@@ -187,4 +188,63 @@ class InPlaceFFT2:
             self._inverse.execute()
         else:
             self.buffer[...] = scipy.fft.ifft2(self.buffer, norm="forward", overwrite_x=True, workers=self.threads)
+        return self.buffer
+
+
+class BandedFFT2:
+    """Raw 2-D FFTs of a buffer whose data live in a band of rows, planned once.
+
+    The inverse transform assumes the input is zero outside rows
+    ``[row_start, row_stop)``; the forward transform is exact only inside
+    those rows. Transforming along the last axis for the band's rows alone
+    saves about ``(1 - band/m) / 2`` of the work of a full 2-D FFT — the
+    forward model's pupil box occupies about half the rows.
+
+    Parameters
+    ----------
+    buffer : ndarray, complex64, (..., m, m)
+    row_start, row_stop : int
+        The band of rows that holds data.
+    threads : int, optional
+        Threads for one transform (default: all cores).
+    """
+
+    def __init__(self, buffer: np.ndarray, row_start: int, row_stop: int, *, threads: int | None = None):
+        if buffer.dtype != np.complex64:
+            raise ValueError(f"BandedFFT2 needs a complex64 buffer, got {buffer.dtype}")
+        self.buffer = buffer
+        self.band = buffer[..., row_start:row_stop, :]
+        self.threads = threads or cpu_count()
+        self.backend = _backend
+        if self.backend == "pyfftw":
+            flags = ("FFTW_MEASURE", "FFTW_DESTROY_INPUT")
+
+            def plan(array, axis, direction):
+                return pyfftw.FFTW(array, array, axes=(axis,), direction=direction, flags=flags, threads=self.threads)
+
+            self._inverse_rows = plan(self.band, -1, "FFTW_BACKWARD")
+            self._inverse_columns = plan(buffer, -2, "FFTW_BACKWARD")
+            self._forward_columns = plan(buffer, -2, "FFTW_FORWARD")
+            self._forward_rows = plan(self.band, -1, "FFTW_FORWARD")
+
+    def inverse(self) -> np.ndarray:
+        """Unnormalised inverse 2-D FFT of a buffer that is zero outside the band; in place."""
+        if self.backend == "pyfftw":
+            self._inverse_rows.execute()
+            self._inverse_columns.execute()
+        else:
+            self.band[...] = scipy.fft.ifft(self.band, axis=-1, norm="forward", workers=self.threads)
+            self.buffer[...] = scipy.fft.ifft(self.buffer, axis=-2, norm="forward", overwrite_x=True,
+                                              workers=self.threads)
+        return self.buffer
+
+    def forward(self) -> np.ndarray:
+        """Unnormalised forward 2-D FFT, exact inside the band only; in place."""
+        if self.backend == "pyfftw":
+            self._forward_columns.execute()
+            self._forward_rows.execute()
+        else:
+            self.buffer[...] = scipy.fft.fft(self.buffer, axis=-2, norm="backward", overwrite_x=True,
+                                             workers=self.threads)
+            self.band[...] = scipy.fft.fft(self.band, axis=-1, norm="backward", workers=self.threads)
         return self.buffer

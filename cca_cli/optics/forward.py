@@ -70,9 +70,11 @@ class Workspace:
         FFT threads for this buffer.
     """
 
-    def __init__(self, chunk: int, size: int, *, threads: int | None = None):
+    def __init__(self, chunk: int, size: int, *, threads: int | None = None, band: tuple[int, int] | None = None):
         self.fields = fft.zeros((chunk, size, size), np.complex64)
         self.fft = fft.InPlaceFFT2(self.fields, threads=threads)
+        #: Pruned transforms for fields confined to the pupil box's rows (None: use full transforms).
+        self.box_fft = None if band is None else fft.BandedFFT2(self.fields, *band, threads=threads)
 
     @property
     def capacity(self) -> int:
@@ -140,7 +142,9 @@ class ForwardModel:
 
     def workspace(self, chunk: int | None = None, *, threads: int | None = None) -> Workspace:
         """A :class:`Workspace` sized for ``chunk`` captures (default: all)."""
-        return Workspace(chunk or self.n_images, self.layout.lowres_size, threads=threads)
+        start = self.layout.lowres_box_start
+        return Workspace(chunk or self.n_images, self.layout.lowres_size, threads=threads,
+                         band=(start, start + self.layout.box_size))
 
     # --------------------------------------------------------------- operators
     def forward_into(self, spectrum: np.ndarray, images: slice, workspace: Workspace) -> np.ndarray:
@@ -164,7 +168,11 @@ class ForwardModel:
         start, stop, _ = images.indices(self.n_images)
         k = stop - start
         fields = workspace.fields
-        fields[:k].fill(0)
+        # Zero everything but the pupil box, which is overwritten below.
+        fields[:k, :s] = 0
+        fields[:k, s + b:] = 0
+        fields[:k, s:s + b, :s] = 0
+        fields[:k, s:s + b, s + b:] = 0
         windows = as_strided(
             spectrum,
             shape=(spectrum.shape[0] - b + 1, spectrum.shape[1] - b + 1, b, b),
@@ -173,7 +181,7 @@ class ForwardModel:
         )
         np.multiply(windows[self._oy[images], self._ox[images]], self._pupil_forward[images],
                     out=fields[:k, s:s + b, s:s + b])
-        workspace.fft.inverse()
+        (workspace.box_fft or workspace.fft).inverse()
         return fields[:k]
 
     def adjoint_into(self, workspace: Workspace, images: slice, accumulator: np.ndarray) -> None:
@@ -194,7 +202,7 @@ class ForwardModel:
         s = self.layout.lowres_box_start
         start, stop, _ = images.indices(self.n_images)
         k = stop - start
-        workspace.fft.forward()
+        (workspace.box_fft or workspace.fft).forward()
         boxes = workspace.fields[:k, s:s + b, s:s + b]
         boxes *= self._pupil_adjoint[images]
         for j, (y0, x0) in enumerate(self._origins[start:stop]):

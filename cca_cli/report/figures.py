@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["write_figures"]
+__all__ = ["write_comparison_figures", "write_coverage_figure", "write_figures"]
 
 
 def _plt():
@@ -62,9 +62,13 @@ def write_figures(directory: Path, *, observed: np.ndarray, recovered_object: np
     half = m / 2
     ax.imshow(log_mag, cmap="magma", extent=(-half, half, half, -half))
     theta = np.linspace(0, 2 * np.pi, 96)
-    for cy, cx in np.asarray(pupil_centres_px):
-        ax.plot(cx + pupil_radius_px * np.cos(theta), cy + pupil_radius_px * np.sin(theta), lw=0.4, color="cyan",
-                alpha=0.6)
+    centres = np.asarray(pupil_centres_px)
+    nearest = int(np.argmin(np.hypot(centres[:, 0], centres[:, 1])))
+    faint = 0.25 if len(centres) > 50 else 0.6
+    for i, (cy, cx) in enumerate(centres):
+        ax.plot(cx + pupil_radius_px * np.cos(theta), cy + pupil_radius_px * np.sin(theta),
+                lw=1.2 if i == nearest else 0.3, color="white" if i == nearest else "cyan",
+                alpha=1.0 if i == nearest else faint)
     ax.set_title("Recovered spectrum (log10 |S|) and aperture footprints")
     ax.set_xlabel("spectrum px (x)")
     ax.set_ylabel("spectrum px (y)")
@@ -102,3 +106,123 @@ def write_figures(directory: Path, *, observed: np.ndarray, recovered_object: np
         fig.savefig(target("convergence.png"))
         plt.close(fig)
     return paths
+
+
+def write_comparison_figures(directory: Path, images: dict, summary: dict) -> list[Path]:
+    """Side-by-side images (truth, observed, baselines, recovered) and contrast curves with the baselines.
+
+    Parameters
+    ----------
+    directory : Path
+    images : dict
+        ``name → intensity`` on the truth grid (``truth``, ``observed``, ``recovered`` and baseline labels).
+    summary : dict
+        The report; ``baselines`` entries provide the baselines' contrast tables.
+
+    Returns
+    -------
+    list of Path
+    """
+    plt = _plt()
+    directory = Path(directory)
+    paths = []
+    order = [n for n in ("truth", "observed") if n in images]
+    order += [n for n in images if n not in ("truth", "observed", "recovered")]
+    order += ["recovered"]
+    cols = min(3, len(order))
+    rows = -(-len(order) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 4 * rows), dpi=100, squeeze=False)
+    for ax in axes.ravel():
+        ax.axis("off")
+    for ax, name in zip(axes.ravel(), order):
+        image = np.asarray(images[name])
+        ax.imshow(image, cmap="gray", vmin=0, vmax=float(np.percentile(image, 99.5)) or None,
+                  interpolation="nearest")
+        extra = ""
+        if name in summary.get("baselines", {}):
+            mtf = summary["baselines"][name].get("mtf20_px")
+            extra = f"\nMTF20 {mtf} px" if mtf is not None else ""
+        elif name in ("observed", "recovered") and f"mtf20_{name}_px" in summary:
+            extra = f"\nMTF20 {summary[f'mtf20_{name}_px']} px"
+        ax.set_title(name.replace("_", " ") + extra, fontsize=9)
+    fig.tight_layout()
+    path = directory / "comparison.png"
+    fig.savefig(path)
+    plt.close(fig)
+    paths.append(path)
+
+    tables = {}
+    for name in ("contrast_observed", "contrast_recovered"):
+        if name in summary:
+            tables[name.split("_", 1)[1]] = summary[name]
+    for name, entry in summary.get("baselines", {}).items():
+        if "contrast" in entry:
+            tables[name] = entry["contrast"]
+    if tables:
+        fig, ax = plt.subplots(figsize=(6.5, 4.2), dpi=110)
+        for name, table in tables.items():
+            widths = np.asarray(table["widths_px"])
+            worst = np.minimum(table["horizontal"], table["vertical"])
+            ax.plot(widths, worst, marker="o", ms=3, lw=2 if name == "recovered" else 1,
+                    label=name.replace("_", " "))
+        ax.axhline(summary.get("mtf_threshold", 0.2), color="gray", lw=0.8, ls=":")
+        ax.set_xlabel("bar width (object px)")
+        ax.set_ylabel("contrast, worse orientation")
+        ax.invert_xaxis()
+        ax.set_title("Bar contrast: recovery vs single lenses")
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        path = directory / "contrast_baselines.png"
+        fig.savefig(path)
+        plt.close(fig)
+        paths.append(path)
+    return paths
+
+
+def write_coverage_figure(path: Path, coverage: np.ndarray, band: np.ndarray, summary: dict) -> Path:
+    """Fourier coverage of a multiplexed design: measurements constraining each spectrum pixel.
+
+    Holes (pixels of the design band that no measurement constrains) are drawn
+    red; the band's outline is drawn in white.
+
+    Parameters
+    ----------
+    path : Path
+        PNG to write.
+    coverage : ndarray, int, (M, M)
+        Measurement count per spectrum pixel (centred).
+    band : ndarray, bool, (M, M)
+        Every region the array could measure.
+    summary : dict
+        Supplies ``coverage_zero_fraction`` and the design counts for the title.
+
+    Returns
+    -------
+    Path
+    """
+    plt = _plt()
+    from matplotlib.colors import ListedColormap
+
+    m = coverage.shape[-1]
+    half = m / 2
+    extent = (-half, half, half, -half)
+    fig, ax = plt.subplots(figsize=(6, 5.2), dpi=110)
+    shown = np.ma.masked_where(coverage == 0, coverage)
+    image = ax.imshow(shown, cmap="viridis", extent=extent, interpolation="nearest", vmin=1,
+                      vmax=max(int(coverage.max()), 2))
+    holes = np.ma.masked_where(~(band & (coverage == 0)), np.ones_like(coverage))
+    ax.imshow(holes, cmap=ListedColormap(["red"]), extent=extent, interpolation="nearest", alpha=0.85)
+    ax.contour(np.arange(m) - half + 0.5, np.arange(m) - half + 0.5, band.astype(float), levels=[0.5],
+               colors="white", linewidths=0.6)
+    ax.set_facecolor("black")
+    n_mux = summary.get("multiplex_n_mux") or []
+    mux_text = f"N_mux {n_mux[0]}" if n_mux and len(set(n_mux)) == 1 else f"N_mux {n_mux}"
+    ax.set_title(f"Fourier coverage ({mux_text}, T {summary.get('multiplex_patterns')}): "
+                 f"holes {100 * summary.get('coverage_zero_fraction', 0):.1f}% of band", fontsize=9)
+    ax.set_xlabel("spectrum px (x)")
+    ax.set_ylabel("spectrum px (y)")
+    fig.colorbar(image, ax=ax, label="measurements per spectrum pixel")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return Path(path)

@@ -12,7 +12,7 @@ from cca_cli.sampling.geometry import CaptureGeometry
 from cca_cli.targets import BarGroup
 from cca_cli.units import spot_size_m
 
-__all__ = ["ReportInputs", "summarize", "on_grid"]
+__all__ = ["ReportInputs", "summarize", "on_grid", "sharpness_summary"]
 
 
 @dataclass(frozen=True)
@@ -74,6 +74,7 @@ def summarize(inputs: ReportInputs, *, threshold: float = 0.2) -> dict:
         "mtf_threshold": threshold,
     }
     if inputs.truth is None:
+        out.update(sharpness_summary(inputs))
         return out
     size = inputs.truth.shape[-1]
     observed = on_grid(inputs.observed, size)
@@ -101,3 +102,31 @@ def _step_m(g: CaptureGeometry) -> float | None:
     d = np.hypot(*(c[1:] - c[:-1]).T)
     d = d[d > 0]
     return float(d.min()) if d.size else None
+
+
+def sharpness_summary(inputs: ReportInputs) -> dict:
+    """No-reference sharpness of the observed centre image and the recovery (real captures).
+
+    Both intensities are compared on the recovery's grid. ``rms_frequency_*_lp_per_mm``
+    is the RMS spatial frequency of the intensity spectrum
+    (:func:`cca_cli.metrics.sharpness.rms_frequency`); ``energy_beyond_cutoff_*`` is the share
+    of spectral power beyond what the single camera can record — its coherent intensity cutoff
+    ``2R`` or the sensor's Nyquist frequency, whichever is lower
+    (:func:`cca_cli.metrics.sharpness.spectral_energy_beyond`).
+    """
+    from cca_cli.metrics.sharpness import rms_frequency, spectral_energy_beyond
+
+    size = inputs.recovered.shape[-1]
+    observed = on_grid(inputs.observed, size)
+    pixel_mm = inputs.geometry.field_width_m * 1e3 / size
+    cutoff = min(2.0 * inputs.geometry.pupil_radius_px, inputs.observed.shape[-1] / 2.0)
+    f_obs = rms_frequency(observed, pixel_mm)
+    f_rec = rms_frequency(inputs.recovered, pixel_mm)
+    return {
+        "rms_frequency_observed_lp_per_mm": round(f_obs, 3),
+        "rms_frequency_recovered_lp_per_mm": round(f_rec, 3),
+        "sharpness_gain": round(f_rec / f_obs, 3) if f_obs > 0 else None,
+        "single_camera_cutoff_px": round(cutoff, 3),
+        "energy_beyond_cutoff_observed": round(spectral_energy_beyond(observed, cutoff), 5),
+        "energy_beyond_cutoff_recovered": round(spectral_energy_beyond(inputs.recovered, cutoff), 5),
+    }

@@ -33,6 +33,12 @@ class CaptureGeometry:
         Pupil radius in spectrum pixels.
     overlap : float
         Linear overlap of neighbouring apertures (nan when not a regular grid).
+    kind : str
+        ``camera_scan`` (a camera moved in the aperture plane) or ``led_array``
+        (fixed objective, tilted illumination; then ``distance_m = focal_length_m = 1``
+        so that aperture-plane "metres" are sin θ and ``aperture_diameter_m = 2 NA``).
+    numerical_aperture : float
+        Objective NA of an LED-array dataset (nan for camera scans).
     """
 
     wavelength_m: float
@@ -46,6 +52,8 @@ class CaptureGeometry:
     grid_indices: np.ndarray
     pupil_radius_px: float
     overlap: float = float("nan")
+    kind: str = "camera_scan"
+    numerical_aperture: float = float("nan")
 
     @property
     def n_images(self) -> int:

@@ -111,8 +111,13 @@ def reconstruct(captures: Captures, section: ReconstructSection, *, progress: Pr
                     options=asdict(options), seconds=time.perf_counter() - start)
 
 
-def write_recon(path: Path, captures: Captures, recovery: Recovery, provenance: Provenance, *, force: bool = False) -> None:
-    """Write ``recon.h5`` atomically: recovery, history, centre capture, truth and geometry."""
+def write_recon(path: Path, captures: Captures, recovery: Recovery, provenance: Provenance, *, force: bool = False,
+                observed: np.ndarray | None = None, extra=None) -> None:
+    """Write ``recon.h5`` atomically: recovery, history, centre capture, truth and geometry.
+
+    ``observed`` replaces the centre capture as /observed/centre; ``extra(handle)``
+    writes further groups (multiplexed runs add /multiplex).
+    """
     obj = fft.ifft2c(recovery.spectrum).astype(np.complex64)
     layout = recovery.layout
     with atomic_h5(path, provenance, force=force) as handle:
@@ -121,10 +126,13 @@ def write_recon(path: Path, captures: Captures, recovery: Recovery, provenance: 
         write_dataset(handle, "/recon/intensity", (np.abs(obj) ** 2).astype(np.float32))
         for name in ("residual", "change", "seconds"):
             write_dataset(handle, f"/history/{name}", recovery.history.array(name))
-        write_dataset(handle, "/observed/centre", captures.intensity[captures.geometry.centre_index])
+        write_dataset(handle, "/observed/centre",
+                      captures.intensity[captures.geometry.centre_index] if observed is None else observed)
         for name, data in captures.truth.items():
             write_dataset(handle, f"/truth/{name}", data)
         write_geometry(handle, captures.geometry)
+        if extra is not None:
+            extra(handle)
         recon = handle["recon"]
         recon.attrs["engine"] = recovery.engine
         recon.attrs["engine_options"] = json.dumps(recovery.options)
@@ -140,7 +148,14 @@ def run(captures_path: Path, section: ReconstructSection, output: Path, *, prove
         force: bool = False, progress: ProgressFn = silent) -> Recovery:
     """Read captures, reconstruct, write ``output``."""
     check_output(output, force=force)
+    from cca_cli.stages import multiplex
+
+    if multiplex.is_multiplexed_file(captures_path):
+        return multiplex.run_reconstruct(captures_path, section, output, provenance=provenance, force=force,
+                                         progress=progress)
     captures = read_captures(captures_path)
     recovery = reconstruct(captures, section, progress=progress)
-    write_recon(output, captures, recovery, provenance, force=force)
+    from cca_cli.stages.capture_info import capture_extras
+
+    write_recon(output, captures, recovery, provenance, force=force, extra=capture_extras(captures_path))
     return recovery

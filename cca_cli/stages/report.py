@@ -34,13 +34,31 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
         change = np.asarray(handle["/history/change"])
         truth_obj = np.asarray(handle["/truth/object"]) if "/truth/object" in handle else None
         bars = table_to_bars(np.asarray(handle["/truth/bars"])) if "/truth/bars" in handle else ()
+        usaf_table = np.asarray(handle["/truth/usaf"]) if "/truth/usaf" in handle else None
         attrs = dict(handle["recon"].attrs)
+        multiplex = None
+        if "multiplex" in handle:
+            from cca_cli.io.multiplex import read_multiplex
+
+            multiplex = read_multiplex(handle)
+        from cca_cli.stages.capture_info import read_capture_summary
+
+        capture_summary = read_capture_summary(handle)
     truth = None if truth_obj is None else (np.abs(truth_obj) ** 2).astype(np.float32)
     inputs = ReportInputs(geometry=geometry, observed=observed, recovered=recovered, truth=truth, bars=bars,
                           engine=str(attrs.get("engine")), iterations=int(attrs.get("iterations", 0)),
                           seconds=float(attrs.get("seconds", 0.0)), hires_size=int(attrs.get("hires_size")),
                           lowres_size=int(attrs.get("lowres_size")))
     summary = summarize(inputs, threshold=section.mtf_threshold)
+    summary.update(capture_summary)
+    coverage = None
+    if multiplex is not None:
+        from cca_cli.stages.multiplex import coverage_summary
+
+        stats, coverage, band = coverage_summary(multiplex, int(attrs.get("hires_size")))
+        summary.update(stats)
+    comparison = _comparison(summary, section, geometry, truth_obj, truth, observed, recovered, bars, usaf_table,
+                             recovered_object=obj)
     progress(ProgressEvent("report", "metrics", 1, 2))
     with atomic_path(output, force=True) as tmp:
         tmp.mkdir(parents=True)
@@ -51,6 +69,14 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
                                     pupil_centres_px=geometry.spectrum_centres_yx_px,
                                     pupil_radius_px=geometry.pupil_radius_px, field_width_m=geometry.field_width_m,
                                     residual=residual, change=change, summary=summary, truth=truth)
+            if comparison:
+                from cca_cli.report.figures import write_comparison_figures
+
+                figures += write_comparison_figures(tmp, comparison, summary)
+            if coverage is not None:
+                from cca_cli.report.figures import write_coverage_figure
+
+                figures.append(write_coverage_figure(tmp / "coverage.png", coverage, band, summary))
             summary["figures"] = [p.name for p in figures]
         document = dict(summary)
         document["provenance"] = {k: (v if isinstance(v, str) else str(v)) for k, v in provenance.items()}
@@ -61,3 +87,40 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
             shutil.rmtree(output)
     progress(ProgressEvent("report", "figures", 2, 2))
     return summary
+
+
+def _comparison(summary: dict, section: ReportSection, geometry, truth_obj, truth, observed, recovered, bars,
+                usaf_table, *, recovered_object=None) -> dict[str, np.ndarray]:
+    """Add baselines, USAF reading and speckle contrast to ``summary``; return the images compared (truth grid)."""
+    if truth_obj is None or not (section.baselines or usaf_table is not None or section.speckle_region):
+        return {}
+    from cca_cli.errors import ConfigError
+    from cca_cli.report import comparison as cmp
+    from cca_cli.report.summary import on_grid
+    from cca_cli.stages.scene import table_to_usaf
+
+    size = truth.shape[-1]
+    images = {"observed": on_grid(observed, size), "recovered": on_grid(recovered, size)}
+    baselines = cmp.baseline_images(truth_obj, geometry, section.baselines)
+    images.update(baselines)
+    if baselines:
+        summary["baselines"] = cmp.compare_images(baselines, truth, bars, threshold=section.mtf_threshold)
+        for name, info in cmp.baseline_details(section.baselines, geometry).items():
+            summary["baselines"][name].update(info)
+    if usaf_table is not None and len(usaf_table):
+        chart = table_to_usaf(usaf_table)
+        chart_images = {name: on_grid(image, chart.size) for name, image in images.items()}
+        if recovered_object is not None:  # |object|² on the hires grid is aliased; square on the chart grid
+            chart_images["recovered"] = cmp.field_intensity_on_grid(recovered_object, chart.size)
+        summary["usaf"] = cmp.usaf_summary(chart_images, chart, threshold=section.mtf_threshold)
+    if section.speckle_region:
+        try:
+            speckle = cmp.speckle_summary(images, section.speckle_region)
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
+        summary["speckle_contrast_observed"] = speckle.pop("observed")
+        summary["speckle_contrast_recovered"] = speckle.pop("recovered")
+        if speckle:
+            summary["speckle_contrast_baselines"] = speckle
+    images["truth"] = truth
+    return images

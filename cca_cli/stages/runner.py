@@ -20,16 +20,23 @@ from pydantic import BaseModel
 from cca_cli.config.model import RunConfig
 from cca_cli.errors import OutputExistsError
 from cca_cli.io.h5 import Provenance, file_sha256, read_provenance
+from cca_cli.stages import hdr as hdr_stage
+from cca_cli.stages import ingest as ingest_stage
 from cca_cli.stages import reconstruct as reconstruct_stage
+from cca_cli.stages import register as register_stage
 from cca_cli.stages import report as report_stage
 from cca_cli.stages import simulate as simulate_stage
 from cca_cli.stages.progress import ProgressFn, silent
 
 __all__ = ["StagePlan", "StageOutcome", "plan_stages", "config_hash", "section_yaml", "pick_sections", "is_up_to_date", "run_pipeline", "default_out_dir"]
 
-OUTPUTS = {"simulate": "captures.h5", "reconstruct": "recon.h5", "report": "report"}
-INPUTS = {"simulate": (), "reconstruct": ("captures.h5",), "report": ("recon.h5",)}
-SECTIONS = {"simulate": simulate_stage.SECTIONS, "reconstruct": reconstruct_stage.SECTIONS,
+OUTPUTS = {"simulate": "captures.h5", "ingest": "raw.h5", "hdr": "hdr.h5", "register": "registered.h5",
+           "reconstruct": "recon.h5", "report": "report"}
+#: Inputs of a stage that runs first in run.stages; otherwise its input is the previous stage's output.
+INPUTS = {"simulate": (), "ingest": (), "hdr": ("raw.h5",), "register": ("hdr.h5",), "reconstruct": ("captures.h5",),
+          "report": ("recon.h5",)}
+SECTIONS = {"simulate": simulate_stage.SECTIONS, "ingest": ingest_stage.SECTIONS, "hdr": hdr_stage.SECTIONS,
+            "register": register_stage.SECTIONS, "reconstruct": reconstruct_stage.SECTIONS,
             "report": report_stage.SECTIONS}
 
 
@@ -61,13 +68,28 @@ def default_out_dir(config_path: Path | None) -> Path:
 
 def plan_stages(config: RunConfig, out_dir: Path) -> list[StagePlan]:
     """The stages of ``config.run.stages`` with their files under ``out_dir``."""
-    return [StagePlan(name, out_dir / OUTPUTS[name], tuple(out_dir / f for f in INPUTS[name]), SECTIONS[name])
-            for name in config.run.stages]
+    plans = []
+    for name in config.run.stages:
+        if name == "ingest":
+            inputs = tuple(_manifest_inputs(config))
+        elif plans and name != "simulate":
+            inputs = (plans[-1].output,)
+        else:
+            inputs = tuple(out_dir / f for f in INPUTS[name])
+        plans.append(StagePlan(name, out_dir / OUTPUTS[name], inputs, SECTIONS[name]))
+    return plans
+
+
+def _manifest_inputs(config: RunConfig) -> list[Path]:
+    """The manifest and the files it lists (hashed into the ingest stage's provenance)."""
+    from cca_cli.io.manifest import manifest_files
+
+    return manifest_files(config.ingest.manifest)
 
 
 def pick_sections(config: RunConfig, names: tuple[str, ...]) -> dict[str, BaseModel]:
-    """The named sections of ``config``."""
-    return {name: getattr(config, name) for name in names}
+    """The named sections of ``config`` (optional sections that are absent are left out)."""
+    return {name: getattr(config, name) for name in names if getattr(config, name) is not None}
 
 
 def section_yaml(sections: dict[str, BaseModel]) -> str:
@@ -126,6 +148,7 @@ def run_pipeline(config: RunConfig, out_dir: Path, *, force: bool = False, progr
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     outcomes = []
+    rewritten: set[Path] = set()
     for plan in plan_stages(config, out_dir):
         sections = pick_sections(config, plan.sections)
         digest = config_hash(sections)
@@ -135,15 +158,25 @@ def run_pipeline(config: RunConfig, out_dir: Path, *, force: bool = False, progr
                     on_stage(plan, "skipped")
                 outcomes.append(StageOutcome(plan.name, "skipped", plan.output, 0.0))
                 continue
-            raise OutputExistsError(
-                f"{plan.output}: exists but was made from another config or inputs; "
-                "use --force to recompute it, or choose another run.out_dir")
+            # An output made from an input this run just rewrote is stale by construction: recompute it.
+            if not rewritten.intersection(plan.inputs):
+                raise OutputExistsError(
+                    f"{plan.output}: exists but was made from another config or inputs; "
+                    "use --force to recompute it, or choose another run.out_dir")
         if on_stage:
             on_stage(plan, "start")
         start = time.perf_counter()
         provenance = Provenance.make(plan.name, section_yaml(sections), digest, list(plan.inputs))
         if plan.name == "simulate":
             result = simulate_stage.run(config, plan.output, provenance=provenance, force=True, progress=progress)
+        elif plan.name == "ingest":
+            result = ingest_stage.run(plan.inputs[0], plan.output, provenance=provenance, force=True, progress=progress)
+        elif plan.name == "hdr":
+            result = hdr_stage.run(plan.inputs[0], config.hdr, plan.output, provenance=provenance, force=True,
+                                   progress=progress)
+        elif plan.name == "register":
+            result = register_stage.run(plan.inputs[0], config.registration, plan.output, provenance=provenance,
+                                        force=True, progress=progress)
         elif plan.name == "reconstruct":
             result = reconstruct_stage.run(plan.inputs[0], config.reconstruct, plan.output, provenance=provenance,
                                            force=True, progress=progress)
@@ -151,4 +184,5 @@ def run_pipeline(config: RunConfig, out_dir: Path, *, force: bool = False, progr
             result = report_stage.run(plan.inputs[0], config.report, plan.output, provenance=provenance,
                                       force=True, progress=progress)
         outcomes.append(StageOutcome(plan.name, "ran", plan.output, time.perf_counter() - start, result))
+        rewritten.add(plan.output)
     return outcomes

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -11,7 +11,8 @@ from cca_cli.errors import ConfigError
 from cca_cli.optics import fft
 from cca_cli.targets import BarGroup, chart_groups_for_grid, resolution_chart
 
-__all__ = ["Scene", "build_scene", "bars_to_table", "table_to_bars"]
+__all__ = ["Scene", "build_scene", "bars_to_table", "table_to_bars", "usaf_to_table", "table_to_usaf",
+           "surface_phase"]
 
 
 @dataclass(frozen=True)
@@ -29,6 +30,8 @@ class Scene:
 
     field: np.ndarray
     bars: tuple[BarGroup, ...] = ()
+    usaf: tuple = ()  # UsafElement layout on the scene's own grid (kind=usaf)
+    usaf_size: int = 0  # side of that grid (scene.size_px)
 
 
 def _resample_amplitude(image: np.ndarray, size: int) -> np.ndarray:
@@ -43,6 +46,48 @@ def _resample_amplitude(image: np.ndarray, size: int) -> np.ndarray:
 
 def build_scene(section: SceneSection, grid_size: int) -> Scene:
     """The object of ``section`` sampled on a ``grid_size`` x ``grid_size`` grid.
+
+    With ``scene.surface_phase: random`` the field is multiplied by
+    ``exp(i φ)`` of a random surface phase (:func:`surface_phase`), which
+    makes the object diffuse: its images show speckle.
+
+    Raises
+    ------
+    ConfigError
+        If the chart does not fit in ``scene.size_px`` or an image file cannot be read.
+    """
+    scene = _base_scene(section, grid_size)
+    if section.surface_phase == "random":
+        phase = surface_phase(grid_size, roughness_rad=section.surface_roughness_rad,
+                              correlation_px=section.surface_correlation_px, seed=section.surface_seed)
+        scene = replace(scene, field=(scene.field * np.exp(1j * phase)).astype(np.complex64))
+    return scene
+
+
+def surface_phase(size: int, *, roughness_rad: float, correlation_px: float = 0.0, seed: int = 0) -> np.ndarray:
+    """Random phase of a rough surface: Gaussian, RMS ``roughness_rad``, Gaussian-correlated over ``correlation_px``.
+
+    An RMS well above π (or any RMS with no correlation and ≥ 2.5 rad)
+    gives fully developed speckle; a correlation length of a few pixels
+    confines the scattered light to a band that a large synthetic aperture
+    captures, so speckle falls as the aperture grows.
+
+    Returns
+    -------
+    ndarray, float32, (size, size)
+    """
+    rng = np.random.default_rng(seed)
+    noise = rng.standard_normal((size, size))
+    if correlation_px > 0:
+        from scipy import ndimage
+
+        noise = ndimage.gaussian_filter(noise, correlation_px, mode="wrap")
+    std = float(noise.std())
+    return (noise / std * roughness_rad if std > 0 else noise).astype(np.float32)
+
+
+def _base_scene(section: SceneSection, grid_size: int) -> Scene:
+    """The object of ``section`` before any surface roughness.
 
     Raises
     ------
@@ -63,11 +108,19 @@ def build_scene(section: SceneSection, grid_size: int) -> Scene:
 
         pitch = section.field_width_m / section.size_px
         try:
-            chart = usaf1951_chart(section.size_px, pixel_pitch_m=pitch)
+            groups = tuple(section.usaf_groups) if section.usaf_groups else (-2, -1, 0, 1, 2, 3)
+            chart = usaf1951_chart(section.size_px, pixel_pitch_m=pitch, groups=groups)
         except ValueError as exc:
             raise ConfigError(f"scene: {exc}") from None
         amplitude = _resample_amplitude(np.asarray(chart.image, np.float32), grid_size)
-        return Scene(field=amplitude.astype(np.complex64))
+        return Scene(field=amplitude.astype(np.complex64), usaf=tuple(chart.elements), usaf_size=chart.size)
+    if section.kind in ("fingerprint", "face", "label"):
+        return _synthetic_scene(section, grid_size)
+    if section.kind == "natural":
+        from cca_cli.targets.natural import natural_portrait
+
+        amplitude = _resample_amplitude(natural_portrait(section.size_px), grid_size)
+        return Scene(field=np.clip(amplitude, 0, None).astype(np.complex64))
     from cca_cli.io.images import read_image
 
     amplitude = _square_unit(read_image(section.image_path).pixels, section.size_px)
@@ -126,3 +179,102 @@ def table_to_bars(table: np.ndarray) -> tuple[BarGroup, ...]:
             gap_boxes=tuple(tuple(int(v) for v in r[4:]) for r in rows[rows[:, 3] == 1]),
         ))
     return tuple(groups)
+
+
+def _synthetic_scene(section: SceneSection, grid_size: int) -> Scene:
+    """fingerprint / face / label, with an optional bar-chart inset in the lower-right corner."""
+    from cca_cli.targets import BarChart
+    from cca_cli.targets.biometric import face, fingerprint, label
+
+    n = section.size_px
+    if section.kind == "fingerprint":
+        image = fingerprint(n, period_px=section.ridge_period_m / (section.field_width_m / n))
+    elif section.kind == "face":
+        image = face(n)
+    else:
+        image = label(n)
+    image = np.array(image, np.float32)
+    bars: tuple[BarGroup, ...] = ()
+    if section.chart_inset_px:
+        inset = _inset_chart(section.chart_inset_px, section.widths_px)
+        k = inset.size
+        if k > n:
+            raise ConfigError(f"scene.chart_inset_px: {k} px does not fit in scene.size_px {n}")
+        image[n - k:, n - k:] = inset.image
+        shifted = tuple(
+            BarGroup(width_px=g.width_px, orientation=g.orientation, box=_shift(g.box, n - k),
+                     bar_boxes=tuple(_shift(b, n - k) for b in g.bar_boxes),
+                     gap_boxes=tuple(_shift(b, n - k) for b in g.gap_boxes))
+            for g in inset.groups)
+        full = BarChart(image=image, groups=shifted)
+        bars = shifted if grid_size == n else chart_groups_for_grid(full, grid_size)
+    amplitude = np.clip(_resample_amplitude(image, grid_size), 0, None)
+    return Scene(field=amplitude.astype(np.complex64), bars=tuple(bars))
+
+
+def _shift(box, offset: int):
+    y0, y1, x0, x1 = box
+    return (y0 + offset, y1 + offset, x0 + offset, x1 + offset)
+
+
+def _inset_chart(size: int, widths):
+    """The bar chart of the inset: the given widths, or the widest-first default widths that fit."""
+    from cca_cli.targets import DEFAULT_WIDTHS
+
+    if widths:
+        try:
+            return resolution_chart(size, widths=tuple(widths))
+        except ValueError as exc:
+            raise ConfigError(f"scene.widths_px: {exc}") from None
+    candidates = list(DEFAULT_WIDTHS)
+    while candidates:
+        try:
+            return resolution_chart(size, widths=tuple(candidates))
+        except ValueError:
+            candidates.pop(0)
+    raise ConfigError(f"scene.chart_inset_px: no bar chart fits in {size} px; make the inset larger")
+
+
+def usaf_to_table(elements, size: int) -> np.ndarray:
+    """USAF layout → float64 rows ``group, element, lp_per_mm, width_px, orientation, role, y0, y1, x0, x1, size``.
+
+    Orientation 0 horizontal, 1 vertical; role 0 bar, 1 gap, 2 the group box;
+    boxes on the ``size`` x ``size`` grid the chart was drawn on.
+    """
+    rows = []
+    for el in elements:
+        for group in (el.horizontal, el.vertical):
+            head = [el.group, el.element, el.lp_per_mm, el.width_px, _ORIENT[group.orientation]]
+            rows.append(head + [2, *group.box, size])
+            rows += [head + [0, *box, size] for box in group.bar_boxes]
+            rows += [head + [1, *box, size] for box in group.gap_boxes]
+    return np.asarray(rows, dtype=np.float64).reshape(-1, 11)
+
+
+def table_to_usaf(table: np.ndarray, *, pixel_pitch_m: float = float("nan")):
+    """Inverse of :func:`usaf_to_table`: a :class:`~cca_cli.targets.UsafChart` whose image is blank.
+
+    The chart serves :func:`cca_cli.metrics.usaf_resolution` on images
+    resampled to its grid (``chart.size``, the scene's own pixels).
+    """
+    from cca_cli.targets import UsafChart, UsafElement
+
+    table = np.asarray(table, np.float64)
+    names = {v: k for k, v in _ORIENT.items()}
+    elements = []
+    keys = sorted({(int(r[0]), int(r[1])) for r in table}, key=lambda ge: ge[0] + (ge[1] - 1) / 6)
+    for g, e in keys:
+        rows = table[(table[:, 0] == g) & (table[:, 1] == e)]
+        groups = {}
+        for o in (0, 1):
+            sub = rows[rows[:, 4] == o]
+            box = tuple(int(v) for v in sub[sub[:, 5] == 2][0, 6:10])
+            groups[names[o]] = BarGroup(
+                width_px=max(1, int(round(sub[0, 3]))), orientation=names[o], box=box,
+                bar_boxes=tuple(tuple(int(v) for v in r[6:10]) for r in sub[sub[:, 5] == 0]),
+                gap_boxes=tuple(tuple(int(v) for v in r[6:10]) for r in sub[sub[:, 5] == 1]))
+        elements.append(UsafElement(group=g, element=e, lp_per_mm=float(rows[0, 2]), width_px=float(rows[0, 3]),
+                                    horizontal=groups["horizontal"], vertical=groups["vertical"]))
+    grid_size = int(table[0, 10]) if len(table) else 1
+    image = np.zeros((grid_size, grid_size), np.float32)
+    return UsafChart(image=image, pixel_pitch_m=pixel_pitch_m, elements=tuple(elements))

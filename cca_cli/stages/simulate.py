@@ -19,12 +19,12 @@ from cca_cli.sampling.geometry import CaptureGeometry, camera_scan_geometry
 from cca_cli.sampling.grid import BandLayout, band_layout
 from cca_cli.sampling.overlap import grid_for_sar
 from cca_cli.stages.progress import ProgressEvent, ProgressFn, silent
-from cca_cli.stages.scene import Scene, bars_to_table, build_scene
+from cca_cli.stages.scene import Scene, bars_to_table, build_scene, usaf_to_table
 
 __all__ = ["SECTIONS", "Simulation", "simulate", "write_captures", "run"]
 
 #: Config sections this stage depends on.
-SECTIONS = ("optics", "scene", "array", "noise", "simulate")
+SECTIONS = ("optics", "scene", "array", "noise", "simulate", "multiplex")
 
 
 @dataclass(frozen=True)
@@ -102,13 +102,19 @@ def write_captures(path: Path, simulation: Simulation, provenance: Provenance, *
         write_dataset(handle, "/truth/object", simulation.scene.field)
         if simulation.scene.bars:
             write_dataset(handle, "/truth/bars", bars_to_table(simulation.scene.bars))
+        if simulation.scene.usaf:
+            write_dataset(handle, "/truth/usaf", usaf_to_table(simulation.scene.usaf, simulation.scene.usaf_size))
         handle.attrs["simulation_grid"] = simulation.layout.hires_size
 
 
 def run(config: RunConfig, output: Path, *, provenance: Provenance, force: bool = False,
         progress: ProgressFn = silent) -> Simulation:
-    """Simulate and write ``output``."""
+    """Simulate and write ``output`` (multiplexed captures when the config has a ``multiplex`` section)."""
     check_output(output, force=force)
+    if config.multiplex is not None:
+        from cca_cli.stages import multiplex
+
+        return multiplex.run_simulate(config, output, provenance=provenance, force=force, progress=progress)
     simulation = simulate(config, progress=progress)
     write_captures(output, simulation, provenance, force=force)
     return simulation

@@ -1,0 +1,107 @@
+"""`cca ingest`, `cca hdr`, `cca register`: recorded captures → measurements the recovery reads."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import numpy as np
+import typer
+
+from cca_cli.commands.console import console, handle_errors, progress_reporter
+from cca_cli.commands.options import Force, Quiet
+from cca_cli.config.model import HdrSection, RegisterSection
+from cca_cli.errors import ConfigError
+from cca_cli.io.h5 import Provenance, check_output
+from cca_cli.stages import hdr as hdr_stage
+from cca_cli.stages import ingest as ingest_stage
+from cca_cli.stages import register as register_stage
+from cca_cli.stages.runner import config_hash, section_yaml
+
+__all__ = ["ingest_cli", "hdr_cli", "register_cli"]
+
+
+def _section(model, **values):
+    from pydantic import ValidationError
+
+    try:
+        return model.model_validate({k: v for k, v in values.items() if v is not None})
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        raise ConfigError(f"--{'.'.join(str(p) for p in err['loc']).replace('_', '-')}: "
+                          f"{err['msg'].removeprefix('Value error, ')}") from None
+
+
+@handle_errors
+def ingest_cli(
+    manifest: Annotated[Path, typer.Argument(help="Capture manifest (YAML, or CSV with a YAML sidecar).",
+                                             show_default=False)],
+    output: Annotated[Path, typer.Option("--output", "-o", help="raw file to write.")] = Path("raw.h5"),
+    force: Force = False,
+    quiet: Quiet = False,
+) -> None:
+    """Read the images MANIFEST lists (linear counts, grouped by position) → raw.h5."""
+    from cca_cli.config.model import IngestSection
+    from cca_cli.io.manifest import manifest_files
+
+    check_output(output, force=force)
+    sections = {"ingest": IngestSection(manifest=manifest)}
+    provenance = Provenance.make("ingest", section_yaml(sections), config_hash(sections), manifest_files(manifest))
+    with progress_reporter(not quiet) as progress:
+        data = ingest_stage.run(manifest, output, provenance=provenance, force=force, progress=progress)
+    k, e, h, w = data.frames.shape
+    g = data.geometry
+    console.print(f"{output}: {k} positions x {e} exposure(s) of {w}x{h} px ({g.kind}), "
+                  f"pupil radius {g.pupil_radius_px:.2f} spectrum px, SAR {g.synthetic_aperture_ratio:.2f}")
+
+
+@handle_errors
+def hdr_cli(
+    raw: Annotated[Path, typer.Argument(help="raw.h5 from ingest.", show_default=False)],
+    output: Annotated[Path, typer.Option("--output", "-o", help="hdr file to write.")] = Path("hdr.h5"),
+    saturation_level: Annotated[Optional[float], typer.Option(help="Clipping level (black-subtracted counts).")] = None,
+    noise_floor: Annotated[Optional[float], typer.Option(help="Counts at or below this are ignored.")] = None,
+    force: Force = False,
+    quiet: Quiet = False,
+) -> None:
+    """Merge each position's exposure bracket into linear radiance + validity weights → hdr.h5."""
+    section = _section(HdrSection, saturation_level=saturation_level, noise_floor=noise_floor)
+    check_output(output, force=force)
+    sections = {"hdr": section}
+    provenance = Provenance.make("hdr", section_yaml(sections), config_hash(sections), [raw])
+    with progress_reporter(not quiet) as progress:
+        out = hdr_stage.run(raw, section, output, provenance=provenance, force=force, progress=progress)
+    console.print(f"{output}: {out.n_positions} positions merged from {out.n_exposures} exposures "
+                  f"(ratio {out.exposure_ratio:.0f}), dynamic range gain median {np.median(out.dynamic_range_gain):.1f}x, "
+                  f"valid pixels {np.mean(out.valid_fraction):.1%}")
+
+
+@handle_errors
+def register_cli(
+    captures: Annotated[Path, typer.Argument(help="hdr.h5 (or a single-exposure raw.h5).", show_default=False)],
+    output: Annotated[Path, typer.Option("--output", "-o", help="registered file to write.")] = Path("registered.h5"),
+    crop: Annotated[Optional[str], typer.Option(help="Object rectangle x0,y0,width,height (reference px, square).")] = None,
+    drop_missing: Annotated[bool, typer.Option("--drop-missing", help="Drop views without a board (warning).")] = False,
+    ransac_threshold_px: Annotated[Optional[float], typer.Option(help="RANSAC inlier threshold (px).")] = None,
+    force: Force = False,
+    quiet: Quiet = False,
+) -> None:
+    """Align every view to the centre view with the checkerboard and crop the object → registered.h5."""
+    rect = None
+    if crop is not None:
+        try:
+            rect = [int(v) for v in crop.split(",")]
+        except ValueError:
+            raise ConfigError(f"--crop: {crop!r} is not four integers x0,y0,width,height") from None
+        if len(rect) != 4:
+            raise ConfigError(f"--crop: {crop!r} is not four integers x0,y0,width,height")
+    section = _section(RegisterSection, crop_xywh=rect, drop_missing=drop_missing or None,
+                       ransac_threshold_px=ransac_threshold_px)
+    check_output(output, force=force)
+    sections = {"registration": section}
+    provenance = Provenance.make("register", section_yaml(sections), config_hash(sections), [captures])
+    with progress_reporter(not quiet) as progress:
+        reg = register_stage.run(captures, section, output, provenance=provenance, force=force, progress=progress)
+    lost = f", lost: {'; '.join(reg.dropped)}" if reg.dropped else ""
+    console.print(f"{output}: {len(reg.kept)} views registered, reprojection RMS max {reg.rms_px.max():.3f} px, "
+                  f"object {reg.intensity.shape[-1]}² px{lost}")

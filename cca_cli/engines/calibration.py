@@ -1,0 +1,364 @@
+"""Calibration of the forward model from the data: aperture positions and pupil aberration.
+
+Positions are refined against a fixed spectrum estimate and a change is
+accepted only where it lowers that capture's data misfit, so a calibrated
+model never fits the data worse than the nominal one. The pupil model below
+carries a Zernike phase; :func:`estimate_quadratic_aberration` finds its
+quadratic part directly from the captures, and
+:class:`~cca_cli.engines.momentum.SequentialMomentum` refines it jointly with
+the object.
+
+Pupil model
+-----------
+The aperture transmission is known to be a binary disc; only its phase is
+unknown. Capture ``i`` has the pupil
+
+    P_i(k) = circ(|k − c_i − δ_i| ≤ R) · exp(i Σ_j a_j B_j(k − c_i − δ_i))
+
+with ``c_i`` the nominal centre, ``δ_i`` a sub-pixel position offset and
+``B_j`` Zernike polynomials of radial order 2 to ``order`` (piston and tilt
+are left out: tilt only shifts the image, which the object absorbs). The
+coefficients ``a`` are shared by all captures (one scanned camera) or held per
+capture (a camera array).
+
+Position step
+-------------
+Each capture's offset moves to the best of itself and its eight neighbours
+``δ + h·(±1 | 0, ±1 | 0)``, for a few decreasing ``h``, judged by that capture's
+misfit with the pupil disc drawn at the fractional centre.
+
+Quadratic aberrations are image shifts
+--------------------------------------
+A quadratic pupil phase ``(k − c_i)ᵀ Q (k − c_i)`` (defocus and the two
+astigmatisms) equals a global quadratic phase on the object spectrum, a
+constant, and the ramp ``−2 c_iᵀ Q k``: capture ``i`` sees the same (defocused)
+object shifted by ``d_i = (m/π) Q c_i`` pixels of its m x m grid. Neighbours
+``i, j`` are therefore shifted against each other by ``(m/π) Q (c_j − c_i)``,
+the same for every pair with the same separation, which the phase correlation
+of their images (summed over all such pairs) measures directly. This gives
+``Q`` without a search, far beyond the ±0.05-wave basin of a gradient method.
+
+On the periodic m grid the shifts are known only modulo m, so ``Q`` and
+``Q + (π/s) N`` (``s`` the lattice step, ``N`` integer) explain a lattice scan
+equally well: with ``R = 9``, ``s = 7`` px this makes 1 wave RMS of defocus
+plus 1 wave of astigmatism indistinguishable from (0.17, −0.18) waves, with
+the object carrying the difference. The estimate returns the smallest
+member, so aberrations must stay within ``|Q_ab| < π/(2s)`` to be recovered.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cca_cli.optics.forward import ForwardModel, Workspace, chunk_slices
+from cca_cli.optics.pupil import circular_pupils
+from cca_cli.sampling.grid import BandLayout
+
+__all__ = [
+    "ZERNIKE_MODES",
+    "zernike_modes",
+    "zernike_basis",
+    "max_position_offset",
+    "pupil_functions",
+    "capture_misfits",
+    "refine_positions",
+    "quadratic_to_zernike",
+    "estimate_quadratic_aberration",
+]
+
+#: (radial order n, azimuthal frequency m) of the modes used, Noll order from defocus on;
+#: ``m < 0`` is the sine term.
+ZERNIKE_MODES: tuple[tuple[int, int], ...] = (
+    (2, 0), (2, 2), (2, -2),
+    (3, 1), (3, -1), (3, 3), (3, -3),
+    (4, 0), (4, 2), (4, -2), (4, 4), (4, -4),
+)
+
+
+def zernike_modes(order: int) -> tuple[tuple[int, int], ...]:
+    """The modes of :data:`ZERNIKE_MODES` with radial order ≤ ``order`` (2 to 4)."""
+    if not 2 <= order <= 4:
+        raise ValueError(f"Zernike order must be 2, 3 or 4, got {order}")
+    return tuple(mode for mode in ZERNIKE_MODES if mode[0] <= order)
+
+
+def _radial(n: int, m: int, rho2: np.ndarray, rho: np.ndarray) -> np.ndarray:
+    m = abs(m)
+    if (n, m) == (2, 0):
+        return 2 * rho2 - 1
+    if (n, m) == (2, 2):
+        return rho2
+    if (n, m) == (3, 1):
+        return (3 * rho2 - 2) * rho
+    if (n, m) == (3, 3):
+        return rho2 * rho
+    if (n, m) == (4, 0):
+        return 6 * rho2 * rho2 - 6 * rho2 + 1
+    if (n, m) == (4, 2):
+        return (4 * rho2 - 3) * rho2
+    if (n, m) == (4, 4):
+        return rho2 * rho2
+    raise ValueError(f"unsupported Zernike mode ({n}, {m})")
+
+
+def zernike_basis(box_size: int, box_centres, radius_px: float, *, order: int = 4) -> np.ndarray:
+    """Zernike phase modes (radians per wave of coefficient) on each pupil box.
+
+    RMS-normalised as in :func:`~cca_cli.optics.pupil.zernike_phase`: a
+    coefficient vector ``(d, a, o)`` of order 2 gives the same phase as
+    ``zernike_phase(defocus_waves=d, astigmatism_waves=a, oblique_astigmatism_waves=o)``.
+
+    Parameters
+    ----------
+    box_size : int
+    box_centres : array_like, (K, 2)
+        Pupil centre ``[y, x]`` inside each box (fractional pixels).
+    radius_px : float
+    order : int
+        Highest radial order (2, 3 or 4: 3, 7 or 12 modes).
+
+    Returns
+    -------
+    ndarray, float32, (n_modes, K, box_size, box_size)
+    """
+    centres = np.asarray(box_centres, dtype=np.float64).reshape(-1, 2)
+    grid = np.arange(box_size, dtype=np.float64)
+    y = (grid[None, :, None] - centres[:, 0, None, None]) / radius_px
+    x = (grid[None, None, :] - centres[:, 1, None, None]) / radius_px
+    rho2 = x * x + y * y
+    rho = np.sqrt(rho2)
+    theta = np.arctan2(y, x)
+    modes = zernike_modes(order)
+    out = np.empty((len(modes), centres.shape[0], box_size, box_size), np.float32)
+    for j, (n, m) in enumerate(modes):
+        norm = np.sqrt(n + 1.0) if m == 0 else np.sqrt(2.0 * (n + 1.0))
+        angular = 1.0 if m == 0 else (np.cos(m * theta) if m > 0 else np.sin(-m * theta))
+        out[j] = 2.0 * np.pi * norm * _radial(n, m, rho2, rho) * angular
+    return out
+
+
+def max_position_offset(layout: BandLayout) -> float:
+    """Largest position offset (pixels per axis) for which every pupil disc stays inside its box."""
+    b = layout.box_size
+    c = layout.box_centres
+    margin = np.minimum(c - layout.pupil_radius_px, (b - 1) - c - layout.pupil_radius_px)
+    return float(max(0.0, np.min(margin)))
+
+
+def pupil_functions(layout: BandLayout, *, offsets=None, coefficients=None, order: int = 4) -> np.ndarray:
+    """Pupils of the model above: binary discs at ``centre + offset`` with a Zernike phase.
+
+    Parameters
+    ----------
+    layout : BandLayout
+    offsets : array_like, (K, 2), optional
+        Position offsets ``[dy, dx]`` (spectrum pixels); default zero.
+    coefficients : array_like, (n_modes,) or (K, n_modes), optional
+        Zernike coefficients (waves) shared or per capture; default zero.
+    order : int
+        Radial order the coefficients refer to.
+
+    Returns
+    -------
+    ndarray, complex64, (K, b, b)
+    """
+    centres = layout.box_centres if offsets is None else layout.box_centres + np.asarray(offsets, np.float64)
+    disc = circular_pupils(layout.box_size, centres, layout.pupil_radius_px).astype(np.complex64)
+    if coefficients is None:
+        return disc
+    coefficients = np.asarray(coefficients, np.float64)
+    if not np.any(coefficients):
+        return disc
+    basis = zernike_basis(layout.box_size, centres, layout.pupil_radius_px, order=order)
+    if coefficients.ndim == 1:
+        phase = np.tensordot(coefficients.astype(np.float32), basis, axes=(0, 0))
+    else:
+        phase = np.einsum("kn,nkyx->kyx", coefficients.astype(np.float32), basis)
+    return (disc * np.exp(1j * phase)).astype(np.complex64)
+
+
+def _misfit(fields: np.ndarray, amplitudes: np.ndarray, weights: np.ndarray | None) -> np.ndarray:
+    diff = np.abs(fields) - amplitudes
+    diff *= diff
+    if weights is not None:
+        diff *= weights
+    return diff.sum(axis=(1, 2), dtype=np.float64)
+
+
+def capture_misfits(model: ForwardModel, spectrum: np.ndarray, amplitudes: np.ndarray,
+                    weights: np.ndarray | None = None, *, workspace: Workspace | None = None) -> np.ndarray:
+    """Per-capture amplitude misfit ``Σ w (|A_i S| − √I_i)²``.
+
+    Parameters
+    ----------
+    model : ForwardModel
+    spectrum : ndarray, complex64, (M, M)
+    amplitudes : ndarray, float32, (K, m, m)
+        Measured amplitudes, field layout, in the model's capture order.
+    weights : ndarray, float32, (K, m, m), optional
+    workspace : Workspace, optional
+        Reused when given (any capacity).
+
+    Returns
+    -------
+    ndarray, float64, (K,)
+    """
+    workspace = workspace or model.workspace(min(32, model.n_images))
+    out = np.empty(model.n_images, np.float64)
+    for sl in chunk_slices(model.n_images, workspace.capacity):
+        fields = model.forward_into(spectrum, sl, workspace)
+        out[sl] = _misfit(fields, amplitudes[sl], None if weights is None else weights[sl])
+    return out
+
+
+def refine_positions(layout: BandLayout, spectrum: np.ndarray, amplitudes: np.ndarray,
+                     weights: np.ndarray | None, offsets: np.ndarray, *, coefficients=None,
+                     order: int = 4, steps=(0.5, 0.25), max_offset: float | None = None,
+                     misfits: np.ndarray | None = None, workspace: Workspace | None = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Move each capture's position offset to whichever neighbour lowers its misfit.
+
+    Parameters
+    ----------
+    layout : BandLayout
+    spectrum : ndarray, complex64, (M, M)
+    amplitudes, weights : ndarray, (K, m, m)
+        Measurements in the layout's capture order (weights optional).
+    offsets : ndarray, (K, 2)
+        Current offsets (spectrum pixels).
+    coefficients : array_like, optional
+        Current Zernike coefficients (see :func:`pupil_functions`).
+    order : int
+    steps : sequence of float
+        Trial step lengths h, tried in order (pixels).
+    max_offset : float, optional
+        Bound on ``|δ|`` per axis; default :func:`max_position_offset`.
+    misfits : ndarray, (K,), optional
+        Misfits of the current offsets, if known.
+    workspace : Workspace, optional
+
+    Returns
+    -------
+    offsets : ndarray, float64, (K, 2)
+    misfits : ndarray, float64, (K,)
+        Misfit of each capture at its returned offset (never above the input).
+    """
+    limit = max_position_offset(layout) if max_offset is None else float(max_offset)
+    offsets = np.array(offsets, np.float64)
+    workspace = workspace or ForwardModel(layout, np.ones((1, layout.box_size, layout.box_size))).workspace(
+        min(32, layout.n_images))
+
+    def evaluate(trial: np.ndarray) -> np.ndarray:
+        pupils = pupil_functions(layout, offsets=trial, coefficients=coefficients, order=order)
+        return capture_misfits(ForwardModel(layout, pupils), spectrum, amplitudes, weights, workspace=workspace)
+
+    best = evaluate(offsets) if misfits is None else np.array(misfits, np.float64)
+    for h in steps:
+        for direction in ((h, 0.0), (-h, 0.0), (0.0, h), (0.0, -h), (h, h), (-h, -h), (h, -h), (-h, h)):
+            trial = np.clip(offsets + np.asarray(direction), -limit, limit)
+            moved = np.any(trial != offsets, axis=1)
+            if not np.any(moved):
+                continue
+            score = evaluate(trial)
+            better = moved & (score < best)
+            offsets[better] = trial[better]
+            best[better] = score[better]
+    return offsets, best
+
+
+def quadratic_to_zernike(quadratic, radius_px: float) -> np.ndarray:
+    """Zernike coefficients (waves) of defocus, astigmatism and oblique astigmatism for a quadratic phase.
+
+    Parameters
+    ----------
+    quadratic : array_like, (2, 2)
+        Symmetric ``Q`` (radians per pixel², ``[y, x]`` order) of the phase ``kᵀ Q k``.
+    radius_px : float
+        Pupil radius R (pixels).
+
+    Returns
+    -------
+    ndarray, float64, (3,)
+        Coefficients of modes (2, 0), (2, 2), (2, −2) (see :func:`zernike_basis`).
+    """
+    q = np.asarray(quadratic, np.float64)
+    defocus = 2.0 * np.pi * np.sqrt(3.0) * 2.0 / radius_px ** 2
+    astigmatism = 2.0 * np.pi * np.sqrt(6.0) / radius_px ** 2
+    return np.array([(q[1, 1] + q[0, 0]) / (2.0 * defocus),
+                     (q[1, 1] - q[0, 0]) / (2.0 * astigmatism),
+                     0.5 * (q[0, 1] + q[1, 0]) / astigmatism])
+
+
+def estimate_quadratic_aberration(layout: BandLayout, amplitudes: np.ndarray,
+                                  weights: np.ndarray | None = None, *, neighbour_ratio: float = 1.2,
+                                  upsample: int = 8) -> np.ndarray:
+    """Estimate a shared quadratic pupil aberration from the shifts between neighbouring captures.
+
+    Parameters
+    ----------
+    layout : BandLayout
+    amplitudes : ndarray, (K, m, m)
+        Measured amplitudes ``√I`` (field or sensor layout: only shifts matter).
+    weights : ndarray, (K, m, m), optional
+        Validity weights; invalid pixels are zeroed before correlating.
+    neighbour_ratio : float
+        Pairs closer than this times the smallest pupil spacing are correlated.
+    upsample : int
+        Sub-pixel factor of the correlation peak search.
+
+    Returns
+    -------
+    ndarray, float64, (3,)
+        Coefficients (waves) of modes (2, 0), (2, 2), (2, −2); zero when fewer
+        than two independent neighbour directions exist.
+
+    Notes
+    -----
+    See the module notes: for each neighbour separation ``u`` the normalised
+    cross-power spectra of all pairs are summed and the peak of their inverse
+    transform is ``(m/π) Q u`` modulo m; ``Q`` (symmetric) follows by least
+    squares, weighted by each peak's height.
+    """
+    centres = layout.centres_px
+    k, m = layout.n_images, layout.lowres_size
+    if k < 3:
+        return np.zeros(3)
+    images = np.square(np.asarray(amplitudes, np.float64))
+    if weights is not None:
+        images = images * weights
+    spectra = np.fft.fft2(images)
+    spectra[:, 0, 0] = 0.0
+    separation = centres[None, :, :] - centres[:, None, :]
+    distance = np.hypot(separation[..., 0], separation[..., 1])
+    spacing = float(np.min(distance[distance > 1e-6]))
+    close = (distance > 1e-6) & (distance <= neighbour_ratio * spacing)
+    # One of each ± pair: the first non-zero component positive.
+    forward = (separation[..., 0] > 1e-6) | ((np.abs(separation[..., 0]) <= 1e-6) & (separation[..., 1] > 0))
+    first, second = np.nonzero(close & forward)
+    keys = np.round(separation[first, second] / (0.05 * spacing)).astype(np.int64)
+    groups, group_of = np.unique(keys, axis=0, return_inverse=True)
+    group_of = group_of.ravel()
+    size = upsample * m
+    offset = (size - m) // 2
+    rows, vectors, heights = [], [], []
+    for g in range(groups.shape[0]):
+        members = group_of == g
+        cross = np.conj(spectra[first[members]]) * spectra[second[members]]
+        cross /= np.abs(cross) + 1e-3 * np.abs(cross).max(axis=(1, 2), keepdims=True) + 1e-300
+        padded = np.zeros((size, size), np.complex128)
+        padded[offset:offset + m, offset:offset + m] = np.fft.fftshift(cross.sum(axis=0))
+        correlation = np.fft.ifft2(np.fft.ifftshift(padded)).real
+        peak = np.array(np.unravel_index(np.argmax(correlation), correlation.shape), np.float64) / upsample
+        peak = (peak + m / 2) % m - m / 2
+        u = separation[first[members], second[members]].mean(axis=0)
+        scale = m / np.pi
+        # (m/π) Q u with q = (Q_yy, Q_xy, Q_xx).
+        rows += [scale * np.array([u[0], u[1], 0.0]), scale * np.array([0.0, u[0], u[1]])]
+        vectors += [peak[0], peak[1]]
+        height = float(correlation.max() / (np.abs(correlation).mean() + 1e-300))
+        heights += [height, height]
+    system = np.array(rows) * np.array(heights)[:, None]
+    if np.linalg.matrix_rank(system) < 3:
+        return np.zeros(3)
+    q, *_ = np.linalg.lstsq(system, np.array(vectors) * np.array(heights), rcond=None)
+    return quadratic_to_zernike([[q[0], q[1]], [q[1], q[2]]], layout.pupil_radius_px)

@@ -1,0 +1,249 @@
+"""Plan a camera array for a target resolution: pure computation, no printing.
+
+Given the optics (wavelength, focal length, aperture, pixel pitch), the object
+distance and one target (a feature size at the object, a synthetic aperture
+ratio, or a lens whose diffraction limit must be beaten), :func:`plan_array`
+returns an :class:`ArrayPlan`: spot sizes, the SAR needed, the grid and step
+at the chosen overlap, the image count, the grids the reconstruction runs on
+and the memory it needs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+from cca_cli.sampling.grid import band_layout, square_scan
+from cca_cli.sampling.overlap import grid_for_sar, step_m, synthetic_aperture_ratio
+from cca_cli.units import FourierScale, object_pixel_pitch_m, spot_size_m
+
+__all__ = ["MIN_OVERLAP", "SUGGESTED_OVERLAP", "ArrayPlan", "plan_array", "iteration_seconds"]
+
+#: Overlap below which the paper found recovery to fail (Holloway et al. 2016, Sec. 5).
+MIN_OVERLAP = 0.5
+#: Overlap suggested when the requested one is too small.
+SUGGESTED_OVERLAP = 0.6
+
+# Per-iteration cost model of the alternating-minimisation engine: one forward
+# and one inverse FFT of the m x m capture grid per capture, plus elementwise
+# work measured at about as much again as the transforms.
+_FFTS_PER_CAPTURE = 2
+_ELEMENTWISE_FACTOR = 2.0
+
+
+@dataclass(frozen=True)
+class ArrayPlan:
+    """A planned camera array (all lengths in metres, sizes in pixels).
+
+    Attributes
+    ----------
+    wavelength_m, focal_length_m, aperture_diameter_m, pixel_pitch_m, distance_m : float
+        The optics.
+    target : str
+        ``feature``, ``sar`` or ``beat_lens``: what was asked for.
+    target_value : float
+        The feature size (m), SAR, or aperture of the lens to beat (m).
+    overlap : float
+        Linear overlap of neighbouring apertures.
+    required_sar : float
+        Synthetic aperture ratio the target needs.
+    grid : int
+        Positions per side (odd, so a centre image exists).
+    sar : float
+        SAR the grid reaches: ``(grid - 1)(1 - overlap) + 1``.
+    synthetic_aperture_m, step_m : float
+        Synthetic aperture diameter and camera spacing.
+    n_images : int
+        ``grid ** 2``.
+    spot_lens_m, spot_synthetic_m : float
+        Diffraction spot ``2.44 λ z / d`` at the object for one lens and for the synthetic aperture.
+    spot_beat_m : float or None
+        The same for the lens to beat (``beat_lens`` target only).
+    spot_sensor_m : float
+        Spot on the sensor of one lens, ``2.44 λ f / d``.
+    object_pixel_m : float
+        One sensor pixel projected on the object.
+    field_width_m : float
+        Object-plane width of the captured field.
+    capture_px : int
+        Sensor pixels across the field.
+    sensor_px : int or None
+        Pixels across the sensor, when given.
+    fits_sensor : bool
+        Whether the scene's angular extent fits the sensor (always true without ``sensor_px``).
+    pupil_radius_px : float
+        Pupil radius in spectrum pixels of the field.
+    output_px : int
+        Side of the recovered image (high-resolution grid M).
+    lowres_px : int
+        Side of the per-capture model grid m.
+    output_pixel_m : float
+        Object-plane pitch of the recovered image.
+    capture_bytes : int
+        Size of the capture stack (float32).
+    memory_bytes : int
+        Estimated peak memory of a reconstruction.
+    fft_count_per_iteration : int
+        m x m complex FFTs per iteration.
+    warnings : tuple of str
+        Problems with the plan (low overlap, field larger than the sensor, target below one lens).
+    """
+
+    wavelength_m: float
+    focal_length_m: float
+    aperture_diameter_m: float
+    pixel_pitch_m: float
+    distance_m: float
+    target: str
+    target_value: float
+    overlap: float
+    required_sar: float
+    grid: int
+    sar: float
+    synthetic_aperture_m: float
+    step_m: float
+    n_images: int
+    spot_lens_m: float
+    spot_synthetic_m: float
+    spot_beat_m: float | None
+    spot_sensor_m: float
+    object_pixel_m: float
+    field_width_m: float
+    capture_px: int
+    sensor_px: int | None
+    fits_sensor: bool
+    pupil_radius_px: float
+    output_px: int
+    lowres_px: int
+    output_pixel_m: float
+    capture_bytes: int
+    memory_bytes: int
+    fft_count_per_iteration: int
+    warnings: tuple[str, ...]
+
+    def to_dict(self) -> dict:
+        """JSON-ready dictionary of every attribute."""
+        out = asdict(self)
+        out["warnings"] = list(self.warnings)
+        return out
+
+
+def iteration_seconds(plan: ArrayPlan, fft_seconds: float) -> float:
+    """Estimated seconds per reconstruction iteration.
+
+    Parameters
+    ----------
+    plan : ArrayPlan
+    fft_seconds : float
+        Measured time of one ``lowres_px`` x ``lowres_px`` complex64 FFT on this machine.
+
+    Notes
+    -----
+    Model: ``K * 2`` FFTs (forward and adjoint of every capture) plus
+    elementwise work taken as ``_ELEMENTWISE_FACTOR`` times the FFT time.
+    """
+    return plan.fft_count_per_iteration * fft_seconds * _ELEMENTWISE_FACTOR
+
+
+def _memory_bytes(k: int, capture_px: int, lowres: int, hires: int, box: int) -> int:
+    captures = k * capture_px * capture_px * 4
+    amplitudes = k * lowres * lowres * 4
+    pupils = 2 * k * box * box * 8
+    spectra = 6 * hires * hires * 8            # spectrum, accumulator, normal diagonal, previous, object, intensity
+    workspace = 2 * 16 * lowres * lowres * 8     # two threads' chunk buffers
+    return int(captures + amplitudes + pupils + spectra + workspace)
+
+
+def plan_array(*, wavelength_m: float, focal_length_m: float, aperture_diameter_m: float, pixel_pitch_m: float,
+               distance_m: float, feature_m: float | None = None, sar: float | None = None,
+               beat_lens_m: float | None = None, overlap: float = 0.61, field_width_m: float | None = None,
+               sensor_px: int | None = None) -> ArrayPlan:
+    """Plan the array that reaches one target.
+
+    Parameters
+    ----------
+    wavelength_m, focal_length_m, aperture_diameter_m, pixel_pitch_m, distance_m : float
+        The camera and the object distance (SI).
+    feature_m, sar, beat_lens_m : float, optional
+        Exactly one target: the smallest feature to resolve at the object
+        (its diffraction spot ``2.44 λ z / D`` must not exceed it), a
+        synthetic aperture ratio, or the aperture of a lens whose spot must be beaten.
+    overlap : float
+        Linear overlap of neighbouring apertures, in [0, 1).
+    field_width_m : float, optional
+        Object-plane field to capture; default: the whole sensor (``sensor_px``) or 256 pixels.
+    sensor_px : int, optional
+        Pixels across the sensor.
+
+    Returns
+    -------
+    ArrayPlan
+
+    Raises
+    ------
+    ValueError
+        If not exactly one target is given or a value is out of range.
+    """
+    targets = {"feature": feature_m, "sar": sar, "beat_lens": beat_lens_m}
+    given = [k for k, v in targets.items() if v is not None]
+    if len(given) != 1:
+        raise ValueError("give exactly one target: a feature size, a SAR, or a lens aperture to beat")
+    kind = given[0]
+    value = float(targets[kind])
+    if not value > 0:
+        raise ValueError(f"the {kind} target must be positive, got {value}")
+    for name, v in (("wavelength_m", wavelength_m), ("focal_length_m", focal_length_m),
+                    ("aperture_diameter_m", aperture_diameter_m), ("pixel_pitch_m", pixel_pitch_m),
+                    ("distance_m", distance_m)):
+        if not v > 0:
+            raise ValueError(f"{name} must be positive, got {v}")
+    d = aperture_diameter_m
+    spot_lens = spot_size_m(wavelength_m, distance_m, d)
+    warnings = []
+    if kind == "feature":
+        required = spot_lens / value
+    elif kind == "sar":
+        required = value
+    else:
+        required = beat_lens_m / d
+    if required < 1.0:
+        warnings.append(f"one {d * 1e3:.1f} mm lens already reaches the target (SAR {required:.2f} < 1)")
+        required_grid_sar = 1.0
+    else:
+        required_grid_sar = required
+    if overlap < MIN_OVERLAP:
+        warnings.append(f"overlap {overlap:.0%} is below the {MIN_OVERLAP:.0%} the paper needs for recovery; "
+                        f"use about {SUGGESTED_OVERLAP:.0%}")
+    grid = grid_for_sar(required_grid_sar, overlap)
+    achieved = synthetic_aperture_ratio(grid, overlap)
+    step = step_m(d, overlap)
+
+    pixel = object_pixel_pitch_m(pixel_pitch_m, focal_length_m, distance_m)
+    if field_width_m is None:
+        capture_px = int(sensor_px) if sensor_px else 256
+    else:
+        capture_px = max(1, int(round(field_width_m / pixel)))
+    field = capture_px * pixel
+    fits = sensor_px is None or capture_px <= sensor_px
+    if not fits:
+        warnings.append(f"the {field * 1e3:.3g} mm field spans {capture_px} px but the sensor has {sensor_px}: "
+                        f"the scene's angular extent ({field / distance_m * 1e3:.3g} mrad) does not fit")
+
+    scale = FourierScale.fraunhofer(wavelength_m, distance_m, field)
+    radius = scale.pupil_radius_px(d)
+    scan = square_scan(grid, step)
+    layout = band_layout(scale.to_pixels(scan.centres_yx_m), radius, sensor_size=max(capture_px, 2))
+    k = grid * grid
+    return ArrayPlan(
+        wavelength_m=wavelength_m, focal_length_m=focal_length_m, aperture_diameter_m=d,
+        pixel_pitch_m=pixel_pitch_m, distance_m=distance_m, target=kind, target_value=value, overlap=overlap,
+        required_sar=required, grid=grid, sar=achieved, synthetic_aperture_m=achieved * d, step_m=step,
+        n_images=k, spot_lens_m=spot_lens, spot_synthetic_m=spot_size_m(wavelength_m, distance_m, achieved * d),
+        spot_beat_m=spot_size_m(wavelength_m, distance_m, beat_lens_m) if kind == "beat_lens" else None,
+        spot_sensor_m=spot_size_m(wavelength_m, focal_length_m, d), object_pixel_m=pixel, field_width_m=field,
+        capture_px=capture_px, sensor_px=sensor_px, fits_sensor=fits, pupil_radius_px=radius,
+        output_px=layout.hires_size, lowres_px=layout.lowres_size, output_pixel_m=field / layout.hires_size,
+        capture_bytes=k * capture_px * capture_px * 4,
+        memory_bytes=_memory_bytes(k, capture_px, layout.lowres_size, layout.hires_size, layout.box_size),
+        fft_count_per_iteration=_FFTS_PER_CAPTURE * k, warnings=tuple(warnings),
+    )
+

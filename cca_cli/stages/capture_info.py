@@ -1,0 +1,46 @@
+"""Carry what ingest, hdr and register learned about recorded captures into recon.h5 for the report."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+__all__ = ["capture_extras", "read_capture_summary"]
+
+_COPIED = ("/registration/rms_px", "/registration/dropped", "/hdr/dynamic_range_gain", "/hdr/valid_fraction")
+
+
+def capture_extras(captures_path: Path):
+    """A ``write_recon`` ``extra`` callback copying registration/HDR records, or None when there are none."""
+    with h5py.File(captures_path, "r") as src:
+        present = {name: src[name][()] for name in _COPIED if name in src}
+    if not present:
+        return None
+
+    def extra(handle: h5py.File) -> None:
+        for name, data in present.items():
+            if getattr(data, "dtype", None) is not None and data.dtype.kind in "OSU":
+                handle.create_dataset(name, data=np.array([v.decode() if isinstance(v, bytes) else str(v) for v in data],
+                                                          dtype=h5py.string_dtype()))
+            else:
+                handle.create_dataset(name, data=data)
+
+    return extra
+
+
+def read_capture_summary(handle: h5py.File) -> dict:
+    """Report entries from the records copied by :func:`capture_extras` (empty for simulations)."""
+    out = {}
+    if "/registration/dropped" in handle:
+        out["lost_positions"] = [v.decode() if isinstance(v, bytes) else str(v) for v in handle["/registration/dropped"][()]]
+    if "/registration/rms_px" in handle:
+        rms = np.asarray(handle["/registration/rms_px"])
+        out["registration_rms_px_max"] = round(float(rms.max()), 4)
+        out["registration_rms_px_mean"] = round(float(rms.mean()), 4)
+    if "/hdr/dynamic_range_gain" in handle:
+        out["hdr_dynamic_range_gain_median"] = round(float(np.median(handle["/hdr/dynamic_range_gain"])), 3)
+    if "/hdr/valid_fraction" in handle:
+        out["hdr_valid_fraction_mean"] = round(float(np.mean(handle["/hdr/valid_fraction"])), 4)
+    return out

@@ -1,0 +1,645 @@
+"""Parameter sweeps: many simulate → reconstruct → report runs of one config, on Dask.
+
+A sweep is a base :class:`RunConfig` and a :class:`SweepSection`: explicit
+points (override dicts whose keys change together, like ``array.grid`` and
+``array.overlap`` in the overlap study) crossed with the cartesian product of
+``parameters``. Every point is a full run in ``<sweep dir>/points/<point id>``
+with its own seed; the point id is a readable slug plus a hash of the point's
+effective overrides, so the same parameters always land in the same directory.
+
+Resumability comes in two layers: a point whose ``point.json`` records the
+same full config is not resubmitted at all, and a point that was interrupted
+resumes at its first incomplete stage (:func:`run_pipeline` skips up-to-date
+stages). Every file appears atomically, the sweep table included.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import hashlib
+import io
+import itertools
+import json
+import math
+import re
+import time
+import traceback
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import numpy as np
+import yaml
+
+from cca_cli.config.load import apply_overrides, dump_config, parse_config
+from cca_cli.config.model import RunConfig, SweepSection
+from cca_cli.errors import CcaError, ConfigError
+from cca_cli.io.h5 import Provenance, atomic_h5, atomic_path
+
+__all__ = [
+    "PAPER_STUDIES",
+    "METRICS",
+    "SweepPoint",
+    "PointCost",
+    "parse_set",
+    "study_spec",
+    "check_key",
+    "expand_points",
+    "point_cost",
+    "run_point",
+    "cached_result",
+    "open_client",
+    "run_sweep",
+    "table_columns",
+    "write_table",
+    "read_table",
+    "default_axes",
+    "write_sweep_figures",
+]
+
+POINT_JSON = "point.json"
+
+#: Report metrics copied into the sweep table.
+METRICS = ("sar", "grid_n", "n_images", "iterations", "recon_seconds", "mtf20_observed_px", "mtf20_recovered_px",
+           "resolution_gain", "rmse_observed", "rmse_recovered")
+
+_OVERLAPS = (0.0, 0.2, 0.41, 0.5, 0.61, 0.75, 0.77)
+
+
+def _grid_near_sar(sar: float, overlap: float) -> int:
+    """Odd grid whose SAR at ``overlap`` is nearest ``sar`` (so a centre image exists)."""
+    step = 1.0 - overlap
+    candidates = range(1, 200, 2)
+    return min(candidates, key=lambda n: (abs((n - 1) * step + 1 - sar), n))
+
+
+#: The paper's three studies (Holloway et al. 2016, Figs. 6-8), applied to any base config.
+PAPER_STUDIES: dict[str, SweepSection] = {
+    "overlap": SweepSection(
+        study="overlap",
+        points=[{"array.overlap": o, "array.grid": _grid_near_sar(10.0, o)} for o in _OVERLAPS],
+        x="array.overlap", highlight=[0.0, 0.41, 0.5, 0.75]),
+    "sar": SweepSection(study="sar", parameters={"array.grid": [1, 3, 7, 9, 13, 29]},
+                        points=[{"array.overlap": 0.61}], x="sar"),
+    "noise": SweepSection(study="noise", points=[{"array.overlap": 0.61}],
+                          parameters={"array.grid": [1, 3, 7, 9, 13, 29], "noise.snr_db": [10, 20, 30]},
+                          x="sar", group="noise.snr_db"),
+    "grid": SweepSection(study="grid"),
+}
+
+
+@dataclass(frozen=True)
+class SweepPoint:
+    """One point of a sweep.
+
+    Attributes
+    ----------
+    index : int
+        Position in the sweep (also the seed offset).
+    point_id : str
+        Directory name: readable slug + short hash of ``overrides``.
+    overrides : dict
+        Effective dotted-key overrides of the base config (the seed included).
+    out_dir : Path
+        The point's run directory.
+    config : RunConfig or None
+        The point's config; None when its values are invalid (see ``error``).
+    error : str or None
+        Why the point cannot run (an invalid value), recorded in the table.
+    """
+
+    index: int
+    point_id: str
+    overrides: dict[str, Any]
+    out_dir: Path
+    config: RunConfig | None
+    error: str | None = None
+
+
+@dataclass(frozen=True)
+class PointCost:
+    """Size of one point: captures, per-capture grid m, object grid M and iteration cap."""
+
+    images: int
+    lowres_px: int
+    hires_px: int
+    iterations: int
+
+    @property
+    def work(self) -> float:
+        """Captured pixels processed per iteration: images × m²."""
+        return float(self.images) * self.lowres_px ** 2
+
+
+def parse_set(text: str) -> tuple[str, list[Any]]:
+    """``key=v1,v2,…`` → ``(key, [v1, v2, …])``, each value read as YAML (numbers stay numbers).
+
+    Raises
+    ------
+    ConfigError
+        If there is no ``=`` or no value.
+    """
+    key, sep, values = text.partition("=")
+    key = key.strip()
+    if not sep or not key or not values.strip():
+        raise ConfigError(f"--set {text!r}: expected key=value[,value…], e.g. --set array.overlap=0,0.41,0.61")
+    parsed = []
+    for raw in values.split(","):
+        try:
+            parsed.append(yaml.safe_load(raw.strip()))
+        except yaml.YAMLError:
+            parsed.append(raw.strip())
+    return key, parsed
+
+
+def study_spec(config: RunConfig, study: str, *, sets: list[str] = (), source: str = "config") -> SweepSection:
+    """The sweep spec that `cca sweep <study>` runs on ``config``.
+
+    The config's own ``sweep:`` section when present (it must be of kind
+    ``study``, except for ``grid`` which accepts any), else the paper's
+    default for ``study``; ``--set`` values add to (or replace) its parameters.
+    """
+    if study not in PAPER_STUDIES:
+        raise ConfigError(f"unknown study {study!r}; choose one of {', '.join(PAPER_STUDIES)}")
+    spec = config.sweep
+    if spec is None:
+        spec = PAPER_STUDIES[study]
+    elif study != "grid" and spec.study != study:
+        raise ConfigError(f"{source}: sweep.study is {spec.study!r}, not {study!r}; "
+                          f"run `cca sweep {spec.study} {source}` or change sweep.study")
+    if sets:
+        parameters = dict(spec.parameters)
+        for text in sets:
+            key, values = parse_set(text)
+            parameters[key] = values
+        spec = spec.model_copy(update={"parameters": parameters})
+    if not spec.points and not spec.parameters:
+        raise ConfigError(f"{source}: nothing to sweep; give sweep.parameters / sweep.points in the config "
+                          "or --set key=v1,v2 on the command line")
+    return spec
+
+
+def check_key(dotted: str, *, source: str = "sweep") -> None:
+    """Raise :class:`ConfigError` naming ``dotted`` unless it is a config key a sweep may change."""
+    parts = dotted.split(".")
+    fields = RunConfig.model_fields
+    if len(parts) < 2 or parts[0] not in fields or parts[0] in ("sweep", "run"):
+        sections = ", ".join(k for k in fields if k not in ("sweep", "run"))
+        raise ConfigError(f"{source}: {dotted}: not a sweepable key; use section.key with a section of {sections}")
+    section = fields[parts[0]].annotation
+    keys = getattr(section, "model_fields", {})
+    if parts[1] not in keys:
+        raise ConfigError(f"{source}: {dotted}: unknown key; accepted keys in {parts[0]}: {', '.join(sorted(keys))}")
+    if len(parts) > 2 and dotted.rsplit(".", 1)[0] != "reconstruct.options":
+        raise ConfigError(f"{source}: {dotted}: {parts[0]}.{parts[1]} has no sub-keys")
+
+
+def _slug(overrides: dict[str, Any]) -> str:
+    bits = []
+    for key, value in overrides.items():
+        if key == "noise.seed":
+            continue
+        name = key.rsplit(".", 1)[-1].replace("_", "")
+        text = f"{value:g}" if isinstance(value, float) else str(value)
+        bits.append(f"{name}{text}")
+    slug = re.sub(r"[^A-Za-z0-9.+-]+", "_", "-".join(bits)) or "base"
+    return slug[:48]
+
+
+def _hash(data: Any) -> str:
+    return hashlib.sha256(json.dumps(data, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def config_digest(config: RunConfig) -> str:
+    """Hash of a point's full config, the output directory left out."""
+    data = config.model_dump(mode="json")
+    data["run"]["out_dir"] = None
+    data["sweep"] = None
+    return _hash(data)
+
+
+def expand_points(base: RunConfig, spec: SweepSection, sweep_dir: Path, *, source: str = "sweep") -> list[SweepPoint]:
+    """Every point of ``spec`` on ``base``: explicit points × the cartesian product of parameters.
+
+    Each point gets ``noise.seed = base seed + index`` unless the sweep sets
+    ``noise.seed``, and ``reconstruct.options.threads = 1`` unless the config
+    sets it (the sweep parallelises across points, not inside them).
+
+    Raises
+    ------
+    ConfigError
+        If a key is not a config key. Invalid *values* do not raise: that
+        point carries the error and the others run.
+    """
+    for key in list(spec.parameters) + [k for p in spec.points for k in p]:
+        check_key(key, source=source)
+    for key, values in spec.parameters.items():
+        if not isinstance(values, list) or not values:
+            raise ConfigError(f"{source}: {key}: give a non-empty list of values")
+    explicit = spec.points or [{}]
+    product = [dict(zip(spec.parameters, combo)) for combo in itertools.product(*spec.parameters.values())]
+    base = base.model_copy(update={"sweep": None})
+    sets_threads = "threads" in base.reconstruct.options
+    from cca_cli.engines.registry import ENGINES
+
+    takes_threads = "threads" in ENGINES[base.reconstruct.engine].option_names()
+    points = []
+    for index, (fixed, varied) in enumerate(itertools.product(explicit, product)):
+        overrides = {**fixed, **varied}
+        if "noise.seed" not in overrides:
+            overrides["noise.seed"] = base.noise.seed + index
+        point_id = f"{_slug(overrides)}-{_hash(overrides)[:8]}"
+        out_dir = Path(sweep_dir) / "points" / point_id
+        extra = {"run.out_dir": str(out_dir)}
+        engine = overrides.get("reconstruct.engine", base.reconstruct.engine)
+        explicit_threads = sets_threads or any(k == "reconstruct.options.threads" for k in overrides)
+        if takes_threads and engine == base.reconstruct.engine and not explicit_threads:
+            extra["reconstruct.options.threads"] = 1
+        try:
+            config = apply_overrides(base, {**overrides, **extra}, source=f"{source} point {point_id}")
+            error = None
+        except ConfigError as exc:
+            config, error = None, str(exc)
+        points.append(SweepPoint(index, point_id, overrides, out_dir, config, error))
+    return points
+
+
+def point_cost(point: SweepPoint) -> PointCost | None:
+    """Captures and grid sizes of a point, from its geometry alone (nothing is simulated)."""
+    if point.config is None:
+        return None
+    from cca_cli.sampling.grid import band_layout
+    from cca_cli.stages.simulate import simulation_geometry
+
+    try:
+        geometry, sensor = simulation_geometry(point.config)
+        layout = band_layout(geometry.spectrum_centres_yx_px, geometry.pupil_radius_px, sensor_size=sensor)
+    except (CcaError, ValueError):
+        return None
+    return PointCost(geometry.n_images, layout.lowres_size, layout.hires_size, point.config.reconstruct.iterations)
+
+
+def _one_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    message = text[0] if text else ""
+    return message if isinstance(exc, CcaError) else f"{type(exc).__name__}: {message}"
+
+
+def _metrics(summary: dict) -> dict[str, Any]:
+    grid = summary.get("grid") or [None]
+    return {
+        "sar": summary.get("sar"), "grid_n": grid[0], "n_images": summary.get("n_images"),
+        "iterations": summary.get("iterations"), "recon_seconds": summary.get("seconds"),
+        "mtf20_observed_px": summary.get("mtf20_observed_px"), "mtf20_recovered_px": summary.get("mtf20_recovered_px"),
+        "resolution_gain": summary.get("resolution_gain"), "rmse_observed": summary.get("rmse_observed"),
+        "rmse_recovered": summary.get("rmse_recovered"),
+    }
+
+
+def run_point(config_data: dict, out_dir: str, *, force: bool = False) -> dict[str, Any]:
+    """Run one point's pipeline (a Dask task); never raises.
+
+    Parameters
+    ----------
+    config_data : dict
+        The point's config as JSON-ready data (``RunConfig.model_dump(mode="json")``).
+    out_dir : str
+        The point's directory.
+    force : bool
+        Recompute every stage.
+
+    Returns
+    -------
+    dict
+        ``status`` ("ok" or "failed"), ``error`` (one line), ``wall_s``, the
+        stage outcomes and the report metrics (:data:`METRICS`).
+    """
+    from cca_cli.stages.report import REPORT_JSON
+    from cca_cli.stages.runner import run_pipeline
+
+    start = time.perf_counter()
+    directory = Path(out_dir)
+    try:
+        config = parse_config(config_data, source=str(directory))
+        directory.mkdir(parents=True, exist_ok=True)
+        for stale in directory.glob(".*.tmp-*"):
+            if stale.is_dir():
+                import shutil
+
+                shutil.rmtree(stale, ignore_errors=True)
+            else:
+                stale.unlink(missing_ok=True)
+        outcomes = run_pipeline(config, directory, force=force)
+        report = directory / "report" / REPORT_JSON
+        summary = json.loads(report.read_text()) if report.exists() else {}
+        result = {"status": "ok", "error": "", "wall_s": round(time.perf_counter() - start, 3),
+                  "stages": {o.name: o.status for o in outcomes}, "worker": _worker_name(), **_metrics(summary)}
+        record = {"config_digest": config_digest(config), "result": result}
+        with atomic_path(directory / POINT_JSON, force=True) as tmp:
+            tmp.write_text(json.dumps(record, indent=2))
+        return result
+    except Exception as exc:  # a failed point is recorded, the others go on
+        return {"status": "failed", "error": _one_line(exc), "wall_s": round(time.perf_counter() - start, 3),
+                "traceback": traceback.format_exc(limit=4)}
+
+
+def _worker_name() -> str:
+    """Address of the Dask worker running this task (``local`` outside a worker)."""
+    try:
+        from distributed import get_worker
+
+        return str(get_worker().address)
+    except (ImportError, ValueError):
+        return "local"
+
+
+def cached_result(point: SweepPoint) -> dict[str, Any] | None:
+    """The recorded result of a point that already completed with the same config, else None."""
+    if point.config is None:
+        return None
+    try:
+        record = json.loads((point.out_dir / POINT_JSON).read_text())
+    except (OSError, ValueError):
+        return None
+    from cca_cli.stages.report import REPORT_JSON
+
+    if record.get("config_digest") != config_digest(point.config):
+        return None
+    if not (point.out_dir / "report" / REPORT_JSON).exists():
+        return None
+    result = dict(record.get("result", {}))
+    return result if result.get("status") == "ok" else None
+
+
+@contextlib.contextmanager
+def open_client(*, workers: int | None = None, scheduler: str | None = None) -> Iterator[Any]:
+    """A ``dask.distributed.Client``: a LocalCluster of ``workers`` single-threaded processes, or ``scheduler``.
+
+    Parameters
+    ----------
+    workers : int, optional
+        Worker processes of the local cluster; default one per core.
+    scheduler : str, optional
+        Address of an existing scheduler (``tcp://host:8786``); ``workers`` is then ignored.
+    """
+    import logging
+
+    from distributed import Client, LocalCluster
+
+    if scheduler:
+        try:
+            client = Client(scheduler, timeout="20s")
+        except OSError as exc:
+            raise ConfigError(f"--scheduler {scheduler}: cannot connect ({exc}); check the address") from None
+        try:
+            yield client
+        finally:
+            client.close()
+        return
+    from cca_cli.optics.fft import cpu_count
+
+    n = workers or cpu_count()
+    if n < 1:
+        raise ConfigError(f"--workers {n}: give at least 1 worker")
+    for name in ("distributed", "distributed.nanny", "distributed.scheduler", "distributed.worker"):
+        logging.getLogger(name).setLevel(logging.ERROR)
+    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
+                           silence_logs=logging.ERROR)
+    client = Client(cluster)
+    try:
+        yield client
+    finally:
+        client.close()
+        cluster.close()
+
+
+def _row(point: SweepPoint, result: dict[str, Any], status: str | None = None) -> dict[str, Any]:
+    row = {"point_id": point.point_id, "index": point.index, "status": status or result.get("status", "failed"),
+           "error": result.get("error", ""), "wall_s": result.get("wall_s"), "out_dir": str(point.out_dir)}
+    row.update({f"param:{k}": v for k, v in point.overrides.items()})
+    row.update({k: result.get(k) for k in METRICS})
+    return row
+
+
+def run_sweep(points: list[SweepPoint], client, *, force: bool = False,
+              on_row: Callable[[dict[str, Any], int, int], None] | None = None) -> list[dict[str, Any]]:
+    """Run every point that is not already complete; return one table row per point, in point order.
+
+    Parameters
+    ----------
+    points : list of SweepPoint
+    client : distributed.Client
+        Where the points run (one task each).
+    force : bool
+        Recompute points (and every stage) even when complete.
+    on_row : callable, optional
+        Called with ``(row, done, total)`` as each point finishes or is found complete.
+
+    Notes
+    -----
+    Rows carry ``status`` ``ok`` (ran now), ``cached`` (complete from an
+    earlier run), ``failed`` (with ``error``) or ``pending`` (not finished
+    when the sweep was interrupted).
+    """
+    from distributed import as_completed
+
+    rows: dict[int, dict[str, Any]] = {}
+    total = len(points)
+
+    def finish(point: SweepPoint, row: dict[str, Any]) -> None:
+        rows[point.index] = row
+        if on_row:
+            on_row(row, len(rows), total)
+
+    futures = {}
+    for point in points:
+        if point.error is not None:
+            finish(point, _row(point, {"status": "failed", "error": point.error}))
+            continue
+        cached = None if force else cached_result(point)
+        if cached is not None:
+            finish(point, _row(point, cached, "cached"))
+            continue
+        future = client.submit(run_point, point.config.model_dump(mode="json"), str(point.out_dir), force=force,
+                               pure=False)
+        futures[future] = point
+    try:
+        for future in as_completed(list(futures)):
+            point = futures[future]
+            try:
+                result = future.result()
+            except Exception as exc:  # the worker died or the task was lost
+                result = {"status": "failed", "error": _one_line(exc)}
+            finish(point, _row(point, result))
+    except BaseException:
+        for future in futures:
+            future.cancel()
+        raise
+    finally:
+        for point in points:
+            rows.setdefault(point.index, _row(point, {"status": "pending", "error": ""}))
+    return [rows[p.index] for p in points]
+
+
+def table_columns(rows: list[dict[str, Any]]) -> list[str]:
+    """Column order of the sweep table: identity, parameters, metrics."""
+    head = ["point_id", "index", "status", "error", "wall_s"]
+    params = []
+    for row in rows:
+        params += [k for k in row if k.startswith("param:") and k not in params]
+    return head + params + list(METRICS) + ["out_dir"]
+
+
+def _numeric(values: list[Any]) -> bool:
+    return all(v is None or (isinstance(v, (int, float, np.number)) and not isinstance(v, bool)) for v in values) \
+        and any(v is not None for v in values)
+
+
+def write_table(rows: list[dict[str, Any]], sweep_dir: Path, *, spec: SweepSection, base: RunConfig) -> tuple[Path, Path]:
+    """Write ``sweep.csv`` and ``sweep.h5`` atomically into ``sweep_dir``.
+
+    ``sweep.h5`` holds one dataset per column under ``/table`` (numbers as
+    float64 with NaN for missing, text as UTF-8 strings) and, as root
+    attributes, the provenance with the base config and the sweep spec.
+    """
+    sweep_dir = Path(sweep_dir)
+    columns = table_columns(rows)
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow([c.removeprefix("param:") for c in columns])
+    for row in rows:
+        writer.writerow(["" if row.get(c) is None else row.get(c) for c in columns])
+    csv_path, h5_path = sweep_dir / "sweep.csv", sweep_dir / "sweep.h5"
+    with atomic_path(csv_path, force=True) as tmp:
+        tmp.write_text(buffer.getvalue())
+    spec_yaml = yaml.safe_dump(spec.model_dump(mode="json"), sort_keys=False)
+    provenance = Provenance.make("sweep", dump_config(base.model_copy(update={"sweep": None})) + "sweep:\n"
+                                 + "".join(f"  {line}\n" for line in spec_yaml.splitlines()), _hash(spec_yaml))
+    with atomic_h5(h5_path, provenance, force=True) as handle:
+        group = handle.create_group("table")
+        for column in columns:
+            values = [row.get(column) for row in rows]
+            name = column.removeprefix("param:")
+            if _numeric(values):
+                group.create_dataset(name, data=np.array([np.nan if v is None else float(v) for v in values]))
+            else:
+                text = ["" if v is None else (json.dumps(v) if isinstance(v, (list, dict)) else str(v)) for v in values]
+                group.create_dataset(name, data=np.array(text, dtype=object), dtype=_h5_str())
+            group[name].attrs["parameter"] = column.startswith("param:")
+        handle.attrs["study"] = spec.study
+        handle.attrs["columns"] = json.dumps([c.removeprefix("param:") for c in columns])
+    return csv_path, h5_path
+
+
+def _h5_str():
+    import h5py
+
+    return h5py.string_dtype("utf-8")
+
+
+def read_table(path: Path) -> list[dict[str, Any]]:
+    """Rows of a ``sweep.h5`` table (parameter columns keep their dotted names)."""
+    import h5py
+
+    with h5py.File(path, "r") as handle:
+        columns = json.loads(handle.attrs["columns"])
+        data = {}
+        for c in columns:
+            values = handle["table"][c][()]
+            data[c] = [v.decode() if isinstance(v, bytes) else (float(v) if isinstance(v, np.floating) else v)
+                       for v in values]
+    n = len(next(iter(data.values()))) if data else 0
+    return [{c: data[c][i] for c in columns} for i in range(n)]
+
+
+def default_axes(spec: SweepSection, points: list[SweepPoint]) -> tuple[str, str | None]:
+    """The x column and grouping column of the sweep's plots."""
+    varying = []
+    for point in points:
+        for key in point.overrides:
+            if key != "noise.seed" and key not in varying and len({json.dumps(p.overrides.get(key)) for p in points}) > 1:
+                varying.append(key)
+    study_x = {"overlap": "array.overlap", "sar": "sar", "noise": "sar"}.get(spec.study)
+    x = spec.x or study_x or (varying[0] if varying else "index")
+    group = spec.group
+    if group is None and spec.study == "grid":
+        rest = [k for k in varying if k != x]
+        group = rest[0] if rest else None
+    return x, group
+
+
+def _value(row: dict[str, Any], column: str):
+    value = row.get(f"param:{column}", row.get(column))
+    return value
+
+
+def write_sweep_figures(rows: list[dict[str, Any]], sweep_dir: Path, *, spec: SweepSection,
+                        points: list[SweepPoint]) -> list[Path]:
+    """Gather what the plots need (table, contrast curves, recovered crops) and draw them into ``sweep_dir/figures``."""
+    from cca_cli.report.sweep_figures import SweepPlotData, plot_sweep
+
+    x, group = default_axes(spec, points)
+    ok = [r for r in rows if r["status"] in ("ok", "cached")]
+    by_index = {p.index: p for p in points}
+    series = []
+    for row in ok:
+        xv, gv = _value(row, x), (_value(row, group) if group else None)
+        if xv is None:
+            continue
+        series.append({"x": float(xv), "group": gv, **{k: row.get(k) for k in METRICS}, "index": row["index"]})
+    highlight = _highlighted(series, spec.highlight)
+    contrast, crops = [], []
+    for item in highlight:
+        point = by_index[item["index"]]
+        contrast.append((item, _contrast(point.out_dir)))
+        crops.append((item, _crops(point.out_dir)))
+    data = SweepPlotData(study=spec.study, x=x, group=group, series=series, contrast=contrast, crops=crops)
+    return plot_sweep(data, Path(sweep_dir) / "figures")
+
+
+def _highlighted(series: list[dict], wanted: list[float] | None) -> list[dict]:
+    if not series:
+        return []
+    if wanted is None:
+        chosen = sorted(series, key=lambda s: (str(s["group"]), s["x"]))
+        if len(chosen) > 8:
+            keep = np.unique(np.linspace(0, len(chosen) - 1, 8).round().astype(int))
+            chosen = [chosen[i] for i in keep]
+        return chosen
+    chosen = []
+    for value in wanted:
+        near = [s for s in series if math.isclose(s["x"], float(value), rel_tol=1e-6, abs_tol=1e-9)]
+        chosen += [s for s in near if s not in chosen]
+    return chosen
+
+
+def _contrast(out_dir: Path) -> dict | None:
+    try:
+        summary = json.loads((out_dir / "report" / "report.json").read_text())
+    except (OSError, ValueError):
+        return None
+    if "contrast_recovered" not in summary:
+        return None
+    return {"recovered": summary["contrast_recovered"], "observed": summary["contrast_observed"],
+            "threshold": summary.get("mtf_threshold", 0.2)}
+
+
+def _crops(out_dir: Path) -> dict | None:
+    from cca_cli.io.h5 import open_input
+    from cca_cli.optics import fft
+
+    try:
+        with open_input(out_dir / "recon.h5", stage="reconstruct") as handle:
+            recovered = np.asarray(handle["/recon/intensity"], np.float32)
+            observed = np.asarray(handle["/observed/centre"], np.float32)
+            truth = np.abs(np.asarray(handle["/truth/object"])) ** 2 if "/truth/object" in handle else None
+    except (CcaError, OSError, KeyError):
+        return None
+    size = truth.shape[-1] if truth is not None else recovered.shape[-1]
+
+    def fit(image):
+        return image if image.shape[-1] == size else fft.fourier_resample(image[None], size)[0]
+
+    return {"recovered": fit(recovered), "observed": fit(observed),
+            "truth": None if truth is None else truth.astype(np.float32)}

@@ -1,0 +1,160 @@
+"""The `cca` command line: stage commands, `run`, `info`, and one-line errors with non-zero exits."""
+
+import json
+
+import h5py
+import pytest
+from typer.testing import CliRunner
+
+from cca_cli.commands.app import app
+
+
+def _out(result) -> str:
+    """stdout with rich's line wrapping undone."""
+    return " ".join(result.stdout.split())
+
+
+@pytest.fixture
+def runner():
+    return CliRunner()
+
+
+def _error_line(result) -> str:
+    """The single line a failing command prints (stderr), asserting it is one line."""
+    assert result.exit_code != 0, result.output
+    assert result.exception is None or isinstance(result.exception, SystemExit)
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, result.stderr
+    assert "Traceback" not in result.output
+    return lines[0]
+
+
+@pytest.fixture
+def small_config(write_config, tiny_config_data):
+    tiny_config_data["report"]["figures"] = False
+    return write_config(tiny_config_data)
+
+
+def test_help_lists_the_commands(runner):
+    result = runner.invoke(app, ["--help"])
+    assert result.exit_code == 0
+    for command in ("run", "simulate", "reconstruct", "report", "info"):
+        assert command in result.stdout
+    assert runner.invoke(app, ["--version"]).stdout.startswith("cca ")
+
+
+def test_simulate_reconstruct_report_info(runner, small_config, tmp_path):
+    captures, recon, report = tmp_path / "captures.h5", tmp_path / "recon.h5", tmp_path / "report"
+    result = runner.invoke(app, ["simulate", str(small_config), "-o", str(captures), "--quiet"])
+    assert result.exit_code == 0, result.output
+    assert captures.is_file() and "25 captures" in _out(result)
+    result = runner.invoke(app, ["reconstruct", str(captures), "-o", str(recon), "--iterations", "5", "--quiet"])
+    assert result.exit_code == 0, result.output
+    with h5py.File(recon, "r") as handle:
+        assert handle["recon"].attrs["iterations"] == 5
+        assert handle.attrs["stage"] == "reconstruct"
+    assert "5 iterations" in _out(result)
+    result = runner.invoke(app, ["report", str(recon), "-o", str(report)])
+    assert result.exit_code == 0, result.output
+    summary = json.loads((report / "report.json").read_text())
+    assert summary["iterations"] == 5 and summary["n_images"] == 25
+    assert "MTF20" in _out(result)
+    result = runner.invoke(app, ["info", str(recon)])
+    assert result.exit_code == 0, result.output
+    assert "/recon/spectrum" in _out(result) and "stage reconstruct" in _out(result)
+    assert "[√irradiance · px]" in _out(result)
+
+
+def test_reconstruct_takes_options_from_a_config(runner, small_config, tmp_path):
+    captures, recon = tmp_path / "captures.h5", tmp_path / "recon.h5"
+    assert runner.invoke(app, ["simulate", str(small_config), "-o", str(captures), "-q"]).exit_code == 0
+    result = runner.invoke(app, ["reconstruct", str(captures), "-o", str(recon), "-c", str(small_config),
+                                 "--tau", "0.01", "-q"])
+    assert result.exit_code == 0, result.output
+    with h5py.File(recon, "r") as handle:
+        assert handle["recon"].attrs["iterations"] == 30
+        assert json.loads(handle["recon"].attrs["engine_options"])["tau"] == pytest.approx(0.01)
+
+
+def test_run_end_to_end_and_resume(runner, small_config, tmp_path):
+    config = small_config
+    out = tmp_path / "runs"
+    result = runner.invoke(app, ["run", str(config), "--out-dir", str(out), "--quiet"])
+    assert result.exit_code == 0, result.output
+    assert (out / "captures.h5").is_file() and (out / "recon.h5").is_file()
+    report = json.loads((out / "report" / "report.json").read_text())
+    assert report["mtf20_recovered_px"] < report["mtf20_observed_px"]
+    assert "synthetic aperture ratio" in _out(result)
+    again = runner.invoke(app, ["run", str(config), "--out-dir", str(out), "--quiet"])
+    assert again.exit_code == 0, again.output
+    assert _out(again).count("skipped") == 3
+
+
+@pytest.mark.parametrize(
+    ("section", "key", "value", "expected"),
+    [
+        ("array", "gird", 5, "array.gird"),
+        ("optics", "distance_m", "far", "optics.distance_m"),
+        ("reconstruct", "engine", "magic", "reconstruct.engine"),
+    ],
+)
+def test_bad_config_is_one_line_naming_file_and_key(runner, write_config, tiny_config_data, tmp_path, section, key,
+                                                    value, expected):
+    tiny_config_data[section][key] = value
+    config = write_config(tiny_config_data, name="bad.yaml")
+    for args in (["simulate", str(config), "-o", str(tmp_path / "c.h5"), "-q"],
+                 ["run", str(config), "--out-dir", str(tmp_path / "runs"), "-q"]):
+        result = runner.invoke(app, args)
+        line = _error_line(result)
+        assert result.exit_code == 2
+        assert "bad.yaml" in line and expected in line
+    assert not (tmp_path / "c.h5").exists() and not (tmp_path / "runs" / "captures.h5").exists()
+
+
+def test_missing_and_non_hdf5_inputs(runner, tmp_path):
+    missing = tmp_path / "missing.h5"
+    result = runner.invoke(app, ["reconstruct", str(missing), "-o", str(tmp_path / "r.h5"), "-q"])
+    assert "missing.h5" in _error_line(result) and result.exit_code == 3
+    text = tmp_path / "notes.h5"
+    text.write_text("hello")
+    for args in (["reconstruct", str(text), "-o", str(tmp_path / "r.h5"), "-q"],
+                 ["report", str(text), "-o", str(tmp_path / "rep")],
+                 ["info", str(text)]):
+        result = runner.invoke(app, args)
+        line = _error_line(result)
+        assert "notes.h5" in line and "HDF5" in line
+    assert not (tmp_path / "r.h5").exists() and not (tmp_path / "rep").exists()
+    result = runner.invoke(app, ["simulate", str(tmp_path / "nope.yaml"), "-q"])
+    assert "nope.yaml" in _error_line(result)
+
+
+def test_existing_output_without_force_is_refused_and_kept(runner, small_config, tmp_path):
+    captures = tmp_path / "captures.h5"
+    assert runner.invoke(app, ["simulate", str(small_config), "-o", str(captures), "-q"]).exit_code == 0
+    before, mtime = captures.read_bytes(), captures.stat().st_mtime_ns
+    result = runner.invoke(app, ["simulate", str(small_config), "-o", str(captures), "-q"])
+    line = _error_line(result)
+    assert result.exit_code == 4 and "captures.h5" in line and "--force" in line
+    assert captures.read_bytes() == before and captures.stat().st_mtime_ns == mtime
+    recon = tmp_path / "recon.h5"
+    recon.write_bytes(b"precious")
+    result = runner.invoke(app, ["reconstruct", str(captures), "-o", str(recon), "--iterations", "2", "-q"])
+    assert "recon.h5" in _error_line(result)
+    assert recon.read_bytes() == b"precious"
+    result = runner.invoke(app, ["reconstruct", str(captures), "-o", str(recon), "--iterations", "2", "-q",
+                                 "--force"])
+    assert result.exit_code == 0, result.output
+    with h5py.File(recon, "r") as handle:
+        assert handle["recon"].attrs["iterations"] == 2
+
+
+def test_bad_option_values_are_one_line_errors(runner, small_config, tmp_path):
+    captures = tmp_path / "captures.h5"
+    assert runner.invoke(app, ["simulate", str(small_config), "-o", str(captures), "-q"]).exit_code == 0
+    result = runner.invoke(app, ["reconstruct", str(captures), "-o", str(tmp_path / "r.h5"), "--engine", "magic",
+                                 "-q"])
+    line = _error_line(result)
+    assert "--engine" in line and "magic" in line and "altmin" in line
+    result = runner.invoke(app, ["reconstruct", str(captures), "-o", str(tmp_path / "r.h5"), "--tau", "-1", "-q"])
+    assert "--tau" in _error_line(result)
+    assert not (tmp_path / "r.h5").exists()

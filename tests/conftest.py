@@ -1,0 +1,49 @@
+"""Shared fixtures: a tiny run configuration that simulates, reconstructs and reports in seconds.
+
+Add fixtures below; keep them small.
+"""
+
+import copy
+
+import pytest
+import yaml
+
+#: 96-px sensor (12 mm field, 125 µm object pixels), pupil radius 9.8 spectrum px, 5 x 5 grid at 61 %:
+#: the centre image resolves 6-px bars, the recovery 2-px bars.
+TINY_CONFIG = {
+    "run": {"stages": ["simulate", "reconstruct", "report"]},
+    "optics": {"wavelength_m": 550e-9, "focal_length_m": 0.8, "aperture_diameter_m": 45e-3,
+               "pixel_pitch_m": 2e-6, "distance_m": 50.0},
+    "scene": {"kind": "resolution_chart", "size_px": 96, "field_width_m": 12e-3, "widths_px": [6, 4, 3, 2, 1]},
+    "array": {"grid": 5, "overlap": 0.61},
+    "noise": {"model": "gaussian", "snr_db": 40.0, "seed": 1},
+    "simulate": {"store": "sensor"},
+    "reconstruct": {"engine": "altmin", "tau": 1e-3, "iterations": 30, "tol": 0.0},
+    "report": {"mtf_threshold": 0.2, "figures": True},
+}
+
+
+@pytest.fixture
+def tiny_config_data():
+    """A fresh, mutable copy of :data:`TINY_CONFIG` (a dict as read from YAML)."""
+    return copy.deepcopy(TINY_CONFIG)
+
+
+@pytest.fixture
+def write_config(tmp_path):
+    """Write a config dict (default: the tiny config) as YAML under ``tmp_path`` and return its path."""
+
+    def write(data=None, name="tiny.yaml"):
+        path = tmp_path / name
+        path.write_text(yaml.safe_dump(copy.deepcopy(TINY_CONFIG) if data is None else data, sort_keys=False))
+        return path
+
+    return write
+
+
+@pytest.fixture(scope="session")
+def tiny_run_config():
+    """:data:`TINY_CONFIG` validated as a (frozen) RunConfig; derive variants with ``apply_overrides``."""
+    from cca_cli.config.load import parse_config
+
+    return parse_config(copy.deepcopy(TINY_CONFIG), source="tiny")

@@ -1,0 +1,134 @@
+"""Sequential momentum engine and position refinement on a small resolution-chart case."""
+
+import numpy as np
+import pytest
+
+from cca_cli.engines import calibration as cal
+from cca_cli.engines.altmin import AlternatingMinimization, AltMinOptions
+from cca_cli.engines.base import run_engine
+from cca_cli.engines.momentum import MomentumOptions, SequentialMomentum
+from cca_cli.engines.problem import PhaseRetrievalProblem
+from cca_cli.engines.registry import get_engine
+from cca_cli.metrics import rmse
+from cca_cli.optics import fft
+from cca_cli.optics.forward import ForwardModel
+from cca_cli.optics.noise import add_gaussian_noise
+from cca_cli.optics.pupil import circular_pupils, zernike_phase
+from cca_cli.sampling.grid import band_layout, square_scan
+from cca_cli.sampling.overlap import step_m
+from cca_cli.targets import resolution_chart
+
+RADIUS = 6.0
+
+
+def make_case(*, position_error=0.0, snr_db=30.0, seed=0, size=96, grid=7):
+    chart = resolution_chart(size, widths=(6, 4, 3, 2)).image
+    centres = square_scan(grid, step_m(2 * RADIUS, 0.61)).centres_yx_m
+    layout = band_layout(centres, RADIUS, hires_size=size)
+    rng = np.random.default_rng(seed)
+    offsets = rng.uniform(-position_error, position_error, centres.shape)
+    truth_model = ForwardModel(layout, circular_pupils(layout.box_size, layout.box_centres + offsets, RADIUS))
+    images = truth_model.sensor_intensity(fft.fft2c(chart.astype(np.complex64)).astype(np.complex64))
+    images = add_gaussian_noise(images, snr_db, rng)
+    ideal = ForwardModel(layout, circular_pupils(layout.box_size, layout.box_centres, RADIUS))
+    problem = PhaseRetrievalProblem.from_sensor_images(ideal, images)
+    support = ideal.normal_diagonal() > 0
+    band_truth = np.abs(fft.ifft2c(fft.fft2c(chart.astype(np.complex64)) * support)) ** 2
+    return problem, chart ** 2, band_truth, offsets
+
+
+def intensity(spectrum):
+    return np.abs(fft.ifft2c(spectrum)) ** 2
+
+
+def rmse_curve(engine, truth):
+    curve = []
+    while not engine.done():
+        engine.update()
+        curve.append(rmse(intensity(engine.spectrum()), truth))
+    engine.close()
+    return np.array(curve)
+
+
+@pytest.fixture(scope="module")
+def clean_case():
+    return make_case()
+
+
+def test_momentum_recovers_small_case(clean_case):
+    problem, truth, band_truth, _ = clean_case
+    spectrum, history = run_engine(SequentialMomentum(problem, MomentumOptions(max_iterations=30, tol=0)))
+    assert spectrum.dtype == np.complex64
+    assert history.iterations == 30
+    assert history.records[-1].residual < 0.5 * history.records[0].residual
+    # Near the noise floor relative to what the synthetic aperture can pass.
+    assert rmse(intensity(spectrum), band_truth) < 0.02
+
+
+def test_momentum_needs_fewer_iterations_than_altmin(clean_case):
+    problem, _, band_truth, _ = clean_case
+    am = rmse_curve(AlternatingMinimization(problem, AltMinOptions(max_iterations=60, tol=0)), band_truth)
+    mo = rmse_curve(SequentialMomentum(problem, MomentumOptions(max_iterations=60, tol=0)), band_truth)
+    target = 1.5 * min(am.min(), mo.min()) + 0.01
+    first_am = int(np.argmax(am <= target)) + 1 if np.any(am <= target) else 10**6
+    first_mo = int(np.argmax(mo <= target)) + 1
+    assert np.any(mo <= target)
+    assert first_mo < first_am / 2
+
+
+def test_poisson_cost_and_weights_recover(clean_case):
+    problem, _, band_truth, _ = clean_case
+    weights = np.ones_like(problem.amplitudes)
+    weights[:, :2, :] = 0.0  # a band of invalid pixels (field layout) must not break the fit
+    weighted = PhaseRetrievalProblem(model=problem.model, amplitudes=problem.amplitudes, weights=weights)
+    spectrum, history = run_engine(SequentialMomentum(
+        weighted, MomentumOptions(max_iterations=30, tol=0, cost="poisson")))
+    assert rmse(intensity(spectrum), band_truth) < 0.03
+    assert history.records[-1].residual < history.records[0].residual
+
+
+def test_registry_and_reconstruct_stage_keywords():
+    entry = get_engine("momentum")
+    options = entry.options(tau=1e-3, max_iterations=5, tol=1e-5)
+    assert entry.engine is SequentialMomentum and options.max_iterations == 5
+    for bad in (dict(alpha=1.5), dict(beta=0), dict(eta=1.0), dict(cost="l1"), dict(batch=0)):
+        with pytest.raises(ValueError):
+            MomentumOptions(**bad)
+
+
+def test_position_refinement_does_not_hurt_error_free_data(clean_case):
+    problem, truth, _, _ = clean_case
+    options = dict(max_iterations=25, tol=0, batch=8)
+    plain, _ = run_engine(SequentialMomentum(problem, MomentumOptions(**options)))
+    refined_engine = SequentialMomentum(problem, MomentumOptions(position_refinement=True, **options))
+    refined, _ = run_engine(refined_engine)
+    assert rmse(intensity(refined), truth) <= 1.05 * rmse(intensity(plain), truth)
+    assert np.abs(refined_engine.calibration().offsets).max() <= 0.25
+
+
+def test_position_refinement_recovers_random_offsets(clean_case):
+    _, truth, _, _ = clean_case
+    problem, _, _, true_offsets = make_case(position_error=1.0, seed=1)
+    options = dict(max_iterations=25, tol=0, batch=8)
+    error_free, _ = run_engine(SequentialMomentum(clean_case[0], MomentumOptions(**options)))
+    plain, _ = run_engine(SequentialMomentum(problem, MomentumOptions(**options)))
+    engine = SequentialMomentum(problem, MomentumOptions(position_refinement=True, **options))
+    refined, _ = run_engine(engine)
+    reference = rmse(intensity(error_free), truth)
+    assert rmse(intensity(plain), truth) > 1.1 * reference  # the errors matter ...
+    assert rmse(intensity(refined), truth) <= 1.2 * reference  # ... and refinement removes their effect
+    found = engine.calibration().offsets
+    assert np.mean(np.abs(found - true_offsets)) < 0.5 * np.mean(np.abs(true_offsets))
+
+
+def test_pupil_functions_match_simulation_helpers():
+    layout = band_layout(square_scan(3, 5.0).centres_yx_m, RADIUS, hires_size=48)
+    offsets = np.full((layout.n_images, 2), 0.3)
+    disc = cal.pupil_functions(layout, offsets=offsets)
+    np.testing.assert_array_equal(disc.real, circular_pupils(layout.box_size, layout.box_centres + offsets, RADIUS))
+    aberrated = cal.pupil_functions(layout, coefficients=[0.2, -0.1, 0.05], order=2)
+    phase = zernike_phase(layout.box_size, layout.box_centres, RADIUS, defocus_waves=0.2,
+                          astigmatism_waves=-0.1, oblique_astigmatism_waves=0.05)
+    expected = circular_pupils(layout.box_size, layout.box_centres, RADIUS) * np.exp(1j * phase)
+    np.testing.assert_allclose(aberrated, expected, atol=2e-5)
+    assert 0 < cal.max_position_offset(layout) <= 2.0

@@ -1,0 +1,102 @@
+"""Running sweeps on a 2-worker LocalCluster: table, resume, failures, and the overlap watershed."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import h5py
+import numpy as np
+from sweep_configs import tiny_config
+
+from cca_cli.config.model import SweepSection
+from cca_cli.stages.sweep import expand_points, read_table, run_sweep, write_sweep_figures, write_table
+
+
+def _run(client, spec, directory, **kwargs):
+    base = tiny_config()
+    points = expand_points(base, spec, directory)
+    rows = run_sweep(points, client, **kwargs)
+    write_table(rows, directory, spec=spec, base=base)
+    return points, rows
+
+
+def test_sweep_runs_on_two_workers_writes_table_and_resumes(client, tmp_path):
+    spec = SweepSection(parameters={"array.overlap": [0.5, 0.61], "noise.snr_db": [20, 30]})
+    seen = []
+    points, rows = _run(client, spec, tmp_path, on_row=lambda row, done, total: seen.append((done, total)))
+    assert [r["status"] for r in rows] == ["ok"] * 4
+    assert seen[-1] == (4, 4)
+    assert len(_workers(points)) == 2                                     # both workers took points
+    for row, point in zip(rows, points):
+        assert (point.out_dir / "report" / "report.json").exists()
+        assert row["rmse_recovered"] > 0 and row["n_images"] == 9
+        assert row["param:noise.seed"] == 10 + point.index
+
+    with open(tmp_path / "sweep.csv") as handle:
+        table = list(csv.DictReader(handle))
+    assert [float(t["array.overlap"]) for t in table] == [0.5, 0.5, 0.61, 0.61]
+    assert [float(t["noise.snr_db"]) for t in table] == [20, 30, 20, 30]
+    h5rows = read_table(tmp_path / "sweep.h5")
+    assert np.allclose([r["rmse_recovered"] for r in h5rows], [r["rmse_recovered"] for r in rows])
+    with h5py.File(tmp_path / "sweep.h5") as handle:
+        assert handle.attrs["stage"] == "sweep" and "array.overlap" in handle.attrs["config"]
+
+    # an interruption: one point lost its reconstruction and left a temporary file behind
+    lost = points[2]
+    (lost.out_dir / "recon.h5").unlink()
+    (lost.out_dir / "point.json").unlink()
+    (lost.out_dir / ".recon.h5.tmp-123").write_bytes(b"partial")
+    mtimes = {p.point_id: (p.out_dir / "captures.h5").stat().st_mtime_ns for p in points}
+    recon_mtimes = {p.point_id: (p.out_dir / "recon.h5").stat().st_mtime_ns for p in points if p is not lost}
+    points2, rows2 = _run(client, spec, tmp_path)
+    assert [r["status"] for r in rows2] == ["cached", "cached", "ok", "cached"]
+    stages = json.loads((lost.out_dir / "point.json").read_text())["result"]["stages"]
+    assert stages == {"simulate": "skipped", "reconstruct": "ran", "report": "ran"}
+    assert not (lost.out_dir / ".recon.h5.tmp-123").exists()
+    assert {p.point_id: (p.out_dir / "captures.h5").stat().st_mtime_ns for p in points} == mtimes
+    assert {p.point_id: (p.out_dir / "recon.h5").stat().st_mtime_ns for p in points if p is not lost} == recon_mtimes
+    assert [r["rmse_recovered"] for r in rows2] == [r["rmse_recovered"] for r in rows]  # same seeds → same numbers
+
+    # a third run recomputes nothing; --force recomputes everything
+    _, rows3 = _run(client, spec, tmp_path)
+    assert {r["status"] for r in rows3} == {"cached"}
+    _, rows4 = _run(client, SweepSection(parameters={"array.overlap": [0.5]}, points=[{"noise.snr_db": 20}]),
+                    tmp_path, force=True)
+    assert rows4[0]["status"] == "ok"
+
+
+def _workers(points):
+    return {json.loads((p.out_dir / "point.json").read_text())["result"]["worker"] for p in points}
+
+
+def test_failing_point_is_recorded_and_others_finish(client, tmp_path):
+    # size_px 20 cannot hold the chart (fails on the worker); overlap 1.5 is invalid (fails at expansion)
+    spec = SweepSection(points=[{"scene.size_px": 64}, {"scene.size_px": 20}, {"array.overlap": 1.5},
+                                {"array.overlap": 0.5}])
+    points, rows = _run(client, spec, tmp_path)
+    assert [r["status"] for r in rows] == ["ok", "failed", "failed", "ok"]
+    assert "does not fit" in rows[1]["error"] and "\n" not in rows[1]["error"]
+    assert "array.overlap" in rows[2]["error"]
+    with open(tmp_path / "sweep.csv") as handle:
+        table = list(csv.DictReader(handle))
+    assert [t["status"] for t in table] == ["ok", "failed", "failed", "ok"]
+    assert table[0]["rmse_recovered"] and not table[1]["rmse_recovered"]
+
+
+def test_small_overlap_study_fails_at_zero_and_recovers_above_sixty(client, tmp_path):
+    base = tiny_config(reconstruct={"iterations": 150, "tol": 1e-5})
+    spec = SweepSection(study="overlap", x="array.overlap",
+                        points=[{"array.overlap": 0.0, "array.grid": 5}, {"array.overlap": 0.61, "array.grid": 11},
+                                {"array.overlap": 0.75, "array.grid": 17}])
+    points = expand_points(base, spec, tmp_path)
+    rows = run_sweep(points, client)
+    rmse = {r["param:array.overlap"]: r["rmse_recovered"] for r in rows}
+    observed = rows[0]["rmse_observed"]
+    assert rmse[0.0] > observed                   # no overlap: worse than the single centre image
+    assert rmse[0.61] < 0.75 * observed and rmse[0.75] < 0.75 * observed
+    assert rmse[0.0] > 1.5 * max(rmse[0.61], rmse[0.75])
+    figures = write_sweep_figures(rows, tmp_path, spec=spec, points=points)
+    names = {f.name for f in figures}
+    assert {"rmse_vs_array_overlap.png", "contrast_vs_width.png", "montage.png"} <= names
+    assert all(f.stat().st_size > 5000 for f in figures)
