@@ -23,8 +23,8 @@ pupil discs, from ``normal_diagonal() > 0`` of the model on the 512² grid).
 
 Usage::
 
-    python benchmarks/bench_peers.py [--peers ptylab,fpmrs,fpmpy] [--iterations 30]
-        [--ours-iterations 60] [--out benchmarks/results/peers.json]
+    python benchmarks/bench_peers.py [--peers ptylab,fpmrs,fpmpy] [--iterations 20]
+        [--ours-iterations 40] [--out benchmarks/results/peers.json]
 """
 
 from __future__ import annotations
@@ -179,7 +179,9 @@ def run_worker(method: str, python: str, data: Path, out: Path, iterations: int,
     proc = subprocess.run(command, capture_output=True, text=True, env=env, cwd=ROOT, timeout=timeout)
     wall = time.perf_counter() - start
     if proc.returncode != 0:
-        return {"status": "failed", "reason": (proc.stderr or proc.stdout).strip()[-1500:], "wall_s": wall}
+        lines = [line for line in (proc.stderr or proc.stdout).strip().splitlines() if line.strip()]
+        return {"status": "failed", "reason": lines[-1] if lines else f"exit {proc.returncode}",
+                "log_tail": "\n".join(lines[-15:]), "wall_s": wall}
     return {"status": "ok", "wall_s": wall}
 
 
@@ -275,8 +277,8 @@ def main() -> None:
     parser.add_argument("--ptylab-engines", default="ePIE,mPIE,qNewton", help="also: mqNewton (about 20x slower)")
     parser.add_argument("--fpmrs-algorithms", default="ap,fpie")
     parser.add_argument("--engines", default=",".join(engine_names()), help="our registered engines to run")
-    parser.add_argument("--iterations", type=int, default=30, help="iterations of each peer")
-    parser.add_argument("--ours-iterations", type=int, default=60, help="iterations of each of our engines")
+    parser.add_argument("--iterations", type=int, default=20, help="iterations of each peer")
+    parser.add_argument("--ours-iterations", type=int, default=40, help="iterations of each of our engines")
     parser.add_argument("--no-sensor", action="store_true", help="skip our engines on full-size 512² captures")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "peers.json")
     parser.add_argument("--timeout", type=float, default=1800, help="seconds allowed per method")

@@ -5,6 +5,7 @@ Usage::
     python benchmarks/momentum_calibration.py convergence   # iterations to a target RMSE, small headline
     python benchmarks/momentum_calibration.py calibration   # RMSE with/without position refinement
     python benchmarks/momentum_calibration.py speed         # s/iteration vs the raw-FFT floor, headline sizes
+    python benchmarks/momentum_calibration.py pupil         # RMSE with/without shared-pupil recovery
 
 The small headline is a 128-pixel resolution chart (bar widths 8 … 1 px) seen
 through a 9 x 9 grid of apertures at 61% overlap whose centre image resolves
@@ -105,6 +106,30 @@ def calibration(iterations=40):
               f"({time.perf_counter() - start:.1f} s)", flush=True)
 
 
+def pupil(iterations=30):
+    """RMSE (against the chart) without and with shared-pupil recovery, for several aberrations."""
+    from cca_cli.engines import calibration as cal
+
+    error_free, truth = small_case()
+    seidel = (1 / (2 * np.sqrt(3)), 1 / (2 * np.sqrt(6)))  # 1 wave at the pupil edge, as RMS Zernike
+    cases = (("perfect pupil", 0.0, 0.0), ("Seidel 1 wave defocus + astig", *seidel),
+             ("0.4 + 0.4 waves RMS", 0.4, 0.4), ("1 + 1 waves RMS (aliased)", 1.0, 1.0))
+    for label, defocus, astigmatism in cases:
+        problem, _ = small_case(defocus=defocus, astigmatism=astigmatism)
+        estimate = cal.estimate_quadratic_aberration(problem.model.layout, problem.amplitudes)
+        results = []
+        for mode in ("none", "shared"):
+            start = time.perf_counter()
+            engine = SequentialMomentum(problem, MomentumOptions(max_iterations=iterations, tol=0,
+                                                                 pupil_recovery=mode))
+            spectrum, _ = run_engine(engine)
+            results.append((recovered_rmse(spectrum, truth), engine.calibration().coefficients,
+                            time.perf_counter() - start))
+        print(f"{label:31s} true ({defocus:.3f}, {astigmatism:.3f})  estimate {np.round(estimate, 3)}  "
+              f"RMSE off {results[0][0]:.4f}  on {results[1][0]:.4f}  recovered {np.round(results[1][1], 3)}  "
+              f"({results[1][2]:.1f} s)", flush=True)
+
+
 def speed(repeats=3):
     from cca_cli.config.load import load_config
     from cca_cli.stages.simulate import simulation_geometry
@@ -156,4 +181,4 @@ def speed(repeats=3):
 
 
 if __name__ == "__main__":
-    {"convergence": convergence, "calibration": calibration, "speed": speed}[sys.argv[1] if len(sys.argv) > 1 else "convergence"]()
+    {"convergence": convergence, "calibration": calibration, "speed": speed, "pupil": pupil}[sys.argv[1] if len(sys.argv) > 1 else "convergence"]()

@@ -89,6 +89,13 @@ def summary_table(summary: dict, title: str = "Result") -> Table:
         ("spectrum holes (share of band)", "coverage_zero_fraction", "{:.1%}"),
         ("spectrum seen by one image only", "coverage_single_fraction", "{:.1%}"),
         ("images per spectrum px (mean)", "coverage_mean", "{:.2f}"),
+        ("RMS frequency observed (lp/mm)", "rms_frequency_observed_lp_per_mm", "{:.2f}"),
+        ("RMS frequency recovered (lp/mm)", "rms_frequency_recovered_lp_per_mm", "{:.2f}"),
+        ("sharpness gain", "sharpness_gain", "{:.2f}"),
+        ("spectral energy beyond 1-camera cutoff, observed", "energy_beyond_cutoff_observed", "{:.2%}"),
+        ("spectral energy beyond 1-camera cutoff, recovered", "energy_beyond_cutoff_recovered", "{:.2%}"),
+        ("registration RMS max (px)", "registration_rms_px_max", "{:.3f}"),
+        ("HDR dynamic-range gain (median)", "hdr_dynamic_range_gain_median", "{:.1f}"),
     ]
     for label, key, fmt in rows:
         if key is None:

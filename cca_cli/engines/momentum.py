@@ -25,6 +25,20 @@ Optionally the engine refines sub-pixel aperture positions as it goes
 and every ``calibration_every`` iterations, each change accepted only where it
 lowers the data misfit.
 
+Pupil recovery (``pupil_recovery="shared"``) fits one Zernike phase shared by
+all captures. Its quadratic part starts from
+:func:`~cca_cli.engines.calibration.estimate_quadratic_aberration` (the shifts
+between neighbouring captures); then every pass also accumulates, from the
+same batch residuals ``G_i = F(ψ'_i − ψ_i)`` that update the object, the
+Gauss-Newton system of the linearised pupil fit ``i P_i S_i Σ_j δa_j B_j ≈ G_i``:
+
+    H_jl = Σ_i Σ_k |P_i S_i|² B_j B_l,    r_j = Σ_i Σ_k B_j Im(conj(P_i S_i) G_i)
+
+(EPRY's pupil step projected onto the Zernike modes), and the coefficients take
+the step ``β_p H⁻¹ r`` at the end of the pass. A step after which the next
+pass fits the data worse is undone and ``β_p`` halved, so recovery on data
+from a perfect pupil stays at (nearly) zero aberration.
+
 References
 ----------
 Maiden & Rodenburg, Ultramicroscopy 109 (2009) (ePIE); Maiden, Johnson & Li,
@@ -47,6 +61,9 @@ from cca_cli.optics.forward import ForwardModel, chunk_slices
 __all__ = ["MomentumOptions", "Calibration", "SequentialMomentum"]
 
 _COSTS = ("amplitude", "poisson")
+_PUPILS = ("none", "shared")
+#: Largest change of any pupil coefficient in one pass (waves): the linearisation holds within ~0.05.
+_MAX_PUPIL_STEP = 0.1
 
 
 @dataclass(frozen=True)
@@ -84,6 +101,15 @@ class MomentumOptions:
         Iterations before the first calibration round (let the object settle first).
     calibration_every : int
         Iterations between calibration rounds.
+    pupil_recovery : str
+        ``"none"`` or ``"shared"`` (one Zernike pupil phase for all captures).
+    pupil_order : int
+        Highest Zernike radial order recovered: 2 (defocus, astigmatism ×2),
+        3 (+ coma ×2, trefoil ×2) or 4 (+ spherical and four more).
+    pupil_step : float
+        Initial Gauss-Newton step fraction β_p in (0, 1].
+    pupil_estimate : bool
+        Start the quadratic modes from the neighbour-shift estimate (else from zero).
     threads : int or None
         Worker threads for a batch; None uses every core (at most 2 are used).
     """
@@ -101,6 +127,10 @@ class MomentumOptions:
     position_steps: tuple[float, ...] = (1.0, 0.5, 0.25, 0.125, 0.0625)
     calibration_start: int = 3
     calibration_every: int = 2
+    pupil_recovery: str = "none"
+    pupil_order: int = 2
+    pupil_step: float = 1.0
+    pupil_estimate: bool = True
     threads: int | None = None
 
     def __post_init__(self):
@@ -118,6 +148,10 @@ class MomentumOptions:
              f"position_steps must be positive, got {self.position_steps}"),
             (self.calibration_start >= 0, f"calibration_start must be ≥ 0, got {self.calibration_start}"),
             (self.calibration_every >= 1, f"calibration_every must be ≥ 1, got {self.calibration_every}"),
+            (self.pupil_recovery in _PUPILS,
+             f"pupil_recovery must be one of {', '.join(_PUPILS)}, got {self.pupil_recovery!r}"),
+            (self.pupil_order in (2, 3, 4), f"pupil_order must be 2, 3 or 4, got {self.pupil_order}"),
+            (0 < self.pupil_step <= 1, f"pupil_step must be in (0, 1], got {self.pupil_step}"),
         ]
         for ok, message in checks:
             if not ok:
@@ -135,10 +169,14 @@ class Calibration:
         Pupil-centre offsets ``[dy, dx]`` from the nominal positions (spectrum pixels).
     pupils : ndarray, complex64, (K, b, b)
         The pupils in use.
+    coefficients : ndarray, float64, (n_modes,) or None
+        Recovered shared Zernike coefficients (waves, modes of
+        :func:`~cca_cli.engines.calibration.zernike_modes`), None without pupil recovery.
     """
 
     offsets: np.ndarray
     pupils: np.ndarray
+    coefficients: np.ndarray | None = None
 
 
 class SequentialMomentum(IterativeEngine):
@@ -186,7 +224,22 @@ class SequentialMomentum(IterativeEngine):
         self._calibration_workspace = None
 
         self._offsets = np.zeros((k, 2), np.float64)
-        self._set_model(ForwardModel(self._layout, model.pupils[order]))
+        self._recover_pupil = options.pupil_recovery == "shared"
+        self._coefficients = None
+        if self._recover_pupil:
+            n_modes = len(cal.zernike_modes(options.pupil_order))
+            self._coefficients = np.zeros(n_modes)
+            if options.pupil_estimate:
+                self._coefficients[:3] = cal.estimate_quadratic_aberration(self._layout, self._amplitudes,
+                                                                           self._weights)
+            self._pupil_rhs = np.zeros((self._threads, n_modes))
+            self._pupil_normal = np.zeros((self._threads, n_modes, n_modes))
+            self._pupil_step = options.pupil_step
+            self._pupil_previous = None  # (coefficients before the last step, misfit of the pass that made it)
+            self._set_basis()
+            self._set_model(ForwardModel(self._layout, self._pupils()))
+        else:
+            self._set_model(ForwardModel(self._layout, model.pupils[order]))
         self._iteration = 0
         self._change = np.inf
 
@@ -216,7 +269,16 @@ class SequentialMomentum(IterativeEngine):
         self._origins = [tuple(int(v) for v in o) for o in origins]
 
     def _pupils(self) -> np.ndarray:
-        return cal.pupil_functions(self._layout, offsets=self._offsets)
+        return cal.pupil_functions(self._layout, offsets=self._offsets, coefficients=self._coefficients,
+                                   order=self.options.pupil_order)
+
+    def _set_basis(self) -> None:
+        """Zernike modes on each capture's (offset) disc, flattened per mode: (n_modes, K, b²)."""
+        layout = self._layout
+        centres = layout.box_centres + self._offsets
+        disc = cal.pupil_functions(layout, offsets=self._offsets).real
+        basis = cal.zernike_basis(layout.box_size, centres, layout.pupil_radius_px, order=self.options.pupil_order)
+        self._basis = (basis * disc).reshape(basis.shape[0], layout.n_images, -1)
 
     # ------------------------------------------------------------- data steps
     def _difference(self, fields: np.ndarray, images: slice, scratch: np.ndarray) -> float:
@@ -255,8 +317,47 @@ class SequentialMomentum(IterativeEngine):
         ws.fft.forward()
         layout = self._layout
         s, b = layout.lowres_box_start, layout.box_size
+        if self._recover_pupil:
+            self._accumulate_pupil(t, images, ws.fields[:k, s:s + b, s:s + b])
         ws.fields[:k, s:s + b, s:s + b] *= self._factors[images]
         return misfit
+
+    def _accumulate_pupil(self, t: int, images: slice, residual: np.ndarray) -> None:
+        """Add this batch's terms of the Gauss-Newton pupil system (see module notes)."""
+        b = self._layout.box_size
+        k = images.stop - images.start
+        seen = np.stack([self._spectrum[y0:y0 + b, x0:x0 + b] for y0, x0 in self._origins[images]])
+        seen *= self._model.pupils[images]
+        # The raw transform of the workspace is m times the orthonormal one.
+        gradient = np.imag(np.conj(seen) * residual).reshape(k, -1) / np.float32(self._layout.lowres_size)
+        power = np.square(np.abs(seen)).reshape(k, -1)
+        basis = self._basis[:, images].reshape(self._basis.shape[0], -1)
+        self._pupil_rhs[t] += basis @ gradient.ravel()
+        self._pupil_normal[t] += (basis * power.ravel()) @ basis.T
+
+    def _update_pupil(self, misfit: float) -> None:
+        """End-of-pass pupil step, undoing the previous one if this pass fit the data worse."""
+        rhs, normal = self._pupil_rhs.sum(axis=0), self._pupil_normal.sum(axis=0)
+        self._pupil_rhs[:] = 0
+        self._pupil_normal[:] = 0
+        previous = self._pupil_previous
+        if previous is not None and misfit > previous[1]:
+            self._coefficients = previous[0]
+            self._pupil_step *= 0.5
+            self._pupil_previous = None
+            self._set_model(ForwardModel(self._layout, self._pupils()))
+            return
+        trace = float(np.trace(normal))
+        if not trace > 0:
+            return
+        damped = normal + 1e-3 * trace / normal.shape[0] * np.eye(normal.shape[0])
+        step = self._pupil_step * np.linalg.solve(damped, rhs)
+        largest = float(np.max(np.abs(step)))
+        if largest > _MAX_PUPIL_STEP:
+            step *= _MAX_PUPIL_STEP / largest
+        self._pupil_previous = (self._coefficients.copy(), misfit)
+        self._coefficients = self._coefficients + step
+        self._set_model(ForwardModel(self._layout, self._pupils()))
 
     def _scatter(self, t: int, images: slice) -> None:
         s, b = self._layout.lowres_box_start, self._layout.box_size
@@ -286,7 +387,10 @@ class SequentialMomentum(IterativeEngine):
             self._offsets, misfits = cal.refine_positions(
                 self._layout, self._spectrum, self._amplitudes, self._weights, self._offsets,
                 steps=opts.position_steps,
+                coefficients=self._coefficients, order=opts.pupil_order,
                 misfits=misfits, workspace=ws)
+            if self._recover_pupil:
+                self._set_basis()
         self._set_model(ForwardModel(self._layout, self._pupils()))
 
     def _pass(self) -> float:
@@ -305,6 +409,8 @@ class SequentialMomentum(IterativeEngine):
                 self._scatter(0, first)
                 self._scatter(1, second)
         self._momentum()
+        if self._recover_pupil:
+            self._update_pupil(misfit)
         return misfit
 
     def _calibration_due(self) -> bool:
@@ -340,7 +446,8 @@ class SequentialMomentum(IterativeEngine):
         inverse = np.empty_like(self._order)
         inverse[self._order] = np.arange(self._order.size)
         return Calibration(offsets=self._offsets[inverse].copy(),
-                           pupils=np.asarray(self._model.pupils)[inverse].copy())
+                           pupils=np.asarray(self._model.pupils)[inverse].copy(),
+                           coefficients=None if self._coefficients is None else self._coefficients.copy())
 
     def close(self) -> None:
         """Stop worker threads."""

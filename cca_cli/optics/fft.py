@@ -158,7 +158,8 @@ class InPlaceFFT2:
     -----
     ``forward`` computes ``Σ x exp(-2πi k n / m)`` and ``inverse`` computes
     ``Σ X exp(+2πi k n / m)``, both without any scaling: one round trip
-    multiplies by ``m * m``.
+    multiplies by ``m * m``. With FFTW, planning overwrites the buffer: fill it
+    after constructing the plan.
     """
 
     def __init__(self, buffer: np.ndarray, *, threads: int | None = None):
@@ -207,6 +208,10 @@ class BandedFFT2:
         The band of rows that holds data.
     threads : int, optional
         Threads for one transform (default: all cores).
+
+    Notes
+    -----
+    With FFTW, planning overwrites the buffer: fill it after construction.
     """
 
     def __init__(self, buffer: np.ndarray, row_start: int, row_stop: int, *, threads: int | None = None):

@@ -229,5 +229,5 @@ def test_bloodsmear_led_dataset_reconstructs_sharper(tmp_path):
     report = json.loads((tmp_path / "report" / "report.json").read_text())
     assert report["n_images"] == 225
     assert report["grid"] == [15, 15]
-    assert report["rms_frequency_recovered_lp_per_mm"] > 2 * report["rms_frequency_observed_lp_per_mm"]
-    assert report["energy_beyond_cutoff_recovered"] > 0.05
+    # The recovery puts several times more of its power beyond what the single objective records.
+    assert report["energy_beyond_cutoff_recovered"] > 3 * report["energy_beyond_cutoff_observed"]

@@ -1,0 +1,113 @@
+"""Shared-pupil (Zernike aberration) recovery in the sequential momentum engine."""
+
+import numpy as np
+import pytest
+
+from cca_cli.engines import calibration as cal
+from cca_cli.engines.base import run_engine
+from cca_cli.engines.momentum import MomentumOptions, SequentialMomentum
+from cca_cli.engines.problem import PhaseRetrievalProblem
+from cca_cli.metrics import rmse
+from cca_cli.optics import fft
+from cca_cli.optics.forward import ForwardModel
+from cca_cli.optics.noise import add_gaussian_noise
+from cca_cli.sampling.grid import band_layout, square_scan
+from cca_cli.sampling.overlap import step_m
+from cca_cli.targets import resolution_chart
+
+RADIUS = 9.0
+#: One wave of defocus and of astigmatism at the pupil edge (Seidel W020, W222) as RMS Zernike coefficients.
+SEIDEL_WAVE = (1 / (2 * np.sqrt(3)), 1 / (2 * np.sqrt(6)))
+
+
+def layout_and_chart(size=128, grid=9):
+    chart = resolution_chart(size, widths=(8, 6, 4, 3, 2, 1)).image
+    centres = square_scan(grid, step_m(2 * RADIUS, 0.61)).centres_yx_m
+    return band_layout(centres, RADIUS, hires_size=size), chart
+
+
+def make_case(coefficients=None, *, order=2, snr_db=30.0, seed=0):
+    """Captures through a shared Zernike pupil; the problem carries the ideal (disc) pupils."""
+    layout, chart = layout_and_chart()
+    truth_model = ForwardModel(layout, cal.pupil_functions(layout, coefficients=coefficients, order=order))
+    images = truth_model.sensor_intensity(fft.fft2c(chart.astype(np.complex64)).astype(np.complex64))
+    images = add_gaussian_noise(images, snr_db, np.random.default_rng(seed))
+    ideal = ForwardModel(layout, cal.pupil_functions(layout))
+    return PhaseRetrievalProblem.from_sensor_images(ideal, images), chart ** 2
+
+
+def reconstruct(problem, **options):
+    engine = SequentialMomentum(problem, MomentumOptions(max_iterations=30, tol=0, **options))
+    spectrum, _ = run_engine(engine)
+    return np.abs(fft.ifft2c(spectrum)) ** 2, engine.calibration()
+
+
+@pytest.fixture(scope="module")
+def perfect():
+    problem, truth = make_case()
+    image, _ = reconstruct(problem)
+    return problem, truth, rmse(image, truth)
+
+
+def test_pupil_recovery_does_not_hurt_perfect_pupil_data(perfect):
+    problem, truth, reference = perfect
+    image, calibration = reconstruct(problem, pupil_recovery="shared", pupil_order=3)
+    assert rmse(image, truth) <= 1.05 * reference
+    assert np.abs(calibration.coefficients).max() < 0.02
+    assert calibration.coefficients.shape == (7,)
+
+
+def test_pupil_recovery_removes_defocus_and_astigmatism(perfect):
+    _, truth, reference = perfect
+    true = np.array([SEIDEL_WAVE[0], SEIDEL_WAVE[1], 0.0])
+    problem, _ = make_case(true)
+    plain, _ = reconstruct(problem)
+    recovered, calibration = reconstruct(problem, pupil_recovery="shared")
+    assert rmse(plain, truth) > 2.0 * reference  # the aberration matters ...
+    assert rmse(recovered, truth) <= 1.2 * reference  # ... and recovery removes its effect
+    np.testing.assert_allclose(calibration.coefficients, true, atol=0.02)
+    expected = cal.pupil_functions(problem.model.layout, coefficients=true, order=2)
+    assert np.abs(calibration.pupils - expected).max() < 0.25
+
+
+def test_pupil_recovery_with_coma():
+    # Coma shifts the neighbour correlation peaks too: beyond ~0.05 waves the quadratic start is off.
+    true = np.array([0.3, -0.2, 0.1, 0.05, -0.03, 0.0, 0.0])
+    problem, truth = make_case(true, order=3)
+    reference, _ = reconstruct(make_case()[0])
+    recovered, calibration = reconstruct(problem, pupil_recovery="shared", pupil_order=3)
+    assert rmse(recovered, truth) <= 1.2 * rmse(reference, truth)
+    np.testing.assert_allclose(calibration.coefficients, true, atol=0.03)
+
+
+def test_quadratic_estimate_from_neighbour_shifts():
+    for true in ([0.4, 0.4, 0.0], [-0.3, 0.2, 0.1], [0.0, 0.0, 0.0]):
+        problem, _ = make_case(true)
+        found = cal.estimate_quadratic_aberration(problem.model.layout, problem.amplitudes)
+        np.testing.assert_allclose(found, true, atol=0.05)
+
+
+def test_large_quadratic_aberration_is_aliased_on_a_lattice():
+    # Q and Q + (π/s) e_x e_xᵀ give the same captures of differently chirped objects, so 1 wave RMS of
+    # defocus and of astigmatism cannot be told from the smaller alias the estimate returns.
+    layout, chart = layout_and_chart()
+    s = step_m(2 * RADIUS, 0.61)
+    true = np.array([1.0, 1.0, 0.0])
+    qd, qa = 2 * np.pi * np.sqrt(3) * 2 / RADIUS ** 2, 2 * np.pi * np.sqrt(6) / RADIUS ** 2
+    q = np.diag([qd - qa, qd + qa])
+    alias = cal.quadratic_to_zernike(q - np.diag([0.0, np.pi / s]), RADIUS)
+    spectrum = fft.fft2c(chart.astype(np.complex64))
+    kx = np.arange(layout.hires_size) - layout.hires_size // 2
+    chirped = (spectrum * np.exp(1j * np.pi / s * kx[None, :] ** 2)).astype(np.complex64)
+    a = ForwardModel(layout, cal.pupil_functions(layout, coefficients=true, order=2)).sensor_intensity(spectrum)
+    b = ForwardModel(layout, cal.pupil_functions(layout, coefficients=alias, order=2)).sensor_intensity(chirped)
+    np.testing.assert_allclose(a, b, atol=2e-3 * a.max())
+    problem, _ = make_case(true)
+    found = cal.estimate_quadratic_aberration(problem.model.layout, problem.amplitudes)
+    np.testing.assert_allclose(found, alias, atol=0.05)
+
+
+def test_pupil_options_validated():
+    for bad in (dict(pupil_recovery="per_lens"), dict(pupil_order=5), dict(pupil_step=0.0)):
+        with pytest.raises(ValueError):
+            MomentumOptions(**bad)
