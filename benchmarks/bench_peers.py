@@ -7,7 +7,7 @@ Fourier-interpolated to 128² (exact: the intensity band fits in 84², so every
 method sees the same measurements and the same noise).
 
 Every method runs in its own subprocess (``peer_worker.py``), in interleaved
-order, so peak memory (``ru_maxrss``) is that method's own. Reported per
+order, so peak memory (``VmHWM``) is that method's own. Reported per
 method: median s/iteration and its ratio to the FFTW floor at the method's own
 grid (2 FFTs per capture per iteration), iterations and seconds to reach
 MTF20 ≤ 2 px *and* amplitude RMSE (against the band-limited truth) within 10%
@@ -185,15 +185,18 @@ def run_worker(method: str, python: str, data: Path, out: Path, iterations: int,
     return {"status": "ok", "wall_s": wall}
 
 
-def summarise(name: str, raw, metrics: list, floors: dict) -> dict:
+def summarise(name: str, raw, metrics: list, floors: dict, rounds: list[np.ndarray]) -> dict:
+    """One method's row: the quality curve of its first round, timings pooled over all rounds."""
     seconds = np.asarray(raw["seconds"], np.float64)
-    per_iteration = np.diff(np.concatenate([[0.0], seconds]))
+    per_iteration = np.concatenate([np.diff(np.concatenate([[0.0], r])) for r in rounds])
     s_it = float(np.median(per_iteration))
     fft_size = int(raw["fft_size"])
     snap_iterations = [int(i) for i in raw["snap_iterations"]]
     curve = [{"iteration": i, "seconds": float(seconds[i - 1]), **m} for i, m in zip(snap_iterations, metrics)]
     return {"method": name, "notes": str(raw["notes"]), "python": str(raw["python"]),
-            "iterations_run": int(len(seconds)), "s_per_iteration": s_it,
+            "iterations_run": int(len(seconds)), "s_per_iteration": s_it, "rounds": len(rounds),
+            "s_per_iteration_by_round": [float(np.median(np.diff(np.concatenate([[0.0], r])))) for r in rounds],
+            "round_seconds": [r.tolist() for r in rounds],
             "fft_size": fft_size, "floor_s": floors[fft_size], "ratio_to_floor": s_it / floors[fft_size],
             "peak_rss_bytes": int(raw["peak_rss_bytes"]), "baseline_rss_bytes": int(raw["baseline_rss_bytes"]),
             "best_amplitude_rmse": min(c["amplitude_rmse"] for c in curve),
@@ -206,7 +209,9 @@ def time_to_target(row: dict, rmse_target: float) -> None:
     for point in row["curve"]:
         mtf = point["mtf20_px"]
         if mtf is not None and mtf <= MTF_TARGET_PX and point["amplitude_rmse"] <= rmse_target:
-            row["target_iteration"], row["target_seconds"] = point["iteration"], point["seconds"]
+            row["target_iteration"] = point["iteration"]
+            row["target_seconds_by_round"] = [r[point["iteration"] - 1] for r in row["round_seconds"]]
+            row["target_seconds"] = float(np.median(row["target_seconds_by_round"]))
             break
 
 
@@ -282,6 +287,8 @@ def main() -> None:
     parser.add_argument("--no-sensor", action="store_true", help="skip our engines on full-size 512² captures")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "peers.json")
     parser.add_argument("--timeout", type=float, default=1800, help="seconds allowed per method")
+    parser.add_argument("--rounds", type=int, default=2,
+                        help="interleaved runs of every method; timings are medians over all rounds")
     args = parser.parse_args()
 
     workdir = args.out.parent / (args.out.stem + "_work")
@@ -291,9 +298,14 @@ def main() -> None:
     band_truth = band_limited_truth(data["scene"], data["geometry"])
     truth, bars = data["scene"].field, data["scene"].bars
 
-    floors = {}
-    for size in (84, PEER_SIZE):
-        floors[size] = fft_floor_seconds(data["geometry"].n_images, size)[0]
+    floor_samples = {84: [], PEER_SIZE: []}
+
+    def measure_floors() -> None:  # interleaved with the methods; the floor is the fastest sample
+        for size in floor_samples:
+            floor_samples[size].append(fft_floor_seconds(data["geometry"].n_images, size, repeats=5)[0])
+
+    measure_floors()
+    floors = {size: min(v) for size, v in floor_samples.items()}
 
     ours = []
     for engine in [e for e in args.engines.split(",") if e]:
@@ -313,27 +325,44 @@ def main() -> None:
             else:
                 skipped.append({"method": method, "status": "skipped", "reason": python_or_reason})
 
-    rows = list(skipped)
-    for name, method, python, path, iterations in interleave(ours, peers):
-        out = workdir / (name.replace(":", "_").replace("@", "_") + ".npz")
-        print(f"running {name} ({iterations} iterations) ...", flush=True)
-        try:
-            status = run_worker(method, python, path, out, iterations, args.timeout)
-        except subprocess.TimeoutExpired:
-            status = {"status": "failed", "reason": f"timed out after {args.timeout:.0f} s"}
-        if status["status"] != "ok":
-            print(f"  {name} failed: {status['reason'][-300:]}", flush=True)
-            rows.append({"method": name, **status})
-            continue
-        raw = np.load(out)
-        metrics, how = evaluate(raw["snaps"], truth, band_truth, bars)
-        row = {**summarise(name, raw, metrics, floors), "status": "ok", "alignment": how, "wall_s": status["wall_s"]}
-        print(f"  {row['s_per_iteration']:.3f} s/iteration, best amplitude RMSE {row['best_amplitude_rmse']:.4f}, "
-              f"final MTF20 {row['final']['mtf20_px']}", flush=True)
-        rows.append(row)
+    failed, first, timings, peaks = {}, {}, {}, {}
+    for round_index in range(args.rounds):
+        for name, method, python, path, iterations in interleave(ours, peers):
+            if name in failed:
+                continue
+            out = workdir / (name.replace(":", "_").replace("@", "_") + f"_r{round_index}.npz")
+            print(f"round {round_index + 1}: running {name} ({iterations} iterations) ...", flush=True)
+            try:
+                status = run_worker(method, python, path, out, iterations, args.timeout)
+            except subprocess.TimeoutExpired:
+                status = {"status": "failed", "reason": f"timed out after {args.timeout:.0f} s"}
+            measure_floors()
+            if status["status"] != "ok":
+                print(f"  {name} failed: {status['reason'][-300:]}", flush=True)
+                failed[name] = {"method": name, **status}
+                continue
+            raw = np.load(out)
+            timings.setdefault(name, []).append(np.asarray(raw["seconds"], np.float64))
+            peaks[name] = max(peaks.get(name, 0), int(raw["peak_rss_bytes"]))
+            print(f"  {np.median(np.diff(np.concatenate([[0.0], raw['seconds']]))):.3f} s/iteration, "
+                  f"peak {fmt_bytes(raw['peak_rss_bytes'])}", flush=True)
+            if round_index == 0:
+                first[name] = (raw, status["wall_s"])
 
-    for size in floors:  # measured again after the runs; the floor is the faster of the two
-        floors[size] = min(floors[size], fft_floor_seconds(data["geometry"].n_images, size)[0])
+    floors = {size: min(v) for size, v in floor_samples.items()}
+    rows = list(skipped)
+    for name, *_ in interleave(ours, peers):
+        if name in failed:
+            rows.append(failed[name])
+            continue
+        raw, wall = first[name]
+        metrics, how = evaluate(raw["snaps"], truth, band_truth, bars)
+        row = {**summarise(name, raw, metrics, floors, timings[name]), "status": "ok", "alignment": how,
+               "wall_s": wall}
+        row["peak_rss_bytes"] = peaks[name]
+        print(f"{name}: {row['s_per_iteration']:.3f} s/iteration, best amplitude RMSE "
+              f"{row['best_amplitude_rmse']:.4f}, final MTF20 {row['final']['mtf20_px']}", flush=True)
+        rows.append(row)
     ok_rows = [r for r in rows if r.get("status") == "ok"]
     for row in ok_rows:
         row["floor_s"] = floors[row["fft_size"]]
@@ -371,6 +400,8 @@ def main() -> None:
                  "sensor_shape": list(data["sensor"]["shape"]) if "sensor" in data else None,
                  "output": list(truth.shape)},
         "fftw_floor_s": {str(k): v for k, v in floors.items()},
+        "fftw_floor_samples_s": {str(k): v for k, v in floor_samples.items()},
+        "rounds": args.rounds,
         "mtf_target_px": MTF_TARGET_PX, "rmse_target": rmse_target,
         "rmse_target_rule": f"{RMSE_SLACK:.2f} x best amplitude RMSE of {'the peers' if peer_rows else 'all methods'}",
         "fastest_peer_target_seconds": fastest_peer,

@@ -1,7 +1,7 @@
 """Run one reconstruction method on a benchmark data file in its own process.
 
 Started by ``bench_peers.py`` once per method so that peak memory
-(``ru_maxrss``) belongs to that method alone. Peers run in their own virtual
+(``VmHWM``) belongs to that method alone. Peers run in their own virtual
 environments (``.venv-peers`` for PtyLab and fpm-py, ``.venv-fpmrs`` for
 fpm-rs, Python ≥ 3.13), so this file imports only numpy at module level.
 
@@ -33,7 +33,15 @@ import numpy as np
 
 
 def rss_peak_bytes() -> int:
-    """Peak resident set size of this process so far (Linux reports KiB)."""
+    """Peak resident set size of this process so far (``VmHWM``).
+
+    ``ru_maxrss`` is not used: Linux carries it over from the parent across
+    fork and exec, so every worker would report at least the parent's peak.
+    """
+    with open("/proc/self/status") as handle:
+        for line in handle:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) * 1024
     return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024
 
 

@@ -85,6 +85,8 @@ def summary_table(summary: dict, title: str = "Result") -> Table:
         ("resolution gain", "resolution_gain", "{:.2f}"),
         ("RMSE observed", "rmse_observed", "{:.4f}"),
         ("RMSE recovered", "rmse_recovered", "{:.4f}"),
+        ("RMSE vs band-limited truth, observed", "rmse_observed_band", "{:.4f}"),
+        ("RMSE vs band-limited truth, recovered", "rmse_recovered_band", "{:.4f}"),
         ("multiplexed images (P·T)", "multiplex_measurements", "{}"),
         ("spectrum holes (share of band)", "coverage_zero_fraction", "{:.1%}"),
         ("spectrum seen by one image only", "coverage_single_fraction", "{:.1%}"),

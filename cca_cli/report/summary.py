@@ -8,11 +8,14 @@ import numpy as np
 
 from cca_cli.metrics import contrast_table, mtf_limit, resolution_gain, rmse
 from cca_cli.optics import fft
+from cca_cli.optics.forward import ForwardModel
+from cca_cli.optics.pupil import circular_pupils
 from cca_cli.sampling.geometry import CaptureGeometry
+from cca_cli.sampling.grid import band_layout
 from cca_cli.targets import BarGroup
 from cca_cli.units import spot_size_m
 
-__all__ = ["ReportInputs", "summarize", "on_grid", "sharpness_summary"]
+__all__ = ["ReportInputs", "summarize", "on_grid", "band_limited_truth", "sharpness_summary"]
 
 
 @dataclass(frozen=True)
@@ -29,6 +32,25 @@ class ReportInputs:
     seconds: float
     hires_size: int
     lowres_size: int
+    truth_field: np.ndarray | None = None   # (Mt, Mt) complex truth, for the band-limited error
+
+
+def band_limited_truth(truth_field: np.ndarray, geometry: CaptureGeometry) -> np.ndarray | None:
+    """Intensity of the truth seen through the synthetic aperture (union of all pupils).
+
+    This is the best any reconstruction from these captures can do; the error
+    against it measures phase retrieval alone, without the detail no aperture
+    position could see. None if the band does not fit the truth grid.
+    """
+    size = truth_field.shape[-1]
+    try:
+        layout = band_layout(geometry.spectrum_centres_yx_px, geometry.pupil_radius_px, hires_size=size)
+    except ValueError:
+        return None
+    pupils = circular_pupils(layout.box_size, layout.box_centres, layout.pupil_radius_px)
+    coverage = ForwardModel(layout, pupils).normal_diagonal() > 0
+    field = fft.ifft2c(fft.fft2c(np.asarray(truth_field, np.complex64)) * coverage)
+    return (np.abs(field) ** 2).astype(np.float32)
 
 
 def on_grid(image: np.ndarray, size: int) -> np.ndarray:
@@ -51,7 +73,8 @@ def summarize(inputs: ReportInputs, *, threshold: float = 0.2) -> dict:
     -----
     RMSE compares intensities on the truth grid after a least-squares
     intensity scale, normalised by the truth's maximum
-    (:func:`cca_cli.metrics.rmse`).
+    (:func:`cca_cli.metrics.rmse`). ``rmse_*_band`` compare with the
+    band-limited truth (:func:`band_limited_truth`) instead.
     """
     g = inputs.geometry
     sar = g.synthetic_aperture_ratio
@@ -81,6 +104,11 @@ def summarize(inputs: ReportInputs, *, threshold: float = 0.2) -> dict:
     recovered = on_grid(inputs.recovered, size)
     out["rmse_observed"] = rmse(observed, inputs.truth)
     out["rmse_recovered"] = rmse(recovered, inputs.truth)
+    if inputs.truth_field is not None:
+        band_truth = band_limited_truth(inputs.truth_field, g)
+        if band_truth is not None:
+            out["rmse_observed_band"] = rmse(observed, band_truth)
+            out["rmse_recovered_band"] = rmse(recovered, band_truth)
     if inputs.bars:
         table_obs = contrast_table(observed, inputs.bars)
         table_rec = contrast_table(recovered, inputs.bars)

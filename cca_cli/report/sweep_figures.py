@@ -110,7 +110,7 @@ def plot_sweep(data: SweepPlotData, directory: Path) -> list[Path]:
     """Draw the sweep's figures into ``directory``; return their paths.
 
     Figures: ``rmse_vs_<x>.png`` (RMSE of the recovered and observed
-    intensities), ``mtf20_vs_<x>.png`` (resolution limit, for charts),
+    intensities), ``rmse_band_vs_<x>.png`` (the same against the band-limited truth), ``mtf20_vs_<x>.png`` (resolution limit, for charts),
     ``contrast_vs_width.png`` (contrast per bar width of highlighted points)
     and ``montage.png`` (centre crops of truth, observed and recovered images).
     """
@@ -123,6 +123,10 @@ def plot_sweep(data: SweepPlotData, directory: Path) -> list[Path]:
     if _line_plot(plt, rmse, data, "rmse_recovered", "rmse_observed", "RMSE of intensity (fraction of peak)",
                   f"{data.study} study: reconstruction error"):
         paths.append(rmse)
+    band = directory / f"rmse_band_vs_{stem}.png"
+    if _line_plot(plt, band, data, "rmse_recovered_band", "rmse_observed_band",
+                  "RMSE vs band-limited truth (fraction of peak)", f"{data.study} study: phase-retrieval error"):
+        paths.append(band)
     mtf = directory / f"mtf20_vs_{stem}.png"
     if _line_plot(plt, mtf, data, "mtf20_recovered_px", "mtf20_observed_px",
                   "MTF20 limit: smallest resolved bar (object px)", f"{data.study} study: resolution"):

@@ -48,7 +48,7 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
     inputs = ReportInputs(geometry=geometry, observed=observed, recovered=recovered, truth=truth, bars=bars,
                           engine=str(attrs.get("engine")), iterations=int(attrs.get("iterations", 0)),
                           seconds=float(attrs.get("seconds", 0.0)), hires_size=int(attrs.get("hires_size")),
-                          lowres_size=int(attrs.get("lowres_size")))
+                          lowres_size=int(attrs.get("lowres_size")), truth_field=truth_obj)
     summary = summarize(inputs, threshold=section.mtf_threshold)
     summary.update(capture_summary)
     coverage = None

@@ -15,6 +15,8 @@ stages). Every file appears atomically, the sweep table included.
 
 from __future__ import annotations
 
+import typing
+
 import contextlib
 import csv
 import hashlib
@@ -62,7 +64,7 @@ POINT_JSON = "point.json"
 
 #: Report metrics copied into the sweep table.
 METRICS = ("sar", "grid_n", "n_images", "iterations", "recon_seconds", "mtf20_observed_px", "mtf20_recovered_px",
-           "resolution_gain", "rmse_observed", "rmse_recovered")
+           "resolution_gain", "rmse_observed", "rmse_recovered", "rmse_observed_band", "rmse_recovered_band")
 
 _OVERLAPS = (0.0, 0.2, 0.41, 0.5, 0.61, 0.75, 0.77)
 
@@ -188,7 +190,9 @@ def check_key(dotted: str, *, source: str = "sweep") -> None:
         sections = ", ".join(k for k in fields if k not in ("sweep", "run"))
         raise ConfigError(f"{source}: {dotted}: not a sweepable key; use section.key with a section of {sections}")
     section = fields[parts[0]].annotation
-    keys = getattr(section, "model_fields", {})
+    # Optional sections (``multiplex: MultiplexSection | None``) name their model inside a union.
+    models = [a for a in (typing.get_args(section) or (section,)) if hasattr(a, "model_fields")]
+    keys = models[0].model_fields if models else {}
     if parts[1] not in keys:
         raise ConfigError(f"{source}: {dotted}: unknown key; accepted keys in {parts[0]}: {', '.join(sorted(keys))}")
     if len(parts) > 2 and dotted.rsplit(".", 1)[0] != "reconstruct.options":
@@ -294,6 +298,8 @@ def _metrics(summary: dict) -> dict[str, Any]:
         "mtf20_observed_px": summary.get("mtf20_observed_px"), "mtf20_recovered_px": summary.get("mtf20_recovered_px"),
         "resolution_gain": summary.get("resolution_gain"), "rmse_observed": summary.get("rmse_observed"),
         "rmse_recovered": summary.get("rmse_recovered"),
+        "rmse_observed_band": summary.get("rmse_observed_band"),
+        "rmse_recovered_band": summary.get("rmse_recovered_band"),
     }
 
 
