@@ -49,7 +49,6 @@ def fft_floor_seconds(n_images: int, size: int, *, repeats: int = 7) -> tuple[fl
     Both a single batched plan over all captures (all threads) and cache-sized
     chunks on worker threads are timed; the faster is the floor.
     """
-    from cca_cli.engines.passes import ChunkedPass  # noqa: F401  (same threading model as the engines)
     from concurrent.futures import ThreadPoolExecutor
 
     buffer = fft.zeros((n_images, size, size))

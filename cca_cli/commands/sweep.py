@@ -96,7 +96,7 @@ def _print_rows(rows, spec, points) -> None:
         return "—" if v is None else (fmt.format(v) if isinstance(v, (int, float)) else str(v))
 
     for row in rows:
-        table.add_row(row["point_id"], row["status"] if row["status"] != "failed" else f"[red]failed[/]",
+        table.add_row(row["point_id"], row["status"] if row["status"] != "failed" else "[red]failed[/]",
                       *(f(row.get(p)) for p in params), f(row.get("sar"), "{:.2f}"), f(row.get("n_images")),
                       f(row.get("rmse_observed")), f(row.get("rmse_recovered")), f(row.get("mtf20_recovered_px")))
     console.print(table)

@@ -195,7 +195,6 @@ def merge_exposures(
     # Fallback for pixels without a usable exposure.
     order = np.argsort(t, axis=-1)  # (..., E)
     shortest = order[..., 0]
-    longest = order[..., -1]
     idx_short = np.broadcast_to(shortest[..., None, None, None], batch_shape + (1,) + stack.shape[-2:])
     x_short = np.take_along_axis(stack, idx_short, axis=-3)[..., 0, :, :]
     t_short = np.take_along_axis(t, shortest[..., None], axis=-1)[..., None].astype(np.float32)

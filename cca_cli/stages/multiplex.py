@@ -11,14 +11,12 @@ the on-axis camera under the on-axis source alone.
 
 from __future__ import annotations
 
-import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from cca_cli.config.model import ReconstructSection, RunConfig
-from cca_cli.engines.base import IterationRecord, run_engine
 from cca_cli.engines.multiplex import MULTIPLEX_ENGINES, MultiplexedProblem
 from cca_cli.errors import ConfigError, InputError
 from cca_cli.io.geometry import read_geometry, write_geometry
@@ -31,7 +29,7 @@ from cca_cli.optics.noise import add_gaussian_noise, add_shot_and_read_noise
 from cca_cli.sampling.geometry import CaptureGeometry, camera_scan_geometry
 from cca_cli.sampling.grid import BandLayout
 from cca_cli.stages.progress import ProgressEvent, ProgressFn, silent
-from cca_cli.stages.reconstruct import Captures, Recovery, engine_options, write_recon
+from cca_cli.stages.reconstruct import Captures, Recovery, drive_engine, engine_options, write_recon
 from cca_cli.stages.scene import Scene, bars_to_table, build_scene
 from cca_cli.units import FourierScale
 
@@ -261,16 +259,7 @@ def reconstruct_multiplexed(data: MultiplexedCaptures, section: ReconstructSecti
         raise InputError(f"{captures.path}: {exc}") from None
     options = engine_options(section)
     engine = engine_class(problem, options)
-    total = options.max_iterations
-
-    def on_iteration(record: IterationRecord) -> None:
-        progress(ProgressEvent("reconstruct", "iterations", record.iteration, total,
-                               {"residual": record.residual, "change": record.change}))
-
-    start = time.perf_counter()
-    spectrum, history = run_engine(engine, on_iteration=on_iteration)
-    return Recovery(spectrum=spectrum, layout=model.layout, history=history, engine=section.engine,
-                    options=asdict(options), seconds=time.perf_counter() - start)
+    return drive_engine(engine, options, model.layout, section.engine, progress=progress)
 
 
 def run_reconstruct(captures_path: Path, section: ReconstructSection, output: Path, *, provenance: Provenance,

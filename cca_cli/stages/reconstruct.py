@@ -99,6 +99,11 @@ def reconstruct(captures: Captures, section: ReconstructSection, *, progress: Pr
     problem = PhaseRetrievalProblem.from_sensor_images(model, captures.intensity, captures.weight)
     options = engine_options(section)
     engine = get_engine(section.engine).engine(problem, options)
+    return drive_engine(engine, options, model.layout, section.engine, progress=progress)
+
+
+def drive_engine(engine, options, layout: BandLayout, name: str, *, progress: ProgressFn = silent) -> Recovery:
+    """Run ``engine`` to completion, reporting every iteration as a progress event."""
     total = options.max_iterations
 
     def on_iteration(record: IterationRecord) -> None:
@@ -107,7 +112,7 @@ def reconstruct(captures: Captures, section: ReconstructSection, *, progress: Pr
 
     start = time.perf_counter()
     spectrum, history = run_engine(engine, on_iteration=on_iteration)
-    return Recovery(spectrum=spectrum, layout=model.layout, history=history, engine=section.engine,
+    return Recovery(spectrum=spectrum, layout=layout, history=history, engine=name,
                     options=asdict(options), seconds=time.perf_counter() - start)
 
 
