@@ -1,10 +1,13 @@
-"""Time one alternating-minimization iteration on the headline case against the FFT floor.
+"""Time one iteration of each engine on the headline case against the FFT floor.
 
 The floor is the FFT work one iteration cannot avoid: an inverse and a forward
 2-D FFT of every capture at the engine's grid size, complex64, on the same
-backend. Prints ms/iteration, the floor and their ratio (medians).
+backend (the faster of one batched plan and cache-sized chunks on threads).
+Engines and floor are timed in interleaved rounds, so slow drifts of the
+machine affect both; the script prints medians over rounds of ms/iteration
+and of the per-round ratio to the floor.
 
-Usage: python benchmarks/bench_altmin.py [--repeats 15] [--json out.json]
+Usage: python benchmarks/bench_altmin.py [--rounds 5] [--repeats 7] [--engines altmin momentum] [--json out.json]
 """
 
 from __future__ import annotations
@@ -14,42 +17,57 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import fft_floor_seconds, headline_problem, median_seconds  # noqa: E402
 
-from cca_cli.engines.altmin import AlternatingMinimization, AltMinOptions  # noqa: E402
+from cca_cli.engines.registry import get_engine  # noqa: E402
 from cca_cli.optics import fft  # noqa: E402
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeats", type=int, default=15)
+    parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument("--repeats", type=int, default=7, help="iterations timed per engine per round")
+    parser.add_argument("--engines", nargs="*", default=["altmin", "momentum"], help="registered engines to time")
+    parser.add_argument("--store", choices=["band", "sensor"], default="band",
+                        help="captures as stored: band grid or full 512² sensor images")
     parser.add_argument("--json", type=Path, default=None)
-    parser.add_argument("--chunks", type=int, nargs="*", default=[8, 16, 32])
     args = parser.parse_args()
 
-    problem, _ = headline_problem()
+    problem, _ = headline_problem(store=args.store)
     model = problem.model
     k, m = model.n_images, model.layout.lowres_size
-    results = {"backend": fft.backend_name(), "threads": fft.cpu_count(), "n_images": k, "lowres_size": m,
-               "hires_size": model.layout.hires_size, "engines": {}}
-    floor, how = fft_floor_seconds(k, m, repeats=args.repeats)
-    results["floor_s"], results["floor_method"] = floor, how
-    for chunk in args.chunks:
-        engine = AlternatingMinimization(problem, AltMinOptions(chunk=chunk, max_iterations=10**6, tol=0))
-        seconds = median_seconds(engine.update, repeats=args.repeats, warmup=2)
+    engines = {}
+    for name in args.engines:
+        entry = get_engine(name)
+        engines[name] = entry.engine(problem, entry.options(max_iterations=10**6, tol=0))
+        engines[name].update()
+    floors, times = [], {name: [] for name in engines}
+    for _ in range(args.rounds):
+        floors.append(fft_floor_seconds(k, m, repeats=args.repeats)[0])
+        for name, engine in engines.items():
+            times[name].append(median_seconds(engine.update, repeats=args.repeats, warmup=1))
+    for engine in engines.values():
         engine.close()
-        results["engines"][f"altmin_chunk{chunk}"] = {"s_per_iteration": seconds, "ratio_to_floor": seconds / floor}
-    floor_again, _ = fft_floor_seconds(k, m, repeats=args.repeats)
-    results["floor_s"] = min(floor, floor_again)
 
-    print(f"headline: {k} captures, per-capture grid {m}², output {model.layout.hires_size}², "
-          f"FFT backend {results['backend']}, {results['threads']} threads")
-    print(f"FFT floor (2 FFTs x {k} at {m}², {how}): {1e3 * results['floor_s']:.1f} ms")
-    for name, row in results["engines"].items():
-        row["ratio_to_floor"] = row["s_per_iteration"] / results["floor_s"]
-        print(f"{name:20s} {1e3 * row['s_per_iteration']:7.1f} ms/iteration   ratio {row['ratio_to_floor']:.2f}")
+    floor = float(np.median(floors))
+    results = {"backend": fft.backend_name(), "threads": fft.cpu_count(), "n_images": k, "lowres_size": m,
+               "hires_size": model.layout.hires_size, "store": args.store, "rounds": args.rounds,
+               "floor_s": floor, "floor_s_rounds": floors, "engines": {}}
+    print(f"headline ({args.store} captures): {k} captures, per-capture grid {m}², output {model.layout.hires_size}², "
+          f"FFT backend {results['backend']}, {results['threads']} threads, {args.rounds} interleaved rounds")
+    print(f"FFT floor (2 FFTs x {k} at {m}²): median {1e3 * floor:.1f} ms "
+          f"(rounds {', '.join(f'{1e3 * f:.1f}' for f in floors)})")
+    for name, samples in times.items():
+        ratios = [t / f for t, f in zip(samples, floors)]
+        row = {"s_per_iteration": float(np.median(samples)), "ratio_to_floor": float(np.median(ratios)),
+               "s_per_iteration_rounds": samples, "ratio_rounds": ratios}
+        results["engines"][name] = row
+        print(f"{name:10s} {1e3 * row['s_per_iteration']:7.1f} ms/iteration   ratio to floor {row['ratio_to_floor']:.2f} "
+              f"(rounds {', '.join(f'{r:.2f}' for r in ratios)})")
     if args.json:
         args.json.write_text(json.dumps(results, indent=2))
 

@@ -23,6 +23,7 @@ from cca_cli.engines.base import IterativeEngine
 from cca_cli.engines.passes import ChunkedPass
 from cca_cli.engines.problem import PhaseRetrievalProblem, initial_spectrum
 from cca_cli.engines.projections import project_magnitudes
+from cca_cli.optics import kernels
 
 __all__ = ["AltMinOptions", "AlternatingMinimization"]
 
@@ -108,10 +109,8 @@ class AlternatingMinimization(IterativeEngine):
     def update(self) -> tuple[float, float]:
         """One iteration: project every capture, then the closed-form Fourier update."""
         misfit = self._pass.run(self._spectrum, self._project, self._next)
-        self._next *= self._inverse_normal
-        delta = self._next - self._spectrum
-        norm = float(np.vdot(self._spectrum.ravel(), self._spectrum.ravel()).real)
-        self._change = float(np.sqrt(np.vdot(delta.ravel(), delta.ravel()).real / max(norm, 1e-30)))
+        squared_change, norm = kernels.tikhonov_update(self._next, self._inverse_normal, self._spectrum)
+        self._change = float(np.sqrt(squared_change / max(norm, 1e-30)))
         self._spectrum, self._next = self._next, self._spectrum
         self._iteration += 1
         return float(np.sqrt(misfit / max(self._data_norm, 1e-30))), self._change

@@ -38,12 +38,14 @@ class ChunkedPass:
     """
 
     def __init__(self, model: ForwardModel, *, chunk: int = 16, threads: int | None = None,
-                 slices: list[slice] | None = None):
+                 slices: list[slice] | None = None, workers: int | None = None):
         self.model = model
         self.slices = slices if slices is not None else chunk_slices(model.n_images, chunk)
         capacity = max(s.stop - s.start for s in self.slices)
-        self.threads = max(1, min(threads or fft.cpu_count(), len(self.slices)))
-        self.workspaces = [model.workspace(capacity, threads=1) for _ in range(self.threads)]
+        cores = threads or fft.cpu_count()
+        self.threads = max(1, min(workers or cores, len(self.slices)))
+        fft_threads = max(1, cores // self.threads)
+        self.workspaces = [model.workspace(capacity, threads=fft_threads) for _ in range(self.threads)]
         self.scratch = [np.empty((2, capacity) + model.field_shape, np.float32) for _ in range(self.threads)]
         self.accumulators = [np.zeros(model.spectrum_shape, np.complex64) for _ in range(self.threads)]
         self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from cca_cli.optics import kernels
+
 __all__ = ["project_magnitudes", "project_grouped_magnitudes"]
 
 
@@ -11,7 +13,8 @@ def project_magnitudes(fields: np.ndarray, amplitudes: np.ndarray, scratch: np.n
                        weights: np.ndarray | None = None, eps: float = 1e-12) -> float:
     """Replace ``|ψ|`` by the measured amplitude, keeping the phase; return the squared misfit.
 
-    ``ψ ← w · A ψ/|ψ| + (1 − w) · ψ`` with ``w = 1`` when no weights are given.
+    ``ψ ← w · A ψ/(|ψ| + ε) + (1 − w) · ψ`` with ``w = 1`` when no weights are given,
+    in one fused pass (:func:`cca_cli.optics.kernels.project_magnitudes`).
 
     Parameters
     ----------
@@ -31,19 +34,7 @@ def project_magnitudes(fields: np.ndarray, amplitudes: np.ndarray, scratch: np.n
     float
         ``Σ w (|ψ| − A)²`` over the chunk, before the projection.
     """
-    magnitude = np.abs(fields, out=scratch[0])
-    misfit = np.subtract(magnitude, amplitudes, out=scratch[1])
-    if weights is not None:
-        misfit *= np.sqrt(weights)
-    flat = misfit.reshape(-1)
-    squared = float(np.dot(flat, flat))
-    magnitude += np.float32(eps)
-    ratio = np.divide(amplitudes, magnitude, out=magnitude)
-    if weights is not None:
-        ratio *= weights
-        ratio += 1.0 - weights
-    fields *= ratio
-    return squared
+    return kernels.project_magnitudes(fields, amplitudes, scratch, weights=weights, eps=eps)
 
 
 def project_grouped_magnitudes(fields: np.ndarray, amplitudes: np.ndarray, scratch: np.ndarray,

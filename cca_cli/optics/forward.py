@@ -31,9 +31,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numpy.lib.stride_tricks import as_strided
 
-from cca_cli.optics import fft
+from cca_cli.optics import fft, kernels
 from cca_cli.sampling.grid import BandLayout
 
 __all__ = ["ForwardModel", "Workspace", "to_model_layout", "to_sensor_layout", "chunk_slices"]
@@ -116,8 +115,7 @@ class ForwardModel:
         self._pupil_forward = (pupils / m).astype(np.complex64)
         self._pupil_adjoint = (np.conj(pupils) / m).astype(np.complex64)
         self._origins = [tuple(int(v) for v in o) for o in layout.box_origins]
-        self._oy = layout.box_origins[:, 0].copy()
-        self._ox = layout.box_origins[:, 1].copy()
+        self._origin_array = np.ascontiguousarray(layout.box_origins, dtype=np.int64)
 
     # ------------------------------------------------------------------ shapes
     @property
@@ -163,24 +161,10 @@ class ForwardModel:
         ndarray, complex64, (k, m, m)
             A view of the workspace buffer (field layout, see module notes).
         """
-        b = self.layout.box_size
-        s = self.layout.lowres_box_start
         start, stop, _ = images.indices(self.n_images)
         k = stop - start
         fields = workspace.fields
-        # Zero everything but the pupil box, which is overwritten below.
-        fields[:k, :s] = 0
-        fields[:k, s + b:] = 0
-        fields[:k, s:s + b, :s] = 0
-        fields[:k, s:s + b, s + b:] = 0
-        windows = as_strided(
-            spectrum,
-            shape=(spectrum.shape[0] - b + 1, spectrum.shape[1] - b + 1, b, b),
-            strides=spectrum.strides * 2,
-            writeable=False,
-        )
-        np.multiply(windows[self._oy[images], self._ox[images]], self._pupil_forward[images],
-                    out=fields[:k, s:s + b, s:s + b])
+        kernels.place_boxes(spectrum, self._origin_array, self._pupil_forward, fields[:k], start)
         (workspace.box_fft or workspace.fft).inverse()
         return fields[:k]
 
@@ -198,15 +182,10 @@ class ForwardModel:
         accumulator : ndarray, complex64, (M, M)
             Centred spectrum that receives the back-projection.
         """
-        b = self.layout.box_size
-        s = self.layout.lowres_box_start
         start, stop, _ = images.indices(self.n_images)
         k = stop - start
         (workspace.box_fft or workspace.fft).forward()
-        boxes = workspace.fields[:k, s:s + b, s:s + b]
-        boxes *= self._pupil_adjoint[images]
-        for j, (y0, x0) in enumerate(self._origins[start:stop]):
-            accumulator[y0:y0 + b, x0:x0 + b] += boxes[j]
+        kernels.scatter_boxes(workspace.fields[:k], self._origin_array, self._pupil_adjoint, accumulator, start)
 
     def normal_diagonal(self) -> np.ndarray:
         """``Σ_i R_iᵀ |P_i|²`` on the M x M spectrum grid (float32)."""

@@ -1,0 +1,268 @@
+"""Fused per-pixel kernels of the numeric core, compiled with numba when it is installed.
+
+Each kernel does in one pass what would otherwise take several numpy passes
+(and several trips through the interpreter): placing pupil boxes into the
+field buffer, the magnitude projection with its misfit, and the pupil-weighted
+scatter back into the spectrum. The compiled kernels release the GIL, so the
+engines' worker threads run them in parallel on different chunks. They sit beside :mod:`cca_cli.optics.fft` as
+part of the array backend: another backend (e.g. CuPy) supplies its own
+versions of these few functions. Without numba, equivalent numpy code runs.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+try:  # pragma: no cover - exercised when numba is installed
+    import numba
+
+    _HAVE_NUMBA = True
+except ImportError:  # pragma: no cover
+    numba = None
+    _HAVE_NUMBA = False
+
+__all__ = ["kernels_name", "use_kernels", "place_boxes", "project_magnitudes", "scatter_boxes", "tikhonov_update"]
+
+_use_numba = _HAVE_NUMBA
+
+
+def kernels_name() -> str:
+    """``"numba"`` or ``"numpy"``: which implementation the kernels use."""
+    return "numba" if _use_numba else "numpy"
+
+
+class use_kernels:
+    """Context manager selecting ``"numba"`` or ``"numpy"`` kernels (tests compare the two)."""
+
+    def __init__(self, name: str):
+        if name not in ("numba", "numpy"):
+            raise ValueError(f"unknown kernels {name!r}; choose 'numba' or 'numpy'")
+        if name == "numba" and not _HAVE_NUMBA:
+            raise ValueError("numba kernels requested but numba is not installed")
+        self.name = name
+
+    def __enter__(self):
+        global _use_numba
+        self._previous, _use_numba = _use_numba, self.name == "numba"
+        return self
+
+    def __exit__(self, *exc):
+        global _use_numba
+        _use_numba = self._previous
+
+
+# ----------------------------------------------------------------------------- numpy versions
+def _place_boxes_numpy(spectrum, origins, pupils, fields, start):
+    k, m, b = fields.shape[0], fields.shape[1], pupils.shape[1]
+    s = m // 2 - b // 2
+    fields[:k, :s] = 0
+    fields[:k, s + b:] = 0
+    fields[:k, s:s + b, :s] = 0
+    fields[:k, s:s + b, s + b:] = 0
+    for j in range(k):
+        y0, x0 = origins[start + j]
+        np.multiply(spectrum[y0:y0 + b, x0:x0 + b], pupils[start + j], out=fields[j, s:s + b, s:s + b])
+
+
+def _project_numpy(fields, amplitudes, weights, eps, scratch):
+    magnitude = np.abs(fields, out=scratch[0])
+    misfit = np.subtract(magnitude, amplitudes, out=scratch[1])
+    if weights is not None:
+        misfit *= np.sqrt(weights)
+    flat = misfit.reshape(-1)
+    squared = float(np.dot(flat, flat))
+    magnitude += np.float32(eps)
+    ratio = np.divide(amplitudes, magnitude, out=magnitude)
+    if weights is not None:
+        ratio *= weights
+        ratio += 1.0 - weights
+    fields *= ratio
+    return squared
+
+
+def _scatter_numpy(fields, origins, pupils, accumulator, start):
+    k, m, b = fields.shape[0], fields.shape[1], pupils.shape[1]
+    s = m // 2 - b // 2
+    boxes = fields[:k, s:s + b, s:s + b]
+    boxes *= pupils[start:start + k]
+    for j in range(k):
+        y0, x0 = origins[start + j]
+        accumulator[y0:y0 + b, x0:x0 + b] += boxes[j]
+
+
+# ----------------------------------------------------------------------------- numba versions
+if _HAVE_NUMBA:  # pragma: no branch
+
+    @numba.njit(nogil=True, cache=True)
+    def _place_boxes_numba(spectrum, origins, pupils, fields, start):  # pragma: no cover - compiled
+        k, m, b = fields.shape[0], fields.shape[1], pupils.shape[1]
+        s = m // 2 - b // 2
+        for j in range(k):
+            y0 = origins[start + j, 0]
+            x0 = origins[start + j, 1]
+            for r in range(m):
+                if r < s or r >= s + b:
+                    for c in range(m):
+                        fields[j, r, c] = 0
+                else:
+                    for c in range(s):
+                        fields[j, r, c] = 0
+                    for c in range(b):
+                        fields[j, r, s + c] = spectrum[y0 + r - s, x0 + c] * pupils[start + j, r - s, c]
+                    for c in range(s + b, m):
+                        fields[j, r, c] = 0
+
+    @numba.njit(nogil=True, cache=True, fastmath=True)
+    def _project_numba(fields, amplitudes, eps):  # pragma: no cover - compiled
+        values = fields.reshape(fields.size).view(np.float32)
+        measured = amplitudes.reshape(amplitudes.size)
+        total = 0.0
+        for i in range(measured.size):
+            re = values[2 * i]
+            im = values[2 * i + 1]
+            magnitude = np.sqrt(re * re + im * im)
+            a = measured[i]
+            d = magnitude - a
+            total += d * d
+            q = a / (magnitude + eps)
+            values[2 * i] = re * q
+            values[2 * i + 1] = im * q
+        return total
+
+    @numba.njit(nogil=True, cache=True, fastmath=True)
+    def _project_weighted_numba(fields, amplitudes, weights, eps):  # pragma: no cover - compiled
+        values = fields.reshape(fields.size).view(np.float32)
+        measured = amplitudes.reshape(amplitudes.size)
+        confidence = weights.reshape(weights.size)
+        one = np.float32(1.0)
+        total = 0.0
+        for i in range(measured.size):
+            re = values[2 * i]
+            im = values[2 * i + 1]
+            magnitude = np.sqrt(re * re + im * im)
+            a = measured[i]
+            w = confidence[i]
+            d = magnitude - a
+            total += w * d * d
+            q = w * (a / (magnitude + eps)) + (one - w)
+            values[2 * i] = re * q
+            values[2 * i + 1] = im * q
+        return total
+
+    @numba.njit(nogil=True, cache=True, fastmath=True)
+    def _tikhonov_numba(numerator, inverse_normal, spectrum):  # pragma: no cover - compiled
+        new = numerator.reshape(numerator.size).view(np.float32)
+        old = spectrum.reshape(spectrum.size).view(np.float32)
+        scale = inverse_normal.reshape(inverse_normal.size)
+        change = 0.0
+        norm = 0.0
+        for i in range(scale.size):
+            q = scale[i]
+            re = new[2 * i] * q
+            im = new[2 * i + 1] * q
+            new[2 * i] = re
+            new[2 * i + 1] = im
+            dr = re - old[2 * i]
+            di = im - old[2 * i + 1]
+            change += dr * dr + di * di
+            norm += old[2 * i] * old[2 * i] + old[2 * i + 1] * old[2 * i + 1]
+        return change, norm
+
+    @numba.njit(nogil=True, cache=True)
+    def _scatter_numba(fields, origins, pupils, accumulator, start):  # pragma: no cover - compiled
+        k, m, b = fields.shape[0], fields.shape[1], pupils.shape[1]
+        s = m // 2 - b // 2
+        for j in range(k):
+            y0 = origins[start + j, 0]
+            x0 = origins[start + j, 1]
+            for r in range(b):
+                for c in range(b):
+                    accumulator[y0 + r, x0 + c] += fields[j, s + r, s + c] * pupils[start + j, r, c]
+
+
+# ----------------------------------------------------------------------------- public entry points
+def place_boxes(spectrum: np.ndarray, origins: np.ndarray, pupils: np.ndarray, fields: np.ndarray,
+                start: int) -> None:
+    """Write ``spectrum`` box × pupil of captures ``start …`` into the centre of each field, zeros elsewhere.
+
+    Parameters
+    ----------
+    spectrum : ndarray, complex64, (M, M)
+    origins : ndarray, int64, (K, 2)
+        Top-left corner of every capture's box in ``spectrum``.
+    pupils : ndarray, complex64, (K, b, b)
+        Pupil boxes (with any scaling folded in).
+    fields : ndarray, complex64, (k, m, m)
+        Receives captures ``start … start + k - 1``; the box is centred on ``m // 2``.
+    start : int
+        Index of the first capture.
+    """
+    if _use_numba:
+        _place_boxes_numba(spectrum, origins, pupils, fields, start)
+    else:
+        _place_boxes_numpy(spectrum, origins, pupils, fields, start)
+
+
+def project_magnitudes(fields: np.ndarray, amplitudes: np.ndarray, scratch: np.ndarray, *,
+                       weights: np.ndarray | None = None, eps: float = 1e-12) -> float:
+    """Replace ``|ψ|`` by the measured amplitude, keeping the phase; return the squared misfit.
+
+    ``ψ ← w · A ψ/(|ψ| + ε) + (1 − w) · ψ`` with ``w = 1`` when no weights are given,
+    in place; returns ``Σ w (|ψ| − A)²`` before the update.
+
+    Parameters
+    ----------
+    fields : ndarray, complex64, (k, m, m)
+    amplitudes : ndarray, float32, (k, m, m)
+    scratch : ndarray, float32, (2, k, m, m)
+        Work arrays for the numpy implementation.
+    weights : ndarray, float32, (k, m, m), optional
+    eps : float
+    """
+    if _use_numba and fields.flags.c_contiguous:
+        if weights is None:
+            return float(_project_numba(fields, amplitudes, np.float32(eps)))
+        return float(_project_weighted_numba(fields, amplitudes, weights, np.float32(eps)))
+    return _project_numpy(fields, amplitudes, weights, eps, scratch)
+
+
+def scatter_boxes(fields: np.ndarray, origins: np.ndarray, pupils: np.ndarray, accumulator: np.ndarray,
+                  start: int) -> None:
+    """Add each field's centre box × pupil into ``accumulator`` at its capture's origin.
+
+    Parameters
+    ----------
+    fields : ndarray, complex64, (k, m, m)
+        Spectra of captures ``start …`` (box centred on ``m // 2``); the numpy
+        implementation overwrites the boxes.
+    origins : ndarray, int64, (K, 2)
+    pupils : ndarray, complex64, (K, b, b)
+        Adjoint pupil boxes (conjugate, with scaling folded in).
+    accumulator : ndarray, complex64, (M, M)
+    start : int
+    """
+    if _use_numba:
+        _scatter_numba(fields, origins, pupils, accumulator, start)
+    else:
+        _scatter_numpy(fields, origins, pupils, accumulator, start)
+
+
+def tikhonov_update(numerator: np.ndarray, inverse_normal: np.ndarray, spectrum: np.ndarray) -> tuple[float, float]:
+    """``numerator ← numerator · inverse_normal`` in place; return ``(‖numerator − spectrum‖², ‖spectrum‖²)``.
+
+    Parameters
+    ----------
+    numerator : ndarray, complex64, (M, M)
+        ``Σ A_iᴴ ψ_i``; becomes the new spectrum.
+    inverse_normal : ndarray, float32, (M, M)
+        ``1 / (Σ |P_i|² + τ)``.
+    spectrum : ndarray, complex64, (M, M)
+        The previous spectrum (read only).
+    """
+    if _use_numba and numerator.flags.c_contiguous and spectrum.flags.c_contiguous:
+        change, norm = _tikhonov_numba(numerator, inverse_normal, spectrum)
+        return float(change), float(norm)
+    numerator *= inverse_normal
+    delta = numerator - spectrum
+    return (float(np.vdot(delta.ravel(), delta.ravel()).real),
+            float(np.vdot(spectrum.ravel(), spectrum.ravel()).real))

@@ -1,0 +1,92 @@
+"""The compiled kernels and their numpy fallbacks compute the same thing."""
+
+import numpy as np
+import pytest
+
+from cca_cli.engines.altmin import AlternatingMinimization, AltMinOptions
+from cca_cli.engines.problem import PhaseRetrievalProblem
+from cca_cli.optics import kernels
+from cca_cli.optics.forward import ForwardModel
+from cca_cli.optics.pupil import circular_pupils
+from cca_cli.sampling.grid import band_layout, square_scan
+
+numba = pytest.importorskip("numba")
+
+
+def _model():
+    layout = band_layout(square_scan(5, 8.0).centres_yx_m, 6.3, sensor_size=64)
+    return ForwardModel(layout, circular_pupils(layout.box_size, layout.box_centres, 6.3))
+
+
+def _both(function):
+    results = {}
+    for name in ("numba", "numpy"):
+        with kernels.use_kernels(name):
+            results[name] = function()
+    return results["numba"], results["numpy"]
+
+
+def test_forward_and_adjoint_agree():
+    model = _model()
+    rng = np.random.default_rng(1)
+    spectrum = (rng.standard_normal(model.spectrum_shape) + 1j * rng.standard_normal(model.spectrum_shape))
+    spectrum = spectrum.astype(np.complex64)
+    fast, slow = _both(lambda: model.forward(spectrum))
+    np.testing.assert_allclose(fast, slow, atol=1e-5 * np.abs(slow).max())
+    fields = fast.copy()
+    fast, slow = _both(lambda: model.adjoint(fields))
+    np.testing.assert_allclose(fast, slow, atol=1e-5 * np.abs(slow).max())
+
+
+@pytest.mark.parametrize("weighted", [False, True])
+def test_projection_agrees(weighted):
+    rng = np.random.default_rng(2)
+    shape = (5, 24, 24)
+    fields = (rng.standard_normal(shape) + 1j * rng.standard_normal(shape)).astype(np.complex64)
+    amplitudes = np.abs(rng.standard_normal(shape)).astype(np.float32)
+    weights = rng.random(shape).astype(np.float32) if weighted else None
+
+    def run():
+        out = fields.copy()
+        misfit = kernels.project_magnitudes(out, amplitudes, np.empty((2,) + shape, np.float32), weights=weights,
+                                            eps=1e-6)
+        return out, misfit
+
+    (fast, fast_misfit), (slow, slow_misfit) = _both(run)
+    np.testing.assert_allclose(fast, slow, atol=1e-5)
+    assert fast_misfit == pytest.approx(slow_misfit, rel=1e-5)
+    if not weighted:
+        np.testing.assert_allclose(np.abs(fast), amplitudes, atol=1e-4)
+
+
+def test_tikhonov_update_agrees():
+    rng = np.random.default_rng(3)
+    numerator = (rng.standard_normal((16, 16)) + 1j * rng.standard_normal((16, 16))).astype(np.complex64)
+    previous = (rng.standard_normal((16, 16)) + 1j * rng.standard_normal((16, 16))).astype(np.complex64)
+    inverse = rng.random((16, 16)).astype(np.float32)
+
+    def run():
+        out = numerator.copy()
+        return out, kernels.tikhonov_update(out, inverse, previous)
+
+    (fast, (dc_fast, n_fast)), (slow, (dc_slow, n_slow)) = _both(run)
+    np.testing.assert_allclose(fast, numerator * inverse, rtol=1e-6)
+    np.testing.assert_allclose(slow, numerator * inverse, rtol=1e-6)
+    assert dc_fast == pytest.approx(dc_slow, rel=1e-5) and n_fast == pytest.approx(n_slow, rel=1e-5)
+
+
+def test_altmin_iterations_agree_between_kernels():
+    model = _model()
+    rng = np.random.default_rng(4)
+    amplitudes = np.abs(rng.standard_normal((model.n_images,) + model.field_shape)).astype(np.float32)
+    problem = PhaseRetrievalProblem(model, amplitudes)
+
+    def run():
+        engine = AlternatingMinimization(problem, AltMinOptions(max_iterations=5, tol=0, chunk=7))
+        for _ in range(5):
+            engine.update()
+        engine.close()
+        return engine.spectrum().copy()
+
+    fast, slow = _both(run)
+    np.testing.assert_allclose(fast, slow, atol=1e-4 * np.abs(slow).max())
