@@ -3,9 +3,10 @@
 The floor is the FFT work one iteration cannot avoid: an inverse and a forward
 2-D FFT of every capture at the engine's grid size, complex64, on the same
 backend (the faster of one batched plan and cache-sized chunks on threads).
-Engines and floor are timed in interleaved rounds, so slow drifts of the
-machine affect both; the script prints medians over rounds of ms/iteration
-and of the per-round ratio to the floor.
+Every engine iteration is paired with a floor measurement (the faster of the
+one taken just before it and the round's best method), so slow drifts of the
+machine affect both; the script prints the median ms/iteration and the median
+of the paired ratios, with quartiles.
 
 Usage: python benchmarks/bench_altmin.py [--rounds 5] [--repeats 7] [--engines altmin momentum] [--json out.json]
 """
@@ -45,11 +46,20 @@ def main() -> None:
         entry = get_engine(name)
         engines[name] = entry.engine(problem, entry.options(max_iterations=10**6, tol=0))
         engines[name].update()
+    # Each engine iteration is paired with a floor measurement taken right before it,
+    # so the ratio of the pair is immune to the machine's slow drifts.
+    floor_buffer = fft.zeros((k, m, m))
+    floor_plan = fft.InPlaceFFT2(floor_buffer)
     floors, times = [], {name: [] for name in engines}
+    pair_ratios = {name: [] for name in engines}
     for _ in range(args.rounds):
         floors.append(fft_floor_seconds(k, m, repeats=args.repeats)[0])
         for name, engine in engines.items():
-            times[name].append(median_seconds(engine.update, repeats=args.repeats, warmup=1))
+            for _ in range(args.repeats):
+                floor_sample = median_seconds(lambda: (floor_plan.inverse(), floor_plan.forward()), repeats=1, warmup=0)
+                engine_sample = median_seconds(engine.update, repeats=1, warmup=0)
+                times[name].append(engine_sample)
+                pair_ratios[name].append(engine_sample / min(floor_sample, floors[-1]))
     for engine in engines.values():
         engine.close()
 
@@ -62,12 +72,14 @@ def main() -> None:
     print(f"FFT floor (2 FFTs x {k} at {m}²): median {1e3 * floor:.1f} ms "
           f"(rounds {', '.join(f'{1e3 * f:.1f}' for f in floors)})")
     for name, samples in times.items():
-        ratios = [t / f for t, f in zip(samples, floors)]
+        ratios = pair_ratios[name]
         row = {"s_per_iteration": float(np.median(samples)), "ratio_to_floor": float(np.median(ratios)),
-               "s_per_iteration_rounds": samples, "ratio_rounds": ratios}
+               "ratio_quartiles": [float(np.percentile(ratios, 25)), float(np.percentile(ratios, 75))],
+               "samples": len(samples)}
         results["engines"][name] = row
+        q1, q3 = row["ratio_quartiles"]
         print(f"{name:10s} {1e3 * row['s_per_iteration']:7.1f} ms/iteration   ratio to floor {row['ratio_to_floor']:.2f} "
-              f"(rounds {', '.join(f'{r:.2f}' for r in ratios)})")
+              f"(quartiles {q1:.2f}–{q3:.2f}, {len(samples)} paired samples)")
     if args.json:
         args.json.write_text(json.dumps(results, indent=2))
 

@@ -55,7 +55,7 @@ import numpy as np
 from cca_cli.engines import calibration as cal
 from cca_cli.engines.base import IterativeEngine
 from cca_cli.engines.problem import PhaseRetrievalProblem, initial_spectrum
-from cca_cli.optics import fft
+from cca_cli.optics import fft, kernels
 from cca_cli.optics.forward import ForwardModel, chunk_slices
 
 __all__ = ["MomentumOptions", "Calibration", "SequentialMomentum"]
@@ -120,7 +120,7 @@ class MomentumOptions:
     alpha: float = 0.1
     beta: float = 1.0
     eta: float = 0.7
-    batch: int = 16
+    batch: int = 24
     cost: str = "amplitude"
     poisson_step: float = 0.5
     position_refinement: bool = False
@@ -267,6 +267,7 @@ class SequentialMomentum(IterativeEngine):
                 coverage[y0:y0 + b, x0:x0 + b] = 0
         self._factors = factors
         self._origins = [tuple(int(v) for v in o) for o in origins]
+        self._origin_array = np.ascontiguousarray(origins, dtype=np.int64)
 
     def _pupils(self) -> np.ndarray:
         return cal.pupil_functions(self._layout, offsets=self._offsets, coefficients=self._coefficients,
@@ -285,22 +286,19 @@ class SequentialMomentum(IterativeEngine):
         """Replace ``fields`` by the data step ``ψ' − ψ``; return the squared amplitude misfit."""
         amplitudes = self._amplitudes[images]
         weights = None if self._weights is None else self._weights[images]
+        if self.options.cost == "amplitude":
+            return kernels.magnitude_step(fields, amplitudes, scratch, weights=weights, eps=self._eps)
         magnitude = np.abs(fields, out=scratch)
         misfit = magnitude - amplitudes
         if weights is not None:
             misfit *= np.sqrt(weights)
         squared = float(np.vdot(misfit.ravel(), misfit.ravel()))
-        if self.options.cost == "amplitude":
-            np.maximum(magnitude, self._eps, out=magnitude)
-            factor = np.divide(amplitudes, magnitude, out=magnitude)
-            factor -= 1.0
-        else:
-            # ψ' − ψ = −μ ψ (1 − I/|ψ|²); the floor on |ψ|² bounds the step where the model is dark.
-            np.square(magnitude, out=magnitude)
-            np.maximum(magnitude, self._eps * self._eps + 1e-3 * self._intensities[images].mean(), out=magnitude)
-            factor = np.divide(self._intensities[images], magnitude, out=magnitude)
-            factor -= 1.0
-            factor *= np.float32(self.options.poisson_step)
+        # Poisson cost: ψ' − ψ = −μ ψ (1 − I/|ψ|²); the floor on |ψ|² bounds the step where the model is dark.
+        np.square(magnitude, out=magnitude)
+        np.maximum(magnitude, self._eps * self._eps + 1e-3 * self._intensities[images].mean(), out=magnitude)
+        factor = np.divide(self._intensities[images], magnitude, out=magnitude)
+        factor -= 1.0
+        factor *= np.float32(self.options.poisson_step)
         if weights is not None:
             factor *= weights
         fields *= factor
@@ -314,12 +312,10 @@ class SequentialMomentum(IterativeEngine):
         k = images.stop - images.start
         fields = self._model.forward_into(self._spectrum, images, ws)
         misfit = self._difference(fields, images, self._scratch[t][:k])
-        ws.fft.forward()
-        layout = self._layout
-        s, b = layout.lowres_box_start, layout.box_size
+        (ws.box_fft or ws.fft).forward()
         if self._recover_pupil:
+            s, b = self._layout.lowres_box_start, self._layout.box_size
             self._accumulate_pupil(t, images, ws.fields[:k, s:s + b, s:s + b])
-        ws.fields[:k, s:s + b, s:s + b] *= self._factors[images]
         return misfit
 
     def _accumulate_pupil(self, t: int, images: slice, residual: np.ndarray) -> None:
@@ -360,11 +356,11 @@ class SequentialMomentum(IterativeEngine):
         self._set_model(ForwardModel(self._layout, self._pupils()))
 
     def _scatter(self, t: int, images: slice) -> None:
-        s, b = self._layout.lowres_box_start, self._layout.box_size
-        boxes = self._workspaces[t].fields[:, s:s + b, s:s + b]
-        spectrum = self._spectrum
-        for j, (y0, x0) in enumerate(self._origins[images.start:images.stop]):
-            spectrum[y0:y0 + b, x0:x0 + b] += boxes[j]
+        """Add the batch's weighted update boxes (workspace ``t``) to the spectrum."""
+        k = images.stop - images.start
+        if k > 0:
+            kernels.scatter_boxes(self._workspaces[t].fields[:k], self._origin_array, self._factors, self._spectrum,
+                                  images.start)
 
     def _momentum(self) -> None:
         eta = np.float32(self.options.eta)

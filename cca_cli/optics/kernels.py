@@ -21,7 +21,8 @@ except ImportError:  # pragma: no cover
     numba = None
     _HAVE_NUMBA = False
 
-__all__ = ["kernels_name", "use_kernels", "place_boxes", "project_magnitudes", "scatter_boxes", "tikhonov_update"]
+__all__ = ["kernels_name", "use_kernels", "place_boxes", "project_magnitudes", "scatter_boxes", "tikhonov_update",
+           "magnitude_step"]
 
 _use_numba = _HAVE_NUMBA
 
@@ -150,6 +151,26 @@ if _HAVE_NUMBA:  # pragma: no branch
         return total
 
     @numba.njit(nogil=True, cache=True, fastmath=True)
+    def _magnitude_step_numba(fields, amplitudes, weights, eps, weighted):  # pragma: no cover - compiled
+        values = fields.reshape(fields.size).view(np.float32)
+        measured = amplitudes.reshape(amplitudes.size)
+        confidence = weights.reshape(weights.size)
+        one = np.float32(1.0)
+        total = 0.0
+        for i in range(measured.size):
+            re = values[2 * i]
+            im = values[2 * i + 1]
+            magnitude = np.sqrt(re * re + im * im)
+            a = measured[i]
+            w = confidence[i] if weighted else one
+            d = magnitude - a
+            total += w * d * d
+            q = w * (a / max(magnitude, eps) - one)
+            values[2 * i] = re * q
+            values[2 * i + 1] = im * q
+        return total
+
+    @numba.njit(nogil=True, cache=True, fastmath=True)
     def _tikhonov_numba(numerator, inverse_normal, spectrum):  # pragma: no cover - compiled
         new = numerator.reshape(numerator.size).view(np.float32)
         old = spectrum.reshape(spectrum.size).view(np.float32)
@@ -266,3 +287,36 @@ def tikhonov_update(numerator: np.ndarray, inverse_normal: np.ndarray, spectrum:
     delta = numerator - spectrum
     return (float(np.vdot(delta.ravel(), delta.ravel()).real),
             float(np.vdot(spectrum.ravel(), spectrum.ravel()).real))
+
+
+def magnitude_step(fields: np.ndarray, amplitudes: np.ndarray, scratch: np.ndarray, *,
+                   weights: np.ndarray | None = None, eps: float = 1e-12) -> float:
+    """Replace ``ψ`` by the magnitude-projection step ``ψ' − ψ = w (A/|ψ| − 1) ψ``; return the misfit.
+
+    The sequential engines add this difference, back-propagated, to the
+    spectrum. ``|ψ|`` is floored at ``eps``. Returns ``Σ w (|ψ| − A)²``.
+
+    Parameters
+    ----------
+    fields : ndarray, complex64, (k, m, m)
+    amplitudes : ndarray, float32, (k, m, m)
+    scratch : ndarray, float32, (k, m, m)
+        Work array for the numpy implementation.
+    weights : ndarray, float32, (k, m, m), optional
+    eps : float
+    """
+    if _use_numba and fields.flags.c_contiguous:
+        confidence = amplitudes if weights is None else weights
+        return float(_magnitude_step_numba(fields, amplitudes, confidence, np.float32(eps), weights is not None))
+    magnitude = np.abs(fields, out=scratch)
+    misfit = magnitude - amplitudes
+    if weights is not None:
+        misfit *= np.sqrt(weights)
+    squared = float(np.vdot(misfit.ravel(), misfit.ravel()))
+    np.maximum(magnitude, eps, out=magnitude)
+    factor = np.divide(amplitudes, magnitude, out=magnitude)
+    factor -= 1.0
+    if weights is not None:
+        factor *= weights
+    fields *= factor
+    return squared
