@@ -50,6 +50,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from cca_cli.optics import fft
+
 from cca_cli.optics.forward import ForwardModel, Workspace, chunk_slices
 from cca_cli.optics.pupil import circular_pupils
 from cca_cli.sampling.grid import BandLayout
@@ -326,7 +328,7 @@ def estimate_quadratic_aberration(layout: BandLayout, amplitudes: np.ndarray,
     images = np.square(np.asarray(amplitudes, np.float64))
     if weights is not None:
         images = images * weights
-    spectra = np.fft.fft2(images)
+    spectra = fft.fft2(images)
     spectra[:, 0, 0] = 0.0
     separation = centres[None, :, :] - centres[:, None, :]
     distance = np.hypot(separation[..., 0], separation[..., 1])
@@ -347,7 +349,7 @@ def estimate_quadratic_aberration(layout: BandLayout, amplitudes: np.ndarray,
         cross /= np.abs(cross) + 1e-3 * np.abs(cross).max(axis=(1, 2), keepdims=True) + 1e-300
         padded = np.zeros((size, size), np.complex128)
         padded[offset:offset + m, offset:offset + m] = np.fft.fftshift(cross.sum(axis=0))
-        correlation = np.fft.ifft2(np.fft.ifftshift(padded)).real
+        correlation = fft.ifft2(np.fft.ifftshift(padded)).real
         peak = np.array(np.unravel_index(np.argmax(correlation), correlation.shape), np.float64) / upsample
         peak = (peak + m / 2) % m - m / 2
         u = separation[first[members], second[members]].mean(axis=0)

@@ -10,6 +10,8 @@ Two kinds of transform are offered:
 * :class:`InPlaceFFT2`: raw (unnormalised) 2-D FFTs planned once for one
   buffer and executed in place. FFTW (pyfftw) when installed, ``scipy.fft``
   otherwise. Callers fold the normalisation into arrays they multiply anyway.
+  FFTW plans are measured once per shape and machine: the wisdom is kept in
+  ``$CCA_CACHE_DIR`` (default ``~/.cache/cca``).
 """
 
 from __future__ import annotations
@@ -35,6 +37,8 @@ __all__ = [
     "cpu_count",
     "empty",
     "zeros",
+    "fft2",
+    "ifft2",
     "fft2c",
     "ifft2c",
     "fourier_resample",
@@ -46,6 +50,58 @@ __all__ = [
 xp = np
 
 _backend = "pyfftw" if _HAVE_PYFFTW else "scipy"
+
+
+def _wisdom_path():
+    """Where FFTW plans measured on this machine are kept between runs."""
+    from pathlib import Path
+
+    root = os.environ.get("CCA_CACHE_DIR") or os.path.join(os.path.expanduser("~"), ".cache", "cca")
+    return Path(root) / f"fftw-wisdom-{pyfftw.__version__}.pickle"
+
+
+_wisdom_loaded = False
+
+
+def _load_wisdom() -> None:
+    """Import the saved FFTW wisdom once per process (planning then takes milliseconds)."""
+    global _wisdom_loaded
+    if _wisdom_loaded:
+        return
+    _wisdom_loaded = True
+    try:
+        import pickle
+
+        with open(_wisdom_path(), "rb") as handle:
+            pyfftw.import_wisdom(pickle.load(handle))
+    except (OSError, ValueError, EOFError, ImportError, TypeError, AttributeError, Exception):  # noqa: BLE001
+        pass  # no or unreadable cache: plans are measured afresh
+
+
+def _save_wisdom() -> None:
+    """Write the process's FFTW wisdom (atomically, so concurrent workers never see half a file)."""
+    try:
+        import pickle
+        import tempfile
+
+        path = _wisdom_path()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile("wb", dir=path.parent, delete=False, suffix=".tmp") as handle:
+            pickle.dump(pyfftw.export_wisdom(), handle)
+        os.replace(handle.name, path)
+    except OSError:
+        pass  # a read-only home only costs planning time
+
+
+def _plan(array, axes, direction, threads):
+    """An FFTW plan measured once per shape and machine (wisdom kept in the user cache)."""
+    _load_wisdom()
+    before = pyfftw.export_wisdom()
+    plan = pyfftw.FFTW(array, array, axes=axes, direction=direction,
+                       flags=("FFTW_MEASURE", "FFTW_DESTROY_INPUT"), threads=threads)
+    if pyfftw.export_wisdom() != before:
+        _save_wisdom()
+    return plan
 
 
 def cpu_count() -> int:
@@ -94,6 +150,16 @@ def zeros(shape, dtype=np.complex64) -> np.ndarray:
     out = empty(shape, dtype)
     out.fill(0)
     return out
+
+
+def fft2(array, *, workers: int | None = None) -> np.ndarray:
+    """Plain (uncentred, unnormalised) 2-D FFT over the last two axes."""
+    return scipy.fft.fft2(array, workers=workers or cpu_count())
+
+
+def ifft2(array, *, workers: int | None = None) -> np.ndarray:
+    """Plain (uncentred) inverse 2-D FFT over the last two axes, normalised by 1/n."""
+    return scipy.fft.ifft2(array, workers=workers or cpu_count())
 
 
 def fft2c(array, *, workers: int | None = None) -> np.ndarray:
@@ -169,11 +235,8 @@ class InPlaceFFT2:
         self.threads = threads or cpu_count()
         self.backend = _backend
         if self.backend == "pyfftw":
-            flags = ("FFTW_MEASURE", "FFTW_DESTROY_INPUT")
-            self._forward = pyfftw.FFTW(buffer, buffer, axes=(-2, -1), direction="FFTW_FORWARD",
-                                        flags=flags, threads=self.threads)
-            self._inverse = pyfftw.FFTW(buffer, buffer, axes=(-2, -1), direction="FFTW_BACKWARD",
-                                        flags=flags, threads=self.threads)
+            self._forward = _plan(buffer, (-2, -1), "FFTW_FORWARD", self.threads)
+            self._inverse = _plan(buffer, (-2, -1), "FFTW_BACKWARD", self.threads)
 
     def forward(self) -> np.ndarray:
         """Unnormalised forward FFT of the buffer, in place; returns the buffer."""
@@ -222,15 +285,10 @@ class BandedFFT2:
         self.threads = threads or cpu_count()
         self.backend = _backend
         if self.backend == "pyfftw":
-            flags = ("FFTW_MEASURE", "FFTW_DESTROY_INPUT")
-
-            def plan(array, axis, direction):
-                return pyfftw.FFTW(array, array, axes=(axis,), direction=direction, flags=flags, threads=self.threads)
-
-            self._inverse_rows = plan(self.band, -1, "FFTW_BACKWARD")
-            self._inverse_columns = plan(buffer, -2, "FFTW_BACKWARD")
-            self._forward_columns = plan(buffer, -2, "FFTW_FORWARD")
-            self._forward_rows = plan(self.band, -1, "FFTW_FORWARD")
+            self._inverse_rows = _plan(self.band, (-1,), "FFTW_BACKWARD", self.threads)
+            self._inverse_columns = _plan(buffer, (-2,), "FFTW_BACKWARD", self.threads)
+            self._forward_columns = _plan(buffer, (-2,), "FFTW_FORWARD", self.threads)
+            self._forward_rows = _plan(self.band, (-1,), "FFTW_FORWARD", self.threads)
 
     def inverse(self) -> np.ndarray:
         """Unnormalised inverse 2-D FFT of a buffer that is zero outside the band; in place."""

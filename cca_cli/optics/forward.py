@@ -71,9 +71,18 @@ class Workspace:
 
     def __init__(self, chunk: int, size: int, *, threads: int | None = None, band: tuple[int, int] | None = None):
         self.fields = fft.zeros((chunk, size, size), np.complex64)
-        self.fft = fft.InPlaceFFT2(self.fields, threads=threads)
+        self._threads = threads
+        self._fft = None
         #: Pruned transforms for fields confined to the pupil box's rows (None: use full transforms).
         self.box_fft = None if band is None else fft.BandedFFT2(self.fields, *band, threads=threads)
+        self.fields.fill(0)
+
+    @property
+    def fft(self) -> fft.InPlaceFFT2:
+        """Full (unpruned) transforms of the buffer, planned on first use (planning clears the buffer)."""
+        if self._fft is None:
+            self._fft = fft.InPlaceFFT2(self.fields, threads=self._threads)
+        return self._fft
 
     @property
     def capacity(self) -> int:
