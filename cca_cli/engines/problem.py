@@ -91,10 +91,12 @@ def sensor_amplitudes(model: ForwardModel, images: np.ndarray, weights: np.ndarr
         raise ValueError(f"captures are {images.shape[-1]} px, smaller than the model grid {m}")
     amplitudes = np.empty((k, m, m), np.float32)
     scale = np.float32(model.intensity_scale)
-    for start in range(0, k, 32):
-        block = fft.fourier_resample(images[start:start + 32], m)
+    # Small blocks keep the transient full-size spectra well below the capture stack itself.
+    block_size = 8
+    for start in range(0, k, block_size):
+        block = fft.fourier_resample(images[start:start + block_size], m)
         np.clip(block, 0, None, out=block)
-        amplitudes[start:start + 32] = to_model_layout(np.sqrt(block * scale))
+        amplitudes[start:start + block_size] = to_model_layout(np.sqrt(block * scale))
     resampled_weights = None
     if weights is not None:
         resampled_weights = to_model_layout(_area_resample(np.asarray(weights, np.float32), m))

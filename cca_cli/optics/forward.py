@@ -125,6 +125,7 @@ class ForwardModel:
         self._pupil_adjoint = (np.conj(pupils) / m).astype(np.complex64)
         self._origins = [tuple(int(v) for v in o) for o in layout.box_origins]
         self._origin_array = np.ascontiguousarray(layout.box_origins, dtype=np.int64)
+        kernels.warm_up()
 
     # ------------------------------------------------------------------ shapes
     @property

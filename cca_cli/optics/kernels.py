@@ -21,7 +21,7 @@ except ImportError:  # pragma: no cover
     numba = None
     _HAVE_NUMBA = False
 
-__all__ = ["kernels_name", "use_kernels", "place_boxes", "project_magnitudes", "scatter_boxes", "tikhonov_update",
+__all__ = ["kernels_name", "use_kernels", "warm_up", "place_boxes", "project_magnitudes", "scatter_boxes", "tikhonov_update",
            "magnitude_step"]
 
 _use_numba = _HAVE_NUMBA
@@ -202,6 +202,28 @@ if _HAVE_NUMBA:  # pragma: no branch
 
 
 # ----------------------------------------------------------------------------- public entry points
+_warm = False
+
+
+def warm_up() -> None:
+    """Load (or compile) every kernel once, so no iteration pays for it; cheap after the first call."""
+    global _warm
+    if _warm or not _use_numba:
+        return
+    _warm = True
+    spectrum = np.zeros((8, 8), np.complex64)
+    origins = np.zeros((1, 2), np.int64)
+    pupils = np.zeros((1, 4, 4), np.complex64)
+    fields = np.zeros((1, 8, 8), np.complex64)
+    real = np.ones((1, 8, 8), np.float32)
+    _place_boxes_numba(spectrum, origins, pupils, fields, 0)
+    _scatter_numba(fields, origins, pupils, spectrum, 0)
+    _project_numba(fields, real, np.float32(1e-6))
+    _project_weighted_numba(fields, real, real, np.float32(1e-6))
+    _magnitude_step_numba(fields, real, real, np.float32(1e-6), False)
+    _tikhonov_numba(spectrum, np.ones((8, 8), np.float32), spectrum.copy())
+
+
 def place_boxes(spectrum: np.ndarray, origins: np.ndarray, pupils: np.ndarray, fields: np.ndarray,
                 start: int) -> None:
     """Write ``spectrum`` box × pupil of captures ``start …`` into the centre of each field, zeros elsewhere.
