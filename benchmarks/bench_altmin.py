@@ -3,12 +3,12 @@
 The floor is the FFT work one iteration cannot avoid: an inverse and a forward
 2-D FFT of every capture at the engine's grid size, complex64, on the same
 backend (the faster of one batched plan and cache-sized chunks on threads).
-Every engine iteration is paired with a floor measurement (the faster of the
-one taken just before it and the round's best method), so slow drifts of the
-machine affect both; the script prints the median ms/iteration and the median
-of the paired ratios, with quartiles.
+Each round times the floor and then every engine, each back to back, so slow
+drifts of the machine affect a round's floor and engines alike; the script
+prints the median ms/iteration and the median (and quartiles) of the per-round
+ratios.
 
-Usage: python benchmarks/bench_altmin.py [--rounds 5] [--repeats 7] [--engines altmin momentum] [--json out.json]
+Usage: python benchmarks/bench_altmin.py [--rounds 8] [--repeats 7] [--engines altmin momentum] [--json out.json]
 """
 
 from __future__ import annotations
@@ -30,8 +30,8 @@ from cca_cli.optics import fft  # noqa: E402
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--rounds", type=int, default=5)
-    parser.add_argument("--repeats", type=int, default=7, help="iterations timed per engine per round")
+    parser.add_argument("--rounds", type=int, default=8)
+    parser.add_argument("--repeats", type=int, default=7, help="iterations (and floor passes) timed back to back per round")
     parser.add_argument("--engines", nargs="*", default=["altmin", "momentum"], help="registered engines to time")
     parser.add_argument("--store", choices=["band", "sensor"], default="band",
                         help="captures as stored: band grid or full 512² sensor images")
@@ -46,20 +46,16 @@ def main() -> None:
         entry = get_engine(name)
         engines[name] = entry.engine(problem, entry.options(max_iterations=10**6, tol=0))
         engines[name].update()
-    # Each engine iteration is paired with a floor measurement taken right before it,
-    # so the ratio of the pair is immune to the machine's slow drifts.
-    floor_buffer = fft.zeros((k, m, m))
-    floor_plan = fft.InPlaceFFT2(floor_buffer)
+    # Rounds of back-to-back blocks (floor, then each engine) keep the machine's slow drifts
+    # out of each round's ratio without disturbing either side's caches mid-block.
     floors, times = [], {name: [] for name in engines}
-    pair_ratios = {name: [] for name in engines}
+    round_ratios = {name: [] for name in engines}
     for _ in range(args.rounds):
         floors.append(fft_floor_seconds(k, m, repeats=args.repeats)[0])
         for name, engine in engines.items():
-            for _ in range(args.repeats):
-                floor_sample = median_seconds(lambda: (floor_plan.inverse(), floor_plan.forward()), repeats=1, warmup=0)
-                engine_sample = median_seconds(engine.update, repeats=1, warmup=0)
-                times[name].append(engine_sample)
-                pair_ratios[name].append(engine_sample / min(floor_sample, floors[-1]))
+            seconds = median_seconds(engine.update, repeats=args.repeats, warmup=1)
+            times[name].append(seconds)
+            round_ratios[name].append(seconds / floors[-1])
     for engine in engines.values():
         engine.close()
 
@@ -72,14 +68,14 @@ def main() -> None:
     print(f"FFT floor (2 FFTs x {k} at {m}²): median {1e3 * floor:.1f} ms "
           f"(rounds {', '.join(f'{1e3 * f:.1f}' for f in floors)})")
     for name, samples in times.items():
-        ratios = pair_ratios[name]
+        ratios = round_ratios[name]
         row = {"s_per_iteration": float(np.median(samples)), "ratio_to_floor": float(np.median(ratios)),
                "ratio_quartiles": [float(np.percentile(ratios, 25)), float(np.percentile(ratios, 75))],
-               "samples": len(samples)}
+               "ratio_rounds": ratios}
         results["engines"][name] = row
         q1, q3 = row["ratio_quartiles"]
         print(f"{name:10s} {1e3 * row['s_per_iteration']:7.1f} ms/iteration   ratio to floor {row['ratio_to_floor']:.2f} "
-              f"(quartiles {q1:.2f}–{q3:.2f}, {len(samples)} paired samples)")
+              f"(quartiles {q1:.2f}–{q3:.2f} over {len(ratios)} rounds)")
     if args.json:
         args.json.write_text(json.dumps(results, indent=2))
 
