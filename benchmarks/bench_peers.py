@@ -229,7 +229,7 @@ def fmt_bytes(n) -> str:
 
 
 def table(results: dict) -> str:
-    head = (f"| method | grid | s/iteration | × FFTW floor (min / median sample) | iterations to target | s to target | "
+    head = ("| method | grid | s/iteration | × FFTW floor (min / median sample) | iterations to target | s to target | "
             "speed-up vs fastest peer | peak RSS (Δ over baseline) | amp. RMSE (best) | MTF20 final |")
     lines = [head, "|" + "---|" * 10]
     for row in results["methods"]:
