@@ -366,11 +366,7 @@ class SequentialMomentum(IterativeEngine):
         eta = np.float32(self.options.eta)
         if eta == 0:
             return
-        delta = self._spectrum - self._anchor
-        self._velocity *= eta
-        self._velocity += delta
-        self._spectrum += eta * self._velocity
-        np.copyto(self._anchor, self._spectrum)
+        kernels.momentum_step(self._spectrum, self._anchor, self._velocity, eta)
 
     # ------------------------------------------------------------ calibration
     def _calibrate(self) -> None:

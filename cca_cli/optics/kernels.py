@@ -21,8 +21,8 @@ except ImportError:  # pragma: no cover
     numba = None
     _HAVE_NUMBA = False
 
-__all__ = ["kernels_name", "use_kernels", "warm_up", "place_boxes", "project_magnitudes", "scatter_boxes", "tikhonov_update",
-           "magnitude_step"]
+__all__ = ["kernels_name", "use_kernels", "warm_up", "place_boxes", "project_magnitudes", "magnitude_step",
+           "scatter_boxes", "momentum_step", "tikhonov_update"]
 
 _use_numba = _HAVE_NUMBA
 
@@ -190,15 +190,26 @@ if _HAVE_NUMBA:  # pragma: no branch
         return change, norm
 
     @numba.njit(nogil=True, cache=True)
-    def _scatter_numba(fields, origins, pupils, accumulator, start):  # pragma: no cover - compiled
+    def _scatter_numba(fields, origins, pupils, accumulator, start, row_start, row_stop):  # pragma: no cover
         k, m, b = fields.shape[0], fields.shape[1], pupils.shape[1]
         s = m // 2 - b // 2
         for j in range(k):
             y0 = origins[start + j, 0]
             x0 = origins[start + j, 1]
-            for r in range(b):
+            for r in range(max(0, row_start - y0), min(b, row_stop - y0)):
                 for c in range(b):
                     accumulator[y0 + r, x0 + c] += fields[j, s + r, s + c] * pupils[start + j, r, c]
+
+    @numba.njit(nogil=True, cache=True, fastmath=True)
+    def _momentum_numba(spectrum, anchor, velocity, eta):  # pragma: no cover - compiled
+        s = spectrum.reshape(spectrum.size)
+        a = anchor.reshape(anchor.size)
+        v = velocity.reshape(velocity.size)
+        for i in range(s.size):
+            step = eta * v[i] + (s[i] - a[i])
+            v[i] = step
+            s[i] = s[i] + eta * step
+            a[i] = s[i]
 
 
 # ----------------------------------------------------------------------------- public entry points
@@ -217,7 +228,8 @@ def warm_up() -> None:
     fields = np.zeros((1, 8, 8), np.complex64)
     real = np.ones((1, 8, 8), np.float32)
     _place_boxes_numba(spectrum, origins, pupils, fields, 0)
-    _scatter_numba(fields, origins, pupils, spectrum, 0)
+    _scatter_numba(fields, origins, pupils, spectrum, 0, 0, 8)
+    _momentum_numba(spectrum, spectrum.copy(), spectrum.copy(), np.float32(0.5))
     _project_numba(fields, real, np.float32(1e-6))
     _project_weighted_numba(fields, real, real, np.float32(1e-6))
     _magnitude_step_numba(fields, real, real, np.float32(1e-6), False)
@@ -285,9 +297,28 @@ def scatter_boxes(fields: np.ndarray, origins: np.ndarray, pupils: np.ndarray, a
     start : int
     """
     if _use_numba:
-        _scatter_numba(fields, origins, pupils, accumulator, start)
+        _scatter_numba(fields, origins, pupils, accumulator, start, 0, accumulator.shape[0])
     else:
         _scatter_numpy(fields, origins, pupils, accumulator, start)
+
+
+def momentum_step(spectrum: np.ndarray, anchor: np.ndarray, velocity: np.ndarray, eta: float) -> None:
+    """mPIE momentum, in place: ``v ← η v + (S − S₀)``, ``S ← S + η v``, ``S₀ ← S``.
+
+    Parameters
+    ----------
+    spectrum, anchor, velocity : ndarray, complex64, (M, M)
+        Current spectrum S, the spectrum at the previous momentum step S₀, and the velocity v.
+    eta : float
+        Momentum η.
+    """
+    if _use_numba and spectrum.flags.c_contiguous and anchor.flags.c_contiguous and velocity.flags.c_contiguous:
+        _momentum_numba(spectrum, anchor, velocity, np.float32(eta))
+        return
+    velocity *= np.float32(eta)
+    velocity += spectrum - anchor
+    spectrum += np.float32(eta) * velocity
+    np.copyto(anchor, spectrum)
 
 
 def tikhonov_update(numerator: np.ndarray, inverse_normal: np.ndarray, spectrum: np.ndarray) -> tuple[float, float]:

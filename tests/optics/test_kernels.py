@@ -90,3 +90,22 @@ def test_altmin_iterations_agree_between_kernels():
 
     fast, slow = _both(run)
     np.testing.assert_allclose(fast, slow, atol=1e-4 * np.abs(slow).max())
+
+
+def test_momentum_step_agrees():
+    rng = np.random.default_rng(6)
+    arrays = [(rng.standard_normal((16, 16)) + 1j * rng.standard_normal((16, 16))).astype(np.complex64)
+              for _ in range(3)]
+
+    def run():
+        spectrum, anchor, velocity = (a.copy() for a in arrays)
+        kernels.momentum_step(spectrum, anchor, velocity, 0.7)
+        return spectrum, anchor, velocity
+
+    fast, slow = _both(run)
+    expected_velocity = 0.7 * arrays[2] + (arrays[0] - arrays[1])
+    for a, b in zip(fast, slow):
+        np.testing.assert_allclose(a, b, atol=1e-5)
+    np.testing.assert_allclose(fast[2], expected_velocity, atol=1e-5)
+    np.testing.assert_allclose(fast[0], arrays[0] + 0.7 * expected_velocity, atol=1e-5)
+    np.testing.assert_array_equal(fast[1], fast[0])
