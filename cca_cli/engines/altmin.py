@@ -92,9 +92,8 @@ class AlternatingMinimization(IterativeEngine):
         self._next = np.empty_like(self._spectrum)
         self._inverse_normal = (1.0 / (model.normal_diagonal() + np.float32(options.tau + 1e-30))).astype(np.float32)
         self._pass = ChunkedPass(model, chunk=options.chunk, threads=options.threads, slices=self._pass_slices())
-        amplitudes = problem.amplitudes
-        self._data_norm = float(np.vdot(amplitudes.ravel(), amplitudes.ravel()))
-        self._eps = float(1e-6 * np.mean(amplitudes)) or 1e-12
+        self._data_norm = problem.energy
+        self._eps = problem.amplitude_floor
         self._iteration = 0
         self._change = np.inf
 

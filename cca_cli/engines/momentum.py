@@ -205,8 +205,8 @@ class SequentialMomentum(IterativeEngine):
         self._amplitudes = np.ascontiguousarray(problem.amplitudes[order], dtype=np.float32)
         self._weights = None if problem.weights is None else np.ascontiguousarray(problem.weights[order], np.float32)
         self._intensities = np.square(self._amplitudes) if options.cost == "poisson" else None
-        self._data_norm = float(np.vdot(self._amplitudes.ravel(), self._amplitudes.ravel()))
-        self._eps = float(1e-6 * np.mean(self._amplitudes)) or 1e-12
+        self._data_norm = problem.energy
+        self._eps = problem.amplitude_floor
 
         self._spectrum = (initial_spectrum(problem) if spectrum is None else spectrum).astype(np.complex64)
         self._velocity = np.zeros_like(self._spectrum)

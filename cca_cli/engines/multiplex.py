@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cca_cli.engines.altmin import AlternatingMinimization, AltMinOptions
-from cca_cli.engines.problem import sensor_amplitudes
+from cca_cli.engines.problem import MeasuredAmplitudes, sensor_amplitudes
 from cca_cli.engines.projections import project_grouped_magnitudes
 from cca_cli.optics import fft
 from cca_cli.optics.forward import ForwardModel, to_sensor_layout
@@ -33,7 +33,7 @@ __all__ = ["MultiplexedProblem", "MultiplexedAlternatingMinimization", "initial_
 
 
 @dataclass(frozen=True)
-class MultiplexedProblem:
+class MultiplexedProblem(MeasuredAmplitudes):
     """Multiplexed measurements prepared for the virtual-capture forward model.
 
     Attributes

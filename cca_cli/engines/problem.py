@@ -3,17 +3,32 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
 from cca_cli.optics import fft
 from cca_cli.optics.forward import ForwardModel, to_model_layout, to_sensor_layout
 
-__all__ = ["PhaseRetrievalProblem", "initial_spectrum", "sensor_amplitudes"]
+__all__ = ["MeasuredAmplitudes", "PhaseRetrievalProblem", "initial_spectrum", "sensor_amplitudes"]
+
+
+class MeasuredAmplitudes:
+    """What every engine needs from measured amplitudes ``self.amplitudes``, computed once."""
+
+    @cached_property
+    def energy(self) -> float:
+        """``Σ A²`` over all measurements (float64): the norm the data misfit is relative to."""
+        return float(np.sum(np.square(self.amplitudes, dtype=np.float64)))
+
+    @cached_property
+    def amplitude_floor(self) -> float:
+        """Floor on modelled magnitudes in the projections: 1e-6 of the mean measured amplitude."""
+        return float(1e-6 * np.mean(self.amplitudes)) or 1e-12
 
 
 @dataclass(frozen=True)
-class PhaseRetrievalProblem:
+class PhaseRetrievalProblem(MeasuredAmplitudes):
     """Measurements prepared for the forward model.
 
     Attributes
