@@ -12,11 +12,11 @@ from cca_cli.commands.console import console, handle_errors, progress_reporter
 from cca_cli.commands.options import Force, Quiet
 from cca_cli.config.model import HdrSection, RegisterSection
 from cca_cli.errors import ConfigError
-from cca_cli.io.h5 import Provenance, check_output
+from cca_cli.io.h5 import check_output
 from cca_cli.stages import hdr as hdr_stage
 from cca_cli.stages import ingest as ingest_stage
 from cca_cli.stages import register as register_stage
-from cca_cli.stages.runner import config_hash, section_yaml
+from cca_cli.stages.runner import stage_provenance
 
 __all__ = ["ingest_cli", "hdr_cli", "register_cli"]
 
@@ -46,7 +46,7 @@ def ingest_cli(
 
     check_output(output, force=force)
     sections = {"ingest": IngestSection(manifest=manifest)}
-    provenance = Provenance.make("ingest", section_yaml(sections), config_hash(sections), manifest_files(manifest))
+    provenance = stage_provenance("ingest", sections, manifest_files(manifest))
     with progress_reporter(not quiet) as progress:
         data = ingest_stage.run(manifest, output, provenance=provenance, force=force, progress=progress)
     k, e, h, w = data.frames.shape
@@ -68,7 +68,7 @@ def hdr_cli(
     section = _section(HdrSection, saturation_level=saturation_level, noise_floor=noise_floor)
     check_output(output, force=force)
     sections = {"hdr": section}
-    provenance = Provenance.make("hdr", section_yaml(sections), config_hash(sections), [raw])
+    provenance = stage_provenance("hdr", sections, [raw])
     with progress_reporter(not quiet) as progress:
         out = hdr_stage.run(raw, section, output, provenance=provenance, force=force, progress=progress)
     console.print(f"{output}: {out.n_positions} positions merged from {out.n_exposures} exposures "
@@ -99,7 +99,7 @@ def register_cli(
                        ransac_threshold_px=ransac_threshold_px)
     check_output(output, force=force)
     sections = {"registration": section}
-    provenance = Provenance.make("register", section_yaml(sections), config_hash(sections), [captures])
+    provenance = stage_provenance("register", sections, [captures])
     with progress_reporter(not quiet) as progress:
         reg = register_stage.run(captures, section, output, provenance=provenance, force=force, progress=progress)
     lost = f", lost: {'; '.join(reg.dropped)}" if reg.dropped else ""

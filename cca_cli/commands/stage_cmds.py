@@ -12,11 +12,11 @@ from cca_cli.commands.options import ConfigArg, Force, Quiet
 from cca_cli.config.load import load_config
 from cca_cli.config.model import ReconstructSection, ReportSection
 from cca_cli.errors import ConfigError
-from cca_cli.io.h5 import Provenance, check_output
+from cca_cli.io.h5 import check_output
 from cca_cli.stages import reconstruct as reconstruct_stage
 from cca_cli.stages import report as report_stage
 from cca_cli.stages import simulate as simulate_stage
-from cca_cli.stages.runner import config_hash, pick_sections, section_yaml
+from cca_cli.stages.runner import pick_sections, stage_provenance
 
 
 @handle_errors
@@ -30,7 +30,7 @@ def simulate_cli(
     cfg = load_config(config)
     check_output(output, force=force)
     sections = pick_sections(cfg, simulate_stage.SECTIONS)
-    provenance = Provenance.make("simulate", section_yaml(sections), config_hash(sections))
+    provenance = stage_provenance("simulate", sections)
     with progress_reporter(not quiet) as progress:
         sim = simulate_stage.run(cfg, output, provenance=provenance, force=force, progress=progress)
     g = sim.geometry
@@ -69,7 +69,7 @@ def reconstruct_cli(
             raise ConfigError(f"--{'.'.join(str(p) for p in err['loc']) or 'engine'}: {err['msg'].removeprefix('Value error, ')}") from None
     check_output(output, force=force)
     sections = {"reconstruct": section}
-    provenance = Provenance.make("reconstruct", section_yaml(sections), config_hash(sections), [captures])
+    provenance = stage_provenance("reconstruct", sections, [captures])
     with progress_reporter(not quiet) as progress:
         recovery = reconstruct_stage.run(captures, section, output, provenance=provenance, force=force, progress=progress)
     console.print(f"{output}: {recovery.engine}, {recovery.history.iterations} iterations in {recovery.seconds:.1f} s, "
@@ -87,6 +87,6 @@ def report_cli(
     section = ReportSection(mtf_threshold=threshold)
     check_output(output, force=force)
     sections = {"report": section}
-    provenance = Provenance.make("report", section_yaml(sections), config_hash(sections), [recon])
+    provenance = stage_provenance("report", sections, [recon])
     summary = report_stage.run(recon, section, output, provenance=provenance, force=force)
     console.print(summary_table(summary, title=f"cca report → {output}"))

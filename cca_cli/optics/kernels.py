@@ -114,24 +114,7 @@ if _HAVE_NUMBA:  # pragma: no branch
                         fields[j, r, c] = 0
 
     @numba.njit(nogil=True, cache=True, fastmath=True)
-    def _project_numba(fields, amplitudes, eps):  # pragma: no cover - compiled
-        values = fields.reshape(fields.size).view(np.float32)
-        measured = amplitudes.reshape(amplitudes.size)
-        total = 0.0
-        for i in range(measured.size):
-            re = values[2 * i]
-            im = values[2 * i + 1]
-            magnitude = np.sqrt(re * re + im * im)
-            a = measured[i]
-            d = magnitude - a
-            total += d * d
-            q = a / (magnitude + eps)
-            values[2 * i] = re * q
-            values[2 * i + 1] = im * q
-        return total
-
-    @numba.njit(nogil=True, cache=True, fastmath=True)
-    def _project_weighted_numba(fields, amplitudes, weights, eps):  # pragma: no cover - compiled
+    def _project_numba(fields, amplitudes, weights, eps, weighted):  # pragma: no cover - compiled
         values = fields.reshape(fields.size).view(np.float32)
         measured = amplitudes.reshape(amplitudes.size)
         confidence = weights.reshape(weights.size)
@@ -142,7 +125,7 @@ if _HAVE_NUMBA:  # pragma: no branch
             im = values[2 * i + 1]
             magnitude = np.sqrt(re * re + im * im)
             a = measured[i]
-            w = confidence[i]
+            w = confidence[i] if weighted else one
             d = magnitude - a
             total += w * d * d
             q = w * (a / (magnitude + eps)) + (one - w)
@@ -230,8 +213,7 @@ def warm_up() -> None:
     _place_boxes_numba(spectrum, origins, pupils, fields, 0)
     _scatter_numba(fields, origins, pupils, spectrum, 0, 0, 8)
     _momentum_numba(spectrum, spectrum.copy(), spectrum.copy(), np.float32(0.5))
-    _project_numba(fields, real, np.float32(1e-6))
-    _project_weighted_numba(fields, real, real, np.float32(1e-6))
+    _project_numba(fields, real, real, np.float32(1e-6), False)
     _magnitude_step_numba(fields, real, real, np.float32(1e-6), False)
     _tikhonov_numba(spectrum, np.ones((8, 8), np.float32), spectrum.copy())
 
@@ -275,9 +257,8 @@ def project_magnitudes(fields: np.ndarray, amplitudes: np.ndarray, scratch: np.n
     eps : float
     """
     if _use_numba and fields.flags.c_contiguous:
-        if weights is None:
-            return float(_project_numba(fields, amplitudes, np.float32(eps)))
-        return float(_project_weighted_numba(fields, amplitudes, weights, np.float32(eps)))
+        confidence = amplitudes if weights is None else weights
+        return float(_project_numba(fields, amplitudes, confidence, np.float32(eps), weights is not None))
     return _project_numpy(fields, amplitudes, weights, eps, scratch)
 
 

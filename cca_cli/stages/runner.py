@@ -28,7 +28,7 @@ from cca_cli.stages import report as report_stage
 from cca_cli.stages import simulate as simulate_stage
 from cca_cli.stages.progress import ProgressFn, silent
 
-__all__ = ["StagePlan", "StageOutcome", "plan_stages", "config_hash", "section_yaml", "pick_sections", "is_up_to_date", "run_pipeline", "default_out_dir"]
+__all__ = ["StagePlan", "StageOutcome", "plan_stages", "config_hash", "section_yaml", "stage_provenance", "pick_sections", "is_up_to_date", "run_pipeline", "default_out_dir"]
 
 OUTPUTS = {"simulate": "captures.h5", "ingest": "raw.h5", "hdr": "hdr.h5", "register": "registered.h5",
            "reconstruct": "recon.h5", "report": "report"}
@@ -103,6 +103,11 @@ def config_hash(sections: dict[str, BaseModel]) -> str:
     return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
 
 
+def stage_provenance(stage: str, sections: dict[str, BaseModel], inputs=()) -> Provenance:
+    """Provenance of one stage run: the YAML and hash of the sections it reads, and its inputs' hashes."""
+    return Provenance.make(stage, section_yaml(sections), config_hash(sections), list(inputs))
+
+
 def _recorded_provenance(output: Path) -> dict:
     if output.is_dir():
         try:
@@ -166,7 +171,7 @@ def run_pipeline(config: RunConfig, out_dir: Path, *, force: bool = False, progr
         if on_stage:
             on_stage(plan, "start")
         start = time.perf_counter()
-        provenance = Provenance.make(plan.name, section_yaml(sections), digest, list(plan.inputs))
+        provenance = stage_provenance(plan.name, sections, plan.inputs)
         if plan.name == "simulate":
             result = simulate_stage.run(config, plan.output, provenance=provenance, force=True, progress=progress)
         elif plan.name == "ingest":
