@@ -4,9 +4,13 @@ Add fixtures below; keep them small.
 """
 
 import copy
+import os
 
 import pytest
 import yaml
+
+# Tests plan many small FFT shapes once each: the quick FFTW search keeps the suite fast (results are the same).
+os.environ.setdefault("CCA_FFTW_PLANNING", "measure")
 
 #: 96-px sensor (12 mm field, 125 µm object pixels), pupil radius 9.8 spectrum px, 5 x 5 grid at 61 %:
 #: the centre image resolves 6-px bars, the recovery 2-px bars.

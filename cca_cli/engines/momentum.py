@@ -55,8 +55,9 @@ import numpy as np
 from cca_cli.engines import calibration as cal
 from cca_cli.engines.base import IterativeEngine
 from cca_cli.engines.problem import PhaseRetrievalProblem, initial_spectrum
+from cca_cli.engines.schedule import build_schedule
 from cca_cli.optics import fft, kernels
-from cca_cli.optics.forward import ForwardModel, chunk_slices
+from cca_cli.optics.forward import ForwardModel
 
 __all__ = ["MomentumOptions", "Calibration", "SequentialMomentum"]
 
@@ -198,8 +199,13 @@ class SequentialMomentum(IterativeEngine):
         self.options = options
         model = problem.model
         layout = model.layout
-        self._order = np.argsort(np.hypot(layout.centres_px[:, 0], layout.centres_px[:, 1]), kind="stable")
-        order = self._order
+        k = model.n_images
+        cores = options.threads or fft.cpu_count()
+        self._threads = 2 if cores > 1 and k > 1 else 1
+        distances = np.hypot(layout.centres_px[:, 0], layout.centres_px[:, 1])
+        self._schedule = build_schedule(layout.box_origins, layout.box_size, distances, options.batch)
+        self._order = order = self._schedule.order
+        self._batches = self._schedule.batches
         self._layout = replace(layout, centres_px=layout.centres_px[order],
                                box_origins=layout.box_origins[order], box_centres=layout.box_centres[order])
         self._amplitudes = np.ascontiguousarray(problem.amplitudes[order], dtype=np.float32)
@@ -211,15 +217,10 @@ class SequentialMomentum(IterativeEngine):
         self._spectrum = (initial_spectrum(problem) if spectrum is None else spectrum).astype(np.complex64)
         self._velocity = np.zeros_like(self._spectrum)
         self._anchor = self._spectrum.copy()
-        self._epoch_start = np.empty_like(self._spectrum)
 
-        k = model.n_images
-        self._batches = chunk_slices(k, options.batch)
         capacity = max(sl.stop - sl.start for sl in self._batches)
-        self._threads = 2 if (options.threads or fft.cpu_count()) > 1 and capacity > 1 else 1
-        half = -(-capacity // self._threads)
-        self._workspaces = [model.workspace(half, threads=1) for _ in range(self._threads)]
-        self._scratch = [np.empty((half,) + model.field_shape, np.float32) for _ in range(self._threads)]
+        self._workspaces = [model.workspace(capacity, threads=1) for _ in range(self._threads)]
+        self._scratch = [np.empty((capacity,) + model.field_shape, np.float32) for _ in range(self._threads)]
         self._pool = ThreadPoolExecutor(self._threads - 1) if self._threads > 1 else None
         self._calibration_workspace = None
 
@@ -312,7 +313,7 @@ class SequentialMomentum(IterativeEngine):
         k = images.stop - images.start
         fields = self._model.forward_into(self._spectrum, images, ws)
         misfit = self._difference(fields, images, self._scratch[t][:k])
-        (ws.box_fft or ws.fft).forward()
+        ws.forward(k)
         if self._recover_pupil:
             s, b = self._layout.lowres_box_start, self._layout.box_size
             self._accumulate_pupil(t, images, ws.fields[:k, s:s + b, s:s + b])
@@ -362,11 +363,9 @@ class SequentialMomentum(IterativeEngine):
             kernels.scatter_boxes(self._workspaces[t].fields[:k], self._origin_array, self._factors, self._spectrum,
                                   images.start)
 
-    def _momentum(self) -> None:
-        eta = np.float32(self.options.eta)
-        if eta == 0:
-            return
-        kernels.momentum_step(self._spectrum, self._anchor, self._velocity, eta)
+    def _momentum(self) -> tuple[float, float]:
+        """The momentum step; returns ``(‖S − S₀‖², ‖S₀‖²)`` for the pass's relative change."""
+        return kernels.momentum_step(self._spectrum, self._anchor, self._velocity, self.options.eta)
 
     # ------------------------------------------------------------ calibration
     def _calibrate(self) -> None:
@@ -385,25 +384,43 @@ class SequentialMomentum(IterativeEngine):
                 self._set_basis()
         self._set_model(ForwardModel(self._layout, self._pupils()))
 
-    def _pass(self) -> float:
-        """One pass over all captures plus the momentum step; returns the summed misfit."""
+    def _run_lane(self, t: int, batches: tuple[slice, ...]) -> float:
+        """Run ``batches`` one after the other on thread ``t``; returns their summed misfit."""
         misfit = 0.0
-        for sl in self._batches:
+        for sl in batches:
+            misfit += self._half_batch(t, sl)
+            self._scatter(t, sl)
+        return misfit
+
+    def _shared_batch(self, sl: slice) -> float:
+        """One batch computed by both threads (half each), then scattered in order."""
+        middle = sl.start + (sl.stop - sl.start + 1) // 2
+        first, second = slice(sl.start, middle), slice(middle, sl.stop)
+        future = self._pool.submit(self._half_batch, 1, second)
+        misfit = self._half_batch(0, first)
+        misfit += future.result()
+        self._scatter(0, first)
+        self._scatter(1, second)
+        return misfit
+
+    def _pass(self) -> tuple[float, float]:
+        """One pass over all captures plus the momentum step; returns the misfit and the relative change."""
+        misfit = 0.0
+        for phase in self._schedule.phases:
             if self._pool is None:
-                misfit += self._half_batch(0, sl)
-                self._scatter(0, sl)
+                misfit += sum(self._run_lane(0, lane) for lane in phase.lanes)
+            elif len(phase.lanes) == 1:
+                for sl in phase.lanes[0]:
+                    misfit += self._shared_batch(sl)
             else:
-                middle = sl.start + (sl.stop - sl.start + 1) // 2
-                first, second = slice(sl.start, middle), slice(middle, sl.stop)
-                future = self._pool.submit(self._half_batch, 1, second)
-                misfit += self._half_batch(0, first)
-                misfit += future.result()
-                self._scatter(0, first)
-                self._scatter(1, second)
-        self._momentum()
+                # Lanes touch disjoint parts of the spectrum: running them together equals running them in turn.
+                future = self._pool.submit(self._run_lane, 1, phase.lanes[1])
+                first = self._run_lane(0, phase.lanes[0])
+                misfit += first + future.result()
+        change, norm = self._momentum()
         if self._recover_pupil:
             self._update_pupil(misfit)
-        return misfit
+        return misfit, float(np.sqrt(change / max(norm, 1e-30)))
 
     def _calibration_due(self) -> bool:
         opts = self.options
@@ -417,11 +434,7 @@ class SequentialMomentum(IterativeEngine):
         """One pass over all captures (with a calibration round first when one is due)."""
         if self._calibration_due():
             self._calibrate()
-        np.copyto(self._epoch_start, self._spectrum)
-        misfit = self._pass()
-        delta = self._spectrum - self._epoch_start
-        norm = float(np.vdot(self._epoch_start.ravel(), self._epoch_start.ravel()).real)
-        self._change = float(np.sqrt(np.vdot(delta.ravel(), delta.ravel()).real / max(norm, 1e-30)))
+        misfit, self._change = self._pass()
         self._iteration += 1
         return float(np.sqrt(misfit / max(self._data_norm, 1e-30))), self._change
 

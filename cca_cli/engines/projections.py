@@ -78,7 +78,7 @@ def project_grouped_magnitudes(fields: np.ndarray, amplitudes: np.ndarray, scrat
             misfit *= np.sqrt(weights[g])
         flat = misfit.reshape(-1)
         squared += float(np.dot(flat, flat))
-        magnitude += np.float32(eps)
+        np.maximum(magnitude, np.float32(eps), out=magnitude)
         ratio = np.divide(amplitudes[g], magnitude, out=magnitude)
         if weights is not None:
             ratio *= weights[g]

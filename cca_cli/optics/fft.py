@@ -11,7 +11,9 @@ Two kinds of transform are offered:
   buffer and executed in place. FFTW (pyfftw) when installed, ``scipy.fft``
   otherwise. Callers fold the normalisation into arrays they multiply anyway.
   FFTW plans are measured once per shape and machine: the wisdom is kept in
-  ``$CCA_CACHE_DIR`` (default ``~/.cache/cca``).
+  ``$CCA_CACHE_DIR`` (default ``~/.cache/cca``). ``$CCA_FFTW_PLANNING`` sets how
+  hard FFTW searches: ``patient`` (default; a second or two per new shape, once,
+  and up to a third faster strided transforms), ``measure`` or ``estimate``.
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ __all__ = [
     "backend_name",
     "use_backend",
     "cpu_count",
+    "planning_effort",
     "empty",
     "zeros",
     "fft2",
@@ -93,12 +96,29 @@ def _save_wisdom() -> None:
         pass  # a read-only home only costs planning time
 
 
+_PLANNING = {"estimate": "FFTW_ESTIMATE", "measure": "FFTW_MEASURE", "patient": "FFTW_PATIENT"}
+
+
+def planning_effort() -> str:
+    """How hard FFTW searches for plans: ``$CCA_FFTW_PLANNING``, default ``"patient"``.
+
+    Raises
+    ------
+    ValueError
+        If the variable names an unknown effort.
+    """
+    effort = os.environ.get("CCA_FFTW_PLANNING", "patient").strip().lower()
+    if effort not in _PLANNING:
+        raise ValueError(f"CCA_FFTW_PLANNING={effort!r} is not one of {', '.join(_PLANNING)}; unset it or pick one")
+    return effort
+
+
 def _plan(array, axes, direction, threads):
-    """An FFTW plan measured once per shape and machine (wisdom kept in the user cache)."""
+    """An FFTW plan searched for once per shape and machine (wisdom kept in the user cache)."""
     _load_wisdom()
     before = pyfftw.export_wisdom()
     plan = pyfftw.FFTW(array, array, axes=axes, direction=direction,
-                       flags=("FFTW_MEASURE", "FFTW_DESTROY_INPUT"), threads=threads)
+                       flags=(_PLANNING[planning_effort()], "FFTW_DESTROY_INPUT"), threads=threads)
     if pyfftw.export_wisdom() != before:
         _save_wisdom()
     return plan
@@ -255,6 +275,17 @@ class InPlaceFFT2:
         return self.buffer
 
 
+def _binary_chunks(count: int) -> list[tuple[int, int]]:
+    """``(offset, size)`` pieces of ``range(count)`` with power-of-two sizes, largest first."""
+    pieces, offset = [], 0
+    for bit in reversed(range(count.bit_length())):
+        size = 1 << bit
+        if count & size:
+            pieces.append((offset, size))
+            offset += size
+    return pieces
+
+
 class BandedFFT2:
     """Raw 2-D FFTs of a buffer whose data live in a band of rows, planned once.
 
@@ -264,9 +295,13 @@ class BandedFFT2:
     saves about ``(1 - band/m) / 2`` of the work of a full 2-D FFT — the
     forward model's pupil box occupies about half the rows.
 
+    Both transforms take the number of leading fields to transform, so a
+    partly filled buffer costs only what it holds (the fields are transformed
+    in power-of-two groups, each planned in advance).
+
     Parameters
     ----------
-    buffer : ndarray, complex64, (..., m, m)
+    buffer : ndarray, complex64, (n, m, m)
     row_start, row_stop : int
         The band of rows that holds data.
     threads : int, optional
@@ -278,36 +313,56 @@ class BandedFFT2:
     """
 
     def __init__(self, buffer: np.ndarray, row_start: int, row_stop: int, *, threads: int | None = None):
-        if buffer.dtype != np.complex64:
-            raise ValueError(f"BandedFFT2 needs a complex64 buffer, got {buffer.dtype}")
+        if buffer.dtype != np.complex64 or buffer.ndim != 3:
+            raise ValueError(f"BandedFFT2 needs a complex64 (n, m, m) buffer, got {buffer.dtype} {buffer.shape}")
         self.buffer = buffer
-        self.band = buffer[..., row_start:row_stop, :]
+        self.band = buffer[:, row_start:row_stop, :]
         self.threads = threads or cpu_count()
         self.backend = _backend
+        self._plans = {}
         if self.backend == "pyfftw":
-            self._inverse_rows = _plan(self.band, (-1,), "FFTW_BACKWARD", self.threads)
-            self._inverse_columns = _plan(buffer, (-2,), "FFTW_BACKWARD", self.threads)
-            self._forward_columns = _plan(buffer, (-2,), "FFTW_FORWARD", self.threads)
-            self._forward_rows = _plan(self.band, (-1,), "FFTW_FORWARD", self.threads)
+            pieces = {piece for count in range(1, buffer.shape[0] + 1) for piece in _binary_chunks(count)}
+            for offset, size in sorted(pieces, key=lambda piece: -piece[1]):
+                whole, band = buffer[offset:offset + size], self.band[offset:offset + size]
+                self._plans[offset, size] = (
+                    _plan(band, (-1,), "FFTW_BACKWARD", self.threads),
+                    _plan(whole, (-2,), "FFTW_BACKWARD", self.threads),
+                    _plan(whole, (-2,), "FFTW_FORWARD", self.threads),
+                    _plan(band, (-1,), "FFTW_FORWARD", self.threads),
+                )
 
-    def inverse(self) -> np.ndarray:
-        """Unnormalised inverse 2-D FFT of a buffer that is zero outside the band; in place."""
+    def _count(self, count: int | None) -> int:
+        n = self.buffer.shape[0]
+        if count is None:
+            return n
+        if not 0 <= count <= n:
+            raise ValueError(f"count must be in [0, {n}], got {count}")
+        return count
+
+    def inverse(self, count: int | None = None) -> np.ndarray:
+        """Unnormalised inverse 2-D FFT of the first ``count`` fields (default all), zero outside the band; in place."""
+        count = self._count(count)
         if self.backend == "pyfftw":
-            self._inverse_rows.execute()
-            self._inverse_columns.execute()
-        else:
-            self.band[...] = scipy.fft.ifft(self.band, axis=-1, norm="forward", workers=self.threads)
-            self.buffer[...] = scipy.fft.ifft(self.buffer, axis=-2, norm="forward", overwrite_x=True,
-                                              workers=self.threads)
+            for piece in _binary_chunks(count):
+                rows, columns, _, _ = self._plans[piece]
+                rows.execute()
+                columns.execute()
+        elif count:
+            band, whole = self.band[:count], self.buffer[:count]
+            band[...] = scipy.fft.ifft(band, axis=-1, norm="forward", workers=self.threads)
+            whole[...] = scipy.fft.ifft(whole, axis=-2, norm="forward", overwrite_x=True, workers=self.threads)
         return self.buffer
 
-    def forward(self) -> np.ndarray:
-        """Unnormalised forward 2-D FFT, exact inside the band only; in place."""
+    def forward(self, count: int | None = None) -> np.ndarray:
+        """Unnormalised forward 2-D FFT of the first ``count`` fields (default all), exact inside the band; in place."""
+        count = self._count(count)
         if self.backend == "pyfftw":
-            self._forward_columns.execute()
-            self._forward_rows.execute()
-        else:
-            self.buffer[...] = scipy.fft.fft(self.buffer, axis=-2, norm="backward", overwrite_x=True,
-                                             workers=self.threads)
-            self.band[...] = scipy.fft.fft(self.band, axis=-1, norm="backward", workers=self.threads)
+            for piece in _binary_chunks(count):
+                _, _, columns, rows = self._plans[piece]
+                columns.execute()
+                rows.execute()
+        elif count:
+            band, whole = self.band[:count], self.buffer[:count]
+            whole[...] = scipy.fft.fft(whole, axis=-2, norm="backward", overwrite_x=True, workers=self.threads)
+            band[...] = scipy.fft.fft(band, axis=-1, norm="backward", workers=self.threads)
         return self.buffer

@@ -89,6 +89,18 @@ class Workspace:
         """Number of captures the buffer holds."""
         return self.fields.shape[0]
 
+    def inverse(self, count: int) -> np.ndarray:
+        """Raw inverse 2-D FFT of the first ``count`` fields (pruned to the band when there is one); in place."""
+        if self.box_fft is not None:
+            return self.box_fft.inverse(count)
+        return self.fft.inverse()
+
+    def forward(self, count: int) -> np.ndarray:
+        """Raw forward 2-D FFT of the first ``count`` fields (exact in the band when there is one); in place."""
+        if self.box_fft is not None:
+            return self.box_fft.forward(count)
+        return self.fft.forward()
+
 
 class ForwardModel:
     """Spectrum → per-capture sensor fields, with adjoint and normal diagonal.
@@ -175,7 +187,7 @@ class ForwardModel:
         k = stop - start
         fields = workspace.fields
         kernels.place_boxes(spectrum, self._origin_array, self._pupil_forward, fields[:k], start)
-        (workspace.box_fft or workspace.fft).inverse()
+        workspace.inverse(k)
         return fields[:k]
 
     def adjoint_into(self, workspace: Workspace, images: slice, accumulator: np.ndarray) -> None:
@@ -194,7 +206,7 @@ class ForwardModel:
         """
         start, stop, _ = images.indices(self.n_images)
         k = stop - start
-        (workspace.box_fft or workspace.fft).forward()
+        workspace.forward(k)
         kernels.scatter_boxes(workspace.fields[:k], self._origin_array, self._pupil_adjoint, accumulator, start)
 
     def normal_diagonal(self) -> np.ndarray:

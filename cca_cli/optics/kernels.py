@@ -72,7 +72,7 @@ def _project_numpy(fields, amplitudes, weights, eps, scratch):
         misfit *= np.sqrt(weights)
     flat = misfit.reshape(-1)
     squared = float(np.dot(flat, flat))
-    magnitude += np.float32(eps)
+    np.maximum(magnitude, np.float32(eps), out=magnitude)
     ratio = np.divide(amplitudes, magnitude, out=magnitude)
     if weights is not None:
         ratio *= weights
@@ -93,8 +93,12 @@ def _scatter_numpy(fields, origins, pupils, accumulator, start):
 
 # ----------------------------------------------------------------------------- numba versions
 if _HAVE_NUMBA:  # pragma: no branch
+    # error_model="numpy": float division by zero gives inf instead of raising, which lets
+    # LLVM vectorise loops that divide (about 5x faster magnitude steps).
+    _jit = numba.njit(nogil=True, cache=True, error_model="numpy")
+    _jit_fast = numba.njit(nogil=True, cache=True, error_model="numpy", fastmath=True)
 
-    @numba.njit(nogil=True, cache=True)
+    @_jit
     def _place_boxes_numba(spectrum, origins, pupils, fields, start):  # pragma: no cover - compiled
         k, m, b = fields.shape[0], fields.shape[1], pupils.shape[1]
         s = m // 2 - b // 2
@@ -113,47 +117,60 @@ if _HAVE_NUMBA:  # pragma: no branch
                     for c in range(s + b, m):
                         fields[j, r, c] = 0
 
-    @numba.njit(nogil=True, cache=True, fastmath=True)
-    def _project_numba(fields, amplitudes, weights, eps, weighted):  # pragma: no cover - compiled
-        values = fields.reshape(fields.size).view(np.float32)
-        measured = amplitudes.reshape(amplitudes.size)
-        confidence = weights.reshape(weights.size)
+    #: Elements per float32 partial sum of the misfit (the partial sums are added in float64).
+    _MISFIT_BLOCK = 2048
+
+    @_jit_fast
+    def _magnitude_block(values, measured, eps, keep):  # pragma: no cover - compiled
         one = np.float32(1.0)
-        total = 0.0
+        total = np.float32(0.0)
         for i in range(measured.size):
             re = values[2 * i]
             im = values[2 * i + 1]
             magnitude = np.sqrt(re * re + im * im)
             a = measured[i]
-            w = confidence[i] if weighted else one
             d = magnitude - a
-            total += w * d * d
-            q = w * (a / (magnitude + eps)) + (one - w)
+            total += d * d
+            q = a / max(magnitude, eps) - one + keep
             values[2 * i] = re * q
             values[2 * i + 1] = im * q
         return total
 
-    @numba.njit(nogil=True, cache=True, fastmath=True)
-    def _magnitude_step_numba(fields, amplitudes, weights, eps, weighted):  # pragma: no cover - compiled
-        values = fields.reshape(fields.size).view(np.float32)
-        measured = amplitudes.reshape(amplitudes.size)
-        confidence = weights.reshape(weights.size)
+    @_jit_fast
+    def _magnitude_block_weighted(values, measured, confidence, eps, keep):  # pragma: no cover - compiled
         one = np.float32(1.0)
-        total = 0.0
+        total = np.float32(0.0)
         for i in range(measured.size):
             re = values[2 * i]
             im = values[2 * i + 1]
             magnitude = np.sqrt(re * re + im * im)
             a = measured[i]
-            w = confidence[i] if weighted else one
+            w = confidence[i]
             d = magnitude - a
             total += w * d * d
-            q = w * (a / max(magnitude, eps) - one)
+            q = w * (a / max(magnitude, eps) - one) + keep
             values[2 * i] = re * q
             values[2 * i + 1] = im * q
         return total
 
-    @numba.njit(nogil=True, cache=True, fastmath=True)
+    @_jit
+    def _magnitude_numba(fields, amplitudes, weights, eps, keep, weighted):  # pragma: no cover - compiled
+        """``ψ ← (w (A/max(|ψ|, ε) − 1) + keep) ψ``; returns ``Σ w (|ψ| − A)²``."""
+        values = fields.reshape(fields.size).view(np.float32)
+        measured = amplitudes.reshape(amplitudes.size)
+        confidence = weights.reshape(weights.size)
+        n = measured.size
+        total = 0.0
+        # Separate loops per case (rather than a branch inside one) are what LLVM vectorises.
+        for s in range(0, n, _MISFIT_BLOCK):
+            e = min(n, s + _MISFIT_BLOCK)
+            if weighted:
+                total += _magnitude_block_weighted(values[2 * s:2 * e], measured[s:e], confidence[s:e], eps, keep)
+            else:
+                total += _magnitude_block(values[2 * s:2 * e], measured[s:e], eps, keep)
+        return total
+
+    @_jit_fast
     def _tikhonov_numba(numerator, inverse_normal, spectrum):  # pragma: no cover - compiled
         new = numerator.reshape(numerator.size).view(np.float32)
         old = spectrum.reshape(spectrum.size).view(np.float32)
@@ -172,7 +189,7 @@ if _HAVE_NUMBA:  # pragma: no branch
             norm += old[2 * i] * old[2 * i] + old[2 * i + 1] * old[2 * i + 1]
         return change, norm
 
-    @numba.njit(nogil=True, cache=True)
+    @_jit
     def _scatter_numba(fields, origins, pupils, accumulator, start, row_start, row_stop):  # pragma: no cover
         k, m, b = fields.shape[0], fields.shape[1], pupils.shape[1]
         s = m // 2 - b // 2
@@ -183,16 +200,24 @@ if _HAVE_NUMBA:  # pragma: no branch
                 for c in range(b):
                     accumulator[y0 + r, x0 + c] += fields[j, s + r, s + c] * pupils[start + j, r, c]
 
-    @numba.njit(nogil=True, cache=True, fastmath=True)
+    @_jit_fast
     def _momentum_numba(spectrum, anchor, velocity, eta):  # pragma: no cover - compiled
         s = spectrum.reshape(spectrum.size)
         a = anchor.reshape(anchor.size)
         v = velocity.reshape(velocity.size)
+        change = 0.0
+        norm = 0.0
         for i in range(s.size):
-            step = eta * v[i] + (s[i] - a[i])
+            start = a[i]
+            step = eta * v[i] + (s[i] - start)
             v[i] = step
-            s[i] = s[i] + eta * step
-            a[i] = s[i]
+            new = s[i] + eta * step
+            s[i] = new
+            a[i] = new
+            d = new - start
+            change += d.real * d.real + d.imag * d.imag
+            norm += start.real * start.real + start.imag * start.imag
+        return change, norm
 
 
 # ----------------------------------------------------------------------------- public entry points
@@ -213,8 +238,8 @@ def warm_up() -> None:
     _place_boxes_numba(spectrum, origins, pupils, fields, 0)
     _scatter_numba(fields, origins, pupils, spectrum, 0, 0, 8)
     _momentum_numba(spectrum, spectrum.copy(), spectrum.copy(), np.float32(0.5))
-    _project_numba(fields, real, real, np.float32(1e-6), False)
-    _magnitude_step_numba(fields, real, real, np.float32(1e-6), False)
+    _magnitude_numba(fields, real, real, np.float32(1e-6), np.float32(1.0), False)
+    _magnitude_numba(fields, real, real, np.float32(1e-6), np.float32(0.0), True)
     _tikhonov_numba(spectrum, np.ones((8, 8), np.float32), spectrum.copy())
 
 
@@ -244,7 +269,7 @@ def project_magnitudes(fields: np.ndarray, amplitudes: np.ndarray, scratch: np.n
                        weights: np.ndarray | None = None, eps: float = 1e-12) -> float:
     """Replace ``|ψ|`` by the measured amplitude, keeping the phase; return the squared misfit.
 
-    ``ψ ← w · A ψ/(|ψ| + ε) + (1 − w) · ψ`` with ``w = 1`` when no weights are given,
+    ``ψ ← w · A ψ/max(|ψ|, ε) + (1 − w) · ψ`` with ``w = 1`` when no weights are given,
     in place; returns ``Σ w (|ψ| − A)²`` before the update.
 
     Parameters
@@ -258,7 +283,8 @@ def project_magnitudes(fields: np.ndarray, amplitudes: np.ndarray, scratch: np.n
     """
     if _use_numba and fields.flags.c_contiguous:
         confidence = amplitudes if weights is None else weights
-        return float(_project_numba(fields, amplitudes, confidence, np.float32(eps), weights is not None))
+        return float(_magnitude_numba(fields, amplitudes, confidence, np.float32(eps), np.float32(1.0),
+                                      weights is not None))
     return _project_numpy(fields, amplitudes, weights, eps, scratch)
 
 
@@ -283,7 +309,7 @@ def scatter_boxes(fields: np.ndarray, origins: np.ndarray, pupils: np.ndarray, a
         _scatter_numpy(fields, origins, pupils, accumulator, start)
 
 
-def momentum_step(spectrum: np.ndarray, anchor: np.ndarray, velocity: np.ndarray, eta: float) -> None:
+def momentum_step(spectrum: np.ndarray, anchor: np.ndarray, velocity: np.ndarray, eta: float) -> tuple[float, float]:
     """mPIE momentum, in place: ``v ← η v + (S − S₀)``, ``S ← S + η v``, ``S₀ ← S``.
 
     Parameters
@@ -291,15 +317,23 @@ def momentum_step(spectrum: np.ndarray, anchor: np.ndarray, velocity: np.ndarray
     spectrum, anchor, velocity : ndarray, complex64, (M, M)
         Current spectrum S, the spectrum at the previous momentum step S₀, and the velocity v.
     eta : float
-        Momentum η.
+        Momentum η (0: the spectrum is left as it is, the anchor still follows it).
+
+    Returns
+    -------
+    change, norm : float
+        ``‖S_new − S₀‖²`` and ``‖S₀‖²``: the squared change since the previous step and its reference.
     """
     if _use_numba and spectrum.flags.c_contiguous and anchor.flags.c_contiguous and velocity.flags.c_contiguous:
-        _momentum_numba(spectrum, anchor, velocity, np.float32(eta))
-        return
+        change, norm = _momentum_numba(spectrum, anchor, velocity, np.float32(eta))
+        return float(change), float(norm)
+    norm = float(np.vdot(anchor.ravel(), anchor.ravel()).real)
     velocity *= np.float32(eta)
     velocity += spectrum - anchor
     spectrum += np.float32(eta) * velocity
+    delta = spectrum - anchor
     np.copyto(anchor, spectrum)
+    return float(np.vdot(delta.ravel(), delta.ravel()).real), norm
 
 
 def tikhonov_update(numerator: np.ndarray, inverse_normal: np.ndarray, spectrum: np.ndarray) -> tuple[float, float]:
@@ -341,7 +375,8 @@ def magnitude_step(fields: np.ndarray, amplitudes: np.ndarray, scratch: np.ndarr
     """
     if _use_numba and fields.flags.c_contiguous:
         confidence = amplitudes if weights is None else weights
-        return float(_magnitude_step_numba(fields, amplitudes, confidence, np.float32(eps), weights is not None))
+        return float(_magnitude_numba(fields, amplitudes, confidence, np.float32(eps), np.float32(0.0),
+                                      weights is not None))
     magnitude = np.abs(fields, out=scratch)
     misfit = magnitude - amplitudes
     if weights is not None:

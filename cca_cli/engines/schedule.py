@@ -1,0 +1,148 @@
+"""Visiting order of a sequential engine: centre-out, in groups two threads can update at once.
+
+A sequential engine updates the spectrum one batch of captures at a time, and
+each batch reads what the previous one wrote. Two batches may still run at the
+same time when their pupil boxes cover disjoint parts of the spectrum: then
+running them together gives exactly the result of running one after the
+other. :func:`build_schedule` splits the captures by a row of the spectrum
+into those whose boxes lie wholly above it, wholly below it, and the seam that
+straddles it; the seam is split likewise by a column. The pass then runs in
+phases: the core (the seam of the seam, around DC), the left and right arms
+side by side, and the upper and lower halves side by side, each group
+centre-out. Only the core needs threads to share batches.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from cca_cli.optics.forward import chunk_slices
+
+__all__ = ["Phase", "Schedule", "split_disjoint", "shell_sizes", "build_schedule"]
+
+#: Cost of a seam capture relative to one in a side-by-side group (the seam's batches are shared by two threads).
+_SEAM_COST = 0.5
+
+
+@dataclass(frozen=True)
+class Phase:
+    """Batches of one phase, one sequence per lane.
+
+    Attributes
+    ----------
+    lanes : tuple of tuple of slice
+        Batches as slices of the schedule's order. Boxes of different lanes never overlap,
+        so lanes may run concurrently; within a lane batches run in turn.
+    """
+
+    lanes: tuple[tuple[slice, ...], ...]
+
+
+@dataclass(frozen=True)
+class Schedule:
+    """Captures in visiting order and the phases that visit them.
+
+    Attributes
+    ----------
+    order : ndarray, int64, (K,)
+        Capture indices in visiting order; batches are contiguous slices of it.
+    phases : tuple of Phase
+    """
+
+    order: np.ndarray
+    phases: tuple[Phase, ...]
+
+    @property
+    def batches(self) -> list[slice]:
+        """Every batch, in an order equivalent to the concurrent one (lane by lane)."""
+        return [batch for phase in self.phases for lane in phase.lanes for batch in lane]
+
+
+def split_disjoint(starts: np.ndarray, size: int, members: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Split captures by a line into boxes wholly before it, wholly after it, and the seam across it.
+
+    Parameters
+    ----------
+    starts : ndarray, int, (K,)
+        First row (or column) of every capture's box.
+    size : int
+        Box side length.
+    members : ndarray, int, (n,)
+        The captures to split (their order is kept in each part).
+
+    Returns
+    -------
+    before, after, seam : ndarray, int
+        The line is chosen to minimise ``max(len(before), len(after)) + len(seam) / 2``.
+    """
+    first = starts[members]
+    best, best_cost = None, np.inf
+    for line in np.unique(np.concatenate([first, first + size])):
+        before = first + size <= line
+        after = first >= line
+        n_before, n_after = int(before.sum()), int(after.sum())
+        cost = max(n_before, n_after) + _SEAM_COST * (members.size - n_before - n_after)
+        if cost < best_cost:
+            best, best_cost = (before, after), cost
+    if best is None:
+        return members[:0], members[:0], members
+    before, after = best
+    return members[before], members[after], members[~(before | after)]
+
+
+def shell_sizes(count: int, batch: int) -> list[int]:
+    """Captures per shell, growing away from DC: 2, 2, 4, 4, 8, 8, … batches, covering ``count``."""
+    sizes, doubling = [], 0
+    while sum(sizes) < count:
+        sizes.append((2 << (doubling // 2)) * batch)
+        doubling += 1
+    return sizes
+
+
+def build_schedule(box_origins: np.ndarray, box_size: int, distances: np.ndarray, batch: int,
+                   shells: list[int] | None = None) -> Schedule:
+    """Centre-out visiting order of captures, split into phases of non-overlapping lanes.
+
+    Parameters
+    ----------
+    box_origins : ndarray, int, (K, 2)
+        Top-left corner ``[row, column]`` of every capture's pupil box in the spectrum.
+    box_size : int
+    distances : ndarray, float, (K,)
+        Distance of each pupil centre from DC; smaller is visited first.
+    batch : int
+        Captures per batch.
+    shells : list of int, optional
+        Captures per shell, centre-out (default :func:`shell_sizes`). Each shell
+        is split and visited before the next; small shells near DC keep the
+        order close to strictly centre-out, large ones far out need fewer phases.
+
+    Returns
+    -------
+    Schedule
+    """
+    everything = np.argsort(distances, kind="stable")
+    groups = []
+    sizes = shell_sizes(everything.size, batch) if shells is None else shells
+    edges = np.minimum(np.cumsum([0] + list(sizes)), everything.size)
+    for start, stop in zip(edges[:-1], edges[1:]):
+        if stop == start:
+            continue
+        members = everything[start:stop]
+        upper, lower, seam = split_disjoint(box_origins[:, 0], box_size, members)
+        left, right, core = split_disjoint(box_origins[:, 1], box_size, seam)
+        groups += [(core,), (left, right), (upper, lower)]
+    order, phases, start = [], [], 0
+    for group in groups:
+        lanes = []
+        for members in group:
+            if members.size == 0:
+                continue
+            lanes.append(tuple(slice(start + s.start, start + s.stop) for s in chunk_slices(members.size, batch)))
+            order.append(members)
+            start += members.size
+        if lanes:
+            phases.append(Phase(tuple(lanes)))
+    return Schedule(np.concatenate(order).astype(np.int64), tuple(phases))
