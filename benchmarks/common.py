@@ -46,28 +46,38 @@ def median_seconds(func, *, repeats: int = 7, warmup: int = 1) -> float:
 def fft_floor_seconds(n_images: int, size: int, *, repeats: int = 7) -> tuple[float, str]:
     """Fastest time of the FFTs one iteration must do: one inverse and one forward per capture.
 
-    Both a single batched plan over all captures (all threads) and cache-sized
-    chunks on worker threads are timed; the faster is the floor.
+    Every combination of FFTW planning effort (measure, patient) and layout (one
+    batched plan over all captures on all threads, or chunks of 12 or 16 captures
+    on worker threads) is timed; the fastest is the floor.
     """
+    import os
     from concurrent.futures import ThreadPoolExecutor
 
-    buffer = fft.zeros((n_images, size, size))
-    plan = fft.InPlaceFFT2(buffer)
-    whole = median_seconds(lambda: (plan.inverse(), plan.forward()), repeats=repeats)
-
     threads = fft.cpu_count()
-    chunk = 16
-    per_thread = [fft.zeros((chunk, size, size)) for _ in range(threads)]
-    plans = [fft.InPlaceFFT2(b, threads=1) for b in per_thread]
-    n_chunks = -(-n_images // chunk)
+    candidates = []
+    previous = os.environ.get("CCA_FFTW_PLANNING")
+    with ThreadPoolExecutor(threads) as pool:
+        try:
+            for effort in ("measure", "patient"):
+                os.environ["CCA_FFTW_PLANNING"] = effort
+                buffer = fft.zeros((n_images, size, size))
+                plan = fft.InPlaceFFT2(buffer)
+                candidates.append((median_seconds(lambda: (plan.inverse(), plan.forward()), repeats=repeats),
+                                   f"one batched plan, {effort}"))
+                for chunk in (12, 16):
+                    plans = [fft.InPlaceFFT2(fft.zeros((chunk, size, size)), threads=1) for _ in range(threads)]
+                    n_chunks = -(-n_images // chunk)
 
-    def chunked():
-        def work(t):
-            for _ in range(t, n_chunks, threads):
-                plans[t].inverse()
-                plans[t].forward()
-        with ThreadPoolExecutor(threads) as pool:
-            list(pool.map(work, range(threads)))
+                    def work(t, plans=plans, n_chunks=n_chunks):
+                        for _ in range(t, n_chunks, threads):
+                            plans[t].inverse()
+                            plans[t].forward()
 
-    pool_time = median_seconds(chunked, repeats=repeats)
-    return (whole, "one batched plan") if whole <= pool_time else (pool_time, "chunked threads")
+                    candidates.append((median_seconds(lambda: list(pool.map(work, range(threads))), repeats=repeats),
+                                       f"chunks of {chunk} on {threads} threads, {effort}"))
+        finally:
+            if previous is None:
+                os.environ.pop("CCA_FFTW_PLANNING", None)
+            else:
+                os.environ["CCA_FFTW_PLANNING"] = previous
+    return min(candidates)

@@ -92,6 +92,11 @@ def split_disjoint(starts: np.ndarray, size: int, members: np.ndarray) -> tuple[
     return members[before], members[after], members[~(before | after)]
 
 
+def _full_batches(count: int, batch: int) -> list[slice]:
+    """``range(count)`` in slices of ``batch`` items, the last one shorter."""
+    return [slice(start, min(start + batch, count)) for start in range(0, count, batch)]
+
+
 def shell_sizes(count: int, batch: int) -> list[int]:
     """Captures per shell, growing away from DC: 2, 2, 4, 4, 8, 8, … batches, covering ``count``."""
     sizes, doubling = [], 0
@@ -140,7 +145,7 @@ def build_schedule(box_origins: np.ndarray, box_size: int, distances: np.ndarray
         for members in group:
             if members.size == 0:
                 continue
-            lanes.append(tuple(slice(start + s.start, start + s.stop) for s in chunk_slices(members.size, batch)))
+            lanes.append(tuple(slice(start + s.start, start + s.stop) for s in _full_batches(members.size, batch)))
             order.append(members)
             start += members.size
         if lanes:

@@ -92,3 +92,36 @@ def test_use_backend_restores_and_rejects_unknown_names():
     with pytest.raises(ValueError, match="unknown FFT backend"):
         with fft.use_backend("cufft"):
             pass
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("count", [0, 1, 3, 5, 6])
+def test_banded_fft_of_the_first_count_fields_matches_numpy_and_leaves_the_rest(backend, count):
+    with fft.use_backend(backend):
+        buffer = fft.zeros((6, 16, 16))
+        plan = fft.BandedFFT2(buffer, 4, 12, threads=1)  # planning may scribble on the buffer
+        data = np.zeros((6, 16, 16), np.complex64)
+        data[:, 4:12, 3:13] = _random_complex((6, 8, 10))
+        buffer[...] = data
+        plan.inverse(count)
+        np.testing.assert_allclose(buffer[:count], np.fft.ifft2(data[:count]) * 256, atol=1e-3)
+        np.testing.assert_array_equal(buffer[count:], data[count:])
+        plan.forward(count)
+        np.testing.assert_allclose(buffer[:count, 4:12], data[:count, 4:12] * 256, atol=1e-2)
+        np.testing.assert_array_equal(buffer[count:], data[count:])
+
+
+def test_banded_fft_rejects_a_count_beyond_the_buffer():
+    plan = fft.BandedFFT2(fft.zeros((2, 8, 8)), 2, 6, threads=1)
+    with pytest.raises(ValueError, match="count must be in"):
+        plan.inverse(3)
+
+
+def test_planning_effort_comes_from_the_environment(monkeypatch):
+    monkeypatch.setenv("CCA_FFTW_PLANNING", "Estimate")
+    assert fft.planning_effort() == "estimate"
+    monkeypatch.delenv("CCA_FFTW_PLANNING")
+    assert fft.planning_effort() == "patient"
+    monkeypatch.setenv("CCA_FFTW_PLANNING", "hard")
+    with pytest.raises(ValueError, match="CCA_FFTW_PLANNING='hard'.*estimate, measure, patient"):
+        fft.planning_effort()

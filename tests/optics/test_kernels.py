@@ -99,8 +99,8 @@ def test_momentum_step_agrees():
 
     def run():
         spectrum, anchor, velocity = (a.copy() for a in arrays)
-        kernels.momentum_step(spectrum, anchor, velocity, 0.7)
-        return spectrum, anchor, velocity
+        change, norm = kernels.momentum_step(spectrum, anchor, velocity, 0.7)
+        return spectrum, anchor, velocity, np.array([change, norm])
 
     fast, slow = _both(run)
     expected_velocity = 0.7 * arrays[2] + (arrays[0] - arrays[1])
@@ -109,3 +109,6 @@ def test_momentum_step_agrees():
     np.testing.assert_allclose(fast[2], expected_velocity, atol=1e-5)
     np.testing.assert_allclose(fast[0], arrays[0] + 0.7 * expected_velocity, atol=1e-5)
     np.testing.assert_array_equal(fast[1], fast[0])
+    change, norm = fast[3]
+    assert change == pytest.approx(np.sum(np.abs(fast[0] - arrays[1]) ** 2), rel=1e-4)
+    assert norm == pytest.approx(np.sum(np.abs(arrays[1]) ** 2), rel=1e-4)

@@ -1,0 +1,75 @@
+"""Visiting schedule of the sequential engine: centre-out shells of lanes that never touch."""
+
+import numpy as np
+import pytest
+
+from cca_cli.engines.momentum import MomentumOptions, SequentialMomentum
+from cca_cli.engines.schedule import build_schedule, shell_sizes, split_disjoint
+from cca_cli.sampling.grid import band_layout, square_scan
+from cca_cli.sampling.overlap import step_m
+
+from .test_momentum import make_case
+
+
+def _layout(grid=21, radius=20.9):
+    centres = square_scan(grid, step_m(2 * radius, 0.61)).centres_yx_m
+    return band_layout(centres, radius, hires_size=512)
+
+
+def _coverage(layout, captures):
+    b = layout.box_size
+    mask = np.zeros((layout.hires_size + b, layout.hires_size + b), np.int32)
+    for y0, x0 in layout.box_origins[captures]:
+        mask[y0:y0 + b, x0:x0 + b] = 1
+    return mask
+
+
+def test_split_keeps_boxes_on_their_side_of_the_line():
+    starts = np.array([0, 10, 20, 30, 40, 50])
+    before, after, seam = split_disjoint(starts, 12, np.arange(6))
+    assert sorted(np.concatenate([before, after, seam]).tolist()) == list(range(6))
+    line_before = (starts[before] + 12).max()
+    assert np.all(starts[after] >= line_before)
+    assert sorted([len(before), len(after)]) == [2, 3] and seam.tolist() in ([2], [3])
+
+
+def test_shells_grow_away_from_dc_and_cover_every_capture():
+    sizes = shell_sizes(441, 12)
+    assert sizes[:6] == [24, 24, 48, 48, 96, 96] and sum(sizes) >= 441
+
+
+@pytest.mark.parametrize("batch", [1, 5, 12])
+def test_schedule_visits_every_capture_once_in_non_overlapping_lanes(batch):
+    layout = _layout()
+    distances = np.hypot(*layout.centres_px.T)
+    schedule = build_schedule(layout.box_origins, layout.box_size, distances, batch)
+    assert sorted(schedule.order.tolist()) == list(range(layout.n_images))
+    covered = sorted(i for sl in schedule.batches for i in range(sl.start, sl.stop))
+    assert covered == list(range(layout.n_images))
+    assert all(0 < sl.stop - sl.start <= batch for sl in schedule.batches)
+    first_shell = shell_sizes(layout.n_images, batch)[0]
+    nearest = np.argsort(distances, kind="stable")[:first_shell]
+    assert sorted(schedule.order[:first_shell].tolist()) == sorted(nearest.tolist())
+    two_lanes = [phase for phase in schedule.phases if len(phase.lanes) == 2]
+    assert len(two_lanes) >= 2
+    for phase in two_lanes:
+        masks = [_coverage(layout, schedule.order[[i for sl in lane for i in range(sl.start, sl.stop)]])
+                 for lane in phase.lanes]
+        assert not np.any(masks[0] & masks[1])
+    # Side-by-side lanes carry nearly all the work: the phases' critical path is close to half of it.
+    critical = sum(max(sum(sl.stop - sl.start for sl in lane) for lane in phase.lanes) if len(phase.lanes) == 2
+                   else sum(sl.stop - sl.start for sl in phase.lanes[0]) / 2 for phase in schedule.phases)
+    assert critical <= 0.56 * layout.n_images
+
+
+def test_two_threads_give_the_one_thread_result():
+    problem, *_ = make_case()
+    spectra = []
+    for threads in (1, 2):
+        engine = SequentialMomentum(problem, MomentumOptions(max_iterations=4, tol=0, threads=threads))
+        assert any(len(phase.lanes) == 2 for phase in engine._schedule.phases)
+        for _ in range(4):
+            engine.update()
+        engine.close()
+        spectra.append(engine.spectrum().copy())
+    np.testing.assert_allclose(spectra[1], spectra[0], atol=1e-5 * np.abs(spectra[0]).max())
