@@ -18,8 +18,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cca_cli.optics.forward import chunk_slices
-
 __all__ = ["Phase", "Schedule", "split_disjoint", "shell_sizes", "build_schedule"]
 
 #: Cost of a seam capture relative to one in a side-by-side group (the seam's batches are shared by two threads).

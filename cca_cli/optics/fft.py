@@ -113,12 +113,12 @@ def planning_effort() -> str:
     return effort
 
 
-def _plan(array, axes, direction, threads):
+def _plan(array, axes, direction, threads, effort=None):
     """An FFTW plan searched for once per shape and machine (wisdom kept in the user cache)."""
     _load_wisdom()
     before = pyfftw.export_wisdom()
     plan = pyfftw.FFTW(array, array, axes=axes, direction=direction,
-                       flags=(_PLANNING[planning_effort()], "FFTW_DESTROY_INPUT"), threads=threads)
+                       flags=(_PLANNING[effort or planning_effort()], "FFTW_DESTROY_INPUT"), threads=threads)
     if pyfftw.export_wisdom() != before:
         _save_wisdom()
     return plan
@@ -239,6 +239,8 @@ class InPlaceFFT2:
         The array transformed in place. Keep using the same object.
     threads : int, optional
         Threads for one transform (default: all cores).
+    effort : str, optional
+        FFTW planning effort (default :func:`planning_effort`); ``"measure"`` suits buffers used a few times.
 
     Notes
     -----
@@ -248,15 +250,15 @@ class InPlaceFFT2:
     after constructing the plan.
     """
 
-    def __init__(self, buffer: np.ndarray, *, threads: int | None = None):
+    def __init__(self, buffer: np.ndarray, *, threads: int | None = None, effort: str | None = None):
         if buffer.dtype != np.complex64:
             raise ValueError(f"InPlaceFFT2 needs a complex64 buffer, got {buffer.dtype}")
         self.buffer = buffer
         self.threads = threads or cpu_count()
         self.backend = _backend
         if self.backend == "pyfftw":
-            self._forward = _plan(buffer, (-2, -1), "FFTW_FORWARD", self.threads)
-            self._inverse = _plan(buffer, (-2, -1), "FFTW_BACKWARD", self.threads)
+            self._forward = _plan(buffer, (-2, -1), "FFTW_FORWARD", self.threads, effort)
+            self._inverse = _plan(buffer, (-2, -1), "FFTW_BACKWARD", self.threads, effort)
 
     def forward(self) -> np.ndarray:
         """Unnormalised forward FFT of the buffer, in place; returns the buffer."""
@@ -275,15 +277,10 @@ class InPlaceFFT2:
         return self.buffer
 
 
-def _binary_chunks(count: int) -> list[tuple[int, int]]:
-    """``(offset, size)`` pieces of ``range(count)`` with power-of-two sizes, largest first."""
-    pieces, offset = [], 0
-    for bit in reversed(range(count.bit_length())):
-        size = 1 << bit
-        if count & size:
-            pieces.append((offset, size))
-            offset += size
-    return pieces
+def _planned_counts(capacity: int) -> list[int]:
+    """Field counts planned for a buffer of ``capacity`` fields: powers of two below it, and itself."""
+    counts = [1 << bit for bit in range(capacity.bit_length()) if (1 << bit) < capacity]
+    return counts + [capacity]
 
 
 class BandedFFT2:
@@ -296,8 +293,9 @@ class BandedFFT2:
     forward model's pupil box occupies about half the rows.
 
     Both transforms take the number of leading fields to transform, so a
-    partly filled buffer costs only what it holds (the fields are transformed
-    in power-of-two groups, each planned in advance).
+    partly filled buffer costs little more than what it holds: the transform
+    covers the smallest planned count that holds them (a power of two, or the
+    whole buffer). Fields beyond ``count`` may be changed.
 
     Parameters
     ----------
@@ -306,13 +304,16 @@ class BandedFFT2:
         The band of rows that holds data.
     threads : int, optional
         Threads for one transform (default: all cores).
+    effort : str, optional
+        FFTW planning effort (default :func:`planning_effort`).
 
     Notes
     -----
     With FFTW, planning overwrites the buffer: fill it after construction.
     """
 
-    def __init__(self, buffer: np.ndarray, row_start: int, row_stop: int, *, threads: int | None = None):
+    def __init__(self, buffer: np.ndarray, row_start: int, row_stop: int, *, threads: int | None = None,
+                 effort: str | None = None):
         if buffer.dtype != np.complex64 or buffer.ndim != 3:
             raise ValueError(f"BandedFFT2 needs a complex64 (n, m, m) buffer, got {buffer.dtype} {buffer.shape}")
         self.buffer = buffer
@@ -320,34 +321,36 @@ class BandedFFT2:
         self.threads = threads or cpu_count()
         self.backend = _backend
         self._plans = {}
+        self._counts = _planned_counts(buffer.shape[0])
         if self.backend == "pyfftw":
-            pieces = {piece for count in range(1, buffer.shape[0] + 1) for piece in _binary_chunks(count)}
-            for offset, size in sorted(pieces, key=lambda piece: -piece[1]):
-                whole, band = buffer[offset:offset + size], self.band[offset:offset + size]
-                self._plans[offset, size] = (
-                    _plan(band, (-1,), "FFTW_BACKWARD", self.threads),
-                    _plan(whole, (-2,), "FFTW_BACKWARD", self.threads),
-                    _plan(whole, (-2,), "FFTW_FORWARD", self.threads),
-                    _plan(band, (-1,), "FFTW_FORWARD", self.threads),
+            for count in self._counts:
+                whole, band = buffer[:count], self.band[:count]
+                self._plans[count] = (
+                    _plan(band, (-1,), "FFTW_BACKWARD", self.threads, effort),
+                    _plan(whole, (-2,), "FFTW_BACKWARD", self.threads, effort),
+                    _plan(whole, (-2,), "FFTW_FORWARD", self.threads, effort),
+                    _plan(band, (-1,), "FFTW_FORWARD", self.threads, effort),
                 )
 
-    def _count(self, count: int | None) -> int:
+    def _planned(self, count: int | None) -> int:
+        """The smallest planned count that holds ``count`` fields (0 for none)."""
         n = self.buffer.shape[0]
         if count is None:
             return n
         if not 0 <= count <= n:
             raise ValueError(f"count must be in [0, {n}], got {count}")
-        return count
+        return next((c for c in self._counts if c >= count), n) if count else 0
 
     def inverse(self, count: int | None = None) -> np.ndarray:
         """Unnormalised inverse 2-D FFT of the first ``count`` fields (default all), zero outside the band; in place."""
-        count = self._count(count)
+        count = self._planned(count)
+        if not count:
+            return self.buffer
         if self.backend == "pyfftw":
-            for piece in _binary_chunks(count):
-                rows, columns, _, _ = self._plans[piece]
-                rows.execute()
-                columns.execute()
-        elif count:
+            rows, columns, _, _ = self._plans[count]
+            rows.execute()
+            columns.execute()
+        else:
             band, whole = self.band[:count], self.buffer[:count]
             band[...] = scipy.fft.ifft(band, axis=-1, norm="forward", workers=self.threads)
             whole[...] = scipy.fft.ifft(whole, axis=-2, norm="forward", overwrite_x=True, workers=self.threads)
@@ -355,13 +358,14 @@ class BandedFFT2:
 
     def forward(self, count: int | None = None) -> np.ndarray:
         """Unnormalised forward 2-D FFT of the first ``count`` fields (default all), exact inside the band; in place."""
-        count = self._count(count)
+        count = self._planned(count)
+        if not count:
+            return self.buffer
         if self.backend == "pyfftw":
-            for piece in _binary_chunks(count):
-                _, _, columns, rows = self._plans[piece]
-                columns.execute()
-                rows.execute()
-        elif count:
+            _, _, columns, rows = self._plans[count]
+            columns.execute()
+            rows.execute()
+        else:
             band, whole = self.band[:count], self.buffer[:count]
             whole[...] = scipy.fft.fft(whole, axis=-2, norm="backward", overwrite_x=True, workers=self.threads)
             band[...] = scipy.fft.fft(band, axis=-1, norm="backward", workers=self.threads)

@@ -67,21 +67,27 @@ class Workspace:
         Per-capture grid m.
     threads : int, optional
         FFT threads for this buffer.
+    band : tuple of int, optional
+        Rows ``[start, stop)`` that hold the pupil box: transforms are pruned to them.
+    effort : str, optional
+        FFTW planning effort (default :func:`~cca_cli.optics.fft.planning_effort`).
     """
 
-    def __init__(self, chunk: int, size: int, *, threads: int | None = None, band: tuple[int, int] | None = None):
+    def __init__(self, chunk: int, size: int, *, threads: int | None = None, band: tuple[int, int] | None = None,
+                 effort: str | None = None):
         self.fields = fft.zeros((chunk, size, size), np.complex64)
         self._threads = threads
+        self._effort = effort
         self._fft = None
         #: Pruned transforms for fields confined to the pupil box's rows (None: use full transforms).
-        self.box_fft = None if band is None else fft.BandedFFT2(self.fields, *band, threads=threads)
+        self.box_fft = None if band is None else fft.BandedFFT2(self.fields, *band, threads=threads, effort=effort)
         self.fields.fill(0)
 
     @property
     def fft(self) -> fft.InPlaceFFT2:
         """Full (unpruned) transforms of the buffer, planned on first use (planning clears the buffer)."""
         if self._fft is None:
-            self._fft = fft.InPlaceFFT2(self.fields, threads=self._threads)
+            self._fft = fft.InPlaceFFT2(self.fields, threads=self._threads, effort=self._effort)
         return self._fft
 
     @property
@@ -160,11 +166,16 @@ class ForwardModel:
         """``|ψ|²`` per unit sensor irradiance: ``(M / m)²``."""
         return (self.layout.hires_size / self.layout.lowres_size) ** 2
 
-    def workspace(self, chunk: int | None = None, *, threads: int | None = None) -> Workspace:
-        """A :class:`Workspace` sized for ``chunk`` captures (default: all)."""
+    def workspace(self, chunk: int | None = None, *, threads: int | None = None,
+                  effort: str | None = None) -> Workspace:
+        """A :class:`Workspace` sized for ``chunk`` captures (default: all).
+
+        ``effort`` is the FFTW planning effort (default :func:`~cca_cli.optics.fft.planning_effort`);
+        ``"measure"`` plans quickly for workspaces used only a few times.
+        """
         start = self.layout.lowres_box_start
         return Workspace(chunk or self.n_images, self.layout.lowres_size, threads=threads,
-                         band=(start, start + self.layout.box_size))
+                         band=(start, start + self.layout.box_size), effort=effort)
 
     # --------------------------------------------------------------- operators
     def forward_into(self, spectrum: np.ndarray, images: slice, workspace: Workspace) -> np.ndarray:
@@ -222,7 +233,7 @@ class ForwardModel:
     def forward(self, spectrum: np.ndarray, *, chunk: int = 64) -> np.ndarray:
         """All K fields (field layout), complex64 (K, m, m). Allocates; not for hot loops."""
         out = np.empty((self.n_images,) + self.field_shape, np.complex64)
-        ws = self.workspace(min(chunk, self.n_images))
+        ws = self.workspace(min(chunk, self.n_images), effort="measure")
         for sl in chunk_slices(self.n_images, ws.capacity):
             out[sl] = self.forward_into(spectrum, sl, ws)
         return out
@@ -230,7 +241,7 @@ class ForwardModel:
     def adjoint(self, fields: np.ndarray, *, chunk: int = 64) -> np.ndarray:
         """``Σ A_iᴴ ψ_i`` for fields in field layout, complex64 (M, M). Does not modify ``fields``."""
         acc = np.zeros(self.spectrum_shape, np.complex64)
-        ws = self.workspace(min(chunk, self.n_images))
+        ws = self.workspace(min(chunk, self.n_images), effort="measure")
         for sl in chunk_slices(self.n_images, ws.capacity):
             k = sl.stop - sl.start
             ws.fields[:k] = fields[sl]
@@ -240,7 +251,7 @@ class ForwardModel:
     def sensor_intensity(self, spectrum: np.ndarray, *, chunk: int = 64) -> np.ndarray:
         """Noise-free captures in sensor units and centred sensor layout, float32 (K, m, m)."""
         out = np.empty((self.n_images,) + self.field_shape, np.float32)
-        ws = self.workspace(min(chunk, self.n_images))
+        ws = self.workspace(min(chunk, self.n_images), effort="measure")
         scale = 1.0 / self.intensity_scale
         for sl in chunk_slices(self.n_images, ws.capacity):
             fields = self.forward_into(spectrum, sl, ws)
