@@ -57,7 +57,10 @@ def chunk_slices(n_items: int, chunk: int) -> list[slice]:
 
 
 class Workspace:
-    """Scratch space for one thread: a field buffer planned for in-place FFTs.
+    """Scratch space for one thread: a field buffer with its planned FFTs.
+
+    With a band, the pruned transforms (``box_fft``) take their input from
+    ``box_fft.staging`` and leave the result in :attr:`fields`.
 
     Parameters
     ----------
