@@ -113,11 +113,11 @@ def planning_effort() -> str:
     return effort
 
 
-def _plan(array, axes, direction, threads, effort=None, output=None):
-    """An FFTW plan (in place unless ``output`` is given) searched for once per shape and machine."""
+def _plan(array, axes, direction, threads, effort=None):
+    """An FFTW plan searched for once per shape and machine (wisdom kept in the user cache)."""
     _load_wisdom()
     before = pyfftw.export_wisdom()
-    plan = pyfftw.FFTW(array, array if output is None else output, axes=axes, direction=direction,
+    plan = pyfftw.FFTW(array, array, axes=axes, direction=direction,
                        flags=(_PLANNING[effort or planning_effort()], "FFTW_DESTROY_INPUT"), threads=threads)
     if pyfftw.export_wisdom() != before:
         _save_wisdom()
@@ -286,14 +286,11 @@ def _planned_counts(capacity: int) -> list[int]:
 class BandedFFT2:
     """Raw 2-D FFTs of a buffer whose data live in a band of rows, planned once.
 
-    The inverse transform reads its input from :attr:`staging`, a second
-    buffer whose rows outside ``[row_start, row_stop)`` stay zero: fill only
-    the band rows there, and the result lands in ``buffer``. The forward
-    transform works in ``buffer`` in place and is exact only inside the band
-    rows. Transforming along the last axis for the band's rows alone saves
-    about ``(1 - band/m) / 2`` of the work of a full 2-D FFT — the forward
-    model's pupil box occupies about half the rows — and the zero rows never
-    need rewriting.
+    The inverse transform assumes the input is zero outside rows
+    ``[row_start, row_stop)``; the forward transform is exact only inside
+    those rows. Transforming along the last axis for the band's rows alone
+    saves about ``(1 - band/m) / 2`` of the work of a full 2-D FFT — the
+    forward model's pupil box occupies about half the rows.
 
     Both transforms take the number of leading fields to transform, so a
     partly filled buffer costs little more than what it holds: the transform
@@ -321,23 +318,19 @@ class BandedFFT2:
             raise ValueError(f"BandedFFT2 needs a complex64 (n, m, m) buffer, got {buffer.dtype} {buffer.shape}")
         self.buffer = buffer
         self.band = buffer[:, row_start:row_stop, :]
-        #: Input of the inverse transform: zero outside the band rows (write only those).
-        self.staging = empty(buffer.shape, np.complex64)
-        self._staging_band = self.staging[:, row_start:row_stop, :]
         self.threads = threads or cpu_count()
         self.backend = _backend
         self._plans = {}
         self._counts = _planned_counts(buffer.shape[0])
         if self.backend == "pyfftw":
             for count in self._counts:
-                whole, band, staging = buffer[:count], self.band[:count], self.staging[:count]
+                whole, band = buffer[:count], self.band[:count]
                 self._plans[count] = (
-                    _plan(self._staging_band[:count], (-1,), "FFTW_BACKWARD", self.threads, effort),
-                    _plan(staging, (-2,), "FFTW_BACKWARD", self.threads, effort, output=whole),
+                    _plan(band, (-1,), "FFTW_BACKWARD", self.threads, effort),
+                    _plan(whole, (-2,), "FFTW_BACKWARD", self.threads, effort),
                     _plan(whole, (-2,), "FFTW_FORWARD", self.threads, effort),
                     _plan(band, (-1,), "FFTW_FORWARD", self.threads, effort),
                 )
-        self.staging.fill(0)  # after planning, which scribbles on the arrays
 
     def _planned(self, count: int | None) -> int:
         """The smallest planned count that holds ``count`` fields (0 for none)."""
@@ -349,10 +342,7 @@ class BandedFFT2:
         return next((c for c in self._counts if c >= count), n) if count else 0
 
     def inverse(self, count: int | None = None) -> np.ndarray:
-        """Unnormalised inverse 2-D FFT of the first ``count`` fields of :attr:`staging` into ``buffer``.
-
-        The band rows of :attr:`staging` are overwritten; returns ``buffer``.
-        """
+        """Unnormalised inverse 2-D FFT of the first ``count`` fields (default all), zero outside the band; in place."""
         count = self._planned(count)
         if not count:
             return self.buffer
@@ -361,9 +351,9 @@ class BandedFFT2:
             rows.execute()
             columns.execute()
         else:
-            band = self._staging_band[:count]
+            band, whole = self.band[:count], self.buffer[:count]
             band[...] = scipy.fft.ifft(band, axis=-1, norm="forward", workers=self.threads)
-            self.buffer[:count] = scipy.fft.ifft(self.staging[:count], axis=-2, norm="forward", workers=self.threads)
+            whole[...] = scipy.fft.ifft(whole, axis=-2, norm="forward", overwrite_x=True, workers=self.threads)
         return self.buffer
 
     def forward(self, count: int | None = None) -> np.ndarray:

@@ -99,10 +99,7 @@ class Workspace:
         return self.fields.shape[0]
 
     def inverse(self, count: int) -> np.ndarray:
-        """Raw inverse 2-D FFT of the first ``count`` fields into :attr:`fields`.
-
-        With a band, the input is read from ``box_fft.staging`` (pruned transform); otherwise in place.
-        """
+        """Raw inverse 2-D FFT of the first ``count`` fields (pruned to the band when there is one); in place."""
         if self.box_fft is not None:
             return self.box_fft.inverse(count)
         return self.fft.inverse()
@@ -202,13 +199,10 @@ class ForwardModel:
         """
         start, stop, _ = images.indices(self.n_images)
         k = stop - start
-        if workspace.box_fft is not None:  # the transform's input buffer keeps zeros outside the box rows
-            kernels.place_boxes(spectrum, self._origin_array, self._pupil_forward, workspace.box_fft.staging[:k],
-                                start, band_only=True)
-        else:
-            kernels.place_boxes(spectrum, self._origin_array, self._pupil_forward, workspace.fields[:k], start)
+        fields = workspace.fields
+        kernels.place_boxes(spectrum, self._origin_array, self._pupil_forward, fields[:k], start)
         workspace.inverse(k)
-        return workspace.fields[:k]
+        return fields[:k]
 
     def adjoint_into(self, workspace: Workspace, images: slice, accumulator: np.ndarray) -> None:
         """Add ``Σ A_iᴴ ψ_i`` for captures ``images`` to ``accumulator``.

@@ -53,12 +53,11 @@ class use_kernels:
 
 
 # ----------------------------------------------------------------------------- numpy versions
-def _place_boxes_numpy(spectrum, origins, pupils, fields, start, band_only):
+def _place_boxes_numpy(spectrum, origins, pupils, fields, start):
     k, m, b = fields.shape[0], fields.shape[1], pupils.shape[1]
     s = m // 2 - b // 2
-    if not band_only:
-        fields[:k, :s] = 0
-        fields[:k, s + b:] = 0
+    fields[:k, :s] = 0
+    fields[:k, s + b:] = 0
     fields[:k, s:s + b, :s] = 0
     fields[:k, s:s + b, s + b:] = 0
     for j in range(k):
@@ -100,13 +99,13 @@ if _HAVE_NUMBA:  # pragma: no branch
     _jit_fast = numba.njit(nogil=True, cache=True, error_model="numpy", fastmath=True)
 
     @_jit
-    def _place_boxes_numba(spectrum, origins, pupils, fields, start, band_only):  # pragma: no cover - compiled
+    def _place_boxes_numba(spectrum, origins, pupils, fields, start):  # pragma: no cover - compiled
         k, m, b = fields.shape[0], fields.shape[1], pupils.shape[1]
         s = m // 2 - b // 2
         for j in range(k):
             y0 = origins[start + j, 0]
             x0 = origins[start + j, 1]
-            for r in range(s if band_only else 0, s + b if band_only else m):
+            for r in range(m):
                 if r < s or r >= s + b:
                     for c in range(m):
                         fields[j, r, c] = 0
@@ -236,7 +235,7 @@ def warm_up() -> None:
     pupils = np.zeros((1, 4, 4), np.complex64)
     fields = np.zeros((1, 8, 8), np.complex64)
     real = np.ones((1, 8, 8), np.float32)
-    _place_boxes_numba(spectrum, origins, pupils, fields, 0, False)
+    _place_boxes_numba(spectrum, origins, pupils, fields, 0)
     _scatter_numba(fields, origins, pupils, spectrum, 0, 0, 8)
     _momentum_numba(spectrum, spectrum.copy(), spectrum.copy(), np.float32(0.5))
     _magnitude_numba(fields, real, real, np.float32(1e-6), np.float32(1.0), False)
@@ -245,7 +244,7 @@ def warm_up() -> None:
 
 
 def place_boxes(spectrum: np.ndarray, origins: np.ndarray, pupils: np.ndarray, fields: np.ndarray,
-                start: int, *, band_only: bool = False) -> None:
+                start: int) -> None:
     """Write ``spectrum`` box × pupil of captures ``start …`` into the centre of each field, zeros elsewhere.
 
     Parameters
@@ -259,13 +258,11 @@ def place_boxes(spectrum: np.ndarray, origins: np.ndarray, pupils: np.ndarray, f
         Receives captures ``start … start + k - 1``; the box is centred on ``m // 2``.
     start : int
         Index of the first capture.
-    band_only : bool
-        Write only the box's rows (the rows above and below are known to be zero already).
     """
     if _use_numba:
-        _place_boxes_numba(spectrum, origins, pupils, fields, start, band_only)
+        _place_boxes_numba(spectrum, origins, pupils, fields, start)
     else:
-        _place_boxes_numpy(spectrum, origins, pupils, fields, start, band_only)
+        _place_boxes_numpy(spectrum, origins, pupils, fields, start)
 
 
 def project_magnitudes(fields: np.ndarray, amplitudes: np.ndarray, scratch: np.ndarray, *,

@@ -100,17 +100,13 @@ def test_banded_fft_of_the_first_count_fields_matches_numpy(backend, count):
     with fft.use_backend(backend):
         buffer = fft.zeros((6, 16, 16))
         plan = fft.BandedFFT2(buffer, 4, 12, threads=1)  # planning may scribble on the buffer
-        assert not np.any(plan.staging)
         data = np.zeros((6, 16, 16), np.complex64)
         data[:, 4:12, 3:13] = _random_complex((6, 8, 10))
-        plan.staging[:, 4:12] = data[:, 4:12]  # the inverse reads the band rows of its staging buffer
-        buffer[...] = 7
+        buffer[...] = data
         plan.inverse(count)
         np.testing.assert_allclose(buffer[:count], np.fft.ifft2(data[:count]) * 256, atol=1e-3)
-        assert not np.any(plan.staging[:, :4]) and not np.any(plan.staging[:, 12:])
         if count == 0:
-            assert np.all(buffer == 7)
-        buffer[:count] = np.fft.ifft2(data[:count]) * 256
+            np.testing.assert_array_equal(buffer, data)
         plan.forward(count)
         np.testing.assert_allclose(buffer[:count, 4:12], data[:count, 4:12] * 256, atol=1e-2)
 
