@@ -57,10 +57,7 @@ def chunk_slices(n_items: int, chunk: int) -> list[slice]:
 
 
 class Workspace:
-    """Scratch space for one thread: a field buffer with its planned FFTs.
-
-    With a band, the pruned transforms (``box_fft``) take their input from
-    ``box_fft.staging`` and leave the result in :attr:`fields`.
+    """Scratch space for one thread: a field buffer with its FFTs, planned for in-place use.
 
     Parameters
     ----------
