@@ -230,6 +230,11 @@ class SequentialMomentum(IterativeEngine):
         self._scratch = [np.empty((capacity,) + model.field_shape, np.float32) for _ in range(self._threads)]
         self._pool = ThreadPoolExecutor(self._threads - 1) if self._threads > 1 else None
         self._calibration_workspace = None
+        fusable = options.cost == "amplitude" and options.pupil_recovery == "none"
+        self._fused_plans = [ws.box_fft.raw_plans() if fusable and ws.box_fft is not None else None
+                             for ws in self._workspaces]
+        if not all(kernels.can_fuse_lanes(raw) for raw in self._fused_plans):
+            self._fused_plans = [None] * self._threads
 
         self._offsets = np.zeros((k, 2), np.float64)
         self._recover_pupil = options.pupil_recovery == "shared"
@@ -393,6 +398,12 @@ class SequentialMomentum(IterativeEngine):
 
     def _run_lane(self, t: int, batches: tuple[slice, ...]) -> float:
         """Run ``batches`` one after the other on thread ``t``; returns their summed misfit."""
+        raw = self._fused_plans[t]
+        if raw is not None:  # one compiled call for the whole lane: the threads never wait for the interpreter
+            bounds = np.array([[sl.start, sl.stop] for sl in batches], dtype=np.int64).reshape(-1, 2)
+            return kernels.sequential_lane(raw, bounds, self._spectrum, self._origin_array, self._model.pupil_boxes,
+                                           self._factors, self._workspaces[t].fields, self._amplitudes,
+                                           self._weights, self._eps)
         misfit = 0.0
         for sl in batches:
             misfit += self._half_batch(t, sl)

@@ -19,7 +19,10 @@ Two kinds of transform are offered:
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import os
+import threading
+import weakref
 
 import numpy as np
 import scipy.fft
@@ -47,6 +50,7 @@ __all__ = [
     "fourier_resample",
     "InPlaceFFT2",
     "BandedFFT2",
+    "fftw_execute",
 ]
 
 #: Array module used by the numeric core.
@@ -277,6 +281,89 @@ class InPlaceFFT2:
         return self.buffer
 
 
+# ----------------------------------------------------------------------------- raw FFTW plans
+class _IODim(ctypes.Structure):
+    _fields_ = [("n", ctypes.c_int), ("is_", ctypes.c_int), ("os", ctypes.c_int)]
+
+
+_FFTW_FLAGS = {"estimate": 1 << 6, "measure": 0, "patient": 1 << 5}
+_FFTW_DESTROY_INPUT = 1
+_raw_library = None
+_raw_lock = threading.Lock()
+
+
+def _fftw_library():
+    """The single-precision FFTW that pyfftw loaded, through ctypes; None where it cannot be found.
+
+    Plans made through it share pyfftw's wisdom, and compiled kernels can execute them
+    without the interpreter (see :data:`fftw_execute`). Found through ``/proc/self/maps``,
+    so only on Linux.
+    """
+    global _raw_library
+    if _raw_library is not None or not _HAVE_PYFFTW:
+        return _raw_library or None
+    _raw_library = False
+    try:
+        with open("/proc/self/maps") as maps:
+            paths = {line.split()[-1] for line in maps if "/libfftw3f" in line}
+    except OSError:
+        return None
+    paths = [p for p in paths if "_omp" not in p and "_threads" not in p]
+    if len(paths) != 1:
+        return None
+    try:
+        library = ctypes.CDLL(paths[0])
+        library.fftwf_plan_guru_dft.restype = ctypes.c_void_p
+        library.fftwf_plan_guru_dft.argtypes = [ctypes.c_int, ctypes.POINTER(_IODim), ctypes.c_int,
+                                                ctypes.POINTER(_IODim), ctypes.c_void_p, ctypes.c_void_p,
+                                                ctypes.c_int, ctypes.c_uint]
+        library.fftwf_execute.argtypes = [ctypes.c_void_p]
+        library.fftwf_execute.restype = None
+        library.fftwf_destroy_plan.argtypes = [ctypes.c_void_p]
+        library.fftwf_destroy_plan.restype = None
+    except (OSError, AttributeError):
+        return None
+    _raw_library = library
+    return library
+
+
+def fftw_execute():
+    """``fftwf_execute`` as a ctypes function (callable from numba-compiled code), or None."""
+    library = _fftw_library()
+    return None if library is None else library.fftwf_execute
+
+
+def _raw_plan(array: np.ndarray, axis: int, row_start: int, row_stop: int, sign: int, effort: str | None) -> int:
+    """A raw FFTW plan, in place, of 1-D transforms of ``array`` (n, m, m) along ``axis``.
+
+    Along the last axis only rows ``[row_start, row_stop)`` are transformed. Returns the plan's address.
+    """
+    library = _fftw_library()
+    count, m = array.shape[0], array.shape[-1]
+    if axis == -1:
+        dims = [_IODim(m, 1, 1)]
+        loops = [_IODim(count, m * m, m * m), _IODim(row_stop - row_start, m, m)]
+        start = array[:, row_start:row_stop].ctypes.data if count else array.ctypes.data
+    else:
+        dims = [_IODim(m, m, m)]
+        loops = [_IODim(count, m * m, m * m), _IODim(m, 1, 1)]
+        start = array.ctypes.data
+    flags = _FFTW_FLAGS[effort or planning_effort()] | _FFTW_DESTROY_INPUT
+    with _raw_lock:
+        plan = library.fftwf_plan_guru_dft(1, (_IODim * 1)(*dims), 2, (_IODim * 2)(*loops), start, start, sign,
+                                           flags)
+    if not plan:
+        raise RuntimeError("FFTW could not plan a transform")
+    return int(plan)
+
+
+def _destroy_raw_plans(plans: list[int]) -> None:
+    library = _fftw_library()
+    with _raw_lock:
+        for plan in plans:
+            library.fftwf_destroy_plan(plan)
+
+
 def _planned_counts(capacity: int) -> list[int]:
     """Field counts planned for a buffer of ``capacity`` fields: powers of two below it, and itself."""
     counts = [1 << bit for bit in range(capacity.bit_length()) if (1 << bit) < capacity]
@@ -331,6 +418,32 @@ class BandedFFT2:
                     _plan(whole, (-2,), "FFTW_FORWARD", self.threads, effort),
                     _plan(band, (-1,), "FFTW_FORWARD", self.threads, effort),
                 )
+        #: Raw FFTW plans per planned count, for compiled loops (None where unavailable); see :meth:`raw_plans`.
+        self._raw = None
+        if self.backend == "pyfftw" and self.threads == 1 and _fftw_library() is not None:
+            rows = (row_start, row_stop)
+            self._raw = np.array([[_raw_plan(buffer[:count], -1, *rows, +1, effort),
+                                   _raw_plan(buffer[:count], -2, *rows, +1, effort),
+                                   _raw_plan(buffer[:count], -2, *rows, -1, effort),
+                                   _raw_plan(buffer[:count], -1, *rows, -1, effort)] for count in self._counts],
+                                 dtype=np.int64)
+            weakref.finalize(self, _destroy_raw_plans, [int(p) for p in self._raw.ravel()])
+
+    def raw_plans(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Plans compiled code can execute with :func:`fftw_execute`, or None.
+
+        Returns
+        -------
+        counts : ndarray, int64, (n,)
+            The planned field counts, ascending.
+        plans : ndarray, int64, (n, 4)
+            For each count, the addresses of the inverse row and column plans and the forward
+            column and row plans, in the order they run. Available with pyfftw on Linux, for
+            single-threaded buffers.
+        """
+        if self._raw is None:
+            return None
+        return np.array(self._counts, dtype=np.int64), self._raw
 
     def _planned(self, count: int | None) -> int:
         """The smallest planned count that holds ``count`` fields (0 for none)."""

@@ -145,6 +145,11 @@ class ForwardModel:
         self._origin_array = np.ascontiguousarray(layout.box_origins, dtype=np.int64)
         kernels.warm_up()
 
+    @property
+    def pupil_boxes(self) -> np.ndarray:
+        """Pupil boxes as :meth:`forward_into` applies them (raw-FFT scaling folded in), complex64 (K, b, b)."""
+        return self._pupil_forward
+
     # ------------------------------------------------------------------ shapes
     @property
     def n_images(self) -> int:

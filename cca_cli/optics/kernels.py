@@ -22,6 +22,7 @@ except ImportError:  # pragma: no cover
     _HAVE_NUMBA = False
 
 __all__ = ["kernels_name", "use_kernels", "warm_up", "place_boxes", "project_magnitudes", "magnitude_step",
+           "can_fuse_lanes", "sequential_lane",
            "scatter_boxes", "momentum_step", "tikhonov_update"]
 
 _use_numba = _HAVE_NUMBA
@@ -389,3 +390,88 @@ def magnitude_step(fields: np.ndarray, amplitudes: np.ndarray, scratch: np.ndarr
         factor *= weights
     fields *= factor
     return squared
+
+
+# ----------------------------------------------------------------------------- fused sequential lane
+_lane_kernel = None
+
+
+def _compiled_lane():
+    """The fused lane loop, compiled on first use (it holds the address of the loaded FFTW, so it is not cached)."""
+    global _lane_kernel
+    if _lane_kernel is None:
+        from cca_cli.optics import fft
+
+        execute = fft.fftw_execute()
+
+        @numba.njit(nogil=True, error_model="numpy")
+        def lane(counts, plans, batches, spectrum, origins, pupils, factors, fields, amplitudes, weights, weighted,
+                 eps):  # pragma: no cover - compiled
+            total = 0.0
+            zero = np.float32(0.0)
+            for i in range(batches.shape[0]):
+                start, stop = batches[i, 0], batches[i, 1]
+                k = stop - start
+                j = 0
+                while counts[j] < k:
+                    j += 1
+                _place_boxes_numba(spectrum, origins, pupils, fields[:k], start)
+                execute(plans[j, 0])
+                execute(plans[j, 1])
+                total += _magnitude_numba(fields[:k], amplitudes[start:stop], weights[start:stop], eps, zero,
+                                          weighted)
+                execute(plans[j, 2])
+                execute(plans[j, 3])
+                _scatter_numba(fields[:k], origins, factors, spectrum, start, 0, spectrum.shape[0])
+            return total
+
+        _lane_kernel = lane
+    return _lane_kernel
+
+
+def can_fuse_lanes(raw_plans) -> bool:
+    """Whether :func:`sequential_lane` can run with these raw plans (numba kernels and raw FFTW plans)."""
+    from cca_cli.optics import fft
+
+    return _use_numba and raw_plans is not None and fft.fftw_execute() is not None
+
+
+def sequential_lane(raw_plans, batches: np.ndarray, spectrum: np.ndarray, origins: np.ndarray, pupils: np.ndarray,
+                    factors: np.ndarray, fields: np.ndarray, amplitudes: np.ndarray, weights: np.ndarray | None,
+                    eps: float) -> float:
+    """Run batches one after the other in one GIL-free call: place, inverse FFT, magnitude step, FFT, scatter.
+
+    Each batch does what :meth:`~cca_cli.optics.forward.ForwardModel.forward_into`,
+    :func:`magnitude_step`, the forward transform and :func:`scatter_boxes` do in turn, without
+    returning to the interpreter in between, so two threads running lanes do not wait for each
+    other. Requires :func:`can_fuse_lanes`.
+
+    Parameters
+    ----------
+    raw_plans : tuple of ndarray
+        ``(counts, plans)`` from :meth:`~cca_cli.optics.fft.BandedFFT2.raw_plans` of the workspace holding ``fields``.
+    batches : ndarray, int64, (n, 2)
+        ``[start, stop)`` of each batch, in order.
+    spectrum : ndarray, complex64, (M, M)
+        Updated in place.
+    origins : ndarray, int64, (K, 2)
+    pupils : ndarray, complex64, (K, b, b)
+        Forward pupil boxes (scaling folded in).
+    factors : ndarray, complex64, (K, b, b)
+        Update factors multiplying each capture's back-transformed step.
+    fields : ndarray, complex64, (c, m, m)
+        The workspace buffer the plans were made for.
+    amplitudes : ndarray, float32, (K, m, m)
+    weights : ndarray, float32, (K, m, m), optional
+    eps : float
+        Floor on ``|ψ|``.
+
+    Returns
+    -------
+    float
+        The summed squared misfit ``Σ w (|ψ| − A)²`` of the lane.
+    """
+    counts, plans = raw_plans
+    confidence = amplitudes if weights is None else weights
+    return float(_compiled_lane()(counts, plans, batches, spectrum, origins, pupils, factors, fields, amplitudes,
+                                  confidence, weights is not None, np.float32(eps)))
