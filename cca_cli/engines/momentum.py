@@ -5,6 +5,8 @@ batches, in shells that grow away from DC (:mod:`cca_cli.engines.schedule`).
 Within a shell, captures whose pupil boxes lie wholly above (or left of) a line
 never touch those wholly below (or right of) it, so two threads update those
 groups side by side and the result equals visiting them one after the other.
+With numba and FFTW each thread's run of batches is a single GIL-free call
+(:func:`~cca_cli.optics.kernels.sequential_lane`).
 
 For each batch the fields ``ψ_i = A_i S`` are computed from the current
 spectrum, the data step ``ψ'_i − ψ_i`` is formed (magnitude replacement, or a
