@@ -308,11 +308,14 @@ def _fftw_library():
             paths = {line.split()[-1] for line in maps if "/libfftw3f" in line}
     except OSError:
         return None
-    paths = [p for p in paths if "_omp" not in p and "_threads" not in p]
-    if len(paths) != 1:
+    threaded = [p for p in paths if "_omp" in p or "_threads" in p]
+    paths = [p for p in paths if p not in threaded]
+    if len(paths) != 1 or len(threaded) > 1:
         return None
     try:
         library = ctypes.CDLL(paths[0])
+        # Planning reads a global thread count that pyfftw sets per plan: raw plans set it to 1.
+        library.set_plan_threads = ctypes.CDLL(threaded[0]).fftwf_plan_with_nthreads if threaded else None
         library.fftwf_plan_guru_dft.restype = ctypes.c_void_p
         library.fftwf_plan_guru_dft.argtypes = [ctypes.c_int, ctypes.POINTER(_IODim), ctypes.c_int,
                                                 ctypes.POINTER(_IODim), ctypes.c_void_p, ctypes.c_void_p,
@@ -350,6 +353,8 @@ def _raw_plan(array: np.ndarray, axis: int, row_start: int, row_stop: int, sign:
         start = array.ctypes.data
     flags = _FFTW_FLAGS[effort or planning_effort()] | _FFTW_DESTROY_INPUT
     with _raw_lock:
+        if library.set_plan_threads is not None:
+            library.set_plan_threads(1)
         plan = library.fftwf_plan_guru_dft(1, (_IODim * 1)(*dims), 2, (_IODim * 2)(*loops), start, start, sign,
                                            flags)
     if not plan:

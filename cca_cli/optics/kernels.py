@@ -242,6 +242,9 @@ def warm_up() -> None:
     _magnitude_numba(fields, real, real, np.float32(1e-6), np.float32(1.0), False)
     _magnitude_numba(fields, real, real, np.float32(1e-6), np.float32(0.0), True)
     _tikhonov_numba(spectrum, np.ones((8, 8), np.float32), spectrum.copy())
+    no_batches = np.zeros((0, 2), np.int64)  # compiles (or loads) the fused lane without running an FFT
+    _lane_numba(0, np.ones(1, np.int64), np.zeros((1, 4), np.int64), no_batches, spectrum, origins, pupils, pupils,
+                fields, real, real, False, np.float32(1e-6))
 
 
 def place_boxes(spectrum: np.ndarray, origins: np.ndarray, pupils: np.ndarray, fields: np.ndarray,
@@ -393,47 +396,66 @@ def magnitude_step(fields: np.ndarray, amplitudes: np.ndarray, scratch: np.ndarr
 
 
 # ----------------------------------------------------------------------------- fused sequential lane
-_lane_kernel = None
+if _HAVE_NUMBA:  # pragma: no branch
+    from llvmlite import ir
+    from numba.extending import intrinsic
+
+    @intrinsic
+    def _call_address(typingctx, function, argument):  # pragma: no cover - compiled
+        """Call the C function ``void f(void *)`` at address ``function`` with pointer ``argument``.
+
+        The address arrives at run time, so the kernels that use this stay cacheable.
+        """
+        signature = numba.types.void(numba.types.int64, numba.types.int64)
+
+        def codegen(context, builder, sig, args):
+            pointer = ir.IntType(8).as_pointer()
+            callee = builder.inttoptr(args[0], ir.FunctionType(ir.VoidType(), [pointer]).as_pointer())
+            builder.call(callee, [builder.inttoptr(args[1], pointer)])
+            return context.get_dummy_value()
+
+        return signature, codegen
+
+    @_jit
+    def _lane_numba(execute, counts, plans, batches, spectrum, origins, pupils, factors, fields, amplitudes, weights,
+                    weighted, eps):  # pragma: no cover - compiled
+        total = 0.0
+        zero = np.float32(0.0)
+        for i in range(batches.shape[0]):
+            start, stop = batches[i, 0], batches[i, 1]
+            k = stop - start
+            j = 0
+            while counts[j] < k:
+                j += 1
+            _place_boxes_numba(spectrum, origins, pupils, fields[:k], start)
+            _call_address(execute, plans[j, 0])
+            _call_address(execute, plans[j, 1])
+            total += _magnitude_numba(fields[:k], amplitudes[start:stop], weights[start:stop], eps, zero, weighted)
+            _call_address(execute, plans[j, 2])
+            _call_address(execute, plans[j, 3])
+            _scatter_numba(fields[:k], origins, factors, spectrum, start, 0, spectrum.shape[0])
+        return total
 
 
-def _compiled_lane():
-    """The fused lane loop, compiled on first use (it holds the address of the loaded FFTW, so it is not cached)."""
-    global _lane_kernel
-    if _lane_kernel is None:
+_execute = None
+
+
+def _execute_address() -> int:
+    """Address of ``fftwf_execute`` in the loaded FFTW (0 if unavailable)."""
+    global _execute
+    if _execute is None:
+        import ctypes
+
         from cca_cli.optics import fft
 
-        execute = fft.fftw_execute()
-
-        @numba.njit(nogil=True, error_model="numpy")
-        def lane(counts, plans, batches, spectrum, origins, pupils, factors, fields, amplitudes, weights, weighted,
-                 eps):  # pragma: no cover - compiled
-            total = 0.0
-            zero = np.float32(0.0)
-            for i in range(batches.shape[0]):
-                start, stop = batches[i, 0], batches[i, 1]
-                k = stop - start
-                j = 0
-                while counts[j] < k:
-                    j += 1
-                _place_boxes_numba(spectrum, origins, pupils, fields[:k], start)
-                execute(plans[j, 0])
-                execute(plans[j, 1])
-                total += _magnitude_numba(fields[:k], amplitudes[start:stop], weights[start:stop], eps, zero,
-                                          weighted)
-                execute(plans[j, 2])
-                execute(plans[j, 3])
-                _scatter_numba(fields[:k], origins, factors, spectrum, start, 0, spectrum.shape[0])
-            return total
-
-        _lane_kernel = lane
-    return _lane_kernel
+        function = fft.fftw_execute()
+        _execute = 0 if function is None else int(ctypes.cast(function, ctypes.c_void_p).value)
+    return _execute
 
 
 def can_fuse_lanes(raw_plans) -> bool:
     """Whether :func:`sequential_lane` can run with these raw plans (numba kernels and raw FFTW plans)."""
-    from cca_cli.optics import fft
-
-    return _use_numba and raw_plans is not None and fft.fftw_execute() is not None
+    return _use_numba and raw_plans is not None and _execute_address() != 0
 
 
 def sequential_lane(raw_plans, batches: np.ndarray, spectrum: np.ndarray, origins: np.ndarray, pupils: np.ndarray,
@@ -473,5 +495,5 @@ def sequential_lane(raw_plans, batches: np.ndarray, spectrum: np.ndarray, origin
     """
     counts, plans = raw_plans
     confidence = amplitudes if weights is None else weights
-    return float(_compiled_lane()(counts, plans, batches, spectrum, origins, pupils, factors, fields, amplitudes,
-                                  confidence, weights is not None, np.float32(eps)))
+    return float(_lane_numba(_execute_address(), counts, plans, batches, spectrum, origins, pupils, factors, fields,
+                             amplitudes, confidence, weights is not None, np.float32(eps)))

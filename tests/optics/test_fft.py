@@ -125,3 +125,23 @@ def test_planning_effort_comes_from_the_environment(monkeypatch):
     monkeypatch.setenv("CCA_FFTW_PLANNING", "hard")
     with pytest.raises(ValueError, match="CCA_FFTW_PLANNING='hard'.*estimate, measure, patient"):
         fft.planning_effort()
+
+
+def test_raw_plans_compute_the_same_transforms_as_the_buffer_methods():
+    plan = fft.BandedFFT2(fft.zeros((3, 16, 16)), 4, 12, threads=1)
+    raw = plan.raw_plans()
+    if raw is None:
+        pytest.skip("raw FFTW plans need pyfftw's FFTW library on Linux")
+    execute = fft.fftw_execute()
+    counts, handles = raw
+    assert counts.tolist() == [1, 2, 3] and handles.shape == (3, 4)
+    data = np.zeros((3, 16, 16), np.complex64)
+    data[:, 4:12, 3:13] = _random_complex((3, 8, 10))
+    plan.buffer[...] = data
+    execute(int(handles[1, 0]))
+    execute(int(handles[1, 1]))
+    np.testing.assert_allclose(plan.buffer[:2], np.fft.ifft2(data[:2]) * 256, atol=1e-3)
+    np.testing.assert_array_equal(plan.buffer[2], data[2])
+    execute(int(handles[1, 2]))
+    execute(int(handles[1, 3]))
+    np.testing.assert_allclose(plan.buffer[:2, 4:12], data[:2, 4:12] * 256, atol=1e-2)
