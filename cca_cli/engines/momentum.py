@@ -232,6 +232,7 @@ class SequentialMomentum(IterativeEngine):
         self._scratch = [np.empty((capacity,) + model.field_shape, np.float32) for _ in range(self._threads)]
         self._pool = ThreadPoolExecutor(self._threads - 1) if self._threads > 1 else None
         self._calibration_workspace = None
+        # The fused lane does the amplitude step only; Poisson steps and the pupil fit's sums run step by step.
         fusable = options.cost == "amplitude" and options.pupil_recovery == "none"
         self._fused_plans = [ws.box_fft.raw_plans() if fusable and ws.box_fft is not None else None
                              for ws in self._workspaces]
