@@ -19,7 +19,7 @@ resampled (spectrum zero-padded or cropped, centred) to 512², aligned to the
 truth by the flip/transpose and whole-pixel circular shift that best correlate
 its amplitude with the truth's (peers use other FFT and sign conventions), and
 compared with the band-limited truth (truth spectrum masked to the union of
-pupil discs, from ``normal_diagonal() > 0`` of the model on the 512² grid).
+pupil discs: :func:`cca_cli.report.summary.band_limited_truth`).
 
 Usage::
 
@@ -51,7 +51,7 @@ from cca_cli.config.load import load_config  # noqa: E402
 from cca_cli.engines.registry import engine_names  # noqa: E402
 from cca_cli.metrics import amplitude_rmse, contrast_table, mtf_limit, rmse  # noqa: E402
 from cca_cli.optics import fft  # noqa: E402
-from cca_cli.stages.reconstruct import build_model  # noqa: E402
+from cca_cli.report.summary import band_limited_truth  # noqa: E402
 from cca_cli.stages.simulate import simulate  # noqa: E402
 
 #: Interpreter and import check of each peer family.
@@ -93,14 +93,6 @@ def prepare_data(folder: Path, *, with_sensor: bool) -> dict:
             out["scene"], out["geometry"] = simulation.scene, g
         del simulation
     return out
-
-
-def band_limited_truth(scene, geometry) -> np.ndarray:
-    """Truth field with its spectrum masked to the synthetic aperture (union of pupil discs)."""
-    size = scene.field.shape[-1]
-    model = build_model(geometry, 84, hires_size=size)
-    mask = model.normal_diagonal() > 0
-    return fft.ifft2c(fft.fft2c(scene.field.astype(np.complex64)) * mask)
 
 
 # ----------------------------------------------------------------------------- metrics
@@ -296,8 +288,9 @@ def main() -> None:
     workdir.mkdir(parents=True, exist_ok=True)
     print("simulating the headline data ...", flush=True)
     data = prepare_data(workdir / "data", with_sensor=not args.no_sensor)
-    band_truth = band_limited_truth(data["scene"], data["geometry"])
     truth, bars = data["scene"].field, data["scene"].bars
+    # amplitude_rmse and alignment() read only |band truth|: the square root of its intensity
+    band_truth = np.sqrt(band_limited_truth(truth, data["geometry"]))
 
     floor_samples = {84: [], PEER_SIZE: []}
 
@@ -306,7 +299,6 @@ def main() -> None:
             floor_samples[size].append(fft_floor_seconds(data["geometry"].n_images, size, repeats=5)[0])
 
     measure_floors()
-    floors = {size: min(v) for size, v in floor_samples.items()}
 
     ours = []
     for engine in [e for e in args.engines.split(",") if e]:
@@ -366,9 +358,8 @@ def main() -> None:
         rows.append(row)
     ok_rows = [r for r in rows if r.get("status") == "ok"]
     for row in ok_rows:
-        row["floor_s"] = floors[row["fft_size"]]
-        row["ratio_to_floor"] = row["s_per_iteration"] / row["floor_s"]
-        # the same ratio against the median floor sample: both sides then see the machine's typical load
+        # summarise() gives the ratio to the fastest floor sample; this one is against the median sample,
+        # so both sides see the machine's typical load
         row["ratio_to_median_floor"] = row["s_per_iteration"] / float(np.median(floor_samples[row["fft_size"]]))
     peer_rows = [r for r in ok_rows if not r["method"].startswith("ours")]
     reference = peer_rows or ok_rows

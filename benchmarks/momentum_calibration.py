@@ -27,10 +27,9 @@ from cca_cli.metrics import rmse
 from cca_cli.optics import fft
 from cca_cli.optics.forward import ForwardModel, chunk_slices
 from cca_cli.optics.noise import add_gaussian_noise
-from cca_cli.optics.pupil import circular_pupils, zernike_phase  # noqa: F401 (aberrated cases)
-from cca_cli.sampling.grid import band_layout
+from cca_cli.optics.pupil import circular_pupils, zernike_phase
+from cca_cli.sampling.grid import band_layout, square_scan
 from cca_cli.sampling.overlap import step_m
-from cca_cli.sampling.grid import square_scan
 from cca_cli.targets import resolution_chart
 
 
@@ -181,4 +180,5 @@ def speed(repeats=3):
 
 
 if __name__ == "__main__":
-    {"convergence": convergence, "calibration": calibration, "speed": speed, "pupil": pupil}[sys.argv[1] if len(sys.argv) > 1 else "convergence"]()
+    studies = {"convergence": convergence, "calibration": calibration, "speed": speed, "pupil": pupil}
+    studies[sys.argv[1] if len(sys.argv) > 1 else "convergence"]()

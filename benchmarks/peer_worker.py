@@ -81,6 +81,21 @@ class Recorder:
         self._excluded += time.perf_counter() - now
 
 
+def load_peer_data(data: Path, dtype) -> tuple[np.ndarray, dict]:
+    """Captures (clipped at zero, as ``dtype``) and geometry of a ``peers128.npz`` file.
+
+    The geometry holds ``width`` (field width, m), ``wavelength`` (m), ``radius``
+    (pupil radius, spectrum px), ``hires`` (output grid) and ``centres`` ((K, 2)
+    pupil centres ``[y, x]`` in spectrum px relative to DC).
+    """
+    with np.load(data) as d:
+        images = np.clip(d["images"], 0, None).astype(dtype)
+        geometry = dict(width=float(d["field_width_m"]), wavelength=float(d["wavelength_m"]),
+                        radius=float(d["pupil_radius_px"]), hires=int(d["hires_size"]),
+                        centres=np.asarray(d["centres_yx_px"], np.float64))
+    return images, geometry
+
+
 def centred_ifft2(spectrum: np.ndarray) -> np.ndarray:
     return np.fft.fftshift(np.fft.ifft2(np.fft.ifftshift(spectrum, axes=(-2, -1))), axes=(-2, -1))
 
@@ -97,7 +112,8 @@ def run_ours(engine_name: str, data: Path, iterations: int) -> dict:
     entry = get_engine(engine_name)
     baseline = rss_now_bytes()
     images = np.load(data)
-    model = build_model(geometry, images.shape[-1])
+    input_size = images.shape[-1]
+    model = build_model(geometry, input_size)
     problem = PhaseRetrievalProblem.from_sensor_images(model, images)
     del images
     names = entry.option_names()
@@ -111,7 +127,7 @@ def run_ours(engine_name: str, data: Path, iterations: int) -> dict:
     finally:
         engine.close()
     notes = (f"our {engine_name} engine, {model.n_images} captures on a {model.layout.lowres_size}² grid "
-             f"from {np.load(data, mmap_mode='r').shape[-1]}² input, output {model.layout.hires_size}², "
+             f"from {input_size}² input, output {model.layout.hires_size}², "
              f"FFT backend {fft.backend_name()}")
     return dict(recorder=recorder, baseline=baseline, fft_size=model.layout.lowres_size, notes=notes)
 
@@ -123,14 +139,12 @@ def run_ptylab(engine_name: str, data: Path, iterations: int, workdir: Path) -> 
     from PtyLab.Monitor.Monitor import DummyMonitor
 
     baseline = rss_now_bytes()
-    d = np.load(data)
-    images = np.clip(d["images"], 0, None).astype(np.float32)
+    images, g = load_peer_data(data, np.float32)
     k, n = images.shape[0], images.shape[-1]
-    width, wavelength = float(d["field_width_m"]), float(d["wavelength_m"])
-    radius, hires = float(d["pupil_radius_px"]), int(d["hires_size"])
+    width, wavelength, radius, hires = g["width"], g["wavelength"], g["radius"], g["hires"]
     # PtyLab places capture i's pupil at No//2 - round(W sinθ_i / λ) (rows, columns) for dxd/magnification = W/n;
     # with zled = 1 m the encoder is the LED offset that gives sinθ_i = -c_i λ / W.
-    sin_theta = -np.asarray(d["centres_yx_px"], np.float64) * wavelength / width
+    sin_theta = -g["centres"] * wavelength / width
     encoder = sin_theta / np.sqrt(1.0 - np.sum(sin_theta ** 2, axis=1, keepdims=True))
     path = workdir / "ptylab_input.hdf5"
     with h5py.File(path, "w") as handle:
@@ -141,7 +155,7 @@ def run_ptylab(engine_name: str, data: Path, iterations: int, workdir: Path) -> 
         handle["zled"] = 1.0
         handle["magnification"] = 1.0
         handle["NA"] = radius * wavelength / width
-    del images, d
+    del images
 
     data_obj = PtyLab.ExperimentalData(str(path), "FPM")
     params = PtyLab.Params()
@@ -184,13 +198,9 @@ def run_fpmrs(algorithm: str, data: Path, iterations: int, workdir: Path) -> dic
     import fpm_rs
 
     baseline = rss_now_bytes()
-    d = np.load(data)
-    images = np.clip(d["images"], 0, None).astype(np.float64)
+    images, g = load_peer_data(data, np.float64)
     k, n = images.shape[0], images.shape[-1]
-    width, wavelength = float(d["field_width_m"]), float(d["wavelength_m"])
-    radius, hires = float(d["pupil_radius_px"]), int(d["hires_size"])
-    centres = np.asarray(d["centres_yx_px"], np.float64)
-    del d
+    width, wavelength, radius, hires, centres = g["width"], g["wavelength"], g["radius"], g["hires"], g["centres"]
     optics = fpm_rs.Optics(wavelength, radius * wavelength / width, 1.0, width / n)
     k_vectors = 2 * np.pi * centres[:, ::-1] / width  # (kx, ky) in rad/m
     model = fpm_rs.compile_model(optics, fpm_rs.KVectorList(k_vectors), (n, n), (hires, hires))
@@ -228,12 +238,9 @@ def run_fpmpy(data: Path, iterations: int) -> dict:
     from fpm_py.core.structs import AcquisitionSettings, ImageCapture, ImageSeries
 
     baseline = rss_now_bytes()
-    d = np.load(data)
-    images = np.clip(d["images"], 0, None).astype(np.float32)
+    images, g = load_peer_data(data, np.float32)
     k, n = images.shape[0], images.shape[-1]
-    radius, hires = float(d["pupil_radius_px"]), int(d["hires_size"])
-    centres = np.asarray(d["centres_yx_px"], np.float64)
-    del d
+    radius, hires, centres = g["radius"], g["hires"], g["centres"]
     # fpm-py centres capture i's crop at (H//2, W//2) + round(k_i / du): with du = 1, k_i is the centre in pixels.
     captures = [ImageCapture(image=torch.from_numpy(images[i]), k_vector=torch.tensor(centres[i], dtype=torch.float32))
                 for i in range(k)]

@@ -29,8 +29,10 @@ import numpy as np
 __all__ = [
     "AIRY_SPOT_FACTOR",
     "FourierScale",
+    "grid_pixel_m",
     "object_pixel_pitch_m",
     "sensor_field_width_m",
+    "sensor_pixels_across",
     "spot_size_m",
     "led_fourier_scale",
 ]
@@ -62,6 +64,42 @@ def object_pixel_pitch_m(pixel_pitch_m: float, focal_length_m: float, distance_m
 def sensor_field_width_m(n_pixels: int, pixel_pitch_m: float, focal_length_m: float, distance_m: float) -> float:
     """Object-plane width seen by ``n_pixels`` sensor pixels (m)."""
     return n_pixels * object_pixel_pitch_m(pixel_pitch_m, focal_length_m, distance_m)
+
+
+def sensor_pixels_across(field_width_m: float, pixel_pitch_m: float, focal_length_m: float, distance_m: float) -> int:
+    """Whole sensor pixels across an object-plane field (the inverse of :func:`sensor_field_width_m`, rounded).
+
+    Parameters
+    ----------
+    field_width_m : float
+        Object-plane width (m).
+    pixel_pitch_m, focal_length_m, distance_m : float
+        Sensor pixel pitch, focal length and object distance (m).
+
+    Returns
+    -------
+    int
+        ``round(field_width_m / object_pixel_pitch_m(...))``.
+    """
+    return int(round(field_width_m / object_pixel_pitch_m(pixel_pitch_m, focal_length_m, distance_m)))
+
+
+def grid_pixel_m(field_width_m: float, n_pixels: int) -> float:
+    """Object-plane size of one pixel of an ``n_pixels`` grid spanning ``field_width_m``.
+
+    Parameters
+    ----------
+    field_width_m : float
+        Object-plane width of the grid (m).
+    n_pixels : int
+        Pixels across the grid (e.g. the recovered image's side M).
+
+    Returns
+    -------
+    float
+        Pixel pitch at the object (m).
+    """
+    return field_width_m / n_pixels
 
 
 def spot_size_m(wavelength_m: float, distance_m: float, aperture_diameter_m: float) -> float:

@@ -8,28 +8,16 @@ from typing import Annotated, Optional
 import numpy as np
 import typer
 
-from cca_cli.commands.console import console, handle_errors, progress_reporter
-from cca_cli.commands.options import Force, Quiet
+from cca_cli.commands.console import console, handle_errors
+from cca_cli.commands.options import Force, Quiet, section_from_options
+from cca_cli.commands.stage_run import run_stage
 from cca_cli.config.model import HdrSection, RegisterSection
 from cca_cli.errors import ConfigError
-from cca_cli.io.h5 import check_output
 from cca_cli.stages import hdr as hdr_stage
 from cca_cli.stages import ingest as ingest_stage
 from cca_cli.stages import register as register_stage
-from cca_cli.stages.runner import stage_provenance
 
 __all__ = ["ingest_cli", "hdr_cli", "register_cli"]
-
-
-def _section(model, **values):
-    from pydantic import ValidationError
-
-    try:
-        return model.model_validate({k: v for k, v in values.items() if v is not None})
-    except ValidationError as exc:
-        err = exc.errors()[0]
-        raise ConfigError(f"--{'.'.join(str(p) for p in err['loc']).replace('_', '-')}: "
-                          f"{err['msg'].removeprefix('Value error, ')}") from None
 
 
 @handle_errors
@@ -44,11 +32,9 @@ def ingest_cli(
     from cca_cli.config.model import IngestSection
     from cca_cli.io.manifest import manifest_files
 
-    check_output(output, force=force)
-    sections = {"ingest": IngestSection(manifest=manifest)}
-    provenance = stage_provenance("ingest", sections, manifest_files(manifest))
-    with progress_reporter(not quiet) as progress:
-        data = ingest_stage.run(manifest, output, provenance=provenance, force=force, progress=progress)
+    data = run_stage("ingest", ingest_stage.run, manifest, output=output,
+                     sections={"ingest": IngestSection(manifest=manifest)}, inputs=lambda: manifest_files(manifest),
+                     force=force, quiet=quiet)
     k, e, h, w = data.frames.shape
     g = data.geometry
     console.print(f"{output}: {k} positions x {e} exposure(s) of {w}x{h} px ({g.kind}), "
@@ -65,12 +51,9 @@ def hdr_cli(
     quiet: Quiet = False,
 ) -> None:
     """Merge each position's exposure bracket into linear radiance + validity weights → hdr.h5."""
-    section = _section(HdrSection, saturation_level=saturation_level, noise_floor=noise_floor)
-    check_output(output, force=force)
-    sections = {"hdr": section}
-    provenance = stage_provenance("hdr", sections, [raw])
-    with progress_reporter(not quiet) as progress:
-        out = hdr_stage.run(raw, section, output, provenance=provenance, force=force, progress=progress)
+    section = section_from_options(HdrSection, saturation_level=saturation_level, noise_floor=noise_floor)
+    out = run_stage("hdr", hdr_stage.run, raw, section, output=output, sections={"hdr": section}, inputs=[raw],
+                    force=force, quiet=quiet)
     console.print(f"{output}: {out.n_positions} positions merged from {out.n_exposures} exposures "
                   f"(ratio {out.exposure_ratio:.0f}), dynamic range gain median {np.median(out.dynamic_range_gain):.1f}x, "
                   f"valid pixels {np.mean(out.valid_fraction):.1%}")
@@ -95,13 +78,10 @@ def register_cli(
             raise ConfigError(f"--crop: {crop!r} is not four integers x0,y0,width,height") from None
         if len(rect) != 4:
             raise ConfigError(f"--crop: {crop!r} is not four integers x0,y0,width,height")
-    section = _section(RegisterSection, crop_xywh=rect, drop_missing=drop_missing or None,
-                       ransac_threshold_px=ransac_threshold_px)
-    check_output(output, force=force)
-    sections = {"registration": section}
-    provenance = stage_provenance("register", sections, [captures])
-    with progress_reporter(not quiet) as progress:
-        reg = register_stage.run(captures, section, output, provenance=provenance, force=force, progress=progress)
+    section = section_from_options(RegisterSection, crop_xywh=rect, drop_missing=drop_missing or None,
+                                   ransac_threshold_px=ransac_threshold_px)
+    reg = run_stage("register", register_stage.run, captures, section, output=output,
+                    sections={"registration": section}, inputs=[captures], force=force, quiet=quiet)
     lost = f", lost: {'; '.join(reg.dropped)}" if reg.dropped else ""
     console.print(f"{output}: {len(reg.kept)} views registered, reprojection RMS max {reg.rms_px.max():.3f} px, "
                   f"object {reg.intensity.shape[-1]}² px{lost}")

@@ -10,7 +10,8 @@ import typer
 from rich.table import Table
 
 from cca_cli.commands.console import console, err_console, handle_errors
-from cca_cli.errors import ConfigError, OutputExistsError
+from cca_cli.errors import ConfigError
+from cca_cli.io.h5 import check_output
 
 __all__ = ["design_cli", "plan_config"]
 
@@ -100,8 +101,7 @@ def design_cli(
     if write_config is not None:
         import yaml
 
-        if write_config.exists() and not force:
-            raise OutputExistsError(f"{write_config}: exists; use --force to overwrite it")
+        check_output(write_config, force=force)
         write_config.write_text("# Written by `cca design`.\n" + yaml.safe_dump(plan_config(plan, iterations=iterations),
                                                                                   sort_keys=False))
     if as_json:

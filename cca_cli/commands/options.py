@@ -1,13 +1,19 @@
-"""Shared command-line option types, defined once."""
+"""Shared command-line option types, defined once, and config sections built from option values."""
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated, Optional, TypeVar
 
 import typer
+from pydantic import BaseModel, ValidationError
 
-__all__ = ["ConfigArg", "OptionalConfigArg", "Force", "Output", "Quiet"]
+from cca_cli.config.messages import error_message
+from cca_cli.errors import ConfigError
+
+__all__ = ["ConfigArg", "OptionalConfigArg", "Force", "Output", "Quiet", "section_from_options"]
+
+SectionT = TypeVar("SectionT", bound=BaseModel)
 
 ConfigArg = Annotated[Path, typer.Argument(help="YAML config file.", dir_okay=False, show_default=False)]
 OptionalConfigArg = Annotated[Optional[Path], typer.Argument(
@@ -16,3 +22,30 @@ OptionalConfigArg = Annotated[Optional[Path], typer.Argument(
 Force = Annotated[bool, typer.Option("--force", "-f", help="Overwrite existing outputs (and recompute).")]
 Output = Annotated[Path, typer.Option("--output", "-o", help="Output path.", dir_okay=True, show_default=False)]
 Quiet = Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")]
+
+
+def section_from_options(model: type[SectionT], base: BaseModel | None = None, **values) -> SectionT:
+    """A config section from ``base`` (or the defaults) with the option values that were given on top.
+
+    Parameters
+    ----------
+    model : type
+        The section's model (``HdrSection`` …).
+    base : BaseModel, optional
+        Section whose values the options override (e.g. from ``--config``).
+    **values
+        Option values by key; None means the option was not given.
+
+    Raises
+    ------
+    ConfigError
+        One line naming the option (``--noise-floor: …``) when a value is invalid.
+    """
+    data = base.model_dump() if base is not None else {}
+    data.update({k: v for k, v in values.items() if v is not None})
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        option = ".".join(str(p) for p in err["loc"]).replace("_", "-")
+        raise ConfigError(f"--{option}: {error_message(err)}") from None

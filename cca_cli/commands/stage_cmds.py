@@ -7,16 +7,15 @@ from typing import Annotated, Optional
 
 import typer
 
-from cca_cli.commands.console import console, handle_errors, progress_reporter, summary_table
-from cca_cli.commands.options import ConfigArg, Force, Quiet
+from cca_cli.commands.console import console, handle_errors, summary_table
+from cca_cli.commands.options import ConfigArg, Force, Quiet, section_from_options
+from cca_cli.commands.stage_run import run_stage
 from cca_cli.config.load import load_config
 from cca_cli.config.model import ReconstructSection, ReportSection
-from cca_cli.errors import ConfigError
-from cca_cli.io.h5 import check_output
 from cca_cli.stages import reconstruct as reconstruct_stage
 from cca_cli.stages import report as report_stage
 from cca_cli.stages import simulate as simulate_stage
-from cca_cli.stages.runner import pick_sections, stage_provenance
+from cca_cli.stages.runner import pick_sections
 
 
 @handle_errors
@@ -28,11 +27,8 @@ def simulate_cli(
 ) -> None:
     """Simulate the captures of CONFIG's array and scene → captures.h5."""
     cfg = load_config(config)
-    check_output(output, force=force)
-    sections = pick_sections(cfg, simulate_stage.SECTIONS)
-    provenance = stage_provenance("simulate", sections)
-    with progress_reporter(not quiet) as progress:
-        sim = simulate_stage.run(cfg, output, provenance=provenance, force=force, progress=progress)
+    sim = run_stage("simulate", simulate_stage.run, cfg, output=output,
+                    sections=pick_sections(cfg, simulate_stage.SECTIONS), force=force, quiet=quiet)
     g = sim.geometry
     if cfg.multiplex is not None:
         mux = sim.multiplex
@@ -57,21 +53,10 @@ def reconstruct_cli(
     quiet: Quiet = False,
 ) -> None:
     """Recover the high-resolution object from CAPTURES → recon.h5."""
-    section = load_config(config).reconstruct if config else ReconstructSection()
-    overrides = {k: v for k, v in dict(engine=engine, tau=tau, iterations=iterations, tol=tol).items() if v is not None}
-    if overrides:
-        from pydantic import ValidationError
-
-        try:
-            section = ReconstructSection.model_validate({**section.model_dump(), **overrides})
-        except ValidationError as exc:
-            err = exc.errors()[0]
-            raise ConfigError(f"--{'.'.join(str(p) for p in err['loc']) or 'engine'}: {err['msg'].removeprefix('Value error, ')}") from None
-    check_output(output, force=force)
-    sections = {"reconstruct": section}
-    provenance = stage_provenance("reconstruct", sections, [captures])
-    with progress_reporter(not quiet) as progress:
-        recovery = reconstruct_stage.run(captures, section, output, provenance=provenance, force=force, progress=progress)
+    base = load_config(config).reconstruct if config else None
+    section = section_from_options(ReconstructSection, base, engine=engine, tau=tau, iterations=iterations, tol=tol)
+    recovery = run_stage("reconstruct", reconstruct_stage.run, captures, section, output=output,
+                         sections={"reconstruct": section}, inputs=[captures], force=force, quiet=quiet)
     console.print(f"{output}: {recovery.engine}, {recovery.history.iterations} iterations in {recovery.seconds:.1f} s, "
                   f"{recovery.layout.hires_size}² output")
 
@@ -85,8 +70,6 @@ def report_cli(
 ) -> None:
     """Metrics (report.json) and figures (PNG) of RECON → a report directory."""
     section = ReportSection(mtf_threshold=threshold)
-    check_output(output, force=force)
-    sections = {"report": section}
-    provenance = stage_provenance("report", sections, [recon])
-    summary = report_stage.run(recon, section, output, provenance=provenance, force=force)
+    summary = run_stage("report", report_stage.run, recon, section, output=output, sections={"report": section},
+                        inputs=[recon], force=force, quiet=True)
     console.print(summary_table(summary, title=f"cca report → {output}"))

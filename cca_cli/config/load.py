@@ -9,6 +9,7 @@ from typing import Any
 import yaml
 from pydantic import BaseModel, ValidationError
 
+from cca_cli.config.messages import accepted_keys, error_message, yaml_error_text
 from cca_cli.config.model import RunConfig
 from cca_cli.errors import ConfigError
 
@@ -25,28 +26,14 @@ def preset_path(name: str = "headline") -> Path:
     return Path(str(resources.files("cca_cli.config") / "presets" / f"{name}.yaml"))
 
 
-def _section_keys(model: type[BaseModel], loc: tuple) -> list[str]:
-    """Accepted keys of the (sub)model that ``loc`` points into."""
-    current: Any = model
-    for part in loc[:-1]:
-        field = getattr(current, "model_fields", {}).get(part)
-        if field is None:
-            return []
-        current = field.annotation
-    return sorted(getattr(current, "model_fields", {}))
-
-
 def _describe(error: dict, source: str) -> str:
-    loc = tuple(str(p) for p in error["loc"])
-    key = ".".join(loc) or "(top level)"
+    key = ".".join(str(p) for p in error["loc"]) or "(top level)"
     kind = error["type"]
     if kind == "extra_forbidden":
-        accepted = _section_keys(RunConfig, loc)
+        accepted = sorted(accepted_keys(RunConfig, error["loc"]))
         return f"{source}: {key}: unknown key; accepted keys here: {', '.join(accepted)}"
     value = error.get("input")
-    message = error["msg"]
-    if message.startswith("Value error, "):
-        message = message[len("Value error, "):]
+    message = error_message(error)
     if kind.startswith(("float", "int")) or kind in ("greater_than", "less_than", "greater_than_equal", "less_than_equal"):
         return f"{source}: {key}: {message} (got {value!r})"
     if kind == "literal_error":
@@ -84,9 +71,7 @@ def load_config(path: str | Path | None = None) -> RunConfig:
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" line {mark.line + 1}" if mark else ""
-        raise ConfigError(f"{path}:{where}: not valid YAML ({getattr(exc, 'problem', exc)})") from None
+        raise ConfigError(yaml_error_text(path, exc)) from None
     return _resolve_relative_paths(parse_config(data, source=str(path)), path.parent)
 
 

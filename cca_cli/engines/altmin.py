@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cca_cli.engines.base import IterativeEngine
+from cca_cli.engines.base import IterativeEngine, check_options
 from cca_cli.engines.passes import ChunkedPass
 from cca_cli.engines.problem import PhaseRetrievalProblem, initial_spectrum
 from cca_cli.engines.projections import project_magnitudes
@@ -54,16 +54,14 @@ class AltMinOptions:
     threads: int | None = None
 
     def __post_init__(self):
-        if self.tau < 0:
-            raise ValueError(f"tau must be ≥ 0, got {self.tau}")
-        if self.max_iterations < 1:
-            raise ValueError(f"max_iterations must be ≥ 1, got {self.max_iterations}")
-        if self.tol < 0:
-            raise ValueError(f"tol must be ≥ 0, got {self.tol}")
-        if not _is_count(self.chunk):
-            raise ValueError(f"chunk must be an integer ≥ 1, got {self.chunk!r}")
-        if self.threads is not None and not _is_count(self.threads):
-            raise ValueError(f"threads must be an integer ≥ 1 or null, got {self.threads!r}")
+        check_options([
+            (self.tau >= 0, f"tau must be ≥ 0, got {self.tau}"),
+            (self.max_iterations >= 1, f"max_iterations must be ≥ 1, got {self.max_iterations}"),
+            (self.tol >= 0, f"tol must be ≥ 0, got {self.tol}"),
+            (_is_count(self.chunk), f"chunk must be an integer ≥ 1, got {self.chunk!r}"),
+            (self.threads is None or _is_count(self.threads),
+             f"threads must be an integer ≥ 1 or null, got {self.threads!r}"),
+        ])
 
 
 def _is_count(value) -> bool:

@@ -247,12 +247,12 @@ def refine_positions(layout: BandLayout, spectrum: np.ndarray, amplitudes: np.nd
     """
     limit = max_position_offset(layout) if max_offset is None else float(max_offset)
     offsets = np.array(offsets, np.float64)
-    workspace = workspace or ForwardModel(layout, np.ones((1, layout.box_size, layout.box_size))).workspace(
-        min(32, layout.n_images))
 
     def evaluate(trial: np.ndarray) -> np.ndarray:
-        pupils = pupil_functions(layout, offsets=trial, coefficients=coefficients, order=order)
-        return capture_misfits(ForwardModel(layout, pupils), spectrum, amplitudes, weights, workspace=workspace)
+        nonlocal workspace
+        model = ForwardModel(layout, pupil_functions(layout, offsets=trial, coefficients=coefficients, order=order))
+        workspace = workspace or model.workspace(min(32, layout.n_images))
+        return capture_misfits(model, spectrum, amplitudes, weights, workspace=workspace)
 
     best = evaluate(offsets) if misfits is None else np.array(misfits, np.float64)
     for h in steps:

@@ -60,11 +60,12 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from cca_cli.engines import calibration as cal
-from cca_cli.engines.base import IterativeEngine
+from cca_cli.engines.base import IterativeEngine, check_options
 from cca_cli.engines.problem import PhaseRetrievalProblem, initial_spectrum
 from cca_cli.engines.schedule import build_schedule
 from cca_cli.optics import fft, kernels
 from cca_cli.optics.forward import ForwardModel
+from cca_cli.optics.pupil import circular_pupils
 
 __all__ = ["MomentumOptions", "Calibration", "SequentialMomentum"]
 
@@ -144,7 +145,7 @@ class MomentumOptions:
     threads: int | None = None
 
     def __post_init__(self):
-        checks = [
+        check_options([
             (self.tau >= 0, f"tau must be ≥ 0, got {self.tau}"),
             (self.max_iterations >= 1, f"max_iterations must be ≥ 1, got {self.max_iterations}"),
             (self.tol >= 0, f"tol must be ≥ 0, got {self.tol}"),
@@ -162,10 +163,7 @@ class MomentumOptions:
              f"pupil_recovery must be one of {', '.join(_PUPILS)}, got {self.pupil_recovery!r}"),
             (self.pupil_order in (2, 3, 4), f"pupil_order must be 2, 3 or 4, got {self.pupil_order}"),
             (0 < self.pupil_step <= 1, f"pupil_step must be in (0, 1], got {self.pupil_step}"),
-        ]
-        for ok, message in checks:
-            if not ok:
-                raise ValueError(message)
+        ])
         object.__setattr__(self, "position_steps", tuple(float(s) for s in self.position_steps))
 
 
@@ -214,9 +212,9 @@ class SequentialMomentum(IterativeEngine):
         distances = np.hypot(layout.centres_px[:, 0], layout.centres_px[:, 1])
         self._schedule = build_schedule(layout.box_origins, layout.box_size, distances, options.batch)
         self._order = order = self._schedule.order
-        self._batches = self._schedule.batches
         self._layout = replace(layout, centres_px=layout.centres_px[order],
                                box_origins=layout.box_origins[order], box_centres=layout.box_centres[order])
+        self._origin_array = np.ascontiguousarray(self._layout.box_origins, dtype=np.int64)
         self._amplitudes = np.ascontiguousarray(problem.amplitudes[order], dtype=np.float32)
         self._weights = None if problem.weights is None else np.ascontiguousarray(problem.weights[order], np.float32)
         self._intensities = np.square(self._amplitudes) if options.cost == "poisson" else None
@@ -227,7 +225,7 @@ class SequentialMomentum(IterativeEngine):
         self._velocity = np.zeros_like(self._spectrum)
         self._anchor = self._spectrum.copy()
 
-        capacity = max(sl.stop - sl.start for sl in self._batches)
+        capacity = max(sl.stop - sl.start for sl in self._schedule.batches)
         self._workspaces = [model.workspace(capacity, threads=1) for _ in range(self._threads)]
         self._scratch = [np.empty((capacity,) + model.field_shape, np.float32) for _ in range(self._threads)]
         self._pool = ThreadPoolExecutor(self._threads - 1) if self._threads > 1 else None
@@ -253,24 +251,24 @@ class SequentialMomentum(IterativeEngine):
             self._pupil_step = options.pupil_step
             self._pupil_previous = None  # (coefficients before the last step, misfit of the pass that made it)
             self._set_basis()
-            self._set_model(ForwardModel(self._layout, self._pupils()))
+            self._set_model(self._pupils())
         else:
-            self._set_model(ForwardModel(self._layout, model.pupils[order]))
+            self._set_model(model.pupils[order])
         self._iteration = 0
         self._change = np.inf
 
     # ------------------------------------------------------------ model state
-    def _set_model(self, model: ForwardModel) -> None:
-        """Use ``model`` (capture order of the engine) and precompute each capture's update factor."""
-        self._model = model
+    def _set_model(self, pupils: np.ndarray) -> None:
+        """Use ``pupils`` (capture order of the engine) and precompute each capture's update factor."""
+        self._model = model = ForwardModel(self._layout, pupils)
         layout = self._layout
         b, opts = layout.box_size, self.options
         power = np.abs(model.pupils) ** 2
         coverage = np.zeros(model.spectrum_shape, np.float32)
         factors = np.empty(model.pupils.shape, np.complex64)
-        origins = layout.box_origins
+        origins = self._origin_array
         scale = np.float32(opts.beta / layout.lowres_size)
-        for sl in self._batches:
+        for sl in self._schedule.batches:
             for i in range(sl.start, sl.stop):
                 y0, x0 = origins[i]
                 coverage[y0:y0 + b, x0:x0 + b] += power[i]
@@ -282,8 +280,6 @@ class SequentialMomentum(IterativeEngine):
                 y0, x0 = origins[i]
                 coverage[y0:y0 + b, x0:x0 + b] = 0
         self._factors = factors
-        self._origins = [tuple(int(v) for v in o) for o in origins]
-        self._origin_array = np.ascontiguousarray(origins, dtype=np.int64)
 
     def _pupils(self) -> np.ndarray:
         return cal.pupil_functions(self._layout, offsets=self._offsets, coefficients=self._coefficients,
@@ -293,7 +289,7 @@ class SequentialMomentum(IterativeEngine):
         """Zernike modes on each capture's (offset) disc, flattened per mode: (n_modes, K, b²)."""
         layout = self._layout
         centres = layout.box_centres + self._offsets
-        disc = cal.pupil_functions(layout, offsets=self._offsets).real
+        disc = circular_pupils(layout.box_size, centres, layout.pupil_radius_px)
         basis = cal.zernike_basis(layout.box_size, centres, layout.pupil_radius_px, order=self.options.pupil_order)
         self._basis = (basis * disc).reshape(basis.shape[0], layout.n_images, -1)
 
@@ -309,7 +305,8 @@ class SequentialMomentum(IterativeEngine):
         if weights is not None:
             misfit *= np.sqrt(weights)
         squared = float(np.vdot(misfit.ravel(), misfit.ravel()))
-        # Poisson cost: ψ' − ψ = −μ ψ (1 − I/|ψ|²); the floor on |ψ|² bounds the step where the model is dark.
+        # Poisson cost: ψ' − ψ = −μ ψ (1 − I/|ψ|²); the floor on |ψ|² bounds the step where the model
+        # is dark.
         np.square(magnitude, out=magnitude)
         np.maximum(magnitude, self._eps * self._eps + 1e-3 * self._intensities[images].mean(), out=magnitude)
         factor = np.divide(self._intensities[images], magnitude, out=magnitude)
@@ -338,7 +335,7 @@ class SequentialMomentum(IterativeEngine):
         """Add this batch's terms of the Gauss-Newton pupil system (see module notes)."""
         b = self._layout.box_size
         k = images.stop - images.start
-        seen = np.stack([self._spectrum[y0:y0 + b, x0:x0 + b] for y0, x0 in self._origins[images]])
+        seen = np.stack([self._spectrum[y0:y0 + b, x0:x0 + b] for y0, x0 in self._origin_array[images]])
         seen *= self._model.pupils[images]
         # The raw transform of the workspace is m times the orthonormal one.
         gradient = np.imag(np.conj(seen) * residual).reshape(k, -1) / np.float32(self._layout.lowres_size)
@@ -357,7 +354,7 @@ class SequentialMomentum(IterativeEngine):
             self._coefficients = previous[0]
             self._pupil_step *= 0.5
             self._pupil_previous = None
-            self._set_model(ForwardModel(self._layout, self._pupils()))
+            self._set_model(self._pupils())
             return
         trace = float(np.trace(normal))
         if not trace > 0:
@@ -369,7 +366,7 @@ class SequentialMomentum(IterativeEngine):
             step *= _MAX_PUPIL_STEP / largest
         self._pupil_previous = (self._coefficients.copy(), misfit)
         self._coefficients = self._coefficients + step
-        self._set_model(ForwardModel(self._layout, self._pupils()))
+        self._set_model(self._pupils())
 
     def _scatter(self, t: int, images: slice) -> None:
         """Add the batch's weighted update boxes (workspace ``t``) to the spectrum."""
@@ -378,26 +375,19 @@ class SequentialMomentum(IterativeEngine):
             kernels.scatter_boxes(self._workspaces[t].fields[:k], self._origin_array, self._factors, self._spectrum,
                                   images.start)
 
-    def _momentum(self) -> tuple[float, float]:
-        """The momentum step; returns ``(‖S − S₀‖², ‖S₀‖²)`` for the pass's relative change."""
-        return kernels.momentum_step(self._spectrum, self._anchor, self._velocity, self.options.eta)
-
     # ------------------------------------------------------------ calibration
     def _calibrate(self) -> None:
+        """One position-refinement round against the current spectrum; the model follows the new offsets."""
         opts = self.options
         if self._calibration_workspace is None:
             self._calibration_workspace = self._model.workspace(min(32, self._model.n_images), threads=1)
-        ws = self._calibration_workspace
-        misfits = None
-        if opts.position_refinement:
-            self._offsets, misfits = cal.refine_positions(
-                self._layout, self._spectrum, self._amplitudes, self._weights, self._offsets,
-                steps=opts.position_steps,
-                coefficients=self._coefficients, order=opts.pupil_order,
-                misfits=misfits, workspace=ws)
-            if self._recover_pupil:
-                self._set_basis()
-        self._set_model(ForwardModel(self._layout, self._pupils()))
+        self._offsets, _ = cal.refine_positions(
+            self._layout, self._spectrum, self._amplitudes, self._weights, self._offsets,
+            steps=opts.position_steps, coefficients=self._coefficients, order=opts.pupil_order,
+            workspace=self._calibration_workspace)
+        if self._recover_pupil:
+            self._set_basis()
+        self._set_model(self._pupils())
 
     def _run_lane(self, t: int, batches: tuple[slice, ...]) -> float:
         """Run ``batches`` one after the other on thread ``t``; returns their summed misfit."""
@@ -440,16 +430,12 @@ class SequentialMomentum(IterativeEngine):
             else:
                 # Lanes touch disjoint parts of the spectrum: running them together equals running them in turn.
                 # The calling thread takes the longer lane: it waits least for the interpreter between kernels.
-                first, second = phase.lanes
-                if self._lane_size(second) > self._lane_size(first):
-                    future = self._pool.submit(self._run_lane, 1, first)
-                    later = self._run_lane(0, second)
-                    misfit += future.result() + later
-                else:
-                    future = self._pool.submit(self._run_lane, 1, second)
-                    earlier = self._run_lane(0, first)
-                    misfit += earlier + future.result()
-        change, norm = self._momentum()
+                own, other = phase.lanes
+                if self._lane_size(other) > self._lane_size(own):
+                    own, other = other, own
+                future = self._pool.submit(self._run_lane, 1, other)
+                misfit += self._run_lane(0, own) + future.result()
+        change, norm = kernels.momentum_step(self._spectrum, self._anchor, self._velocity, self.options.eta)
         if self._recover_pupil:
             self._update_pupil(misfit)
         return misfit, float(np.sqrt(change / max(norm, 1e-30)))

@@ -22,10 +22,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from cca_cli.engines.altmin import AlternatingMinimization, AltMinOptions
-from cca_cli.engines.problem import MeasuredAmplitudes, sensor_amplitudes
+from cca_cli.engines.problem import MeasuredAmplitudes, sensor_amplitudes, zero_phase_spectrum
 from cca_cli.engines.projections import project_grouped_magnitudes
-from cca_cli.optics import fft
-from cca_cli.optics.forward import ForwardModel, to_sensor_layout
+from cca_cli.optics.forward import ForwardModel
 from cca_cli.optics.multiplex import MultiplexedForwardModel, group_chunk_slices
 
 __all__ = ["MultiplexedProblem", "MultiplexedAlternatingMinimization", "initial_multiplexed_spectrum",
@@ -92,12 +91,9 @@ def initial_multiplexed_spectrum(problem: MultiplexedProblem) -> np.ndarray:
     the start has the scale of one virtual capture; with one source per
     measurement this equals :func:`~cca_cli.engines.problem.initial_spectrum`.
     """
-    model = problem.model
     sizes = np.diff(problem.group_offsets).astype(np.float32)
     power = problem.amplitudes.astype(np.float32) ** 2
-    mean_intensity = to_sensor_layout(np.mean(power / sizes[:, None, None], axis=0)) / model.intensity_scale
-    amplitude = np.sqrt(np.clip(fft.fourier_resample(mean_intensity[None], model.layout.hires_size)[0], 0, None))
-    return fft.fft2c(amplitude.astype(np.complex64)).astype(np.complex64)
+    return zero_phase_spectrum(problem.model, np.mean(power / sizes[:, None, None], axis=0))
 
 
 class MultiplexedAlternatingMinimization(AlternatingMinimization):

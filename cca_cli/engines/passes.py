@@ -32,18 +32,18 @@ class ChunkedPass:
         Captures per chunk (cache-sized; 8-32 is typical).
     threads : int, optional
         Worker threads (default: all cores).
-    groups : list of slice, optional
-        Ranges that must stay within one chunk (multiplexed captures); default:
-        contiguous chunks of ``chunk`` captures.
+    slices : list of slice, optional
+        Capture ranges processed together (e.g. whole multiplexed measurements);
+        default: contiguous chunks of ``chunk`` captures.
     """
 
     def __init__(self, model: ForwardModel, *, chunk: int = 16, threads: int | None = None,
-                 slices: list[slice] | None = None, workers: int | None = None):
+                 slices: list[slice] | None = None):
         self.model = model
         self.slices = slices if slices is not None else chunk_slices(model.n_images, chunk)
         capacity = max(s.stop - s.start for s in self.slices)
         cores = threads or fft.cpu_count()
-        self.threads = max(1, min(workers or cores, len(self.slices)))
+        self.threads = max(1, min(cores, len(self.slices)))
         fft_threads = max(1, cores // self.threads)
         self.workspaces = [model.workspace(capacity, threads=fft_threads) for _ in range(self.threads)]
         self.scratch = [np.empty((2, capacity) + model.field_shape, np.float32) for _ in range(self.threads)]

@@ -10,7 +10,8 @@ import numpy as np
 from cca_cli.optics import fft
 from cca_cli.optics.forward import ForwardModel, to_model_layout, to_sensor_layout
 
-__all__ = ["MeasuredAmplitudes", "PhaseRetrievalProblem", "initial_spectrum", "sensor_amplitudes"]
+__all__ = ["MeasuredAmplitudes", "PhaseRetrievalProblem", "initial_spectrum", "zero_phase_spectrum",
+           "sensor_amplitudes"]
 
 
 class MeasuredAmplitudes:
@@ -139,8 +140,23 @@ def initial_spectrum(problem: PhaseRetrievalProblem) -> np.ndarray:
     -------
     ndarray, complex64, (M, M)
     """
-    model = problem.model
-    mean_intensity = to_sensor_layout(np.mean(problem.amplitudes.astype(np.float32) ** 2, axis=0))
-    mean_intensity /= model.intensity_scale
-    amplitude = np.sqrt(np.clip(fft.fourier_resample(mean_intensity[None], model.layout.hires_size)[0], 0, None))
+    return zero_phase_spectrum(problem.model, np.mean(problem.amplitudes.astype(np.float32) ** 2, axis=0))
+
+
+def zero_phase_spectrum(model: ForwardModel, power: np.ndarray) -> np.ndarray:
+    """Spectrum of the zero-phase object whose low-resolution image is ``power``.
+
+    Parameters
+    ----------
+    model : ForwardModel
+    power : ndarray, float32, (m, m)
+        Image ``|ψ|²`` in model units and field layout.
+
+    Returns
+    -------
+    ndarray, complex64, (M, M)
+        ``fft2c`` of ``√I`` band-limited-interpolated to the M x M grid, ``I`` the image in sensor units.
+    """
+    intensity = to_sensor_layout(power) / model.intensity_scale
+    amplitude = np.sqrt(np.clip(fft.fourier_resample(intensity[None], model.layout.hires_size)[0], 0, None))
     return fft.fft2c(amplitude.astype(np.complex64)).astype(np.complex64)

@@ -13,7 +13,7 @@ def project_magnitudes(fields: np.ndarray, amplitudes: np.ndarray, scratch: np.n
                        weights: np.ndarray | None = None, eps: float = 1e-12) -> float:
     """Replace ``|ψ|`` by the measured amplitude, keeping the phase; return the squared misfit.
 
-    ``ψ ← w · A ψ/(|ψ| + ε) + (1 − w) · ψ`` with ``w = 1`` when no weights are given,
+    ``ψ ← w · A ψ/max(|ψ|, ε) + (1 − w) · ψ`` with ``w = 1`` when no weights are given,
     in one fused pass (:func:`cca_cli.optics.kernels.project_magnitudes`).
 
     Parameters

@@ -7,6 +7,7 @@ import datetime as _dt
 import hashlib
 import json
 import os
+import shutil
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -26,6 +27,7 @@ __all__ = [
     "open_input",
     "write_dataset",
     "read_provenance",
+    "remove_temporaries",
     "require",
 ]
 
@@ -69,6 +71,8 @@ def check_output(path: Path, *, force: bool) -> None:
 def atomic_path(path: str | Path, *, force: bool = False) -> Iterator[Path]:
     """Yield a temporary sibling path; on success rename it onto ``path``.
 
+    The caller may create a file or a directory at the temporary path; an
+    existing directory at ``path`` (overwritten with ``force``) is replaced whole.
     On any error (or Ctrl-C) the temporary file is removed and ``path`` is untouched.
     """
     path = Path(path)
@@ -77,15 +81,24 @@ def atomic_path(path: str | Path, *, force: bool = False) -> Iterator[Path]:
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     try:
         yield tmp
+        if tmp.is_dir() and path.is_dir():  # os.replace cannot replace a non-empty directory
+            shutil.rmtree(path)
         os.replace(tmp, path)
     finally:
         if tmp.exists():
             if tmp.is_dir():
-                import shutil
-
                 shutil.rmtree(tmp, ignore_errors=True)
             else:
                 tmp.unlink()
+
+
+def remove_temporaries(directory: str | Path) -> None:
+    """Remove what interrupted :func:`atomic_path` writes left in ``directory`` (their temporary siblings)."""
+    for stale in Path(directory).glob(".*.tmp-*"):
+        if stale.is_dir():
+            shutil.rmtree(stale, ignore_errors=True)
+        else:
+            stale.unlink(missing_ok=True)
 
 
 @contextlib.contextmanager

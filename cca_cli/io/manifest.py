@@ -16,6 +16,7 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, PositiveInt, ValidationError, model_validator
 
+from cca_cli.config.messages import accepted_keys, error_message, yaml_error_text
 from cca_cli.errors import ConfigError, InputError
 
 __all__ = ["Manifest", "ImageEntry", "CapturePlan", "load_manifest", "plan_captures", "manifest_files"]
@@ -151,35 +152,18 @@ class CapturePlan:
 
 def _describe(error: dict, source: str) -> str:
     loc = ".".join(str(p) for p in error["loc"]) or "(top level)"
-    message = error["msg"].removeprefix("Value error, ")
     if error["type"] == "extra_forbidden":
-        current = Manifest
-        for part in error["loc"][:-1]:
-            if isinstance(part, int) or current is None:
-                continue
-            current = _model_in(current.model_fields[part].annotation)
-        keys = ", ".join(current.model_fields) if current is not None else "see the README"
+        keys = ", ".join(accepted_keys(Manifest, error["loc"])) or "see the README"
         return f"{source}: {loc}: unknown key; accepted keys here: {keys}"
     value = error.get("input")
     suffix = f" (got {value!r})" if not isinstance(value, dict) else ""
-    return f"{source}: {loc}: {message}{suffix}"
+    return f"{source}: {loc}: {error_message(error)}{suffix}"
 
 
 def _first_error(exc: ValidationError) -> dict:
     """A misspelled key explains a missing one, so report unknown keys first."""
     errors = exc.errors()
     return next((e for e in errors if e["type"] == "extra_forbidden"), errors[0])
-
-
-def _model_in(annotation):
-    """The pydantic model inside an annotation such as ``X | None`` or ``list[X] | None``."""
-    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
-        return annotation
-    for arg in getattr(annotation, "__args__", ()):
-        found = _model_in(arg)
-        if found is not None:
-            return found
-    return None
 
 
 def _read_yaml(path: Path) -> dict:
@@ -192,9 +176,7 @@ def _read_yaml(path: Path) -> dict:
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" line {mark.line + 1}:" if mark else ""
-        raise ConfigError(f"{path}:{where} not valid YAML ({getattr(exc, 'problem', exc)})") from None
+        raise ConfigError(yaml_error_text(path, exc)) from None
     if data is None:
         data = {}
     if not isinstance(data, dict):
@@ -257,8 +239,7 @@ def load_manifest(path: str | Path) -> Manifest:
             entries = [ImageEntry.model_validate(r) for r in _read_csv_rows(table, source)]
         except ValidationError as exc:
             err = _first_error(exc)
-            raise ConfigError(f"{table}: {'.'.join(str(p) for p in err['loc'])}: "
-                              f"{err['msg'].removeprefix('Value error, ')}") from None
+            raise ConfigError(f"{table}: {'.'.join(str(p) for p in err['loc'])}: {error_message(err)}") from None
         manifest = manifest.model_copy(update={"images": entries, "images_csv": table})
     if manifest.images is not None:
         manifest = manifest.model_copy(update={"images": [e.model_copy(update={"path": _resolve(base, e.path)})

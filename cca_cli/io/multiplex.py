@@ -9,12 +9,7 @@ from cca_cli.errors import InputError
 from cca_cli.io.h5 import write_dataset
 from cca_cli.optics.multiplex import MultiplexGeometry
 
-__all__ = ["write_multiplex", "read_multiplex", "is_multiplexed"]
-
-
-def is_multiplexed(handle: h5py.File) -> bool:
-    """Whether the file holds multiplexed captures (a /multiplex group)."""
-    return "multiplex" in handle
+__all__ = ["write_multiplex", "read_multiplex"]
 
 
 def write_multiplex(handle: h5py.File, geometry: MultiplexGeometry) -> None:

@@ -9,16 +9,23 @@ and a recovery of a different size compare fairly:
   pupil of radius ``R`` has no intensity spectrum beyond ``2 R`` (only noise
   and aliasing); a synthetic-aperture recovery fills the band out to
   ``2 R_synthetic``.
-* :func:`gradient_sharpness` — the RMS intensity gradient per object pixel
-  over the mean intensity (a normalised Tenengrad): it rises when edges get
-  steeper.
+* :func:`rms_frequency` — the RMS spatial frequency of the same power
+  spectrum: how far out the spectrum reaches, independent of contrast.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["spectral_energy_beyond", "gradient_sharpness", "rms_frequency"]
+__all__ = ["spectral_energy_beyond", "rms_frequency"]
+
+
+def _power_spectrum(image) -> np.ndarray:
+    """``|fft2(I - mean(I))|²`` of a 2-D image (uncentred, float64)."""
+    img = np.asarray(image, dtype=np.float64)
+    if img.ndim != 2:
+        raise ValueError(f"image has shape {img.shape}; expected (N, N)")
+    return np.abs(np.fft.fft2(img - img.mean())) ** 2
 
 
 def spectral_energy_beyond(image, radius_px: float) -> float:
@@ -36,39 +43,14 @@ def spectral_energy_beyond(image, radius_px: float) -> float:
     float
         Share in [0, 1]; 0 for a flat image.
     """
-    img = np.asarray(image, dtype=np.float64)
-    if img.ndim != 2:
-        raise ValueError(f"image has shape {img.shape}; expected (N, N)")
-    power = np.abs(np.fft.fftshift(np.fft.fft2(img - img.mean()))) ** 2
-    h, w = img.shape
+    power = np.fft.fftshift(_power_spectrum(image))
+    h, w = power.shape
     fy = np.arange(h)[:, None] - h // 2
     fx = np.arange(w)[None, :] - w // 2
     total = float(power.sum())
     if total <= 0:
         return 0.0
     return float(power[np.hypot(fy, fx) > radius_px].sum() / total)
-
-
-def gradient_sharpness(image) -> float:
-    """RMS of the intensity gradient (per pixel) divided by the mean intensity.
-
-    Parameters
-    ----------
-    image : array_like, (N, N)
-
-    Returns
-    -------
-    float
-        ``sqrt(mean(|∇I|²)) / mean(I)`` with central differences; 0 for a flat or dark image.
-    """
-    img = np.asarray(image, dtype=np.float64)
-    if img.ndim != 2:
-        raise ValueError(f"image has shape {img.shape}; expected (N, N)")
-    mean = float(img.mean())
-    if mean <= 0:
-        return 0.0
-    gy, gx = np.gradient(img)
-    return float(np.sqrt(np.mean(gy * gy + gx * gx)) / mean)
 
 
 def rms_frequency(image, pixel_m: float = 1.0) -> float:
@@ -91,12 +73,9 @@ def rms_frequency(image, pixel_m: float = 1.0) -> float:
     float
         0 for a flat image.
     """
-    img = np.asarray(image, dtype=np.float64)
-    if img.ndim != 2:
-        raise ValueError(f"image has shape {img.shape}; expected (N, N)")
-    power = np.abs(np.fft.fft2(img - img.mean())) ** 2
-    fy = np.fft.fftfreq(img.shape[0])[:, None]
-    fx = np.fft.fftfreq(img.shape[1])[None, :]
+    power = _power_spectrum(image)
+    fy = np.fft.fftfreq(power.shape[0])[:, None]
+    fx = np.fft.fftfreq(power.shape[1])[None, :]
     total = float(power.sum())
     if total <= 0:
         return 0.0

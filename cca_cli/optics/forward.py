@@ -78,14 +78,15 @@ class Workspace:
         self.fields = fft.zeros((chunk, size, size), np.complex64)
         self._threads = threads
         self._effort = effort
-        self._fft = None
         #: Pruned transforms for fields confined to the pupil box's rows (None: use full transforms).
         self.box_fft = None if band is None else fft.BandedFFT2(self.fields, *band, threads=threads, effort=effort)
+        # Without a band the full transforms do the work: plan them now, before the buffer holds data.
+        self._fft = None if band is not None else fft.InPlaceFFT2(self.fields, threads=threads, effort=effort)
         self.fields.fill(0)
 
     @property
     def fft(self) -> fft.InPlaceFFT2:
-        """Full (unpruned) transforms of the buffer, planned on first use (planning clears the buffer)."""
+        """Full (unpruned) transforms of the buffer; with a band, planned on first use (planning clears the buffer)."""
         if self._fft is None:
             self._fft = fft.InPlaceFFT2(self.fields, threads=self._threads, effort=self._effort)
         return self._fft
@@ -141,7 +142,6 @@ class ForwardModel:
         # Orthonormal scaling folded into the pupils: raw FFTs then need no extra pass.
         self._pupil_forward = (pupils / m).astype(np.complex64)
         self._pupil_adjoint = (np.conj(pupils) / m).astype(np.complex64)
-        self._origins = [tuple(int(v) for v in o) for o in layout.box_origins]
         self._origin_array = np.ascontiguousarray(layout.box_origins, dtype=np.int64)
         kernels.warm_up()
 
@@ -230,7 +230,7 @@ class ForwardModel:
         b = self.layout.box_size
         out = np.zeros(self.spectrum_shape, dtype=np.float32)
         power = np.abs(self.pupils) ** 2
-        for i, (y0, x0) in enumerate(self._origins):
+        for i, (y0, x0) in enumerate(self._origin_array):
             out[y0:y0 + b, x0:x0 + b] += power[i]
         return out
 

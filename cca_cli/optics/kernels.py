@@ -66,19 +66,25 @@ def _place_boxes_numpy(spectrum, origins, pupils, fields, start):
         np.multiply(spectrum[y0:y0 + b, x0:x0 + b], pupils[start + j], out=fields[j, s:s + b, s:s + b])
 
 
-def _project_numpy(fields, amplitudes, weights, eps, scratch):
-    magnitude = np.abs(fields, out=scratch[0])
-    misfit = np.subtract(magnitude, amplitudes, out=scratch[1])
+def _magnitude_numpy(fields, amplitudes, weights, eps, keep, magnitude, misfit):
+    """:func:`_magnitude_numba` in numpy: ``magnitude`` is a work array, ``misfit`` one too or None."""
+    np.abs(fields, out=magnitude)
+    misfit = np.subtract(magnitude, amplitudes, out=misfit)
     if weights is not None:
         misfit *= np.sqrt(weights)
     flat = misfit.reshape(-1)
     squared = float(np.dot(flat, flat))
     np.maximum(magnitude, np.float32(eps), out=magnitude)
-    ratio = np.divide(amplitudes, magnitude, out=magnitude)
-    if weights is not None:
-        ratio *= weights
-        ratio += 1.0 - weights
-    fields *= ratio
+    factor = np.divide(amplitudes, magnitude, out=magnitude)
+    if keep:  # w · A/|ψ| + (1 − w)
+        if weights is not None:
+            factor *= weights
+            factor += 1.0 - weights
+    else:  # w · (A/|ψ| − 1)
+        factor -= 1.0
+        if weights is not None:
+            factor *= weights
+    fields *= factor
     return squared
 
 
@@ -191,13 +197,13 @@ if _HAVE_NUMBA:  # pragma: no branch
         return change, norm
 
     @_jit
-    def _scatter_numba(fields, origins, pupils, accumulator, start, row_start, row_stop):  # pragma: no cover
+    def _scatter_numba(fields, origins, pupils, accumulator, start):  # pragma: no cover - compiled
         k, m, b = fields.shape[0], fields.shape[1], pupils.shape[1]
         s = m // 2 - b // 2
         for j in range(k):
             y0 = origins[start + j, 0]
             x0 = origins[start + j, 1]
-            for r in range(max(0, row_start - y0), min(b, row_stop - y0)):
+            for r in range(b):
                 for c in range(b):
                     accumulator[y0 + r, x0 + c] += fields[j, s + r, s + c] * pupils[start + j, r, c]
 
@@ -237,7 +243,7 @@ def warm_up() -> None:
     fields = np.zeros((1, 8, 8), np.complex64)
     real = np.ones((1, 8, 8), np.float32)
     _place_boxes_numba(spectrum, origins, pupils, fields, 0)
-    _scatter_numba(fields, origins, pupils, spectrum, 0, 0, 8)
+    _scatter_numba(fields, origins, pupils, spectrum, 0)
     _momentum_numba(spectrum, spectrum.copy(), spectrum.copy(), np.float32(0.5))
     _magnitude_numba(fields, real, real, np.float32(1e-6), np.float32(1.0), False)
     _magnitude_numba(fields, real, real, np.float32(1e-6), np.float32(0.0), True)
@@ -269,6 +275,18 @@ def place_boxes(spectrum: np.ndarray, origins: np.ndarray, pupils: np.ndarray, f
         _place_boxes_numpy(spectrum, origins, pupils, fields, start)
 
 
+def _magnitude(fields, amplitudes, weights, eps, keep, magnitude, misfit):
+    """``ψ ← (w (A/max(|ψ|, ε) − 1) + keep) ψ`` in place; returns ``Σ w (|ψ| − A)²``.
+
+    ``magnitude`` and ``misfit`` (or None) are work arrays for the numpy implementation.
+    """
+    if _use_numba and fields.flags.c_contiguous:
+        confidence = amplitudes if weights is None else weights
+        return float(_magnitude_numba(fields, amplitudes, confidence, np.float32(eps), np.float32(keep),
+                                      weights is not None))
+    return _magnitude_numpy(fields, amplitudes, weights, eps, keep, magnitude, misfit)
+
+
 def project_magnitudes(fields: np.ndarray, amplitudes: np.ndarray, scratch: np.ndarray, *,
                        weights: np.ndarray | None = None, eps: float = 1e-12) -> float:
     """Replace ``|ψ|`` by the measured amplitude, keeping the phase; return the squared misfit.
@@ -285,11 +303,7 @@ def project_magnitudes(fields: np.ndarray, amplitudes: np.ndarray, scratch: np.n
     weights : ndarray, float32, (k, m, m), optional
     eps : float
     """
-    if _use_numba and fields.flags.c_contiguous:
-        confidence = amplitudes if weights is None else weights
-        return float(_magnitude_numba(fields, amplitudes, confidence, np.float32(eps), np.float32(1.0),
-                                      weights is not None))
-    return _project_numpy(fields, amplitudes, weights, eps, scratch)
+    return _magnitude(fields, amplitudes, weights, eps, 1.0, scratch[0], scratch[1])
 
 
 def scatter_boxes(fields: np.ndarray, origins: np.ndarray, pupils: np.ndarray, accumulator: np.ndarray,
@@ -308,7 +322,7 @@ def scatter_boxes(fields: np.ndarray, origins: np.ndarray, pupils: np.ndarray, a
     start : int
     """
     if _use_numba:
-        _scatter_numba(fields, origins, pupils, accumulator, start, 0, accumulator.shape[0])
+        _scatter_numba(fields, origins, pupils, accumulator, start)
     else:
         _scatter_numpy(fields, origins, pupils, accumulator, start)
 
@@ -368,31 +382,10 @@ def magnitude_step(fields: np.ndarray, amplitudes: np.ndarray, scratch: np.ndarr
     The sequential engines add this difference, back-propagated, to the
     spectrum. ``|ψ|`` is floored at ``eps``. Returns ``Σ w (|ψ| − A)²``.
 
-    Parameters
-    ----------
-    fields : ndarray, complex64, (k, m, m)
-    amplitudes : ndarray, float32, (k, m, m)
-    scratch : ndarray, float32, (k, m, m)
-        Work array for the numpy implementation.
-    weights : ndarray, float32, (k, m, m), optional
-    eps : float
+    The parameters are those of :func:`project_magnitudes`, except ``scratch``:
+    one float32 (k, m, m) work array for the numpy implementation.
     """
-    if _use_numba and fields.flags.c_contiguous:
-        confidence = amplitudes if weights is None else weights
-        return float(_magnitude_numba(fields, amplitudes, confidence, np.float32(eps), np.float32(0.0),
-                                      weights is not None))
-    magnitude = np.abs(fields, out=scratch)
-    misfit = magnitude - amplitudes
-    if weights is not None:
-        misfit *= np.sqrt(weights)
-    squared = float(np.vdot(misfit.ravel(), misfit.ravel()))
-    np.maximum(magnitude, eps, out=magnitude)
-    factor = np.divide(amplitudes, magnitude, out=magnitude)
-    factor -= 1.0
-    if weights is not None:
-        factor *= weights
-    fields *= factor
-    return squared
+    return _magnitude(fields, amplitudes, weights, eps, 0.0, scratch, None)
 
 
 # ----------------------------------------------------------------------------- fused sequential lane
@@ -433,7 +426,7 @@ if _HAVE_NUMBA:  # pragma: no branch
             total += _magnitude_numba(fields[:k], amplitudes[start:stop], weights[start:stop], eps, zero, weighted)
             _call_address(execute, plans[j, 2])
             _call_address(execute, plans[j, 3])
-            _scatter_numba(fields[:k], origins, factors, spectrum, start, 0, spectrum.shape[0])
+            _scatter_numba(fields[:k], origins, factors, spectrum, start)
         return total
 
 

@@ -1,6 +1,6 @@
 """Register views to the centre view with checkerboard homographies (the only cv2 user)."""
 
-from cca_cli.registration.checkerboard import canonical_corner_order, find_checkerboard, to_uint8
+from cca_cli.registration.checkerboard import canonical_corner_order, find_checkerboard
 from cca_cli.registration.homography import (
     HomographyFit,
     apply_homography,
@@ -22,7 +22,6 @@ __all__ = [
     "find_checkerboard",
     "render_checkerboard",
     "stage_homography",
-    "to_uint8",
     "valid_region",
     "warp_to_reference",
     "warp_views",

@@ -36,7 +36,7 @@ import numpy as np
 
 from cca_cli.errors import CheckerboardNotFound
 
-__all__ = ["find_checkerboard", "canonical_corner_order", "to_uint8"]
+__all__ = ["find_checkerboard", "canonical_corner_order"]
 
 _log = logging.getLogger(__name__)
 
@@ -189,28 +189,6 @@ def _scaled(image, low_percentile: float, high_percentile: float) -> np.ndarray:
     if not hi > lo:
         return np.zeros(img.shape, np.float32)
     return (np.where(finite, img, np.float32(lo)) - np.float32(lo)) * np.float32(255.0 / (hi - lo))
-
-
-def to_uint8(image, *, low_percentile: float = 0.5, high_percentile: float = 99.5) -> np.ndarray:
-    """Scale an image of any range robustly to uint8 for corner detection.
-
-    Parameters
-    ----------
-    image : array_like
-        ``(H, W)`` image (uint8 is returned unchanged).
-    low_percentile, high_percentile : float, optional
-        Percentiles of the finite pixel values mapped to 0 and 255.
-
-    Returns
-    -------
-    numpy.ndarray
-        uint8 ``(H, W)``. NaN/inf pixels become 0. A flat image gives all
-        zeros.
-    """
-    img = np.asarray(image)
-    if img.dtype == np.uint8:
-        return np.ascontiguousarray(img)
-    return np.clip(np.rint(_scaled(img, low_percentile, high_percentile)), 0, 255).astype(np.uint8)
 
 
 def _refine(gray_f: np.ndarray, corners: np.ndarray, cols: int, rows: int) -> np.ndarray:

@@ -17,17 +17,10 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from cca_cli.registration.checkerboard import _order
+from cca_cli.registration.checkerboard import _check_pattern, _order
 from cca_cli.registration.homography import apply_homography
 
 __all__ = ["render_checkerboard", "checkerboard_corners", "stage_homography"]
-
-
-def _pattern(pattern) -> tuple[int, int]:
-    cols, rows = (int(v) for v in pattern)
-    if cols < 2 or rows < 2:
-        raise ValueError(f"pattern {pattern!r} needs at least 2x2 inner corners")
-    return cols, rows
 
 
 def _filtered_axis(t: np.ndarray, rho: np.ndarray, n_squares: int) -> tuple[np.ndarray, np.ndarray]:
@@ -110,7 +103,7 @@ def render_checkerboard(
     h, w = (int(v) for v in shape)
     if h < 1 or w < 1:
         raise ValueError(f"shape {shape!r} must be positive (height, width)")
-    cols, rows = _pattern(pattern)
+    cols, rows = _check_pattern(pattern)
     if not square_px > 0:
         raise ValueError(f"square_px {square_px!r} must be > 0")
     s = int(supersample)
@@ -185,7 +178,7 @@ def checkerboard_corners(pattern, square_px: float, origin_xy, matrix=None) -> n
         float64 ``(columns * rows, 2)`` positions ``(x, y)`` in image pixels,
         in the canonical order :func:`find_checkerboard` returns.
     """
-    cols, rows = _pattern(pattern)
+    cols, rows = _check_pattern(pattern)
     ox, oy = (float(v) for v in origin_xy)
     jj, ii = np.mgrid[0:rows, 0:cols].astype(np.float64)
     pts = np.stack([ox + (ii + 1) * square_px, oy + (jj + 1) * square_px], axis=-1).reshape(-1, 2)

@@ -40,19 +40,22 @@ def baseline_images(truth_field: np.ndarray, geometry: CaptureGeometry, specs) -
     scale = FourierScale.fraunhofer(geometry.wavelength_m, geometry.distance_m, geometry.field_width_m)
     out = {}
     for spec in specs:
-        if spec.kind == "passive_incoherent":
-            diameter, light = geometry.aperture_diameter_m, "incoherent"
-        else:
-            diameter, light = spec.aperture_diameter_m, spec.illumination
+        diameter, light = _spec_optics(spec, geometry)
         radius = scale.pupil_radius_px(diameter)
         image = coherent_image(truth_field, radius) if light == "coherent" else incoherent_image(truth_field, radius)
         out[spec.label()] = image
     return out
 
 
+def _spec_optics(spec, geometry: CaptureGeometry) -> tuple[float, str]:
+    """Aperture diameter (m) and illumination of a baseline; ``passive_incoherent`` is the array's own lens."""
+    if spec.kind == "passive_incoherent":
+        return geometry.aperture_diameter_m, "incoherent"
+    return spec.aperture_diameter_m, spec.illumination
+
+
 def _spec_info(spec, geometry: CaptureGeometry) -> dict:
-    diameter = geometry.aperture_diameter_m if spec.kind == "passive_incoherent" else spec.aperture_diameter_m
-    light = "incoherent" if spec.kind == "passive_incoherent" else spec.illumination
+    diameter, light = _spec_optics(spec, geometry)
     return {"kind": spec.kind, "aperture_diameter_m": diameter, "illumination": light,
             "spot_size_object_m": spot_size_m(geometry.wavelength_m, geometry.distance_m, diameter)}
 

@@ -18,6 +18,14 @@ def _plt():
     return plt
 
 
+def _save(plt, fig, path: Path) -> Path:
+    """Lay out ``fig``, write it to ``path`` and close it."""
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
 def _image(plt, path: Path, image: np.ndarray, title: str, *, cmap: str = "gray", extent_mm: float | None = None,
            label: str = "") -> None:
     fig, ax = plt.subplots(figsize=(5.2, 4.6), dpi=110)
@@ -28,9 +36,7 @@ def _image(plt, path: Path, image: np.ndarray, title: str, *, cmap: str = "gray"
         ax.set_xlabel("x at object (mm)")
         ax.set_ylabel("y at object (mm)")
     fig.colorbar(shown, ax=ax, label=label)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+    _save(plt, fig, path)
 
 
 def write_figures(directory: Path, *, observed: np.ndarray, recovered_object: np.ndarray, spectrum: np.ndarray,
@@ -72,9 +78,7 @@ def write_figures(directory: Path, *, observed: np.ndarray, recovered_object: np
     ax.set_title("Recovered spectrum (log10 |S|) and aperture footprints")
     ax.set_xlabel("spectrum px (x)")
     ax.set_ylabel("spectrum px (y)")
-    fig.tight_layout()
-    fig.savefig(target("spectrum.png"))
-    plt.close(fig)
+    _save(plt, fig, target("spectrum.png"))
 
     if "contrast_observed" in summary:
         fig, ax = plt.subplots(figsize=(6, 4), dpi=110)
@@ -89,9 +93,7 @@ def write_figures(directory: Path, *, observed: np.ndarray, recovered_object: np
         ax.invert_xaxis()
         ax.set_title("Bar contrast vs width")
         ax.legend(fontsize=7)
-        fig.tight_layout()
-        fig.savefig(target("contrast.png"))
-        plt.close(fig)
+        _save(plt, fig, target("contrast.png"))
 
     if len(residual):
         fig, ax = plt.subplots(figsize=(6, 4), dpi=110)
@@ -102,9 +104,7 @@ def write_figures(directory: Path, *, observed: np.ndarray, recovered_object: np
         ax.set_ylabel("relative value")
         ax.set_title("Convergence")
         ax.legend()
-        fig.tight_layout()
-        fig.savefig(target("convergence.png"))
-        plt.close(fig)
+        _save(plt, fig, target("convergence.png"))
     return paths
 
 
@@ -145,11 +145,7 @@ def write_comparison_figures(directory: Path, images: dict, summary: dict) -> li
         elif name in ("observed", "recovered") and f"mtf20_{name}_px" in summary:
             extra = f"\nMTF20 {summary[f'mtf20_{name}_px']} px"
         ax.set_title(name.replace("_", " ") + extra, fontsize=9)
-    fig.tight_layout()
-    path = directory / "comparison.png"
-    fig.savefig(path)
-    plt.close(fig)
-    paths.append(path)
+    paths.append(_save(plt, fig, directory / "comparison.png"))
 
     tables = {}
     for name in ("contrast_observed", "contrast_recovered"):
@@ -171,11 +167,7 @@ def write_comparison_figures(directory: Path, images: dict, summary: dict) -> li
         ax.invert_xaxis()
         ax.set_title("Bar contrast: recovery vs single lenses")
         ax.legend(fontsize=7)
-        fig.tight_layout()
-        path = directory / "contrast_baselines.png"
-        fig.savefig(path)
-        plt.close(fig)
-        paths.append(path)
+        paths.append(_save(plt, fig, directory / "contrast_baselines.png"))
     return paths
 
 
@@ -222,7 +214,4 @@ def write_coverage_figure(path: Path, coverage: np.ndarray, band: np.ndarray, su
     ax.set_xlabel("spectrum px (x)")
     ax.set_ylabel("spectrum px (y)")
     fig.colorbar(image, ax=ax, label="measurements per spectrum pixel")
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-    return Path(path)
+    return _save(plt, fig, Path(path))

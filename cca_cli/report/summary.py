@@ -13,7 +13,7 @@ from cca_cli.optics.pupil import circular_pupils
 from cca_cli.sampling.geometry import CaptureGeometry
 from cca_cli.sampling.grid import band_layout
 from cca_cli.targets import BarGroup
-from cca_cli.units import spot_size_m
+from cca_cli.units import grid_pixel_m, spot_size_m
 
 __all__ = ["ReportInputs", "summarize", "on_grid", "band_limited_truth", "sharpness_summary"]
 
@@ -90,7 +90,7 @@ def summarize(inputs: ReportInputs, *, threshold: float = 0.2) -> dict:
         "step_m": _step_m(g),
         "output_grid_px": inputs.hires_size,
         "lowres_grid_px": inputs.lowres_size,
-        "object_pixel_m": g.field_width_m / inputs.hires_size,
+        "object_pixel_m": grid_pixel_m(g.field_width_m, inputs.hires_size),
         "spot_size_sensor_m": spot_size_m(g.wavelength_m, g.focal_length_m, g.aperture_diameter_m),
         "spot_size_object_m": spot_size_m(g.wavelength_m, g.distance_m, g.aperture_diameter_m),
         "spot_size_synthetic_object_m": spot_size_m(g.wavelength_m, g.distance_m, g.aperture_diameter_m * sar),
@@ -146,7 +146,7 @@ def sharpness_summary(inputs: ReportInputs) -> dict:
 
     size = inputs.recovered.shape[-1]
     observed = on_grid(inputs.observed, size)
-    pixel_mm = inputs.geometry.field_width_m * 1e3 / size
+    pixel_mm = grid_pixel_m(inputs.geometry.field_width_m, size) * 1e3
     cutoff = min(2.0 * inputs.geometry.pupil_radius_px, inputs.observed.shape[-1] / 2.0)
     f_obs = rms_frequency(observed, pixel_mm)
     f_rec = rms_frequency(inputs.recovered, pixel_mm)

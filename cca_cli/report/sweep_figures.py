@@ -11,6 +11,8 @@ from typing import Any
 
 import numpy as np
 
+from cca_cli.report.figures import _plt, _save
+
 __all__ = ["SweepPlotData", "axis_label", "plot_sweep"]
 
 _LABELS = {
@@ -67,12 +69,6 @@ def _fmt(column: str | None, value) -> str:
     return f"{short} {float(value):.3g}" if isinstance(value, (int, float)) else f"{short} {value}"
 
 
-def _plt():
-    from cca_cli.report.figures import _plt as pyplot  # the one module that imports matplotlib
-
-    return pyplot()
-
-
 def _groups(series: list[dict]) -> dict[Any, list[dict]]:
     out: dict[Any, list[dict]] = {}
     for item in series:
@@ -90,7 +86,7 @@ def _line_plot(plt, path: Path, data: SweepPlotData, key: str, observed_key: str
         color = f"C{n % 10}"
         xs = np.array([s["x"] for s in items]) * scale
         name = _fmt(data.group, group) if data.group else "recovered"
-        ax.plot(xs, [s[key] for s in items], "-o", color=color, ms=4, label=name if data.group else "recovered")
+        ax.plot(xs, [s[key] for s in items], "-o", color=color, ms=4, label=name)
         obs = [s.get(observed_key) for s in items]
         if any(v is not None for v in obs):
             ax.plot(xs, [np.nan if v is None else v for v in obs], "--", color=color, alpha=0.6, lw=1,
@@ -100,9 +96,7 @@ def _line_plot(plt, path: Path, data: SweepPlotData, key: str, observed_key: str
     ax.set_title(title)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+    _save(plt, fig, path)
     return True
 
 
@@ -110,7 +104,8 @@ def plot_sweep(data: SweepPlotData, directory: Path) -> list[Path]:
     """Draw the sweep's figures into ``directory``; return their paths.
 
     Figures: ``rmse_vs_<x>.png`` (RMSE of the recovered and observed
-    intensities), ``rmse_band_vs_<x>.png`` (the same against the band-limited truth), ``mtf20_vs_<x>.png`` (resolution limit, for charts),
+    intensities), ``rmse_band_vs_<x>.png`` (the same against the band-limited
+    truth), ``mtf20_vs_<x>.png`` (resolution limit, for charts),
     ``contrast_vs_width.png`` (contrast per bar width of highlighted points)
     and ``montage.png`` (centre crops of truth, observed and recovered images).
     """
@@ -148,11 +143,7 @@ def plot_sweep(data: SweepPlotData, directory: Path) -> list[Path]:
         ax.set_title(f"{data.study} study: contrast vs bar width")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
-        fig.tight_layout()
-        path = directory / "contrast_vs_width.png"
-        fig.savefig(path)
-        plt.close(fig)
-        paths.append(path)
+        paths.append(_save(plt, fig, directory / "contrast_vs_width.png"))
     tiles = [(item, images) for item, images in data.crops if images]
     if tiles:
         first = tiles[0][1]
@@ -174,11 +165,7 @@ def plot_sweep(data: SweepPlotData, directory: Path) -> list[Path]:
             ax.imshow(_centre_crop(image), cmap="gray", interpolation="nearest")
             ax.set_title(title, fontsize=8)
         fig.suptitle(f"{data.study} study: centre crops (half the field of view), intensity", fontsize=9)
-        fig.tight_layout()
-        path = directory / "montage.png"
-        fig.savefig(path)
-        plt.close(fig)
-        paths.append(path)
+        paths.append(_save(plt, fig, directory / "montage.png"))
     return paths
 
 

@@ -14,7 +14,14 @@ from dataclasses import asdict, dataclass
 
 from cca_cli.sampling.grid import band_layout, square_scan
 from cca_cli.sampling.overlap import grid_for_sar, step_m, synthetic_aperture_ratio
-from cca_cli.units import FourierScale, object_pixel_pitch_m, spot_size_m
+from cca_cli.units import (
+    FourierScale,
+    grid_pixel_m,
+    object_pixel_pitch_m,
+    sensor_field_width_m,
+    sensor_pixels_across,
+    spot_size_m,
+)
 
 __all__ = ["MIN_OVERLAP", "SUGGESTED_OVERLAP", "ArrayPlan", "plan_array", "iteration_seconds"]
 
@@ -221,8 +228,8 @@ def plan_array(*, wavelength_m: float, focal_length_m: float, aperture_diameter_
     if field_width_m is None:
         capture_px = int(sensor_px) if sensor_px else 256
     else:
-        capture_px = max(1, int(round(field_width_m / pixel)))
-    field = capture_px * pixel
+        capture_px = max(1, sensor_pixels_across(field_width_m, pixel_pitch_m, focal_length_m, distance_m))
+    field = sensor_field_width_m(capture_px, pixel_pitch_m, focal_length_m, distance_m)
     fits = sensor_px is None or capture_px <= sensor_px
     if not fits:
         warnings.append(f"the {field * 1e3:.3g} mm field spans {capture_px} px but the sensor has {sensor_px}: "
@@ -241,7 +248,8 @@ def plan_array(*, wavelength_m: float, focal_length_m: float, aperture_diameter_
         spot_beat_m=spot_size_m(wavelength_m, distance_m, beat_lens_m) if kind == "beat_lens" else None,
         spot_sensor_m=spot_size_m(wavelength_m, focal_length_m, d), object_pixel_m=pixel, field_width_m=field,
         capture_px=capture_px, sensor_px=sensor_px, fits_sensor=fits, pupil_radius_px=radius,
-        output_px=layout.hires_size, lowres_px=layout.lowres_size, output_pixel_m=field / layout.hires_size,
+        output_px=layout.hires_size, lowres_px=layout.lowres_size,
+        output_pixel_m=grid_pixel_m(field, layout.hires_size),
         capture_bytes=k * capture_px * capture_px * 4,
         memory_bytes=_memory_bytes(k, capture_px, layout.lowres_size, layout.hires_size, layout.box_size),
         fft_count_per_iteration=_FFTS_PER_CAPTURE * k, warnings=tuple(warnings),

@@ -8,7 +8,7 @@ import numpy as np
 
 from cca_cli.sampling.grid import square_scan
 from cca_cli.sampling.overlap import step_m, synthetic_aperture_ratio
-from cca_cli.units import FourierScale, object_pixel_pitch_m
+from cca_cli.units import FourierScale, sensor_field_width_m, sensor_pixels_across
 
 __all__ = ["CaptureGeometry", "camera_scan_geometry"]
 
@@ -94,11 +94,10 @@ def camera_scan_geometry(*, wavelength_m: float, focal_length_m: float, aperture
     sensor_pixels : int
         N.
     """
-    object_pixel = object_pixel_pitch_m(pixel_pitch_m, focal_length_m, distance_m)
-    sensor_pixels = int(round(field_width_m / object_pixel))
+    sensor_pixels = sensor_pixels_across(field_width_m, pixel_pitch_m, focal_length_m, distance_m)
     if sensor_pixels < 8:
         raise ValueError(f"the field of view spans only {sensor_pixels} sensor pixels; widen the scene or use smaller pixels")
-    field_width = sensor_pixels * object_pixel
+    field_width = sensor_field_width_m(sensor_pixels, pixel_pitch_m, focal_length_m, distance_m)
     scale = FourierScale.fraunhofer(wavelength_m, distance_m, field_width)
     scan = square_scan(grid, step_m(aperture_diameter_m, overlap))
     geometry = CaptureGeometry(

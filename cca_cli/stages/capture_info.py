@@ -15,17 +15,13 @@ _COPIED = ("/registration/rms_px", "/registration/dropped", "/hdr/dynamic_range_
 def capture_extras(captures_path: Path):
     """A ``write_recon`` ``extra`` callback copying registration/HDR records, or None when there are none."""
     with h5py.File(captures_path, "r") as src:
-        present = {name: src[name][()] for name in _COPIED if name in src}
+        present = {name: (src[name][()], src[name].dtype) for name in _COPIED if name in src}
     if not present:
         return None
 
     def extra(handle: h5py.File) -> None:
-        for name, data in present.items():
-            if getattr(data, "dtype", None) is not None and data.dtype.kind in "OSU":
-                handle.create_dataset(name, data=np.array([v.decode() if isinstance(v, bytes) else str(v) for v in data],
-                                                          dtype=h5py.string_dtype()))
-            else:
-                handle.create_dataset(name, data=data)
+        for name, (data, dtype) in present.items():
+            handle.create_dataset(name, data=data, dtype=dtype)
 
     return extra
 
@@ -34,7 +30,7 @@ def read_capture_summary(handle: h5py.File) -> dict:
     """Report entries from the records copied by :func:`capture_extras` (empty for simulations)."""
     out = {}
     if "/registration/dropped" in handle:
-        out["lost_positions"] = [v.decode() if isinstance(v, bytes) else str(v) for v in handle["/registration/dropped"][()]]
+        out["lost_positions"] = handle["/registration/dropped"].asstr()[()].tolist()
     if "/registration/rms_px" in handle:
         rms = np.asarray(handle["/registration/rms_px"])
         out["registration_rms_px_max"] = round(float(rms.max()), 4)

@@ -48,8 +48,8 @@ def run(raw_path: Path, section: HdrSection | None, output: Path, *, provenance:
         frames_ds = require(src, "/raw/frames", ndim=4)
         frames = np.asarray(frames_ds, np.float32)
         exposure = np.asarray(require(src, "/raw/exposure_s", ndim=2), np.float64)
-        saturation = section.saturation_level or float(src["raw"].attrs["saturation_level"])
-        values = str(src["raw"].attrs.get("values", "intensity"))
+        saturation = section.saturation_level or float(frames_ds.attrs["saturation_level"])
+        values = str(frames_ds.attrs.get("values", "intensity"))
         geometry = read_geometry(src)
         labels = read_labels(src, frames.shape[0])
         k, e = frames.shape[:2]

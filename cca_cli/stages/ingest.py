@@ -133,7 +133,7 @@ def write_labels(handle: h5py.File, labels: list[str]) -> None:
 def read_labels(handle: h5py.File, count: int) -> list[str]:
     """/capture/labels, or ``view k`` names when absent."""
     if "/capture/labels" in handle:
-        return [v.decode() if isinstance(v, bytes) else str(v) for v in handle["/capture/labels"][()]]
+        return handle["/capture/labels"].asstr()[()].tolist()
     return [f"view {k}" for k in range(count)]
 
 
@@ -146,8 +146,6 @@ def write_raw(path: Path, data: Ingested, provenance: Provenance, *, force: bool
         frames.attrs["black_level"] = manifest.sensor.black_level
         frames.attrs["values"] = manifest.values
         write_dataset(handle, "/raw/exposure_s", data.exposure_s)
-        handle["raw"].attrs["saturation_level"] = data.saturation_level
-        handle["raw"].attrs["values"] = manifest.values
         write_labels(handle, data.plan.labels)
         write_geometry(handle, data.geometry)
         if manifest.checkerboard is not None:

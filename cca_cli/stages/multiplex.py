@@ -19,18 +19,18 @@ import numpy as np
 from cca_cli.config.model import ReconstructSection, RunConfig
 from cca_cli.engines.multiplex import MULTIPLEX_ENGINES, MultiplexedProblem
 from cca_cli.errors import ConfigError, InputError
-from cca_cli.io.geometry import read_geometry, write_geometry
-from cca_cli.io.h5 import Provenance, atomic_h5, check_output, open_input, require, write_dataset
+from cca_cli.io.h5 import Provenance, check_output, open_input, write_dataset
 from cca_cli.io.multiplex import read_multiplex, write_multiplex
 from cca_cli.optics import fft
 from cca_cli.optics.multiplex import (MultiplexGeometry, MultiplexedForwardModel, coverage_map, design_band,
                                       random_patterns, rect_lattice)
-from cca_cli.optics.noise import add_gaussian_noise, add_shot_and_read_noise
 from cca_cli.sampling.geometry import CaptureGeometry, camera_scan_geometry
 from cca_cli.sampling.grid import BandLayout
-from cca_cli.stages.progress import ProgressEvent, ProgressFn, silent
-from cca_cli.stages.reconstruct import Captures, Recovery, drive_engine, engine_options, write_recon
-from cca_cli.stages.scene import Scene, bars_to_table, build_scene
+from cca_cli.stages.progress import ProgressFn, silent
+from cca_cli.stages.reconstruct import (Captures, Recovery, drive_engine, engine_options, read_measurements,
+                                        write_recon)
+from cca_cli.stages.scene import Scene, build_scene
+from cca_cli.stages.simulate import record, record_all, stored_grid, write_captures
 from cca_cli.units import FourierScale
 
 __all__ = ["MultiplexSimulation", "MultiplexedCaptures", "multiplex_geometry", "simulate_multiplexed",
@@ -138,18 +138,6 @@ def _reference_geometry(mux: MultiplexGeometry) -> MultiplexGeometry:
                              source_shape=(1, 1))
 
 
-def _record(band: np.ndarray, size: int, config: RunConfig, rng: np.random.Generator) -> np.ndarray:
-    """Band-grid images → sensor grid, with the configured noise."""
-    block = fft.fourier_resample(band, size)
-    noise = config.noise
-    if noise.model == "gaussian":
-        return add_gaussian_noise(block, noise.snr_db, rng)
-    if noise.model == "poisson":
-        return add_shot_and_read_noise(block, photons_per_unit=noise.photons_per_unit,
-                                       read_noise_e=noise.read_noise_e, rng=rng)
-    return block.astype(np.float32)
-
-
 def simulate_multiplexed(config: RunConfig, *, progress: ProgressFn = silent) -> MultiplexSimulation:
     """Simulate every (pattern, camera) image of ``config.multiplex`` (no file I/O)."""
     mux, virtual, sensor_pixels = multiplex_geometry(config)
@@ -168,39 +156,23 @@ def simulate_multiplexed(config: RunConfig, *, progress: ProgressFn = silent) ->
     reference_band = MultiplexedForwardModel(_reference_geometry(mux), sensor_size=sensor_pixels,
                                              hires_size=layout.hires_size).sensor_intensity(spectrum)
 
-    store_size = sensor_pixels if config.simulate.store == "sensor" else layout.lowres_size
-    pitch = config.optics.pixel_pitch_m * sensor_pixels / store_size
-    g = model.n_measurements
-    intensity = np.empty((g, store_size, store_size), np.float32)
+    store_size, pitch = stored_grid(config, sensor_pixels, layout.lowres_size)
     rng = np.random.default_rng(config.noise.seed)
-    step = 16
-    for start in range(0, g, step):
-        intensity[start:start + step] = _record(band[start:start + step], store_size, config, rng)
-        progress(ProgressEvent("simulate", "captures", min(start + step, g), g))
-    reference = _record(reference_band, store_size, config, rng)[0]
+    intensity = record_all(band, store_size, config.noise, rng, progress=progress)
+    reference = record(reference_band, store_size, config.noise, rng)[0]
     return MultiplexSimulation(geometry=virtual, multiplex=mux, layout=layout, scene=scene, intensity=intensity,
                                reference=reference, pixel_pitch_m=pitch)
 
 
 def write_multiplexed_captures(path: Path, simulation: MultiplexSimulation, provenance: Provenance, *,
                                force: bool = False) -> None:
-    """Write a multiplexed ``captures.h5`` atomically."""
-    from dataclasses import replace
+    """Write a multiplexed ``captures.h5`` atomically: the simulate stage's file plus /multiplex and the reference."""
 
-    geometry = replace(simulation.geometry, pixel_pitch_m=simulation.pixel_pitch_m)
-    with atomic_h5(path, provenance, force=force) as handle:
-        write_dataset(handle, "/measurements/intensity", simulation.intensity, layout="centred sensor")
-        write_geometry(handle, geometry)
+    def extra(handle) -> None:
         write_multiplex(handle, simulation.multiplex)
         write_dataset(handle, "/observed/centre", simulation.reference)
-        write_dataset(handle, "/truth/object", simulation.scene.field)
-        if simulation.scene.bars:
-            write_dataset(handle, "/truth/bars", bars_to_table(simulation.scene.bars))
-        if getattr(simulation.scene, "usaf", None):
-            from cca_cli.stages.scene import usaf_to_table
 
-            write_dataset(handle, "/truth/usaf", usaf_to_table(simulation.scene.usaf))
-        handle.attrs["simulation_grid"] = simulation.layout.hires_size
+    write_captures(path, simulation, provenance, force=force, extra=extra)
 
 
 def run_simulate(config: RunConfig, output: Path, *, provenance: Provenance, force: bool = False,
@@ -221,26 +193,16 @@ def is_multiplexed_file(path: Path) -> bool:
 def read_multiplexed_captures(path: Path) -> MultiplexedCaptures:
     """Read images, virtual-capture geometry, /multiplex and the reference, checking their agreement."""
     with open_input(path) as handle:
-        intensity = np.asarray(require(handle, "/measurements/intensity", ndim=3), np.float32)
-        geometry = read_geometry(handle)
+        captures = read_measurements(handle, Path(path))
         mux = read_multiplex(handle)
-        weight = np.asarray(handle["/measurements/weight"], np.float32) if "/measurements/weight" in handle else None
         reference = np.asarray(handle["/observed/centre"], np.float32) if "/observed/centre" in handle else None
-        truth = {name: np.asarray(handle["truth"][name]) for name in handle["truth"]} if "truth" in handle else {}
-    g, h, w = intensity.shape
-    if h != w:
-        raise InputError(f"{path}: /measurements/intensity images are {h}x{w}; crop them square")
+    g = captures.intensity.shape[0]
     if g != mux.n_measurements:
         raise InputError(f"{path}: {g} images but /multiplex describes {mux.n_cameras} cameras x "
                          f"{mux.n_patterns} patterns = {mux.n_measurements}")
-    if geometry.n_images != mux.n_virtual:
-        raise InputError(f"{path}: /geometry has {geometry.n_images} positions but /multiplex has {mux.n_virtual} "
-                         "virtual captures")
-    if not np.all(np.isfinite(intensity)):
-        raise InputError(f"{path}: /measurements/intensity contains NaN or Inf; fix or mask it")
-    if weight is not None and weight.shape != intensity.shape:
-        raise InputError(f"{path}: /measurements/weight has shape {weight.shape}, expected {intensity.shape}")
-    captures = Captures(path=Path(path), intensity=intensity, weight=weight, geometry=geometry, truth=truth)
+    if captures.geometry.n_images != mux.n_virtual:
+        raise InputError(f"{path}: /geometry has {captures.geometry.n_images} positions but /multiplex has "
+                         f"{mux.n_virtual} virtual captures")
     return MultiplexedCaptures(captures=captures, multiplex=mux, reference=reference)
 
 

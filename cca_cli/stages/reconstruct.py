@@ -23,7 +23,8 @@ from cca_cli.sampling.geometry import CaptureGeometry
 from cca_cli.sampling.grid import BandLayout, band_layout
 from cca_cli.stages.progress import ProgressEvent, ProgressFn, silent
 
-__all__ = ["SECTIONS", "Captures", "Recovery", "read_captures", "build_model", "reconstruct", "run"]
+__all__ = ["SECTIONS", "Captures", "Recovery", "read_captures", "read_measurements", "build_model", "reconstruct",
+           "run"]
 
 SECTIONS = ("reconstruct",)
 
@@ -54,24 +55,28 @@ class Recovery:
 def read_captures(path: Path) -> Captures:
     """Read /measurements, /geometry and (if present) /truth, checking shapes and values."""
     with open_input(path) as handle:
-        dataset = require(handle, "/measurements/intensity", ndim=3)
-        geometry = read_geometry(handle)
-        intensity = np.asarray(dataset, dtype=np.float32)
-        weight = np.asarray(handle["/measurements/weight"], np.float32) if "/measurements/weight" in handle else None
-        truth = {}
-        if "truth" in handle:
-            truth = {name: np.asarray(handle["truth"][name]) for name in handle["truth"]}
+        captures = read_measurements(handle, Path(path))
+    k = captures.intensity.shape[0]
+    if k != captures.geometry.n_images:
+        raise InputError(f"{path}: {k} images but /geometry describes {captures.geometry.n_images} positions")
+    return captures
+
+
+def read_measurements(handle, path: Path) -> Captures:
+    """/measurements, /geometry and /truth of an open captures file, checked except for the image count."""
+    intensity = np.asarray(require(handle, "/measurements/intensity", ndim=3), dtype=np.float32)
+    geometry = read_geometry(handle)
+    weight = np.asarray(handle["/measurements/weight"], np.float32) if "/measurements/weight" in handle else None
+    truth = {name: np.asarray(handle["truth"][name]) for name in handle["truth"]} if "truth" in handle else {}
     k, h, w = intensity.shape
     if h != w:
         raise InputError(f"{path}: /measurements/intensity images are {h}x{w}; crop them square (register.crop)")
-    if k != geometry.n_images:
-        raise InputError(f"{path}: {k} images but /geometry describes {geometry.n_images} positions")
     if not np.all(np.isfinite(intensity)):
         bad = int(np.argmax(~np.isfinite(intensity).reshape(k, -1).all(axis=1)))
         raise InputError(f"{path}: image {bad} of /measurements/intensity contains NaN or Inf; fix or mask it")
     if weight is not None and weight.shape != intensity.shape:
         raise InputError(f"{path}: /measurements/weight has shape {weight.shape}, expected {intensity.shape}")
-    return Captures(path=Path(path), intensity=intensity, weight=weight, geometry=geometry, truth=truth)
+    return Captures(path=path, intensity=intensity, weight=weight, geometry=geometry, truth=truth)
 
 
 def build_model(geometry: CaptureGeometry, sensor_pixels: int, *, hires_size: int | None = None) -> ForwardModel:

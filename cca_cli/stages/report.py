@@ -81,10 +81,6 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
         document = dict(summary)
         document["provenance"] = {k: (v if isinstance(v, str) else str(v)) for k, v in provenance.items()}
         (tmp / REPORT_JSON).write_text(json.dumps(document, indent=2))
-        if output.exists():
-            import shutil
-
-            shutil.rmtree(output)
     progress(ProgressEvent("report", "figures", 2, 2))
     return summary
 

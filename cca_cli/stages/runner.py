@@ -38,6 +38,9 @@ INPUTS = {"simulate": (), "ingest": (), "hdr": ("raw.h5",), "register": ("hdr.h5
 SECTIONS = {"simulate": simulate_stage.SECTIONS, "ingest": ingest_stage.SECTIONS, "hdr": hdr_stage.SECTIONS,
             "register": register_stage.SECTIONS, "reconstruct": reconstruct_stage.SECTIONS,
             "report": report_stage.SECTIONS}
+#: Each stage's ``run(*args, output, provenance=…, force=…, progress=…)``.
+RUNS = {"simulate": simulate_stage.run, "ingest": ingest_stage.run, "hdr": hdr_stage.run,
+        "register": register_stage.run, "reconstruct": reconstruct_stage.run, "report": report_stage.run}
 
 
 @dataclass(frozen=True)
@@ -157,37 +160,27 @@ def run_pipeline(config: RunConfig, out_dir: Path, *, force: bool = False, progr
     for plan in plan_stages(config, out_dir):
         sections = pick_sections(config, plan.sections)
         digest = config_hash(sections)
-        if not force and plan.output.exists():
-            if is_up_to_date(plan, digest):
-                if on_stage:
-                    on_stage(plan, "skipped")
-                outcomes.append(StageOutcome(plan.name, "skipped", plan.output, 0.0))
-                continue
-            # An output made from an input this run just rewrote is stale by construction: recompute it.
-            if not rewritten.intersection(plan.inputs):
+        # An output made from an input this run just rewrote is stale by construction: recompute it.
+        if not force and plan.output.exists() and not rewritten.intersection(plan.inputs):
+            if not is_up_to_date(plan, digest):
                 raise OutputExistsError(
                     f"{plan.output}: exists but was made from another config or inputs; "
                     "use --force to recompute it, or choose another run.out_dir")
+            if on_stage:
+                on_stage(plan, "skipped")
+            outcomes.append(StageOutcome(plan.name, "skipped", plan.output, 0.0))
+            continue
         if on_stage:
             on_stage(plan, "start")
         start = time.perf_counter()
         provenance = stage_provenance(plan.name, sections, plan.inputs)
         if plan.name == "simulate":
-            result = simulate_stage.run(config, plan.output, provenance=provenance, force=True, progress=progress)
+            args = (config,)
         elif plan.name == "ingest":
-            result = ingest_stage.run(plan.inputs[0], plan.output, provenance=provenance, force=True, progress=progress)
-        elif plan.name == "hdr":
-            result = hdr_stage.run(plan.inputs[0], config.hdr, plan.output, provenance=provenance, force=True,
-                                   progress=progress)
-        elif plan.name == "register":
-            result = register_stage.run(plan.inputs[0], config.registration, plan.output, provenance=provenance,
-                                        force=True, progress=progress)
-        elif plan.name == "reconstruct":
-            result = reconstruct_stage.run(plan.inputs[0], config.reconstruct, plan.output, provenance=provenance,
-                                           force=True, progress=progress)
-        else:
-            result = report_stage.run(plan.inputs[0], config.report, plan.output, provenance=provenance,
-                                      force=True, progress=progress)
+            args = (plan.inputs[0],)
+        else:  # the input file and the stage's one section
+            args = (plan.inputs[0], getattr(config, plan.sections[0]))
+        result = RUNS[plan.name](*args, plan.output, provenance=provenance, force=True, progress=progress)
         outcomes.append(StageOutcome(plan.name, "ran", plan.output, time.perf_counter() - start, result))
         rewritten.add(plan.output)
     return outcomes

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cca_cli.config.model import RunConfig
+from cca_cli.config.model import NoiseSection, RunConfig
 from cca_cli.errors import ConfigError
 from cca_cli.io.geometry import write_geometry
 from cca_cli.io.h5 import Provenance, atomic_h5, check_output, write_dataset
@@ -21,7 +21,7 @@ from cca_cli.sampling.overlap import grid_for_sar
 from cca_cli.stages.progress import ProgressEvent, ProgressFn, silent
 from cca_cli.stages.scene import Scene, bars_to_table, build_scene, usaf_to_table
 
-__all__ = ["SECTIONS", "Simulation", "simulate", "write_captures", "run"]
+__all__ = ["SECTIONS", "Simulation", "simulate", "stored_grid", "record", "record_all", "write_captures", "run"]
 
 #: Config sections this stage depends on.
 SECTIONS = ("optics", "scene", "array", "noise", "simulate", "multiplex")
@@ -71,26 +71,47 @@ def simulate(config: RunConfig, *, progress: ProgressFn = silent) -> Simulation:
     spectrum = fft.fft2c(scene.field).astype(np.complex64)
     band = model.sensor_intensity(spectrum)
 
-    store_size = sensor_pixels if config.simulate.store == "sensor" else layout.lowres_size
-    pitch = config.optics.pixel_pitch_m * sensor_pixels / store_size
-    k = model.n_images
-    intensity = np.empty((k, store_size, store_size), np.float32)
+    store_size, pitch = stored_grid(config, sensor_pixels, layout.lowres_size)
     rng = np.random.default_rng(config.noise.seed)
-    step = 16
-    for start in range(0, k, step):
-        block = fft.fourier_resample(band[start:start + step], store_size)
-        if config.noise.model == "gaussian":
-            block = add_gaussian_noise(block, config.noise.snr_db, rng)
-        elif config.noise.model == "poisson":
-            block = add_shot_and_read_noise(block, photons_per_unit=config.noise.photons_per_unit,
-                                            read_noise_e=config.noise.read_noise_e, rng=rng)
-        intensity[start:start + step] = block
-        progress(ProgressEvent("simulate", "captures", min(start + step, k), k))
+    intensity = record_all(band, store_size, config.noise, rng, progress=progress)
     return Simulation(geometry=geometry, layout=layout, scene=scene, intensity=intensity, pixel_pitch_m=pitch)
 
 
-def write_captures(path: Path, simulation: Simulation, provenance: Provenance, *, force: bool = False) -> None:
-    """Write ``captures.h5`` atomically."""
+def stored_grid(config: RunConfig, sensor_pixels: int, lowres_size: int) -> tuple[int, float]:
+    """Side and pixel pitch (m) of the stored images: the sensor grid, or the band grid (``simulate.store``)."""
+    size = sensor_pixels if config.simulate.store == "sensor" else lowres_size
+    return size, config.optics.pixel_pitch_m * sensor_pixels / size
+
+
+def record(band: np.ndarray, size: int, noise: NoiseSection, rng: np.random.Generator) -> np.ndarray:
+    """Band-grid images (K, m, m) → float32 images (K, size, size) with ``noise`` added."""
+    block = fft.fourier_resample(band, size)
+    if noise.model == "gaussian":
+        return add_gaussian_noise(block, noise.snr_db, rng)
+    if noise.model == "poisson":
+        return add_shot_and_read_noise(block, photons_per_unit=noise.photons_per_unit,
+                                       read_noise_e=noise.read_noise_e, rng=rng)
+    return block
+
+
+def record_all(band: np.ndarray, size: int, noise: NoiseSection, rng: np.random.Generator, *,
+               progress: ProgressFn = silent, step: int = 16) -> np.ndarray:
+    """:func:`record` in blocks of ``step`` images, reporting ``simulate/captures`` progress after each."""
+    k = band.shape[0]
+    intensity = np.empty((k, size, size), np.float32)
+    for start in range(0, k, step):
+        intensity[start:start + step] = record(band[start:start + step], size, noise, rng)
+        progress(ProgressEvent("simulate", "captures", min(start + step, k), k))
+    return intensity
+
+
+def write_captures(path: Path, simulation: Simulation, provenance: Provenance, *, force: bool = False,
+                   extra=None) -> None:
+    """Write ``captures.h5`` atomically.
+
+    ``simulation`` may also be a multiplexed simulation (same fields);
+    ``extra(handle)`` writes further groups (multiplexed runs add /multiplex).
+    """
     geometry = simulation.geometry
     if simulation.pixel_pitch_m != geometry.pixel_pitch_m:
         from dataclasses import replace
@@ -104,6 +125,8 @@ def write_captures(path: Path, simulation: Simulation, provenance: Provenance, *
             write_dataset(handle, "/truth/bars", bars_to_table(simulation.scene.bars))
         if simulation.scene.usaf:
             write_dataset(handle, "/truth/usaf", usaf_to_table(simulation.scene.usaf, simulation.scene.usaf_size))
+        if extra is not None:
+            extra(handle)
         handle.attrs["simulation_grid"] = simulation.layout.hires_size
 
 

@@ -15,8 +15,6 @@ stages). Every file appears atomically, the sweep table included.
 
 from __future__ import annotations
 
-import typing
-
 import contextlib
 import csv
 import hashlib
@@ -35,9 +33,10 @@ import numpy as np
 import yaml
 
 from cca_cli.config.load import apply_overrides, dump_config, parse_config
+from cca_cli.config.messages import accepted_keys
 from cca_cli.config.model import RunConfig, SweepSection
 from cca_cli.errors import CcaError, ConfigError
-from cca_cli.io.h5 import Provenance, atomic_h5, atomic_path
+from cca_cli.io.h5 import Provenance, atomic_h5, atomic_path, remove_temporaries
 
 __all__ = [
     "PAPER_STUDIES",
@@ -189,10 +188,7 @@ def check_key(dotted: str, *, source: str = "sweep") -> None:
     if len(parts) < 2 or parts[0] not in fields or parts[0] in ("sweep", "run"):
         sections = ", ".join(k for k in fields if k not in ("sweep", "run"))
         raise ConfigError(f"{source}: {dotted}: not a sweepable key; use section.key with a section of {sections}")
-    section = fields[parts[0]].annotation
-    # Optional sections (``multiplex: MultiplexSection | None``) name their model inside a union.
-    models = [a for a in (typing.get_args(section) or (section,)) if hasattr(a, "model_fields")]
-    keys = models[0].model_fields if models else {}
+    keys = accepted_keys(RunConfig, (parts[0], parts[1]))
     if parts[1] not in keys:
         raise ConfigError(f"{source}: {dotted}: unknown key; accepted keys in {parts[0]}: {', '.join(sorted(keys))}")
     if len(parts) > 2 and dotted.rsplit(".", 1)[0] != "reconstruct.options":
@@ -329,13 +325,7 @@ def run_point(config_data: dict, out_dir: str, *, force: bool = False) -> dict[s
     try:
         config = parse_config(config_data, source=str(directory))
         directory.mkdir(parents=True, exist_ok=True)
-        for stale in directory.glob(".*.tmp-*"):
-            if stale.is_dir():
-                import shutil
-
-                shutil.rmtree(stale, ignore_errors=True)
-            else:
-                stale.unlink(missing_ok=True)
+        remove_temporaries(directory)
         outcomes = run_pipeline(config, directory, force=force)
         report = directory / "report" / REPORT_JSON
         summary = json.loads(report.read_text()) if report.exists() else {}

@@ -50,9 +50,20 @@ def rmse_curve(engine, truth):
     return np.array(curve)
 
 
+#: Engine options of the position-refinement tests.
+REFINEMENT_RUN = dict(max_iterations=25, tol=0, batch=8)
+
+
 @pytest.fixture(scope="module")
 def clean_case():
     return make_case()
+
+
+@pytest.fixture(scope="module")
+def clean_recovery(clean_case):
+    """The clean case recovered without refinement (:data:`REFINEMENT_RUN`)."""
+    spectrum, _ = run_engine(SequentialMomentum(clean_case[0], MomentumOptions(**REFINEMENT_RUN)))
+    return spectrum
 
 
 def test_momentum_recovers_small_case(clean_case):
@@ -96,23 +107,21 @@ def test_registry_and_reconstruct_stage_keywords():
             MomentumOptions(**bad)
 
 
-def test_position_refinement_does_not_hurt_error_free_data(clean_case):
+def test_position_refinement_does_not_hurt_error_free_data(clean_case, clean_recovery):
     problem, truth, _, _ = clean_case
-    options = dict(max_iterations=25, tol=0, batch=8)
-    plain, _ = run_engine(SequentialMomentum(problem, MomentumOptions(**options)))
-    refined_engine = SequentialMomentum(problem, MomentumOptions(position_refinement=True, **options))
+    plain = clean_recovery
+    refined_engine = SequentialMomentum(problem, MomentumOptions(position_refinement=True, **REFINEMENT_RUN))
     refined, _ = run_engine(refined_engine)
     assert rmse(intensity(refined), truth) <= 1.05 * rmse(intensity(plain), truth)
     assert np.abs(refined_engine.calibration().offsets).max() <= 0.25
 
 
-def test_position_refinement_recovers_random_offsets(clean_case):
+def test_position_refinement_recovers_random_offsets(clean_case, clean_recovery):
     _, truth, _, _ = clean_case
     problem, _, _, true_offsets = make_case(position_error=1.0, seed=1)
-    options = dict(max_iterations=25, tol=0, batch=8)
-    error_free, _ = run_engine(SequentialMomentum(clean_case[0], MomentumOptions(**options)))
-    plain, _ = run_engine(SequentialMomentum(problem, MomentumOptions(**options)))
-    engine = SequentialMomentum(problem, MomentumOptions(position_refinement=True, **options))
+    error_free = clean_recovery
+    plain, _ = run_engine(SequentialMomentum(problem, MomentumOptions(**REFINEMENT_RUN)))
+    engine = SequentialMomentum(problem, MomentumOptions(position_refinement=True, **REFINEMENT_RUN))
     refined, _ = run_engine(engine)
     reference = rmse(intensity(error_free), truth)
     assert rmse(intensity(plain), truth) > 1.1 * reference  # the errors matter ...

@@ -43,9 +43,16 @@ def reconstruct(problem, **options):
 
 
 @pytest.fixture(scope="module")
-def perfect():
+def perfect_image():
+    """The perfect-pupil case and its recovery without pupil recovery."""
     problem, truth = make_case()
     image, _ = reconstruct(problem)
+    return problem, truth, image
+
+
+@pytest.fixture(scope="module")
+def perfect(perfect_image):
+    problem, truth, image = perfect_image
     return problem, truth, rmse(image, truth)
 
 
@@ -70,11 +77,11 @@ def test_pupil_recovery_removes_defocus_and_astigmatism(perfect):
     assert np.abs(calibration.pupils - expected).max() < 0.25
 
 
-def test_pupil_recovery_with_coma():
+def test_pupil_recovery_with_coma(perfect_image):
     # Coma shifts the neighbour correlation peaks too: beyond ~0.05 waves the quadratic start is off.
     true = np.array([0.3, -0.2, 0.1, 0.05, -0.03, 0.0, 0.0])
     problem, truth = make_case(true, order=3)
-    reference, _ = reconstruct(make_case()[0])
+    reference = perfect_image[2]
     recovered, calibration = reconstruct(problem, pupil_recovery="shared", pupil_order=3)
     assert rmse(recovered, truth) <= 1.2 * rmse(reference, truth)
     np.testing.assert_allclose(calibration.coefficients, true, atol=0.03)

@@ -77,21 +77,22 @@ def test_rgb_average_and_channel(tmp_path):
         read_image(path, channel=3)
 
 
-def test_missing_file(tmp_path):
-    path = tmp_path / "captures" / "x_0_3.tif"
+def _assert_one_line_error(path, phrase):
+    """Reading ``path`` raises an InputError: one line naming the file and containing ``phrase``."""
     with pytest.raises(InputError) as err:
         read_image(path)
     msg = str(err.value)
-    assert str(path) in msg and "not found" in msg and "\n" not in msg
+    assert str(path) in msg and phrase in msg and "\n" not in msg
+
+
+def test_missing_file(tmp_path):
+    _assert_one_line_error(tmp_path / "captures" / "x_0_3.tif", "not found")
 
 
 def test_corrupt_file(tmp_path):
     path = tmp_path / "x_0_3.tif"
     path.write_bytes(np.random.default_rng(3).bytes(2000))
-    with pytest.raises(InputError) as err:
-        read_image(path)
-    msg = str(err.value)
-    assert str(path) in msg and "cannot read image" in msg and "\n" not in msg
+    _assert_one_line_error(path, "cannot read image")
 
 
 def test_truncated_file(tmp_path):
@@ -108,10 +109,7 @@ def test_nan_in_float_image(tmp_path):
     data[3, 4] = np.nan
     path = tmp_path / "nan.exr"
     write_image(path, data)
-    with pytest.raises(InputError) as err:
-        read_image(path)
-    msg = str(err.value)
-    assert str(path) in msg and "NaN" in msg and "\n" not in msg
+    _assert_one_line_error(path, "NaN")
 
 
 def test_write_is_atomic_and_overwrites(tmp_path):

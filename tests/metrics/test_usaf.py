@@ -1,9 +1,13 @@
+"""USAF 1951 reading: MTF20 rule, gains, and the three-bar criterion against the area mean."""
+
 import json
 
+import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
-from cca_cli.metrics import UsafReading, usaf_gain, usaf_resolution
+from cca_cli.metrics import UsafReading, bar_contrast, three_bar_contrast, usaf_gain, usaf_resolution
+from cca_cli.metrics.usaf import CRITERIA
 from cca_cli.targets import usaf1951_chart
 
 
@@ -55,11 +59,6 @@ def test_shape_mismatch(chart):
 
 
 # --- three-bar criterion (default) -------------------------------------------------
-
-import numpy as np
-
-from cca_cli.metrics import bar_contrast, three_bar_contrast
-from cca_cli.metrics.usaf import CRITERIA
 
 
 def _paint(chart, bar_levels, gap_levels):

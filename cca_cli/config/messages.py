@@ -1,0 +1,50 @@
+"""Pieces of the one-line messages for invalid YAML and pydantic validation errors (configs and manifests)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import yaml
+from pydantic import BaseModel
+
+__all__ = ["model_in", "accepted_keys", "error_message", "yaml_error_text"]
+
+
+def model_in(annotation) -> type[BaseModel] | None:
+    """The pydantic model inside an annotation such as ``X``, ``X | None`` or ``list[X] | None`` (else None)."""
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation
+    for arg in getattr(annotation, "__args__", ()):
+        found = model_in(arg)
+        if found is not None:
+            return found
+    return None
+
+
+def accepted_keys(model: type[BaseModel], loc: tuple) -> list[str]:
+    """Keys of the (sub)model that an error location ``loc`` points into, in declaration order.
+
+    List indices in ``loc`` are skipped; an empty list means the location is
+    not inside a model.
+    """
+    current: type[BaseModel] | None = model
+    for part in loc[:-1]:
+        if isinstance(part, int):
+            continue
+        field = current.model_fields.get(str(part))
+        current = model_in(field.annotation) if field is not None else None
+        if current is None:
+            return []
+    return list(current.model_fields)
+
+
+def error_message(error: dict) -> str:
+    """The message of one pydantic error, without pydantic's ``Value error,`` prefix."""
+    return error["msg"].removeprefix("Value error, ")
+
+
+def yaml_error_text(path: str | Path, exc: yaml.YAMLError) -> str:
+    """``<path>: line <n>: not valid YAML (<problem>)`` for a YAML syntax error."""
+    mark = getattr(exc, "problem_mark", None)
+    where = f" line {mark.line + 1}:" if mark else ""
+    return f"{path}:{where} not valid YAML ({getattr(exc, 'problem', exc)})"
