@@ -145,3 +145,10 @@ def test_run_stages_must_be_in_pipeline_order(tiny_config_data):
     tiny_config_data["run"]["stages"] = ["report", "simulate"]
     with pytest.raises(ConfigError, match="run.stages|run:"):
         parse_config(tiny_config_data, source="x.yaml")
+
+
+def test_unknown_key_in_an_optional_section_lists_its_keys(write_config, tiny_config_data):
+    tiny_config_data["multiplex"] = {"camera_grid": [3, 3], "source_grid": [3, 3], "n_mux": 1, "bogus": 1}
+    message = _error(write_config, tiny_config_data)
+    assert "multiplex.bogus: unknown key" in message
+    assert "camera_grid" in message and "n_mux" in message

@@ -115,3 +115,14 @@ def test_single_pattern_single_source_leaves_holes():
     stats_many, _, _ = coverage_summary(many, 128)
     assert stats_one["coverage_zero_fraction"] > 0.2
     assert stats_many["coverage_zero_fraction"] < stats_one["coverage_zero_fraction"] / 2
+
+
+def test_multiplexed_simulation_of_a_usaf_chart_stores_its_elements(tmp_path):
+    from cca_cli.stages.multiplex import run_simulate
+
+    data = _config(n_mux=1, patterns=1)
+    data["scene"] = {"kind": "usaf", "size_px": 128, "field_width_m": 16e-3, "usaf_groups": [0, 1]}
+    output = tmp_path / "captures.h5"
+    run_simulate(parse_config(data), output, provenance={"stage": "simulate"})
+    with h5py.File(output, "r") as handle:
+        assert "multiplex" in handle and handle["truth/usaf"].shape[0] > 0
