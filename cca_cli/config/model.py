@@ -134,7 +134,8 @@ class SimulateSection(Section):
 class ReconstructSection(Section):
     """Phase retrieval."""
 
-    engine: str = Field("altmin", description="Engine name (see `cca reconstruct --help`).")
+    engine: str = Field("auto", description="Engine name (see `cca reconstruct --help`), or auto: the paper's "
+                                            "altmin for simulations, momentum with calibration for recorded captures.")
     tau: float = Field(1e-3, ge=0.0, description="Tikhonov weight τ.")
     iterations: PositiveInt = Field(1000, description="Maximum iterations.")
     tol: float = Field(1e-5, ge=0.0, description="Stop when the relative spectrum change is below this.")
@@ -146,8 +147,8 @@ class ReconstructSection(Section):
     def _known_engine(cls, engine):
         from cca_cli.engines.registry import ENGINES, engine_names
 
-        if engine not in ENGINES:
-            raise ValueError(f"{engine!r} is not an engine; choose one of {', '.join(engine_names())}")
+        if engine != "auto" and engine not in ENGINES:
+            raise ValueError(f"{engine!r} is not an engine; choose auto or one of {', '.join(engine_names())}")
         return engine
 
     @field_validator("options")
@@ -156,9 +157,13 @@ class ReconstructSection(Section):
         from cca_cli.engines.registry import ENGINES
 
         engine = info.data.get("engine")
-        if engine not in ENGINES:
+        if engine == "auto":  # the engine depends on the data: accept what any engine accepts
+            accepted = set().union(*(set(entry.option_names()) for entry in ENGINES.values()))
+            accepted -= {"tau", "max_iterations", "tol"}
+        elif engine not in ENGINES:
             return options
-        accepted = set(ENGINES[engine].option_names()) - {"tau", "max_iterations", "tol"}
+        else:
+            accepted = set(ENGINES[engine].option_names()) - {"tau", "max_iterations", "tol"}
         unknown = sorted(set(options) - accepted)
         if unknown:
             raise ValueError(f"unknown option(s) {', '.join(unknown)} for engine {engine}; "

@@ -66,6 +66,7 @@ __all__ = [
     "refine_positions",
     "quadratic_to_zernike",
     "estimate_quadratic_aberration",
+    "defocus_zernike",
 ]
 
 #: (radial order n, azimuthal frequency m) of the modes used, Noll order from defocus on;
@@ -364,3 +365,39 @@ def estimate_quadratic_aberration(layout: BandLayout, amplitudes: np.ndarray,
         return np.zeros(3)
     q, *_ = np.linalg.lstsq(system, np.array(vectors) * np.array(heights), rcond=None)
     return quadratic_to_zernike([[q[0], q[1]], [q[1], q[2]]], layout.pupil_radius_px)
+
+
+def defocus_zernike(defocus_m: float, *, wavelength_m: float, numerical_aperture: float,
+                    order: int = 4) -> np.ndarray:
+    """Zernike coefficients (waves) of the pupil phase a known defocus puts on an objective.
+
+    The field a distance ``z`` from focus reaches the objective's pupil with the
+    phase ``2π z (√(1/λ² − |f|²) − 1/λ)`` at spatial frequency ``f`` (``|f| ≤
+    NA/λ``); its least-squares projection on the modes of
+    :func:`zernike_modes` is returned (defocus and spherical terms).
+
+    Parameters
+    ----------
+    defocus_m : float
+        Distance of the object from the focal plane (m), in the sense of the
+        propagator ``exp(i 2π z f_z)``.
+    wavelength_m, numerical_aperture : float
+    order : int
+        Highest radial order of the returned modes.
+
+    Returns
+    -------
+    ndarray, float64, (n_modes,)
+    """
+    size = 129
+    centre = np.array([[(size - 1) / 2, (size - 1) / 2]])
+    radius = (size - 1) / 2
+    grid = (np.arange(size) - (size - 1) / 2) / radius
+    rho2 = grid[:, None] ** 2 + grid[None, :] ** 2
+    inside = rho2 <= 1
+    frequency2 = rho2 * (numerical_aperture / wavelength_m) ** 2
+    phase = 2 * np.pi * defocus_m * (np.sqrt(1 / wavelength_m ** 2 - frequency2) - 1 / wavelength_m)
+    basis = zernike_basis(size, centre, radius, order=order)[:, 0]
+    columns = np.stack([np.ones(inside.sum())] + [b[inside] for b in basis], axis=1)
+    solution, *_ = np.linalg.lstsq(columns, phase[inside], rcond=None)
+    return solution[1:]

@@ -7,6 +7,7 @@ from functools import cached_property
 
 import numpy as np
 
+from cca_cli.engines.illumination import PositionModel, StageModel
 from cca_cli.optics import fft
 from cca_cli.optics.forward import ForwardModel, to_model_layout, to_sensor_layout
 
@@ -40,11 +41,25 @@ class PhaseRetrievalProblem(MeasuredAmplitudes):
     weights : ndarray, float32, (K, m, m) or None
         Per-pixel confidence in [0, 1] (0: the pixel does not constrain the
         magnitude update), field layout; None means all pixels count fully.
+    pupil_index : ndarray, int, (K,) or None
+        Camera (pupil) of each capture for engines that recover one pupil per
+        camera; None: every capture through the same lens.
+    position_model : PositionModel or None
+        How the whole set of pupil centres may move (an LED array's shift,
+        rotation and height; a stage's shift, rotation and scale), for engines
+        that calibrate positions; None: a stage model of the nominal centres.
+    aberration : ndarray, (n_modes,) or (P, n_modes), or None
+        Known Zernike phase coefficients (waves, modes of
+        :func:`~cca_cli.engines.calibration.zernike_modes`) of the pupil(s),
+        e.g. a known defocus; engines start from it.
     """
 
     model: ForwardModel
     amplitudes: np.ndarray
     weights: np.ndarray | None = None
+    pupil_index: np.ndarray | None = None
+    position_model: PositionModel | None = None
+    aberration: np.ndarray | None = None
 
     def __post_init__(self):
         expected = (self.model.n_images,) + self.model.field_shape
@@ -52,10 +67,22 @@ class PhaseRetrievalProblem(MeasuredAmplitudes):
             raise ValueError(f"amplitudes must have shape {expected}, got {self.amplitudes.shape}")
         if self.weights is not None and self.weights.shape != expected:
             raise ValueError(f"weights must have shape {expected}, got {self.weights.shape}")
+        if self.pupil_index is not None:
+            index = np.asarray(self.pupil_index)
+            if index.shape != (self.model.n_images,) or index.dtype.kind not in "iu" or index.min() < 0:
+                raise ValueError(f"pupil_index must hold one non-negative integer per capture, got {index!r}")
+        if self.position_model is None:
+            object.__setattr__(self, "position_model", StageModel(self.model.layout.centres_px))
+
+    def pupil_indices(self) -> np.ndarray:
+        """Pupil (camera) of each capture, compacted to ``0 … P-1`` (all 0 when none are given)."""
+        if self.pupil_index is None:
+            return np.zeros(self.model.n_images, np.int64)
+        return np.unique(np.asarray(self.pupil_index), return_inverse=True)[1].astype(np.int64).ravel()
 
     @classmethod
-    def from_sensor_images(cls, model: ForwardModel, images: np.ndarray, weights: np.ndarray | None = None
-                           ) -> "PhaseRetrievalProblem":
+    def from_sensor_images(cls, model: ForwardModel, images: np.ndarray, weights: np.ndarray | None = None,
+                           **calibration) -> "PhaseRetrievalProblem":
         """Prepare captures recorded on the sensor grid.
 
         Parameters
@@ -68,9 +95,11 @@ class PhaseRetrievalProblem(MeasuredAmplitudes):
             are clipped to 0.
         weights : ndarray, (K, N, N), optional
             Validity weights in [0, 1] on the same grid (resampled by area when N > m).
+        **calibration
+            ``pupil_index``, ``position_model``, ``aberration`` (see the class).
         """
         amplitudes, resampled_weights = sensor_amplitudes(model, images, weights, count=model.n_images)
-        return cls(model=model, amplitudes=amplitudes, weights=resampled_weights)
+        return cls(model=model, amplitudes=amplitudes, weights=resampled_weights, **calibration)
 
     def sensor_intensities(self) -> np.ndarray:
         """Measured intensities back in sensor units and layout on the model grid (K, m, m)."""

@@ -29,6 +29,10 @@ def write_geometry(handle: h5py.File, geometry: CaptureGeometry) -> None:
     group.attrs["units"] = ", ".join(f"{k}: {v}" for k, v in GEOMETRY_ATTRS.items())
     for name in _ARRAYS:
         write_dataset(group, name, getattr(geometry, name))
+    if geometry.camera_index is not None:
+        write_dataset(group, "camera_index", np.asarray(geometry.camera_index, np.int32))
+    if np.isfinite(geometry.defocus_m):
+        group.attrs["defocus_m"] = float(geometry.defocus_m)
 
 
 def read_geometry(handle: h5py.File) -> CaptureGeometry:
@@ -48,4 +52,10 @@ def read_geometry(handle: h5py.File) -> CaptureGeometry:
     for name, arr in arrays.items():
         if arr.shape != (k, 2):
             raise InputError(f"{handle.filename}: /geometry/{name} has shape {arr.shape}, expected ({k}, 2)")
+    values["defocus_m"] = float(group.attrs.get("defocus_m", float("nan")))
+    if "camera_index" in group:
+        cameras = np.asarray(group["camera_index"])
+        if cameras.shape != (k,) or cameras.dtype.kind not in "iu" or (k and cameras.min() < 0):
+            raise InputError(f"{handle.filename}: /geometry/camera_index must hold one camera number ≥ 0 per capture")
+        arrays["camera_index"] = cameras.astype(np.int32)
     return CaptureGeometry(**values, **arrays)

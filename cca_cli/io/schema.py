@@ -34,6 +34,8 @@ DATASETS: tuple[DatasetSpec, ...] = (
     DatasetSpec("/geometry/spectrum_centres_yx_px", "float64", "(K, 2)", "spectrum px",
                 "Pupil centre [y, x] relative to DC in spectrum pixels (derived from the optics)."),
     DatasetSpec("/geometry/grid_indices", "int32", "(K, 2)", "1", "Grid [row, column] of each capture."),
+    DatasetSpec("/geometry/camera_index", "int32", "(K,)", "1",
+                "Optional: camera of each capture in a camera array (each camera its own lens and pupil)."),
     DatasetSpec("/truth/object", "complex64", "(M, M)", "√irradiance",
                 "Simulation ground truth: the object's complex field on the simulation grid."),
     DatasetSpec("/truth/bars", "int32", "(B, 8)", "px",
@@ -47,6 +49,29 @@ DATASETS: tuple[DatasetSpec, ...] = (
                 "Recovered high-resolution spectrum, centred (DC at M//2), orthonormal FFT of the object."),
     DatasetSpec("/recon/object", "complex64", "(M, M)", "√irradiance", "Recovered complex object field."),
     DatasetSpec("/recon/intensity", "float32", "(M, M)", "irradiance", "Recovered intensity |object|²."),
+    DatasetSpec("/recon/residual_per_image", "float64", "(K,)", "1",
+                "Relative amplitude misfit ‖s·√b_k |ψ_k| − √I_k‖ / ‖√I_k‖ of each capture under the final model "
+                "(calibrated pupils, positions and brightness b_k; s one global scale). Root attributes of /recon: "
+                "residual_all, residual_bright_field, residual_dark_field (the same over each set of captures) and "
+                "residual_*_without_brightness."),
+    DatasetSpec("/calibration/pupil", "complex64", "(P, b, b)", "1",
+                "Recovered pupil of each camera (one for a scanned camera or an LED array) on the spectrum grid "
+                "(pixel 1/field_width_m), centred at (b − 1)/2 + the mean fractional pupil centre: NA disc × aberration."),
+    DatasetSpec("/calibration/pupil_index", "int32", "(K,)", "1", "Pupil (camera) each capture uses."),
+    DatasetSpec("/calibration/zernike_waves", "float64", "(P, n_modes)", "waves",
+                "Zernike phase coefficients of each pupil (RMS-normalised, Noll modes listed in "
+                "/calibration/zernike_modes): fitted, or projected from a full pupil map."),
+    DatasetSpec("/calibration/zernike_modes", "int32", "(n_modes, 2)", "1",
+                "Radial order n and azimuthal frequency m (negative: sine term) of each Zernike coefficient."),
+    DatasetSpec("/calibration/spectrum_centres_yx_px", "float64", "(K, 2)", "spectrum px",
+                "Refined pupil centre [y, x] of each capture relative to DC (nominal: /geometry)."),
+    DatasetSpec("/calibration/aperture_centres_yx_m", "float64", "(K, 2)", "m",
+                "Refined aperture centre [y, x] of each capture in /geometry's convention (LED arrays: sin θ)."),
+    DatasetSpec("/calibration/brightness", "float64", "(K,)", "1",
+                "Illumination brightness of each capture: the model's intensity is brightness × |ψ|² (1: not fitted)."),
+    DatasetSpec("/calibration/bright_field", "bool", "(K,)", "1",
+                "Whether each capture is bright-field (its illumination falls inside the NA: pupil centre within "
+                "one pupil radius of DC)."),
     DatasetSpec("/observed/centre", "float32", "(N, N)", "irradiance",
                 "The capture nearest the optical axis (what a single camera sees)."),
     DatasetSpec("/history/residual", "float64", "(iterations,)", "1",
@@ -104,6 +129,7 @@ GEOMETRY_ATTRS = {
     "overlap": "1",
     "synthetic_aperture_ratio": "1",
     "centre_index": "1",
+    "defocus_m": "m (optional: known distance of the object from focus)",
 }
 
 

@@ -140,8 +140,8 @@ class ForwardModel:
         self.pupils = pupils
         m = layout.lowres_size
         # Orthonormal scaling folded into the pupils: raw FFTs then need no extra pass.
-        self._pupil_forward = (pupils / m).astype(np.complex64)
-        self._pupil_adjoint = (np.conj(pupils) / m).astype(np.complex64)
+        self._pupil_forward = pupils * np.float32(1.0 / m)
+        self._pupil_adjoint = None
         self._origin_array = np.ascontiguousarray(layout.box_origins, dtype=np.int64)
         kernels.warm_up()
 
@@ -223,6 +223,8 @@ class ForwardModel:
         start, stop, _ = images.indices(self.n_images)
         k = stop - start
         workspace.forward(k)
+        if self._pupil_adjoint is None:
+            self._pupil_adjoint = np.conj(self._pupil_forward)
         kernels.scatter_boxes(workspace.fields[:k], self._origin_array, self._pupil_adjoint, accumulator, start)
 
     def normal_diagonal(self) -> np.ndarray:

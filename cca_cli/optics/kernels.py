@@ -490,3 +490,136 @@ def sequential_lane(raw_plans, batches: np.ndarray, spectrum: np.ndarray, origin
     confidence = amplitudes if weights is None else weights
     return float(_lane_numba(_execute_address(), counts, plans, batches, spectrum, origins, pupils, factors, fields,
                              amplitudes, confidence, weights is not None, np.float32(eps)))
+
+
+# ----------------------------------------------------------------------------- calibration support
+def _rpie_factors_numpy(pupils, origins, batches, alpha, tau, scale, coverage, out):
+    b = pupils.shape[1]
+    power = np.abs(pupils) ** 2
+    for start, stop in batches:
+        for i in range(start, stop):
+            y0, x0 = origins[i]
+            coverage[y0:y0 + b, x0:x0 + b] += power[i]
+        boxes = np.stack([coverage[y0:y0 + b, x0:x0 + b] for y0, x0 in origins[start:stop]])
+        peak = float(np.max(boxes))
+        out[start:stop] = scale * np.conj(pupils[start:stop]) / ((1.0 - alpha) * boxes + alpha * peak + tau + 1e-30)
+        for i in range(start, stop):
+            y0, x0 = origins[i]
+            coverage[y0:y0 + b, x0:x0 + b] = 0
+
+
+def _accumulate_pupil_numpy(spectrum, origins, discs, fields, start, index, numerator, denominator, scale):
+    k, m, b = fields.shape[0], fields.shape[1], discs.shape[1]
+    s = m // 2 - b // 2
+    for j in range(k):
+        i = start + j
+        y0, x0 = origins[i]
+        lit = discs[i] * spectrum[y0:y0 + b, x0:x0 + b]
+        numerator[index[i]] += np.conj(lit) * (fields[j, s:s + b, s:s + b] * scale)
+        denominator[index[i]] += np.abs(lit) ** 2
+
+
+if _HAVE_NUMBA:  # pragma: no branch
+    @_jit
+    def _rpie_factors_numba(pupils, origins, batches, alpha, tau, scale, coverage, out):  # pragma: no cover
+        b = pupils.shape[1]
+        for n in range(batches.shape[0]):
+            start, stop = batches[n, 0], batches[n, 1]
+            for i in range(start, stop):
+                y0, x0 = origins[i, 0], origins[i, 1]
+                for r in range(b):
+                    for c in range(b):
+                        p = pupils[i, r, c]
+                        coverage[y0 + r, x0 + c] += p.real * p.real + p.imag * p.imag
+            peak = np.float32(0.0)
+            for i in range(start, stop):
+                y0, x0 = origins[i, 0], origins[i, 1]
+                for r in range(b):
+                    for c in range(b):
+                        peak = max(peak, coverage[y0 + r, x0 + c])
+            floor = alpha * peak + tau + np.float32(1e-30)
+            keep = np.float32(1.0) - alpha
+            for i in range(start, stop):
+                y0, x0 = origins[i, 0], origins[i, 1]
+                for r in range(b):
+                    for c in range(b):
+                        q = scale / (keep * coverage[y0 + r, x0 + c] + floor)
+                        p = pupils[i, r, c]
+                        out[i, r, c] = np.complex64(complex(p.real * q, -p.imag * q))
+            for i in range(start, stop):
+                y0, x0 = origins[i, 0], origins[i, 1]
+                for r in range(b):
+                    for c in range(b):
+                        coverage[y0 + r, x0 + c] = 0
+
+    @_jit
+    def _accumulate_pupil_numba(spectrum, origins, discs, fields, start, index, numerator, denominator,
+                                scale):  # pragma: no cover - compiled
+        k, m, b = fields.shape[0], fields.shape[1], discs.shape[1]
+        s = m // 2 - b // 2
+        for j in range(k):
+            i = start + j
+            y0, x0 = origins[i, 0], origins[i, 1]
+            p = index[i]
+            for r in range(b):
+                for c in range(b):
+                    lit = discs[i, r, c] * spectrum[y0 + r, x0 + c]
+                    g = fields[j, s + r, s + c] * scale
+                    numerator[p, r, c] += (lit.real * g.real + lit.imag * g.imag) + 1j * (lit.real * g.imag
+                                                                                          - lit.imag * g.real)
+                    denominator[p, r, c] += lit.real * lit.real + lit.imag * lit.imag
+
+
+def rpie_factors(pupils: np.ndarray, origins: np.ndarray, batches: np.ndarray, *, alpha: float, tau: float,
+                 scale: float, coverage: np.ndarray, out: np.ndarray) -> None:
+    """Each capture's rPIE update factor ``scale · P_i* / ((1 − α) D_B + α max D_B + τ)``, batch by batch.
+
+    ``D_B`` is the pupil power ``Σ_{i∈B} |P_i|²`` of the capture's batch B, on the spectrum grid.
+
+    Parameters
+    ----------
+    pupils : ndarray, complex64, (K, b, b)
+    origins : ndarray, int64, (K, 2)
+        Box corners in the spectrum (the visiting order of ``pupils``).
+    batches : ndarray, int64, (n, 2)
+        ``[start, stop)`` of every batch.
+    alpha, tau, scale : float
+    coverage : ndarray, float32, (M, M)
+        Zero work array, left zero.
+    out : ndarray, complex64, (K, b, b)
+        Receives the factors.
+    """
+    if _use_numba:
+        _rpie_factors_numba(pupils, origins, batches, np.float32(alpha), np.float32(tau), np.float32(scale),
+                            coverage, out)
+    else:
+        _rpie_factors_numpy(pupils, origins, batches, alpha, tau, scale, coverage, out)
+
+
+def accumulate_pupil(spectrum: np.ndarray, origins: np.ndarray, discs: np.ndarray, fields: np.ndarray, start: int,
+                     index: np.ndarray, numerator: np.ndarray, denominator: np.ndarray, scale: float) -> None:
+    """Add a batch's terms of the closed-form pupil fit: ``Σ conj(D_i S_i) G_i`` and ``Σ |D_i S_i|²``.
+
+    Parameters
+    ----------
+    spectrum : ndarray, complex64, (M, M)
+        The spectrum the batch's fields were computed from (before its update).
+    origins : ndarray, int64, (K, 2)
+    discs : ndarray, float32, (K, b, b)
+        Each capture's NA disc ``D_i``.
+    fields : ndarray, complex64, (k, m, m)
+        Raw forward transforms of the batch's data steps (pupil box centred on ``m // 2``).
+    start : int
+        Index of the batch's first capture.
+    index : ndarray, int64, (K,)
+        Pupil of each capture.
+    numerator : ndarray, complex128, (P, b, b)
+    denominator : ndarray, float64, (P, b, b)
+    scale : float
+        Converts the raw transform to the orthonormal one (``1/m``).
+    """
+    if _use_numba:
+        _accumulate_pupil_numba(spectrum, origins, discs, fields, start, index, numerator, denominator,
+                                np.float32(scale))
+    else:
+        _accumulate_pupil_numpy(spectrum, origins, discs, fields, start, index, numerator, denominator, scale)

@@ -7,8 +7,15 @@ import numpy as np
 __all__ = ["circular_pupils", "zernike_phase"]
 
 
-def circular_pupils(box_size: int, box_centres, radius_px: float) -> np.ndarray:
-    """Binary circular pupils, one per capture, sampled on their boxes.
+def circular_pupils(box_size: int, box_centres, radius_px: float, *, edge_px: float = 1.0) -> np.ndarray:
+    """Circular pupils, one per capture, sampled on their boxes with an anti-aliased edge.
+
+    A pixel's value falls linearly from 1 to 0 as its centre's distance ``r``
+    from the pupil centre goes from ``R − edge/2`` to ``R + edge/2``: about the
+    share of the pixel the disc covers. A sampled disc then moves smoothly with
+    a sub-pixel change of its centre (a binary one only jumps when an edge pixel
+    flips), which sub-pixel positions and their calibration need, and it
+    matches recorded images better.
 
     Parameters
     ----------
@@ -18,17 +25,22 @@ def circular_pupils(box_size: int, box_centres, radius_px: float) -> np.ndarray:
         Pupil centre ``[y, x]`` inside each box (fractional pixels).
     radius_px : float
         Pupil radius (spectrum pixels).
+    edge_px : float
+        Width of the edge ramp (pixels); 0 gives a binary disc ``r ≤ R``.
 
     Returns
     -------
     ndarray, float32, (K, box_size, box_size)
-        1 inside the circle ``|k - c| ≤ R``, 0 outside.
+        Values in [0, 1].
     """
     centres = np.asarray(box_centres, dtype=np.float64).reshape(-1, 2)
     grid = np.arange(box_size, dtype=np.float64)
     dy = grid[None, :, None] - centres[:, 0, None, None]
     dx = grid[None, None, :] - centres[:, 1, None, None]
-    return ((dy * dy + dx * dx) <= radius_px * radius_px).astype(np.float32)
+    distance = np.sqrt(dy * dy + dx * dx)
+    if edge_px <= 0:
+        return (distance <= radius_px).astype(np.float32)
+    return np.clip((radius_px + 0.5 * edge_px - distance) / edge_px, 0.0, 1.0).astype(np.float32)
 
 
 def zernike_phase(box_size: int, box_centres, radius_px: float, *, defocus_waves: float = 0.0,

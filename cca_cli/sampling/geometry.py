@@ -39,6 +39,10 @@ class CaptureGeometry:
         so that aperture-plane "metres" are sin θ and ``aperture_diameter_m = 2 NA``).
     numerical_aperture : float
         Objective NA of an LED-array dataset (nan for camera scans).
+    camera_index : ndarray, int32, (K,) or None
+        Camera of each capture in a camera array (None: one camera, moved or fixed).
+    defocus_m : float
+        Known distance of the object from focus (LED arrays, m; nan when unknown).
     """
 
     wavelength_m: float
@@ -54,6 +58,8 @@ class CaptureGeometry:
     overlap: float = float("nan")
     kind: str = "camera_scan"
     numerical_aperture: float = float("nan")
+    camera_index: np.ndarray | None = None
+    defocus_m: float = float("nan")
 
     @property
     def n_images(self) -> int:

@@ -154,8 +154,9 @@ def band_layout(
     Notes
     -----
     The intensity of a field whose spectrum is a disc of radius R has its
-    spectrum in a disc of radius 2R, so an m x m grid with ``m > 4 R`` holds it
-    without aliasing; the smallest even 7-smooth size is used.
+    spectrum in a disc of radius 2R; with the pupil's anti-aliased edge
+    (reaching R + 1/2) an m x m grid with ``m > 4 R + 2`` holds it without
+    aliasing; the smallest even 7-smooth size is used.
     """
     centres = np.asarray(centres_px, dtype=np.float64).reshape(-1, 2)
     radius = float(pupil_radius_px)
@@ -163,7 +164,8 @@ def band_layout(
         raise ValueError(f"pupil radius must be positive, got {radius}")
     box = 2 * math.ceil(radius) + 4
 
-    needed_lowres = smallest_fft_size(2 * math.floor(2 * radius) + 1)
+    # The anti-aliased pupil edge reaches R + 1/2 (optics.pupil.circular_pupils), its intensity band 2R + 1.
+    needed_lowres = smallest_fft_size(2 * math.floor(2 * radius + 1) + 1)
     if lowres_size is None:
         lowres_size = needed_lowres
         if sensor_size is not None and sensor_size < lowres_size:

@@ -28,7 +28,7 @@ from cca_cli.sampling.geometry import CaptureGeometry, camera_scan_geometry
 from cca_cli.sampling.grid import BandLayout
 from cca_cli.stages.progress import ProgressFn, silent
 from cca_cli.stages.reconstruct import (Captures, Recovery, drive_engine, engine_options, read_measurements,
-                                        write_recon)
+                                        resolve_engine, write_recon)
 from cca_cli.stages.scene import Scene, build_scene
 from cca_cli.stages.simulate import record, record_all, stored_grid, write_captures
 from cca_cli.units import FourierScale
@@ -210,7 +210,8 @@ def reconstruct_multiplexed(data: MultiplexedCaptures, section: ReconstructSecti
                             progress: ProgressFn = silent) -> Recovery:
     """Run the configured engine's multiplexed form on ``data``."""
     captures = data.captures
-    engine_class = MULTIPLEX_ENGINES.get(section.engine)
+    name, _ = resolve_engine(section, "simulation")
+    engine_class = MULTIPLEX_ENGINES.get(name)
     if engine_class is None:
         raise ConfigError(f"reconstruct.engine: {section.engine!r} cannot use multiplexed captures ({captures.path}); "
                           f"choose one of {', '.join(sorted(MULTIPLEX_ENGINES))}")
@@ -219,9 +220,9 @@ def reconstruct_multiplexed(data: MultiplexedCaptures, section: ReconstructSecti
         problem = MultiplexedProblem.from_sensor_images(model, captures.intensity, captures.weight)
     except ValueError as exc:
         raise InputError(f"{captures.path}: {exc}") from None
-    options = engine_options(section)
+    options = engine_options(section, "simulation")
     engine = engine_class(problem, options)
-    return drive_engine(engine, options, model.layout, section.engine, progress=progress)
+    return drive_engine(engine, options, model.layout, name, progress=progress)
 
 
 def run_reconstruct(captures_path: Path, section: ReconstructSection, output: Path, *, provenance: Provenance,

@@ -4,13 +4,18 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from cca_cli.config.model import ReconstructSection
 from cca_cli.engines.base import History, IterationRecord, run_engine
+from cca_cli.engines.calibration import defocus_zernike
+from cca_cli.engines.fit import FitReport, fit_report
+from cca_cli.engines.illumination import LedArrayModel
+from cca_cli.engines.momentum import Calibration
+from cca_cli.engines.presets import preset
 from cca_cli.engines.problem import PhaseRetrievalProblem
 from cca_cli.engines.registry import get_engine
 from cca_cli.errors import ConfigError, InputError
@@ -20,7 +25,7 @@ from cca_cli.optics import fft
 from cca_cli.optics.forward import ForwardModel
 from cca_cli.optics.pupil import circular_pupils
 from cca_cli.sampling.geometry import CaptureGeometry
-from cca_cli.sampling.grid import BandLayout, band_layout
+from cca_cli.sampling.grid import BandLayout, band_layout, smallest_fft_size
 from cca_cli.stages.progress import ProgressEvent, ProgressFn, silent
 
 __all__ = ["SECTIONS", "Captures", "Recovery", "read_captures", "read_measurements", "build_model", "reconstruct",
@@ -42,7 +47,12 @@ class Captures:
 
 @dataclass(frozen=True)
 class Recovery:
-    """Result of a reconstruction."""
+    """Result of a reconstruction.
+
+    ``calibration`` is what a calibrating engine found (pupils, positions,
+    brightness), ``fit`` the residuals of the final model; both None for engines
+    without them (multiplexed captures).
+    """
 
     spectrum: np.ndarray
     layout: BandLayout
@@ -50,6 +60,8 @@ class Recovery:
     engine: str
     options: dict
     seconds: float
+    calibration: Calibration | None = None
+    fit: FitReport | None = None
 
 
 def read_captures(path: Path) -> Captures:
@@ -79,32 +91,86 @@ def read_measurements(handle, path: Path) -> Captures:
     return Captures(path=path, intensity=intensity, weight=weight, geometry=geometry, truth=truth)
 
 
-def build_model(geometry: CaptureGeometry, sensor_pixels: int, *, hires_size: int | None = None) -> ForwardModel:
-    """The forward model of a capture set on the smallest grids its band allows."""
+def build_model(geometry: CaptureGeometry, sensor_pixels: int, *, hires_size: int | None = None,
+                margin_px: int = 0) -> ForwardModel:
+    """The forward model of a capture set on the smallest grids its band allows.
+
+    ``margin_px`` widens the high-resolution grid so that pupils may move that
+    far outwards (position calibration).
+    """
     layout = band_layout(geometry.spectrum_centres_yx_px, geometry.pupil_radius_px,
                          sensor_size=sensor_pixels, hires_size=hires_size)
+    if margin_px > 0 and hires_size is None:
+        layout = band_layout(geometry.spectrum_centres_yx_px, geometry.pupil_radius_px, sensor_size=sensor_pixels,
+                             hires_size=smallest_fft_size(layout.hires_size + 2 * margin_px))
     return ForwardModel(layout, circular_pupils(layout.box_size, layout.box_centres, layout.pupil_radius_px))
 
 
-def engine_options(section: ReconstructSection):
-    """The engine's options object from the reconstruct section."""
-    entry = get_engine(section.engine)
+def data_kind(captures: Captures) -> str:
+    """``simulation`` (a ground truth is known), else the geometry's kind (``led_array``, ``camera_scan``)."""
+    return "simulation" if captures.truth else captures.geometry.kind
+
+
+def resolve_engine(section: ReconstructSection, kind: str) -> tuple[str, dict]:
+    """Engine name and its keyword options (``tau``, ``max_iterations``, ``tol`` included).
+
+    ``engine: auto`` takes the preset for the kind of data
+    (:func:`cca_cli.engines.presets.preset`); what the section sets explicitly
+    (``tau``, ``iterations``, ``tol``, ``options``) overrides the preset.
+    """
+    section_values = {"tau": section.tau, "max_iterations": section.iterations, "tol": section.tol}
+    if section.engine != "auto":
+        return section.engine, {**section_values, **section.options}
+    name, options = preset(kind)
+    given = section.model_fields_set
+    for key, field in (("tau", "tau"), ("max_iterations", "iterations"), ("tol", "tol")):
+        if field in given or key not in options:
+            options[key] = section_values[key]
+    options.update(section.options)
+    return name, options
+
+
+def engine_options(section: ReconstructSection, kind: str = "simulation"):
+    """The engine's options object from the reconstruct section (``engine: auto`` resolved for ``kind``)."""
+    name, keywords = resolve_engine(section, kind)
+    entry = get_engine(name)
     try:
-        return entry.options(tau=section.tau, max_iterations=section.iterations, tol=section.tol, **section.options)
+        return entry.options(**keywords)
     except (TypeError, ValueError) as exc:
         raise ConfigError(f"reconstruct.options: {exc}") from None
 
 
+def problem_calibration(geometry: CaptureGeometry, layout: BandLayout) -> dict:
+    """What the captures tell a calibrating engine: cameras, how positions may move, a known aberration."""
+    out = {}
+    if geometry.camera_index is not None:
+        out["pupil_index"] = np.asarray(geometry.camera_index, np.int64)
+    if geometry.kind == "led_array":
+        out["position_model"] = LedArrayModel(layout.centres_px, geometry.field_width_m / geometry.wavelength_m)
+    if np.isfinite(geometry.defocus_m) and geometry.defocus_m != 0 and geometry.kind == "led_array":
+        out["aberration"] = defocus_zernike(geometry.defocus_m, wavelength_m=geometry.wavelength_m,
+                                            numerical_aperture=geometry.numerical_aperture)
+    return out
+
+
 def reconstruct(captures: Captures, section: ReconstructSection, *, progress: ProgressFn = silent) -> Recovery:
     """Run the configured engine on ``captures``."""
+    kind = data_kind(captures)
+    name, _ = resolve_engine(section, kind)
+    options = engine_options(section, kind)
+    margin = 0
+    if getattr(options, "position_refinement", "none") != "none":
+        margin = int(np.ceil(captures.geometry.pupil_radius_px / 8)) + 2
     try:
-        model = build_model(captures.geometry, captures.intensity.shape[-1])
+        model = build_model(captures.geometry, captures.intensity.shape[-1], margin_px=margin)
     except ValueError as exc:
         raise InputError(f"{captures.path}: {exc}") from None
-    problem = PhaseRetrievalProblem.from_sensor_images(model, captures.intensity, captures.weight)
-    options = engine_options(section)
-    engine = get_engine(section.engine).engine(problem, options)
-    return drive_engine(engine, options, model.layout, section.engine, progress=progress)
+    problem = PhaseRetrievalProblem.from_sensor_images(model, captures.intensity, captures.weight,
+                                                       **problem_calibration(captures.geometry, model.layout))
+    engine = get_engine(name).engine(problem, options)
+    recovery = drive_engine(engine, options, model.layout, name, progress=progress)
+    calibration = engine.calibration() if hasattr(engine, "calibration") else None
+    return replace(recovery, calibration=calibration, fit=fit_report(problem, recovery.spectrum, calibration))
 
 
 def drive_engine(engine, options, layout: BandLayout, name: str, *, progress: ProgressFn = silent) -> Recovery:
@@ -141,6 +207,10 @@ def write_recon(path: Path, captures: Captures, recovery: Recovery, provenance: 
         for name, data in captures.truth.items():
             write_dataset(handle, f"/truth/{name}", data)
         write_geometry(handle, captures.geometry)
+        if recovery.fit is not None:
+            write_fit(handle, recovery.fit)
+        if recovery.calibration is not None:
+            write_calibration(handle, recovery.calibration, captures.geometry, layout)
         if extra is not None:
             extra(handle)
         recon = handle["recon"]
@@ -152,6 +222,42 @@ def write_recon(path: Path, captures: Captures, recovery: Recovery, provenance: 
         recon.attrs["lowres_size"] = layout.lowres_size
         recon.attrs["pixel_pitch_object_m"] = captures.geometry.field_width_m / layout.hires_size
         recon.attrs["fft_backend"] = fft.backend_name()
+
+
+def write_fit(handle, fit: FitReport) -> None:
+    """The residuals of the final model: per capture, and over all / bright-field / dark-field captures."""
+    write_dataset(handle, "/recon/residual_per_image", fit.per_image)
+    write_dataset(handle, "/calibration/bright_field", fit.bright_field_mask)
+    recon = handle["recon"]
+    for name in ("all", "bright_field", "dark_field"):
+        recon.attrs[f"residual_{name}"] = getattr(fit, name)
+        recon.attrs[f"residual_{name}_without_brightness"] = getattr(fit, f"{name}_without_brightness")
+
+
+def write_calibration(handle, calibration: Calibration, geometry: CaptureGeometry, layout: BandLayout) -> None:
+    """Pupils, refined positions and brightness under /calibration, SI next to pixels."""
+    group = handle.require_group("calibration")
+    if calibration.pupil is not None:
+        estimate = calibration.pupil
+        b = layout.box_size
+        centre = np.full((1, 2), (b - 1) / 2.0)
+        disc = circular_pupils(b, centre, layout.pupil_radius_px)[0]
+        write_dataset(handle, "/calibration/pupil", (disc[None] * estimate.maps).astype(np.complex64))
+        write_dataset(handle, "/calibration/zernike_waves", estimate.coefficients)
+        write_dataset(handle, "/calibration/zernike_modes", np.asarray(estimate.modes, np.int32))
+        group.attrs["pupil_model"] = estimate.model
+        group.attrs["pupil_radius_px"] = layout.pupil_radius_px
+        group.attrs["spectrum_pixel_per_m"] = 1.0 / geometry.field_width_m
+    write_dataset(handle, "/calibration/pupil_index", calibration.pupil_index.astype(np.int32))
+    write_dataset(handle, "/calibration/spectrum_centres_yx_px", calibration.centres_px)
+    metres_per_px = geometry.aperture_centres_yx_m / np.where(geometry.spectrum_centres_yx_px == 0, np.nan,
+                                                               geometry.spectrum_centres_yx_px)
+    scale = float(np.nanmedian(metres_per_px)) if np.isfinite(metres_per_px).any() else float("nan")
+    write_dataset(handle, "/calibration/aperture_centres_yx_m", calibration.centres_px * scale)
+    write_dataset(handle, "/calibration/brightness", calibration.brightness)
+    if calibration.position_model is not None:
+        group.attrs["position_model"] = calibration.position_model
+        group.attrs["position_parameters"] = json.dumps(calibration.position_parameters)
 
 
 def run(captures_path: Path, section: ReconstructSection, output: Path, *, provenance: Provenance,

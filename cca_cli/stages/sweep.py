@@ -243,7 +243,8 @@ def expand_points(base: RunConfig, spec: SweepSection, sweep_dir: Path, *, sourc
     sets_threads = "threads" in base.reconstruct.options
     from cca_cli.engines.registry import ENGINES
 
-    takes_threads = "threads" in ENGINES[base.reconstruct.engine].option_names()
+    candidates = ENGINES.values() if base.reconstruct.engine == "auto" else [ENGINES[base.reconstruct.engine]]
+    takes_threads = all("threads" in entry.option_names() for entry in candidates)
     points = []
     for index, (fixed, varied) in enumerate(itertools.product(explicit, product)):
         overrides = {**fixed, **varied}

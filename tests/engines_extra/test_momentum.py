@@ -108,26 +108,27 @@ def test_registry_and_reconstruct_stage_keywords():
 
 
 def test_position_refinement_does_not_hurt_error_free_data(clean_case, clean_recovery):
-    problem, truth, _, _ = clean_case
+    problem, _, band_truth, _ = clean_case
     plain = clean_recovery
-    refined_engine = SequentialMomentum(problem, MomentumOptions(position_refinement=True, **REFINEMENT_RUN))
+    refined_engine = SequentialMomentum(problem, MomentumOptions(position_refinement="both", **REFINEMENT_RUN))
     refined, _ = run_engine(refined_engine)
-    assert rmse(intensity(refined), truth) <= 1.05 * rmse(intensity(plain), truth)
-    assert np.abs(refined_engine.calibration().offsets).max() <= 0.25
+    assert rmse(intensity(refined), band_truth) <= 1.05 * rmse(intensity(plain), band_truth)
+    offsets = refined_engine.calibration().offsets
+    assert np.abs(offsets).mean() < 0.05 and np.abs(offsets).max() < 0.3
 
 
-def test_position_refinement_recovers_random_offsets(clean_case, clean_recovery):
-    _, truth, _, _ = clean_case
+@pytest.mark.parametrize("mode", ["per_image", "both"])
+def test_position_refinement_recovers_random_offsets(clean_case, clean_recovery, mode):
+    _, _, band_truth, _ = clean_case
     problem, _, _, true_offsets = make_case(position_error=1.0, seed=1)
-    error_free = clean_recovery
+    reference = rmse(intensity(clean_recovery), band_truth)
     plain, _ = run_engine(SequentialMomentum(problem, MomentumOptions(**REFINEMENT_RUN)))
-    engine = SequentialMomentum(problem, MomentumOptions(position_refinement=True, **REFINEMENT_RUN))
+    engine = SequentialMomentum(problem, MomentumOptions(position_refinement=mode, **REFINEMENT_RUN))
     refined, _ = run_engine(engine)
-    reference = rmse(intensity(error_free), truth)
-    assert rmse(intensity(plain), truth) > 1.1 * reference  # the errors matter ...
-    assert rmse(intensity(refined), truth) <= 1.2 * reference  # ... and refinement removes their effect
+    assert rmse(intensity(plain), band_truth) > 3.0 * reference  # the errors matter ...
+    assert rmse(intensity(refined), band_truth) <= 1.5 * reference  # ... and refinement removes their effect
     found = engine.calibration().offsets
-    assert np.mean(np.abs(found - true_offsets)) < 0.5 * np.mean(np.abs(true_offsets))
+    assert np.mean(np.abs(found - true_offsets)) < 0.2  # of 0.5 px on average
 
 
 def test_pupil_functions_match_simulation_helpers():

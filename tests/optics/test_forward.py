@@ -118,10 +118,17 @@ def test_forward_model_rejects_badly_shaped_pupils():
 @pytest.mark.parametrize("radius", [6.0, 10.0, 20.945])
 def test_circular_pupil_area_is_pi_r_squared(radius):
     box = 2 * math.ceil(radius) + 4
-    pupils = circular_pupils(box, [[box / 2, box / 2], [box / 2 - 0.3, box / 2 + 0.25]], radius)
-    assert pupils.dtype == np.float32 and set(np.unique(pupils)) <= {0.0, 1.0}
-    for pupil in pupils:
+    centres = [[box / 2, box / 2], [box / 2 - 0.3, box / 2 + 0.25]]
+    binary = circular_pupils(box, centres, radius, edge_px=0)
+    assert binary.dtype == np.float32 and set(np.unique(binary)) <= {0.0, 1.0}
+    soft = circular_pupils(box, centres, radius)
+    assert soft.min() >= 0 and soft.max() <= 1
+    for pupil in (*binary, *soft):
         assert pupil.sum() == pytest.approx(math.pi * radius ** 2, rel=0.03)
+    # The anti-aliased disc's area is exact to a fraction of its edge and changes smoothly with its centre.
+    assert soft[0].sum() == pytest.approx(math.pi * radius ** 2, rel=0.005)
+    nudged = circular_pupils(box, [[box / 2 + 0.01, box / 2]], radius)[0]
+    assert 0 < np.abs(nudged - soft[0]).max() < 0.02
 
 
 def test_zernike_defocus_phase_is_radially_symmetric():

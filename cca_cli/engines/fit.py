@@ -1,0 +1,95 @@
+"""How well a recovery explains its captures: the amplitude residual per capture and over sets of captures.
+
+The residual of a set ``C`` of captures is ``‖s √b_k |ψ_k| − √I_k‖ / ‖√I_k‖``
+summed over ``k ∈ C``, with ``ψ_k`` the model's field (calibrated pupils and
+positions), ``b_k`` the fitted brightness and ``s`` one least-squares scale
+shared by all captures (the recovery is scale-free). Bright-field captures are
+those whose illumination falls inside the NA (pupil centre within one radius
+of DC); in them the object's unscattered light reaches the sensor.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from cca_cli.engines.illumination import CaptureStatistics, capture_statistics
+from cca_cli.engines.problem import PhaseRetrievalProblem
+from cca_cli.optics.forward import ForwardModel
+from cca_cli.sampling.grid import band_layout
+
+__all__ = ["FitReport", "fit_report", "bright_field"]
+
+
+@dataclass(frozen=True)
+class FitReport:
+    """Amplitude residuals of a recovery.
+
+    Attributes
+    ----------
+    per_image : ndarray, float64, (K,)
+        Each capture's relative residual (with brightness, global scale).
+    all, bright_field, dark_field : float
+        Relative residual over all, bright-field and dark-field captures (nan for an empty set).
+    all_without_brightness, bright_field_without_brightness, dark_field_without_brightness : float
+        The same with every brightness set to 1.
+    bright_field_mask : ndarray, bool, (K,)
+    """
+
+    per_image: np.ndarray
+    all: float
+    bright_field: float
+    dark_field: float
+    all_without_brightness: float
+    bright_field_without_brightness: float
+    dark_field_without_brightness: float
+    bright_field_mask: np.ndarray
+
+
+def bright_field(problem: PhaseRetrievalProblem) -> np.ndarray:
+    """Which captures are bright-field (nominal pupil centre within one pupil radius of DC), bool (K,)."""
+    layout = problem.model.layout
+    return np.hypot(layout.centres_px[:, 0], layout.centres_px[:, 1]) < layout.pupil_radius_px
+
+
+def _split(statistics: CaptureStatistics, brightness: np.ndarray, masks: list[np.ndarray]) -> tuple[np.ndarray, list]:
+    root = np.sqrt(brightness)
+    power = statistics.power * brightness
+    cross = statistics.cross * root
+    scale = float(cross.sum() / max(power.sum(), 1e-300))
+    squared = np.maximum(scale * scale * power - 2 * scale * cross + statistics.energy, 0.0)
+    per_image = np.sqrt(squared / np.maximum(statistics.energy, 1e-300))
+    totals = [float(np.sqrt(squared[m].sum() / statistics.energy[m].sum())) if np.any(m) else float("nan")
+              for m in masks]
+    return per_image, totals
+
+
+def fit_report(problem: PhaseRetrievalProblem, spectrum: np.ndarray, calibration=None) -> FitReport:
+    """Residuals of ``spectrum`` (and an engine's calibration) against the problem's captures.
+
+    Parameters
+    ----------
+    problem : PhaseRetrievalProblem
+    spectrum : ndarray, complex64, (M, M)
+    calibration : Calibration, optional
+        Pupils, centres and brightness an engine arrived at; without it the
+        problem's own model (nominal pupils and positions, brightness 1).
+
+    Returns
+    -------
+    FitReport
+    """
+    model, brightness = problem.model, np.ones(problem.model.n_images)
+    if calibration is not None:
+        nominal = problem.model.layout
+        layout = band_layout(calibration.centres_px, nominal.pupil_radius_px, hires_size=nominal.hires_size,
+                             lowres_size=nominal.lowres_size)
+        model = ForwardModel(layout, calibration.pupils)
+        brightness = np.asarray(calibration.brightness, np.float64)
+    statistics = capture_statistics(model, spectrum, problem.amplitudes, problem.weights)
+    bright = bright_field(problem)
+    masks = [np.ones_like(bright), bright, ~bright]
+    per_image, (every, light, dark) = _split(statistics, brightness, masks)
+    _, (every_plain, light_plain, dark_plain) = _split(statistics, np.ones_like(brightness), masks)
+    return FitReport(per_image, every, light, dark, every_plain, light_plain, dark_plain, bright)

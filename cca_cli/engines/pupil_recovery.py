@@ -1,0 +1,328 @@
+"""Pupil recovery: closed-form (Gauss–Newton) pupil updates from the residuals of one pass.
+
+Capture ``i`` sees the spectrum box ``S_i`` through its pupil
+``P_i = D_i · A_{p(i)}``: the binary disc ``D_i`` of the objective's NA at the
+capture's (fractional) pupil centre, times the aberration ``A_p`` of the pupil
+``p(i)`` it uses (one shared pupil for a scanned camera or an LED array, one
+per camera for a camera array). A pass of a sequential engine forms, for every
+capture, the data step ``G_i = F(ψ'_i − ψ_i)`` on its pupil box. The
+linearised least-squares fit of a pupil change to all of them,
+
+    min_ΔA Σ_i ‖ G_i − D_i S_i ΔA_{p(i)} ‖²,
+
+has the closed form (EPRY's pupil step, summed over the pass instead of one
+capture at a time)
+
+    ΔA_p = Σ_{i: p(i)=p} conj(D_i S_i) G_i / (Σ_{i: p(i)=p} |D_i S_i|² + δ),
+
+which weighs every capture by the light it carries: dark-field images, whose
+noise would dominate a per-image normalised step, contribute little. Two
+models of ``A`` are fitted this way:
+
+``full``
+    ``A`` is a complex map on the pupil-box grid (amplitude and phase inside
+    the NA), EPRY-style. Its Zernike content is reported as a projection.
+``zernike``
+    ``A = exp(i Σ_j a_j B_j)`` with Zernike modes from defocus up to a radial
+    order (tilt and piston are left out: a tilt only shifts the image, which
+    the object absorbs). The modes are evaluated at each capture's fractional
+    pupil centre, and the coefficients take the Gauss–Newton step of the same
+    linearised fit (see :mod:`cca_cli.engines.calibration`).
+
+A step after which the next pass fits the data worse is undone and the step
+size halved, so recovery on data from a perfect pupil stays at (nearly) no
+aberration.
+
+References
+----------
+Ou, Zheng & Yang, Opt. Express 22(5) (2014) (EPRY); Tian et al., Biomed. Opt.
+Express 5(7) (2014) (Gauss–Newton pupil update).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from cca_cli.engines import calibration as cal
+from cca_cli.optics import kernels
+from cca_cli.optics.pupil import circular_pupils
+from cca_cli.sampling.grid import BandLayout
+
+__all__ = ["PUPIL_MODELS", "PupilEstimate", "PupilRecovery", "tilt_of"]
+
+PUPIL_MODELS = ("full", "zernike")
+#: Largest change of any Zernike coefficient in one step (waves): the linearisation holds within ~0.05.
+_MAX_ZERNIKE_STEP = 0.1
+#: Damping of the full-map step, relative to the largest pupil power: pixels seen by little light move little.
+_MAP_DAMPING = 1e-3
+_MAP_PRIOR = 0.0
+
+
+@dataclass(frozen=True)
+class PupilEstimate:
+    """Recovered pupils.
+
+    Attributes
+    ----------
+    maps : ndarray, complex64, (P, b, b)
+        Aberration of each pupil on the pupil-box grid (1 where unaberrated), centred on the box.
+    coefficients : ndarray, float64, (P, n_modes)
+        Zernike phase coefficients (waves) of each pupil: fitted (``zernike``) or
+        projected from the map's phase (``full``).
+    modes : tuple of (int, int)
+        Zernike (radial order, azimuthal frequency) of each coefficient.
+    model : str
+    """
+
+    maps: np.ndarray
+    coefficients: np.ndarray
+    modes: tuple[tuple[int, int], ...]
+    model: str
+
+
+@dataclass(frozen=True)
+class _Step:
+    """What undoing a pupil step needs: the state before it, the misfit that led to it, its normalisation."""
+
+    maps: np.ndarray
+    coefficients: np.ndarray
+    misfit: float
+    scale: complex
+    tilt: np.ndarray
+
+
+def tilt_of(field: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Weighted mean phase gradient ``[gy, gx]`` (radians per pixel) of a complex map, free of wrapping."""
+    gy = np.angle(np.sum(weights[1:, :] * weights[:-1, :] * field[1:, :] * np.conj(field[:-1, :])))
+    gx = np.angle(np.sum(weights[:, 1:] * weights[:, :-1] * field[:, 1:] * np.conj(field[:, :-1])))
+    return np.array([gy, gx])
+
+
+class PupilRecovery:
+    """Pupil estimates of a sequential engine and their pass-wise update.
+
+    Parameters
+    ----------
+    layout : BandLayout
+        Pupil boxes in the engine's capture order.
+    pupil_index : ndarray, int, (K,)
+        Pupil used by each capture (engine order), ``0 … P-1``.
+    model : {"full", "zernike"}
+    order : int
+        Highest Zernike radial order (2, 3 or 4).
+    coefficients : ndarray, (P, n_modes), optional
+        Starting Zernike coefficients (waves).
+    amplitude : bool
+        ``full`` model: recover the pupil's amplitude as well as its phase.
+    step : float
+        Initial step fraction in (0, 1].
+    threads : int
+        Number of threads that accumulate (each has its own sums).
+    offsets : ndarray, (K, 2), optional
+        Position offsets of the pupil centres from the layout's (spectrum pixels).
+    """
+
+    def __init__(self, layout: BandLayout, pupil_index: np.ndarray, *, model: str = "full", order: int = 4,
+                 coefficients: np.ndarray | None = None, amplitude: bool = True, step: float = 1.0,
+                 threads: int = 1, offsets: np.ndarray | None = None):
+        if model not in PUPIL_MODELS:
+            raise ValueError(f"pupil model must be one of {', '.join(PUPIL_MODELS)}, got {model!r}")
+        self.model = model
+        self.order = order
+        self.modes = cal.zernike_modes(order)
+        self.amplitude = amplitude
+        self.index = np.asarray(pupil_index, np.int64)
+        self.n_pupils = int(self.index.max()) + 1 if self.index.size else 1
+        b = layout.box_size
+        self.coefficients = np.zeros((self.n_pupils, len(self.modes)))
+        if coefficients is not None:
+            given = np.asarray(coefficients, np.float64).reshape(self.n_pupils, -1)
+            self.coefficients[:, :given.shape[1]] = given[:, :len(self.modes)]
+        self._step = float(step)
+        self._previous = None  # (state before the last step, misfit of the pass that made it)
+        self._num = np.zeros((threads, self.n_pupils, b, b), np.complex128)
+        self._den = np.zeros((threads, self.n_pupils, b, b), np.float64)
+        self._rhs = np.zeros((threads, self.n_pupils, len(self.modes)), np.float64)
+        self.set_geometry(layout, self.index, offsets)
+        self.maps = np.ones((self.n_pupils, b, b), np.complex64)
+        if model == "full" and np.any(self.coefficients):  # the map starts from the given aberration
+            self.maps = self._zernike_maps(self.coefficients)
+            self.coefficients[:] = 0
+
+    # ------------------------------------------------------------------ geometry
+    def set_geometry(self, layout: BandLayout, pupil_index: np.ndarray, offsets: np.ndarray | None = None) -> None:
+        """Use new pupil boxes / centres (after a position update or a new visiting order)."""
+        self.layout = layout
+        self.index = np.asarray(pupil_index, np.int64)
+        centres = layout.box_centres if offsets is None else layout.box_centres + np.asarray(offsets, np.float64)
+        self._centres = centres
+        self._discs = circular_pupils(layout.box_size, centres, layout.pupil_radius_px)
+        self._basis = None
+        if self.model == "zernike":
+            self._basis = cal.zernike_basis(layout.box_size, centres, layout.pupil_radius_px, order=self.order)
+        # Each pupil's modes on the box grid (for the curvature and for projections), at the mean centre.
+        self._box_basis = np.empty((self.n_pupils, len(self.modes), layout.box_size, layout.box_size), np.float32)
+        for p in range(self.n_pupils):
+            members = self.index == p
+            centre = centres[members].mean(axis=0) if np.any(members) else centres.mean(axis=0)
+            self._box_basis[p] = cal.zernike_basis(layout.box_size, centre[None], layout.pupil_radius_px,
+                                                   order=self.order)[:, 0]
+
+    def _zernike_maps(self, coefficients: np.ndarray) -> np.ndarray:
+        """Each pupil's Zernike phase on the box grid, at the mean centre of its captures."""
+        phase = np.einsum("pn,pnyx->pyx", coefficients.astype(np.float32), self._box_basis)
+        return np.exp(1j * phase).astype(np.complex64)
+
+    def pupils(self) -> np.ndarray:
+        """Every capture's pupil ``D_i · A_{p(i)}`` (engine order), complex64 (K, b, b)."""
+        return self._pupils(self._discs, self._basis, self.index)
+
+    def pupils_at(self, layout: BandLayout, pupil_index: np.ndarray) -> np.ndarray:
+        """The current pupils of captures laid out by ``layout`` (any order), complex64 (K, b, b)."""
+        discs = circular_pupils(layout.box_size, layout.box_centres, layout.pupil_radius_px)
+        basis = None
+        if self.model == "zernike":
+            basis = cal.zernike_basis(layout.box_size, layout.box_centres, layout.pupil_radius_px, order=self.order)
+        return self._pupils(discs, basis, np.asarray(pupil_index, np.int64))
+
+    def _pupils(self, discs: np.ndarray, basis: np.ndarray | None, index: np.ndarray) -> np.ndarray:
+        if self.model == "full":
+            return discs * self.maps[index]
+        coefficients = self.coefficients[index].astype(np.float32)  # (K, n_modes)
+        phase = np.einsum("kn,nkyx->kyx", coefficients, basis)
+        return (discs * np.exp(1j * phase)).astype(np.complex64)
+
+    # --------------------------------------------------------------- accumulate
+    def accumulate(self, thread: int, images: slice, spectrum: np.ndarray, origins: np.ndarray,
+                   fields: np.ndarray, pupils: np.ndarray) -> None:
+        """Add one batch's terms of the pupil fit.
+
+        Parameters
+        ----------
+        thread : int
+        images : slice
+            The batch (engine order).
+        spectrum : ndarray, complex64, (M, M)
+            The spectrum the batch's fields were computed from (before its update).
+        origins : ndarray, int64, (K, 2)
+            Box corners (engine order).
+        fields : ndarray, complex64, (k, m, m)
+            Raw forward transforms of the batch's data steps ``ψ' − ψ``.
+        pupils : ndarray, complex64, (K, b, b)
+            The pupils the fields were computed with.
+        """
+        m = fields.shape[-1]
+        if self.model == "full":
+            kernels.accumulate_pupil(spectrum, origins, self._discs, fields, images.start, self.index,
+                                     self._num[thread], self._den[thread], 1.0 / m)
+            return
+        b = self.layout.box_size
+        s = m // 2 - b // 2
+        index = self.index[images]
+        seen = np.stack([spectrum[y0:y0 + b, x0:x0 + b] for y0, x0 in origins[images]])
+        residual = fields[:, s:s + b, s:s + b] * np.float32(1.0 / m)
+        power = np.square(np.abs(self._discs[images] * seen), dtype=np.float64)
+        seen_through = pupils[images] * seen  # P_i S_i
+        gradient = np.imag(np.conj(seen_through) * residual).astype(np.float32)
+        terms = np.einsum("nkyx,kyx->kn", self._basis[:, images], gradient).astype(np.float64)
+        np.add.at(self._rhs[thread], index, terms)
+        np.add.at(self._den[thread], index, power)
+
+    # --------------------------------------------------------------------- step
+    def step(self, misfit: float) -> tuple[complex, np.ndarray] | None:
+        """End-of-pass update; undoes the last one instead if this pass fit the data worse.
+
+        Parameters
+        ----------
+        misfit : float
+            The data misfit of the pass just finished.
+
+        Returns
+        -------
+        (scale, tilt) or None
+            None when nothing changed. Otherwise the ``full`` map was normalised by
+            dividing it by ``scale`` and removing the phase ramp ``exp(i tilt·k)``:
+            the engine multiplies its spectrum by ``scale · exp(i tilt·k)`` (k the
+            spectrum pixel index) so the model's predictions stay the same.
+        """
+        numerator, denominator = self._num.sum(axis=0), self._den.sum(axis=0)
+        rhs = self._rhs.sum(axis=0)
+        self._num[:] = 0
+        self._den[:] = 0
+        self._rhs[:] = 0
+        previous = self._previous
+        if previous is not None and misfit > previous.misfit:
+            self.maps, self.coefficients = previous.maps, previous.coefficients
+            self._step *= 0.5
+            self._previous = None
+            return 1.0 / previous.scale, -previous.tilt
+        peak = float(denominator.max()) if denominator.size else 0.0
+        if not peak > 0:
+            return None
+        maps, coefficients = self.maps.copy(), self.coefficients.copy()
+        if self.model == "zernike":
+            self._zernike_step(rhs, denominator)
+            scale, tilt = 1.0, np.zeros(2)
+        else:
+            scale, tilt = self._map_step(numerator, denominator, peak)
+        self._previous = _Step(maps, coefficients, misfit, scale, tilt)
+        return scale, tilt
+
+    def _zernike_step(self, rhs: np.ndarray, denominator: np.ndarray) -> None:
+        for p in range(self.n_pupils):
+            basis = self._box_basis[p].reshape(len(self.modes), -1)
+            normal = (basis * denominator[p].reshape(1, -1)) @ basis.T
+            trace = float(np.trace(normal))
+            if not trace > 0:
+                continue
+            damped = normal + 1e-3 * trace / normal.shape[0] * np.eye(normal.shape[0])
+            change = self._step * np.linalg.solve(damped, rhs[p])
+            largest = float(np.max(np.abs(change)))
+            if largest > _MAX_ZERNIKE_STEP:
+                change *= _MAX_ZERNIKE_STEP / largest
+            self.coefficients[p] += change
+
+    def _map_step(self, numerator: np.ndarray, denominator: np.ndarray, peak: float) -> tuple[complex, np.ndarray]:
+        seen = denominator > 0
+        change = (numerator - _MAP_PRIOR * peak * (self.maps - 1)) / (denominator + (_MAP_DAMPING + _MAP_PRIOR) * peak)
+        maps = self.maps + (self._step * change).astype(np.complex64)
+        if not self.amplitude:
+            maps = np.where(seen, np.exp(1j * np.angle(maps)), maps)
+        maps = np.where(seen, maps, 1).astype(np.complex64)
+        # The object absorbs a common scale, piston and tilt of the pupils; keep them in the object.
+        weights = denominator.sum(axis=0)
+        tilt = tilt_of(np.sum(maps * denominator, axis=0), np.sqrt(weights / weights.max()))
+        b = maps.shape[-1]
+        grid = np.arange(b, dtype=np.float64)
+        ramp = np.exp(-1j * (tilt[0] * grid[:, None] + tilt[1] * grid[None, :]))
+        maps = maps * ramp[None]
+        mean = np.sum(maps * denominator) / np.sum(denominator)
+        scale = mean / abs(mean) * np.sum(np.abs(maps) * denominator) / np.sum(denominator)
+        self.maps = (maps / scale).astype(np.complex64)
+        return complex(scale), tilt
+
+    # ------------------------------------------------------------------ results
+    def estimate(self) -> PupilEstimate:
+        """The current pupils, with Zernike coefficients (fitted, or projected from the maps)."""
+        if self.model == "zernike":
+            maps = self._zernike_maps(self.coefficients)
+            return PupilEstimate(maps, self.coefficients.copy(), self.modes, self.model)
+        return PupilEstimate(self.maps.copy(), self.project_zernike(), self.modes, self.model)
+
+    def project_zernike(self) -> np.ndarray:
+        """Zernike coefficients (waves) of each map's phase, fitted inside the NA disc, free of tilt and piston."""
+        out = np.zeros((self.n_pupils, len(self.modes)))
+        b = self.layout.box_size
+        grid = np.arange(b, dtype=np.float64)
+        for p in range(self.n_pupils):
+            members = self.index == p
+            centre = self._centres[members].mean(axis=0) if np.any(members) else self._centres.mean(axis=0)
+            disc = circular_pupils(b, centre[None], self.layout.pupil_radius_px)[0] > 0
+            phase = np.angle(self.maps[p] * np.conj(self.maps[p][disc].mean()))
+            columns = [self._box_basis[p, j][disc] for j in range(len(self.modes))]
+            columns += [np.ones(disc.sum()), (grid[:, None] * np.ones(b))[disc], (np.ones(b)[:, None] * grid)[disc]]
+            solution, *_ = np.linalg.lstsq(np.stack(columns, axis=1), phase[disc], rcond=None)
+            out[p] = solution[:len(self.modes)]  # the modes are in radians per wave
+        return out
