@@ -47,7 +47,8 @@ def test_files_and_export_round_trip(tmp_path):
     assert np.array_equal(tiff.values, recon.amplitude) and tiff.pixel_size_m == pytest.approx(recon.pixel_size_m)
 
 
-@pytest.mark.skipif(not (BLOODSMEAR / "bloodsmear_green.mat").is_file(), reason="needs ../shared/datasets/fpm-zheng-bloodsmear")
+@pytest.mark.skipif(not (BLOODSMEAR / "bloodsmear_green.mat").is_file(),
+                    reason="needs ../shared/datasets/fpm-zheng-bloodsmear")
 def test_led_array_bloodsmear_reconstructs_the_real_captures(tmp_path):
     out = _run("led_array_bloodsmear.py", "--iterations", 3, "--out", tmp_path, cwd=tmp_path)
     assert "225 LEDs" in out and "360 px of 656 nm" in out

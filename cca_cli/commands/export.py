@@ -16,8 +16,8 @@ __all__ = ["export_cli"]
 @handle_errors
 def export_cli(
     recon: Annotated[Path, typer.Argument(help="recon.h5 from reconstruct.", show_default=False)],
-    output: Annotated[Path, typer.Option("--output", "-o", help="Image file: .tif/.tiff (float32), .png (16-bit) "
-                                                                "or .npy.", show_default=False)],
+    output: Annotated[Path, typer.Option("--output", "-o", show_default=False,
+                                         help="Image file: .tif/.tiff (float32), .png (16-bit) or .npy.")],
     quantity: Annotated[str, typer.Option(help="amplitude, intensity or phase (rad).")] = "amplitude",
     format: Annotated[Optional[str], typer.Option("--format", help="tiff, png or npy (default: from the suffix).")] = None,
     force: Force = False,

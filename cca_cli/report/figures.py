@@ -229,28 +229,27 @@ def write_figures(directory: Path, *, observed: np.ndarray, recovered_object: np
     amplitude = np.abs(recovered_object).astype(np.float32)
     m = amplitude.shape[-1]
     pixel_um = field_width_m / m * 1e6
+    low, high = _limits(observed)
     paths = [
         _single(plt, directory / "observed_centre.png", observed, "Observed centre image (one camera)",
-                f"intensity ({units})", width_mm=width_mm, region=region, vmin=_limits(observed)[0],
-                vmax=_limits(observed)[1]),
+                f"intensity ({units})", width_mm=width_mm, region=region, vmin=low, vmax=high),
         _single(plt, directory / "recovered_magnitude.png", amplitude,
                 f"Recovered magnitude |O| (SAR {summary['sar']:.2f}, {pixel_um:.3g} µm pixels)",
                 f"|O| ({sqrt_units(units)})", width_mm=width_mm, region=region, vmin=0.0,
                 vmax=float(np.percentile(amplitude, 99.9)) or None),
         _single(plt, directory / "recovered_phase.png", _phase(recovered_object),
-                f"Recovered phase, relative to its mean (black: |O| < {_PHASE_MASK:.0%} of max)",
+                f"Recovered phase, relative to its mean\n(black: |O| below {_PHASE_MASK:.0%} of its 99.5th percentile)",
                 "phase (rad)", width_mm=width_mm, cmap=_phase_cmap(plt), region=region, vmin=-np.pi, vmax=np.pi,
                 ticks={-np.pi: "−π", -np.pi / 2: "−π/2", 0.0: "0", np.pi / 2: "π/2", np.pi: "π"}),
     ]
     if truth is not None:
         paths.append(_single(plt, directory / "truth.png", truth, "Ground truth intensity", f"intensity ({units})",
                              width_mm=width_mm, region=region, vmin=0.0, vmax=_limits(truth)[1]))
-    recovered = (amplitude.astype(np.float32) ** 2)
-    images = {"observed (centre camera)": observed, "recovered": recovered}
+    images = {"observed (centre camera)": observed, "recovered": amplitude ** 2}
     if truth is not None:
         images = {"truth": truth, **images}
     paths.append(_side_by_side(plt, directory / "observed_vs_recovered.png", images, width_mm=width_mm, region=region,
-                               grid=m, units=units, title="Observed vs recovered intensity, same field and scale"))
+                               grid=m, units=units, heading="Observed vs recovered intensity, same field and scale"))
     paths.append(_spectrum(plt, directory / "spectrum.png", spectrum, pupil_centres_px, pupil_radius_px, width_mm,
                            grid_indices))
     if "contrast_observed" in summary:
@@ -266,16 +265,19 @@ def _phase_cmap(plt):
 
 
 def _side_by_side(plt, path: Path, images: dict, *, width_mm: float, region, grid: int, units: str,
-                  title: str) -> Path:
+                  heading: str) -> Path:
     """Full field (top row) and the zoom region (bottom row) of every image, on equal axes and one scale."""
     k = magnification(grid)
     size = grid * k if grid * k <= _MAX_OVERVIEW_PX else 768
     low, high = _limits(*images.values())
     boxes = [_region_box(width_mm, region)] if region is not None else []
     scale = "1:1" if size == grid else (f"{k}x" if size == grid * k else "shrunk")
-    full = [_Panel(np.asarray(image), f"{name}, {image.shape[-1]} px ({scale if image.shape[-1] == grid else 'own pixels'})",
-                   vmin=low, vmax=high, extent_mm=_extent(width_mm), boxes_mm=boxes)
-            for name, image in images.items()]
+
+    def title(name: str, image) -> str:
+        return f"{name}, {image.shape[-1]} px ({scale if image.shape[-1] == grid else 'own pixels'})"
+
+    full = [_Panel(np.asarray(image), title(name, image), vmin=low, vmax=high, extent_mm=_extent(width_mm),
+                   boxes_mm=boxes) for name, image in images.items()]
     rows = [_Row(size, full, f"intensity ({units})")]
     if region is not None:
         crops = {name: region.crop(np.asarray(image)) for name, image in images.items()}
@@ -286,8 +288,8 @@ def _side_by_side(plt, path: Path, images: dict, *, width_mm: float, region, gri
         panels = [_Panel(crop, f"{name}, zoom", vmin=low_z, vmax=high_z,
                          extent_mm=_extent(width_mm, region)) for name, crop in crops.items()]
         rows.append(_Row(crop_px * zoom, panels, f"intensity ({units})"))
-        title += f"\nbottom: zoom on {region.label}"
-    fig = _draw(plt, rows, title)
+        heading += f"\nbottom: zoom on {region.label}"
+    fig = _draw(plt, rows, heading)
     return _save(plt, fig, path, tight=False)
 
 
@@ -421,7 +423,7 @@ def write_comparison_figures(directory: Path, images: dict, summary: dict, *, fi
         titled[name.replace("_", " ") + extra] = np.asarray(images[name], np.float32)
     width_mm = (field_width_m or 1e-3) * 1e3
     grid = next(iter(titled.values())).shape[-1]
-    size = min(max(grid, 300), 420)
+    size = grid * max(1, 420 // grid) if grid <= 420 else 420   # whole pixels, or shrunk when the grid is large
     low, high = _limits(*titled.values())
     boxes = [_region_box(width_mm, region)] if region is not None else []
     rows = [_Row(size, [_Panel(image, name, vmin=low, vmax=high, extent_mm=_extent(width_mm), boxes_mm=boxes)
