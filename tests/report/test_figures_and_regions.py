@@ -64,7 +64,7 @@ def test_the_recovery_is_drawn_pixel_for_pixel(written):
 def test_phase_is_black_where_there_is_no_amplitude(written):
     out, _, obj = written
     k = figures.magnification(obj.shape[-1])
-    panel = _panel(_png(out / "recovered_phase.png"), obj.shape[-1] * k)[::k, ::k]
+    panel = _panel(_png(out / "recovered_phase.png"), obj.shape[-1] * k, title_lines=2)[::k, ::k]
     dark = np.abs(obj) == 0
     assert np.all(panel[dark] == 0)                       # masked background
     assert np.all(panel[~dark].max(axis=-1) > 0.5)        # the hsv colours of the object are bright
