@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
-import os
 import re
-import subprocess
+import runpy
 import sys
 from pathlib import Path
 
@@ -16,12 +15,23 @@ EXAMPLES = ROOT / "examples"
 BLOODSMEAR = ROOT.parent / "shared" / "datasets" / "fpm-zheng-bloodsmear"
 
 
-def _run(script: str, *args, cwd: Path) -> str:
-    env = dict(os.environ, MPLBACKEND="Agg")
-    result = subprocess.run([sys.executable, str(EXAMPLES / script), *map(str, args)], cwd=cwd, env=env,
-                            capture_output=True, text=True, timeout=300)
-    assert result.returncode == 0, result.stderr
-    return result.stdout
+@pytest.fixture
+def run_example(monkeypatch, capsys, tmp_path):
+    """Run an example script as ``__main__`` in this interpreter (in ``tmp_path``) and return what it printed."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    monkeypatch.chdir(tmp_path)
+
+    def run(script: str, *args) -> str:
+        monkeypatch.setattr(sys, "argv", [script, *map(str, args)])
+        runpy.run_path(str(EXAMPLES / script), run_name="__main__")
+        import matplotlib.pyplot as plt
+
+        plt.close("all")
+        return capsys.readouterr().out
+
+    return run
 
 
 def test_every_example_is_tested():
@@ -29,15 +39,15 @@ def test_every_example_is_tested():
     assert {p.name for p in EXAMPLES.glob("*.py")} == tested
 
 
-def test_simulate_reconstruct_plot_resolves_finer_bars(tmp_path):
-    out = _run("simulate_reconstruct_plot.py", "--small", "--out", tmp_path, cwd=tmp_path)
+def test_simulate_reconstruct_plot_resolves_finer_bars(run_example, tmp_path):
+    out = run_example("simulate_reconstruct_plot.py", "--small", "--out", tmp_path)
     observed, recovered = map(int, re.search(r"MTF20: observed (\d+) px, recovered (\d+) px", out).groups())
     assert recovered < observed
     assert (tmp_path / "observed_vs_recovered.png").stat().st_size > 10_000
 
 
-def test_files_and_export_round_trip(tmp_path):
-    out = _run("files_and_export.py", "--out", tmp_path, cwd=tmp_path)
+def test_files_and_export_round_trip(run_example, tmp_path):
+    out = run_example("files_and_export.py", "--out", tmp_path)
     assert "MTF20 2 px" in out
     import cca_cli as cca
     from cca_cli.io.export import read_exported
@@ -49,7 +59,7 @@ def test_files_and_export_round_trip(tmp_path):
 
 @pytest.mark.skipif(not (BLOODSMEAR / "bloodsmear_green.mat").is_file(),
                     reason="needs ../shared/datasets/fpm-zheng-bloodsmear")
-def test_led_array_bloodsmear_reconstructs_the_real_captures(tmp_path):
-    out = _run("led_array_bloodsmear.py", "--iterations", 3, "--out", tmp_path, cwd=tmp_path)
+def test_led_array_bloodsmear_reconstructs_the_real_captures(run_example, tmp_path):
+    out = run_example("led_array_bloodsmear.py", "--iterations", 3, "--out", tmp_path)
     assert "225 LEDs" in out and "360 px of 656 nm" in out
     assert (tmp_path / "bloodsmear.png").is_file() and (tmp_path / "bloodsmear_amplitude.tif").is_file()

@@ -13,7 +13,6 @@ from cca_cli.commands.options import ConfigArg, Force, Quiet, section_from_optio
 from cca_cli.commands.stage_run import run_stage
 from cca_cli.config.load import load_config
 from cca_cli.config.model import ReconstructSection, ReportSection
-from cca_cli.report.summary import derived_quantities
 from cca_cli.stages import reconstruct as reconstruct_stage
 from cca_cli.stages import report as report_stage
 from cca_cli.stages import simulate as simulate_stage
@@ -39,6 +38,8 @@ def simulate_cli(
                       f"SAR {g.synthetic_aperture_ratio:.2f}, pupil radius {g.pupil_radius_px:.2f} spectrum px")
         return
     console.print(f"{output}: {g.n_images} captures of {sim.intensity.shape[-1]}² px", highlight=False)
+    from cca_cli.report.summary import derived_quantities
+
     derived = derived_quantities(g, hires_size=sim.layout.hires_size, lowres_size=sim.layout.lowres_size)
     for line in derived_lines(derived):
         console.print(line, highlight=False, markup=False)

@@ -78,8 +78,9 @@ class _Panel:
     cmap: str = "gray"
     vmin: float | None = None
     vmax: float | None = None
-    extent_mm: tuple[float, float, float, float] | None = None   # (x0, x1, y1, y0): y grows downwards
-    boxes_mm: list = field(default_factory=list)                 # (x0, y0, width, height) outlines
+    extent: tuple[float, float, float, float] | None = None   # (x0, x1, y1, y0) in `unit`: y grows downwards
+    boxes: list = field(default_factory=list)                 # (x0, y0, width, height) outlines in `unit`
+    unit: str = "mm"
 
 
 @dataclass
@@ -116,15 +117,15 @@ def _draw(plt, rows: list[_Row], title: str = ""):
             ax = fig.add_axes((left / fig_w, bottom / fig_h, row.size_px / fig_w, row.size_px / fig_h))
             image = np.asanyarray(panel.image)   # keeps a mask
             interpolation = "nearest" if image.shape[-1] <= row.size_px else "antialiased"
-            shown = ax.imshow(image, cmap=panel.cmap, vmin=panel.vmin, vmax=panel.vmax, extent=panel.extent_mm,
+            shown = ax.imshow(image, cmap=panel.cmap, vmin=panel.vmin, vmax=panel.vmax, extent=panel.extent,
                               interpolation=interpolation)
             ax.set_title(panel.title, fontsize=9)
-            for x0, y0, w, h in panel.boxes_mm:
+            for x0, y0, w, h in panel.boxes:
                 ax.add_patch(plt.Rectangle((x0, y0), w, h, fill=False, edgecolor="#ffb000", lw=1.2))
-            if panel.extent_mm is not None:
-                ax.set_xlabel("x at object (mm)", fontsize=8)
+            if panel.extent is not None:
+                ax.set_xlabel(f"x at object ({panel.unit})", fontsize=8)
                 if i == 0:
-                    ax.set_ylabel("y at object (mm)", fontsize=8)
+                    ax.set_ylabel(f"y at object ({panel.unit})", fontsize=8)
                 else:
                     ax.tick_params(labelleft=False)
                 ax.tick_params(labelsize=7)
@@ -140,17 +141,22 @@ def _draw(plt, rows: list[_Row], title: str = ""):
     return fig
 
 
-def _extent(width_mm: float, region=None) -> tuple[float, float, float, float]:
-    """imshow extent (x0, x1, y1, y0) in mm of the field, or of ``region`` of it (centred on the axis)."""
+def _display_unit(field_width_m: float) -> tuple[float, str]:
+    """Scale and name of the length unit the axes use: mm, or µm for fields under 2 mm."""
+    return (1e6, "µm") if field_width_m < 2e-3 else (1e3, "mm")
+
+
+def _extent(width: float, region=None) -> tuple[float, float, float, float]:
+    """imshow extent (x0, x1, y1, y0) of the field ``width`` wide, or of ``region`` of it (centred on the axis)."""
     y0, y1, x0, x1 = region.fractions if region is not None else (0.0, 1.0, 0.0, 1.0)
-    half = width_mm / 2
-    return (x0 * width_mm - half, x1 * width_mm - half, y1 * width_mm - half, y0 * width_mm - half)
+    half = width / 2
+    return (x0 * width - half, x1 * width - half, y1 * width - half, y0 * width - half)
 
 
-def _region_box(width_mm: float, region) -> tuple[float, float, float, float]:
+def _region_box(width: float, region) -> tuple[float, float, float, float]:
     y0, y1, x0, x1 = region.fractions
-    half = width_mm / 2
-    return (x0 * width_mm - half, y0 * width_mm - half, (x1 - x0) * width_mm, (y1 - y0) * width_mm)
+    half = width / 2
+    return (x0 * width - half, y0 * width - half, (x1 - x0) * width, (y1 - y0) * width)
 
 
 def _limits(*images) -> tuple[float, float]:
@@ -161,14 +167,14 @@ def _limits(*images) -> tuple[float, float]:
     return low, high if high > low else low + 1.0
 
 
-def _single(plt, path: Path, image: np.ndarray, title: str, label: str, *, width_mm: float, cmap: str = "gray",
-            region=None, vmin=None, vmax=None, ticks=None) -> Path:
+def _single(plt, path: Path, image: np.ndarray, title: str, label: str, *, width: float, unit: str,
+            cmap: str = "gray", region=None, vmin=None, vmax=None, ticks=None) -> Path:
     """One image at an integer magnification of its own pixels, with mm axes and a colour bar."""
     k = magnification(image.shape[-1])
-    boxes = [_region_box(width_mm, region)] if region is not None else []
+    boxes = [_region_box(width, region)] if region is not None else []
     scale = "1:1" if k == 1 else f"{k}x, pixels replicated"
     panel = _Panel(image, f"{image.shape[-1]} x {image.shape[-2]} px ({scale})", cmap=cmap, vmin=vmin, vmax=vmax,
-                   extent_mm=_extent(width_mm), boxes_mm=boxes)
+                   extent=_extent(width), boxes=boxes, unit=unit)
     fig = _draw(plt, [_Row(image.shape[-1] * k, [panel], label, ticks)], title)
     return _save(plt, fig, path, tight=False)
 
@@ -225,32 +231,34 @@ def write_figures(directory: Path, *, observed: np.ndarray, recovered_object: np
     """
     plt = _plt()
     directory = Path(directory)
-    width_mm = field_width_m * 1e3
+    scale, unit = _display_unit(field_width_m)
+    width = field_width_m * scale
     amplitude = np.abs(recovered_object).astype(np.float32)
     m = amplitude.shape[-1]
     pixel_um = field_width_m / m * 1e6
     low, high = _limits(observed)
     paths = [
         _single(plt, directory / "observed_centre.png", observed, "Observed centre image (one camera)",
-                f"intensity ({units})", width_mm=width_mm, region=region, vmin=low, vmax=high),
+                f"intensity ({units})", width=width, unit=unit, region=region, vmin=low, vmax=high),
         _single(plt, directory / "recovered_magnitude.png", amplitude,
                 f"Recovered magnitude |O| (SAR {summary['sar']:.2f}, {pixel_um:.3g} µm pixels)",
-                f"|O| ({sqrt_units(units)})", width_mm=width_mm, region=region, vmin=0.0,
+                f"|O| ({sqrt_units(units)})", width=width, unit=unit, region=region, vmin=0.0,
                 vmax=float(np.percentile(amplitude, 99.9)) or None),
         _single(plt, directory / "recovered_phase.png", _phase(recovered_object),
                 f"Recovered phase, relative to its mean\n(black: |O| below {_PHASE_MASK:.0%} of its 99.5th percentile)",
-                "phase (rad)", width_mm=width_mm, cmap=_phase_cmap(plt), region=region, vmin=-np.pi, vmax=np.pi,
+                "phase (rad)", width=width, unit=unit, cmap=_phase_cmap(plt), region=region, vmin=-np.pi, vmax=np.pi,
                 ticks={-np.pi: "−π", -np.pi / 2: "−π/2", 0.0: "0", np.pi / 2: "π/2", np.pi: "π"}),
     ]
     if truth is not None:
         paths.append(_single(plt, directory / "truth.png", truth, "Ground truth intensity", f"intensity ({units})",
-                             width_mm=width_mm, region=region, vmin=0.0, vmax=_limits(truth)[1]))
+                             width=width, unit=unit, region=region, vmin=0.0, vmax=_limits(truth)[1]))
     images = {"observed (centre camera)": observed, "recovered": amplitude ** 2}
     if truth is not None:
         images = {"truth": truth, **images}
-    paths.append(_side_by_side(plt, directory / "observed_vs_recovered.png", images, width_mm=width_mm, region=region,
-                               grid=m, units=units, heading="Observed vs recovered intensity, same field and scale"))
-    paths.append(_spectrum(plt, directory / "spectrum.png", spectrum, pupil_centres_px, pupil_radius_px, width_mm,
+    paths.append(_side_by_side(plt, directory / "observed_vs_recovered.png", images, width=width, unit=unit,
+                               region=region, grid=m, units=units,
+                               heading="Observed vs recovered intensity, same field and scale"))
+    paths.append(_spectrum(plt, directory / "spectrum.png", spectrum, pupil_centres_px, pupil_radius_px, field_width_m,
                            grid_indices))
     if "contrast_observed" in summary:
         paths.append(_contrast(plt, directory / "contrast.png", summary))
@@ -264,20 +272,20 @@ def _phase_cmap(plt):
     return plt.get_cmap("hsv").with_extremes(bad="black")
 
 
-def _side_by_side(plt, path: Path, images: dict, *, width_mm: float, region, grid: int, units: str,
+def _side_by_side(plt, path: Path, images: dict, *, width: float, unit: str, region, grid: int, units: str,
                   heading: str) -> Path:
     """Full field (top row) and the zoom region (bottom row) of every image, on equal axes and one scale."""
     k = magnification(grid)
     size = grid * k if grid * k <= _MAX_OVERVIEW_PX else 768
     low, high = _limits(*images.values())
-    boxes = [_region_box(width_mm, region)] if region is not None else []
+    boxes = [_region_box(width, region)] if region is not None else []
     scale = "1:1" if size == grid else (f"{k}x" if size == grid * k else "shrunk")
 
     def title(name: str, image) -> str:
         return f"{name}, {image.shape[-1]} px ({scale if image.shape[-1] == grid else 'own pixels'})"
 
-    full = [_Panel(np.asarray(image), title(name, image), vmin=low, vmax=high, extent_mm=_extent(width_mm),
-                   boxes_mm=boxes) for name, image in images.items()]
+    full = [_Panel(np.asarray(image), title(name, image), vmin=low, vmax=high, extent=_extent(width),
+                   boxes=boxes, unit=unit) for name, image in images.items()]
     rows = [_Row(size, full, f"intensity ({units})")]
     if region is not None:
         crops = {name: region.crop(np.asarray(image)) for name, image in images.items()}
@@ -285,15 +293,15 @@ def _side_by_side(plt, path: Path, images: dict, *, width_mm: float, region, gri
         side = region.pixels(grid)
         crop_px = max(side[1] - side[0], side[3] - side[2])
         zoom = max(1, round(_TARGET_PX / crop_px))
-        panels = [_Panel(crop, f"{name}, zoom", vmin=low_z, vmax=high_z,
-                         extent_mm=_extent(width_mm, region)) for name, crop in crops.items()]
+        panels = [_Panel(crop, f"{name}, zoom", vmin=low_z, vmax=high_z, extent=_extent(width, region), unit=unit)
+                  for name, crop in crops.items()]
         rows.append(_Row(crop_px * zoom, panels, f"intensity ({units})"))
         heading += f"\nbottom: zoom on {region.label}"
     fig = _draw(plt, rows, heading)
     return _save(plt, fig, path, tight=False)
 
 
-def _spectrum(plt, path: Path, spectrum: np.ndarray, centres, radius_px: float, width_mm: float,
+def _spectrum(plt, path: Path, spectrum: np.ndarray, centres, radius_px: float, field_width_m: float,
               grid_indices) -> Path:
     """log10 |S| in cycles/mm at the object, with the aperture footprints and a colour bar."""
     magnitude = np.abs(spectrum)
@@ -301,7 +309,7 @@ def _spectrum(plt, path: Path, spectrum: np.ndarray, centres, radius_px: float, 
     log_mag = np.log10(np.maximum(magnitude / peak, 1e-12))
     floor = float(np.percentile(log_mag[magnitude > 0], 1)) if np.any(magnitude > 0) else -6.0
     m = spectrum.shape[-1]
-    per_px = 1.0 / width_mm                           # spectrum pixel → cycles per mm at the object
+    per_px = 1.0 / (field_width_m * 1e3)              # spectrum pixel → cycles per mm at the object
     half = m / 2 * per_px
     fig, ax = plt.subplots(figsize=(7.2, 6.8), dpi=_DPI)
     shown = ax.imshow(log_mag, cmap="magma", vmin=max(floor, -8.0), vmax=0.0, interpolation="nearest",
@@ -393,7 +401,7 @@ def write_comparison_figures(directory: Path, images: dict, summary: dict, *, fi
     summary : dict
         The report; ``baselines`` entries provide the baselines' contrast tables.
     field_width_m : float, optional
-        Field width (m) for mm axes.
+        Field width (m), for the axes.
     region : Region, optional
         Zoom region, drawn as a second row.
     units : str
@@ -421,12 +429,13 @@ def write_comparison_figures(directory: Path, images: dict, summary: dict, *, fi
         if isinstance(reading, dict) and reading.get("group") is not None:
             extra += f" (USAF G{reading['group']} E{reading['element']})"
         titled[name.replace("_", " ") + extra] = np.asarray(images[name], np.float32)
-    width_mm = (field_width_m or 1e-3) * 1e3
+    scale, unit = _display_unit(field_width_m or 1e-3)
+    width = (field_width_m or 1e-3) * scale
     grid = next(iter(titled.values())).shape[-1]
     size = grid * max(1, 420 // grid) if grid <= 420 else 420   # whole pixels, or shrunk when the grid is large
     low, high = _limits(*titled.values())
-    boxes = [_region_box(width_mm, region)] if region is not None else []
-    rows = [_Row(size, [_Panel(image, name, vmin=low, vmax=high, extent_mm=_extent(width_mm), boxes_mm=boxes)
+    boxes = [_region_box(width, region)] if region is not None else []
+    rows = [_Row(size, [_Panel(image, name, vmin=low, vmax=high, extent=_extent(width), boxes=boxes, unit=unit)
                         for name, image in titled.items()], f"intensity ({units})")]
     if region is not None:
         crops = {name: region.crop(image) for name, image in titled.items()}
@@ -434,7 +443,7 @@ def write_comparison_figures(directory: Path, images: dict, summary: dict, *, fi
         crop_px = max(c.shape[-1] for c in crops.values())
         zoom = max(1, round(300 / crop_px))
         rows.append(_Row(crop_px * zoom, [_Panel(crop, f"{name.split(' (')[0]}: zoom", vmin=low_z, vmax=high_z,
-                                                 extent_mm=_extent(width_mm, region))
+                                                 extent=_extent(width, region), unit=unit)
                                           for name, crop in crops.items()], f"intensity ({units})"))
     title = "Recovery vs single lenses, same field and scale" + (f"; zoom: {region.label}" if region else "")
     paths.append(_save(plt, _draw(plt, rows, title), directory / "comparison.png", tight=False))
