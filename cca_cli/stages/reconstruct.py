@@ -16,6 +16,7 @@ from cca_cli.engines.registry import get_engine
 from cca_cli.errors import ConfigError, InputError
 from cca_cli.io.geometry import read_geometry, write_geometry
 from cca_cli.io.h5 import Provenance, atomic_h5, check_output, open_input, require, write_dataset
+from cca_cli.io.schema import spec_for
 from cca_cli.optics import fft
 from cca_cli.optics.forward import ForwardModel
 from cca_cli.optics.pupil import circular_pupils
@@ -38,6 +39,7 @@ class Captures:
     weight: np.ndarray | None
     geometry: CaptureGeometry
     truth: dict
+    units: str | None = None   # units of /measurements/intensity when they are not the schema's (counts/s)
 
 
 @dataclass(frozen=True)
@@ -50,6 +52,14 @@ class Recovery:
     engine: str
     options: dict
     seconds: float
+    stopped_by: str = "tol"   # "tol": the change fell below tol; "cap": the iteration cap ended the run first
+
+
+def stop_reason(history: History, options) -> str:
+    """``"tol"`` when the last relative change fell below ``options.tol``, else ``"cap"`` (the iteration cap)."""
+    if history.records and history.records[-1].change < options.tol:
+        return "tol"
+    return "cap" if history.iterations >= options.max_iterations else "tol"
 
 
 def read_captures(path: Path) -> Captures:
@@ -64,7 +74,11 @@ def read_captures(path: Path) -> Captures:
 
 def read_measurements(handle, path: Path) -> Captures:
     """/measurements, /geometry and /truth of an open captures file, checked except for the image count."""
-    intensity = np.asarray(require(handle, "/measurements/intensity", ndim=3), dtype=np.float32)
+    dataset = require(handle, "/measurements/intensity", ndim=3)
+    intensity = np.asarray(dataset, dtype=np.float32)
+    units = dataset.attrs.get("units")
+    units = units.decode() if isinstance(units, bytes) else units
+    units = None if units in (None, "", spec_for("/measurements/intensity").units) else str(units)
     geometry = read_geometry(handle)
     weight = np.asarray(handle["/measurements/weight"], np.float32) if "/measurements/weight" in handle else None
     truth = {name: np.asarray(handle["truth"][name]) for name in handle["truth"]} if "truth" in handle else {}
@@ -76,7 +90,7 @@ def read_measurements(handle, path: Path) -> Captures:
         raise InputError(f"{path}: image {bad} of /measurements/intensity contains NaN or Inf; fix or mask it")
     if weight is not None and weight.shape != intensity.shape:
         raise InputError(f"{path}: /measurements/weight has shape {weight.shape}, expected {intensity.shape}")
-    return Captures(path=path, intensity=intensity, weight=weight, geometry=geometry, truth=truth)
+    return Captures(path=path, intensity=intensity, weight=weight, geometry=geometry, truth=truth, units=units)
 
 
 def build_model(geometry: CaptureGeometry, sensor_pixels: int, *, hires_size: int | None = None) -> ForwardModel:
@@ -118,7 +132,8 @@ def drive_engine(engine, options, layout: BandLayout, name: str, *, progress: Pr
     start = time.perf_counter()
     spectrum, history = run_engine(engine, on_iteration=on_iteration)
     return Recovery(spectrum=spectrum, layout=layout, history=history, engine=name,
-                    options=asdict(options), seconds=time.perf_counter() - start)
+                    options=asdict(options), seconds=time.perf_counter() - start,
+                    stopped_by=stop_reason(history, options))
 
 
 def write_recon(path: Path, captures: Captures, recovery: Recovery, provenance: Provenance, *, force: bool = False,
@@ -130,14 +145,15 @@ def write_recon(path: Path, captures: Captures, recovery: Recovery, provenance: 
     """
     obj = fft.ifft2c(recovery.spectrum).astype(np.complex64)
     layout = recovery.layout
+    units = captures.units   # recorded captures: counts/s instead of the simulation's irradiance
     with atomic_h5(path, provenance, force=force) as handle:
-        write_dataset(handle, "/recon/spectrum", recovery.spectrum)
-        write_dataset(handle, "/recon/object", obj)
-        write_dataset(handle, "/recon/intensity", (np.abs(obj) ** 2).astype(np.float32))
+        write_dataset(handle, "/recon/spectrum", recovery.spectrum, units=units and f"√({units}) · px")
+        write_dataset(handle, "/recon/object", obj, units=units and f"√({units})")
+        write_dataset(handle, "/recon/intensity", (np.abs(obj) ** 2).astype(np.float32), units=units)
         for name in ("residual", "change", "seconds"):
             write_dataset(handle, f"/history/{name}", recovery.history.array(name))
         write_dataset(handle, "/observed/centre",
-                      captures.intensity[captures.geometry.centre_index] if observed is None else observed)
+                      captures.intensity[captures.geometry.centre_index] if observed is None else observed, units=units)
         for name, data in captures.truth.items():
             write_dataset(handle, f"/truth/{name}", data)
         write_geometry(handle, captures.geometry)
@@ -147,6 +163,7 @@ def write_recon(path: Path, captures: Captures, recovery: Recovery, provenance: 
         recon.attrs["engine"] = recovery.engine
         recon.attrs["engine_options"] = json.dumps(recovery.options)
         recon.attrs["iterations"] = recovery.history.iterations
+        recon.attrs["stopped_by"] = recovery.stopped_by
         recon.attrs["seconds"] = recovery.seconds
         recon.attrs["hires_size"] = layout.hires_size
         recon.attrs["lowres_size"] = layout.lowres_size
