@@ -8,6 +8,7 @@ from cca_cli import __version__
 from cca_cli.commands.capture_cmds import hdr_cli, ingest_cli, register_cli
 from cca_cli.commands.console import configure_logging
 from cca_cli.commands.design import design_cli
+from cca_cli.commands.export import export_cli
 from cca_cli.commands.info import info_cli
 from cca_cli.commands.run import run_cli
 from cca_cli.commands.stage_cmds import reconstruct_cli, report_cli, simulate_cli
@@ -45,5 +46,6 @@ app.command("register")(register_cli)
 app.command("reconstruct")(reconstruct_cli)
 app.command("report")(report_cli)
 app.command("info")(info_cli)
+app.command("export")(export_cli)
 app.command("design")(design_cli)
 app.add_typer(sweep_app, name="sweep")

@@ -16,7 +16,8 @@ from rich.table import Table
 from cca_cli.errors import CcaError
 from cca_cli.stages.progress import ProgressEvent
 
-__all__ = ["console", "err_console", "handle_errors", "progress_reporter", "summary_table", "configure_logging"]
+__all__ = ["console", "err_console", "handle_errors", "progress_reporter", "summary_table", "configure_logging",
+           "stop_note", "recovery_stop_note", "length_text"]
 
 console = Console()
 err_console = Console(stderr=True)
@@ -68,6 +69,30 @@ def progress_reporter(enabled: bool = True) -> Iterator:
                 bars.update(task_id, total=task.completed)
 
 
+def length_text(metres: float) -> str:
+    """A length with a readable unit (nm, µm, mm, m)."""
+    for scale, unit in ((1.0, "m"), (1e-3, "mm"), (1e-6, "µm"), (1e-9, "nm")):
+        if abs(metres) >= scale:
+            return f"{metres / scale:.3g} {unit}"
+    return f"{metres:.3g} m"
+
+
+def stop_note(stopped_by: str | None, iterations: int | None, change: float | None, tol: float | None) -> str | None:
+    """One line warning that the iteration cap ended a reconstruction before ``tol`` (None otherwise)."""
+    if stopped_by != "cap":
+        return None
+    reached = f" (last change {change:.3g} > tol {tol:.3g})" if change is not None and tol is not None else ""
+    return (f"[yellow]note:[/] reconstruct stopped at the iteration cap ({iterations}) before the change reached "
+            f"tol{reached}; raise reconstruct.iterations (--iterations) to go on")
+
+
+def recovery_stop_note(recovery) -> str | None:
+    """:func:`stop_note` of a stage's :class:`~cca_cli.stages.reconstruct.Recovery`."""
+    records = recovery.history.records
+    return stop_note(getattr(recovery, "stopped_by", None), recovery.history.iterations,
+                     records[-1].change if records else None, recovery.options.get("tol"))
+
+
 def summary_table(summary: dict, title: str = "Result") -> Table:
     """A two-column table of the headline numbers of a report."""
     table = Table(title=title, show_header=True, header_style="bold")
@@ -78,8 +103,9 @@ def summary_table(summary: dict, title: str = "Result") -> Table:
         ("images", "n_images", "{}"),
         ("engine / iterations", None, None),
         ("reconstruction time (s)", "seconds", "{:.1f}"),
-        ("spot size at sensor (µm)", "spot_size_sensor_m", "1e6"),
-        ("spot size at object (mm)", "spot_size_object_m", "1e3"),
+        ("spot size at sensor", "spot_size_sensor_m", "length"),
+        ("spot size at object", "spot_size_object_m", "length"),
+        ("spot size at object, synthetic aperture", "spot_size_synthetic_object_m", "length"),
         ("MTF20 observed (px)", "mtf20_observed_px", "{}"),
         ("MTF20 recovered (px)", "mtf20_recovered_px", "{}"),
         ("resolution gain", "resolution_gain", "{:.2f}"),
@@ -103,14 +129,48 @@ def summary_table(summary: dict, title: str = "Result") -> Table:
         if key is None:
             table.add_row(label, f"{summary.get('engine')} / {summary.get('iterations')}")
             continue
-        if key not in summary:
+        if key not in summary or (key == "spot_size_sensor_m" and summary.get("kind") == "led_array"):
             continue
         value = summary[key]
         if value is None:
             text = "—"
-        elif fmt in ("1e6", "1e3"):
-            text = f"{value * float(fmt):.2f}"
+        elif fmt == "length":
+            text = length_text(value)
         else:
             text = fmt.format(value)
         table.add_row(label, text)
+    for label, text in _nested_rows(summary):
+        table.add_row(label, text)
     return table
+
+
+def _nested_rows(summary: dict) -> list[tuple[str, str]]:
+    """Rows for the report's nested entries: stop reason, USAF reading, baselines and speckle contrast."""
+    rows = []
+    if summary.get("stopped_by"):
+        rows.append(("stopped by", "tol" if summary["stopped_by"] == "tol" else "iteration cap (before tol)"))
+    usaf = summary.get("usaf") or {}
+    for name, reading in usaf.items():
+        if not isinstance(reading, dict):
+            continue
+        text = "none resolved" if reading.get("group") is None else \
+            f"G{reading['group']} E{reading['element']} ({reading['lp_per_mm']:.3g} lp/mm)"
+        rows.append((f"USAF {name.replace('_', ' ')}", text))
+    if usaf.get("gain") is not None:
+        rows.append(("USAF gain (recovered / observed lp/mm)", f"{usaf['gain']:.2f}"))
+    for name, entry in (summary.get("baselines") or {}).items():
+        parts = []
+        if entry.get("mtf20_px") is not None:
+            parts.append(f"MTF20 {entry['mtf20_px']} px")
+        if entry.get("rmse") is not None:
+            parts.append(f"RMSE {entry['rmse']:.4f}")
+        if entry.get("spot_size_object_m") is not None:
+            parts.append(f"spot {length_text(entry['spot_size_object_m'])}")
+        rows.append((f"baseline {name.replace('_', ' ')}", ", ".join(parts) or "—"))
+    for name in ("observed", "recovered"):
+        key = f"speckle_contrast_{name}"
+        if summary.get(key) is not None:
+            rows.append((f"speckle contrast {name}", f"{summary[key]:.3f}"))
+    for name, value in (summary.get("speckle_contrast_baselines") or {}).items():
+        rows.append((f"speckle contrast {name.replace('_', ' ')}", f"{value:.3f}"))
+    return rows

@@ -1,4 +1,4 @@
-"""`cca info FILE.h5`: what a pipeline file holds, with units."""
+"""`cca info FILE.h5`: what a pipeline file holds, with units, and the quantities its geometry implies."""
 
 from __future__ import annotations
 
@@ -8,17 +8,62 @@ from typing import Annotated
 import h5py
 import typer
 
-from cca_cli.commands.console import console, handle_errors
+from cca_cli.commands.console import console, handle_errors, length_text
 from cca_cli.errors import InputError
+
+__all__ = ["info_cli", "derived_lines"]
 
 
 def _text(value) -> str:
     return value.decode() if isinstance(value, bytes) else str(value)
 
 
+def derived_lines(derived: dict) -> list[str]:
+    """The lines `cca info` and `cca simulate` print for :func:`cca_cli.report.summary.derived_quantities`."""
+    rows, cols = derived["grid"]
+    led = derived.get("kind") == "led_array"
+    lines = [f"  images          {derived['n_images']} ({rows} x {cols} grid)",
+             f"  SAR             {derived['sar']:.2f}"]
+    if derived.get("step_m") is not None:
+        step = f"{derived['step_m']:.4g} (sin θ)" if led else length_text(derived["step_m"])
+        overlap = f", overlap {derived['overlap']:.0%}" if derived.get("overlap") is not None else ""
+        lines.append(f"  step            {step}{overlap}")
+    lines.append(f"  pupil radius    {derived['pupil_radius_px']:.2f} spectrum px")
+    if not led:
+        lines.append(f"  spot at sensor  {length_text(derived['spot_size_sensor_m'])} (2.44·λ·f/d)")
+    lines.append(f"  spot at object  {length_text(derived['spot_size_object_m'])} (2.44·λ·z/d); synthetic aperture "
+                 f"{length_text(derived['spot_size_synthetic_object_m'])}")
+    if "output_grid_px" in derived:
+        band = f", {derived['lowres_grid_px']} px band grid per capture" if "lowres_grid_px" in derived else ""
+        lines.append(f"  output grid     {derived['output_grid_px']} x {derived['output_grid_px']} px of "
+                     f"{length_text(derived['object_pixel_m'])}{band}")
+    return lines
+
+
+def _derived(handle: h5py.File) -> dict | None:
+    """Derived quantities of a file with /geometry (None without one, or when it is malformed)."""
+    if "geometry" not in handle:
+        return None
+    from cca_cli.io.geometry import read_geometry
+    from cca_cli.report.summary import derived_quantities
+
+    try:
+        geometry = read_geometry(handle)
+    except InputError:
+        return None
+    recon = handle["recon"].attrs if "recon" in handle else {}
+    if "hires_size" in recon:
+        return derived_quantities(geometry, hires_size=int(recon["hires_size"]),
+                                  lowres_size=int(recon["lowres_size"]) if "lowres_size" in recon else None)
+    images = handle.get("/measurements/intensity")
+    sensor = images.shape[-1] if images is not None and images.ndim == 3 and images.shape[-1] == images.shape[-2] \
+        else None
+    return derived_quantities(geometry, sensor_pixels=sensor)
+
+
 @handle_errors
 def info_cli(path: Annotated[Path, typer.Argument(help="An HDF5 file written by cca.", show_default=False)]) -> None:
-    """List the datasets of PATH with dtype, shape, units and meaning, and its provenance."""
+    """List the datasets of PATH with dtype, shape, units and meaning, its provenance and derived quantities."""
     if not path.exists():
         raise InputError(f"{path}: file not found")
     if not h5py.is_hdf5(path):
@@ -44,6 +89,12 @@ def info_cli(path: Annotated[Path, typer.Argument(help="An HDF5 file written by 
                          for k, v in handle[group].attrs.items() if k != "units"]
                 out()
                 out(f"{group}: " + ", ".join(items))
+        derived = _derived(handle)
+        if derived is not None:
+            out()
+            out("derived quantities:")
+            for line in derived_lines(derived):
+                out(line)
         if attrs.get("inputs"):
             out()
             out(f"inputs: {attrs['inputs']}")

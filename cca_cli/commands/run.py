@@ -7,7 +7,8 @@ from typing import Annotated, Optional
 
 import typer
 
-from cca_cli.commands.console import console, err_console, handle_errors, progress_reporter, summary_table
+from cca_cli.commands.console import (console, err_console, handle_errors, progress_reporter, recovery_stop_note,
+                                     stop_note, summary_table)
 from cca_cli.commands.options import Force, OptionalConfigArg, Quiet
 from cca_cli.config.load import load_config
 from cca_cli.stages.runner import default_out_dir, run_pipeline
@@ -40,3 +41,13 @@ def run_cli(
         console.print(summary_table(summary, title=f"cca run → {directory}"))
     for outcome in outcomes:
         console.print(f"{outcome.name:12s} {outcome.status:8s} {outcome.output}  ({outcome.seconds:.1f} s)")
+    recon = next((o for o in outcomes if o.name == "reconstruct"), None)
+    if recon is not None and recon.result is not None:
+        note = recovery_stop_note(recon.result)
+    elif report is not None:
+        note = stop_note(summary.get("stopped_by"), summary.get("iterations"), summary.get("final_change"),
+                         summary.get("tol"))
+    else:
+        note = None
+    if note:
+        err_console.print(note, highlight=False, soft_wrap=True)

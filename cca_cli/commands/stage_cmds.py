@@ -7,7 +7,8 @@ from typing import Annotated, Optional
 
 import typer
 
-from cca_cli.commands.console import console, handle_errors, summary_table
+from cca_cli.commands.console import console, err_console, handle_errors, recovery_stop_note, summary_table
+from cca_cli.commands.info import derived_lines
 from cca_cli.commands.options import ConfigArg, Force, Quiet, section_from_options
 from cca_cli.commands.stage_run import run_stage
 from cca_cli.config.load import load_config
@@ -36,8 +37,12 @@ def simulate_cli(
                       f"{mux.n_patterns} patterns) of {sim.intensity.shape[-1]}² px summing {g.n_images} regions, "
                       f"SAR {g.synthetic_aperture_ratio:.2f}, pupil radius {g.pupil_radius_px:.2f} spectrum px")
         return
-    console.print(f"{output}: {g.n_images} captures of {sim.intensity.shape[-1]}² px, SAR {g.synthetic_aperture_ratio:.2f}, "
-                  f"pupil radius {g.pupil_radius_px:.2f} spectrum px")
+    console.print(f"{output}: {g.n_images} captures of {sim.intensity.shape[-1]}² px", highlight=False)
+    from cca_cli.report.summary import derived_quantities
+
+    derived = derived_quantities(g, hires_size=sim.layout.hires_size, lowres_size=sim.layout.lowres_size)
+    for line in derived_lines(derived):
+        console.print(line, highlight=False, markup=False)
 
 
 @handle_errors
@@ -59,6 +64,9 @@ def reconstruct_cli(
                          sections={"reconstruct": section}, inputs=[captures], force=force, quiet=quiet)
     console.print(f"{output}: {recovery.engine}, {recovery.history.iterations} iterations in {recovery.seconds:.1f} s, "
                   f"{recovery.layout.hires_size}² output")
+    note = recovery_stop_note(recovery)
+    if note:
+        err_console.print(note, highlight=False, soft_wrap=True)
 
 
 @handle_errors

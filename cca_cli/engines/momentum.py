@@ -590,7 +590,8 @@ class SequentialMomentum(IterativeEngine):
         self._iteration += 1
         return float(np.sqrt(misfit / max(self._data_norm, 1e-30))), self._change
 
-    def _on_plateau(self) -> bool:
+    def on_plateau(self) -> bool:
+        """Whether the misfit fell by less than ``plateau`` over the last ``plateau_window`` passes."""
         opts = self.options
         window = opts.plateau_window
         if opts.plateau <= 0 or len(self._misfits) <= window:
@@ -601,7 +602,7 @@ class SequentialMomentum(IterativeEngine):
     def done(self) -> bool:
         """Stop at ``max_iterations``, when a pass changes the spectrum by less than ``tol``, or on a plateau."""
         return (self._iteration >= self.options.max_iterations or self._change < self.options.tol
-                or self._on_plateau())
+                or self.on_plateau())
 
     def spectrum(self) -> np.ndarray:
         """Current spectrum estimate (complex64, M x M)."""

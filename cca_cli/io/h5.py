@@ -26,6 +26,7 @@ __all__ = [
     "file_sha256",
     "open_input",
     "write_dataset",
+    "describe",
     "read_provenance",
     "remove_temporaries",
     "require",
@@ -111,17 +112,32 @@ def atomic_h5(path: str | Path, provenance: Provenance, *, force: bool = False) 
             yield handle
 
 
-def write_dataset(group: h5py.Group, path: str, data, *, units: str | None = None, **attrs: Any) -> h5py.Dataset:
-    """Write a dataset with its units (from the schema unless given) and description."""
-    spec = spec_for(path if path.startswith("/") else f"{group.name.rstrip('/')}/{path}")
+def write_dataset(group: h5py.Group, path: str, data, *, units: str | None = None, description: str | None = None,
+                  **attrs: Any) -> h5py.Dataset:
+    """Write a dataset with its units and description (from the schema unless given).
+
+    Text (a sequence of ``str``) is stored as UTF-8 strings.
+    """
     data = np.asarray(data)
+    if data.dtype.kind in "UO":
+        data = np.array([str(v) for v in data.ravel()], dtype=object).reshape(data.shape)
+        dtype = h5py.string_dtype("utf-8")
+    else:
+        dtype = None
     chunks = (1,) + data.shape[1:] if data.ndim == 3 and data.nbytes > (1 << 24) else None
-    dataset = group.create_dataset(path, data=data, chunks=chunks)
-    dataset.attrs["units"] = units if units is not None else (spec.units if spec else "")
-    if spec is not None:
-        dataset.attrs["description"] = spec.meaning
+    dataset = group.create_dataset(path, data=data, dtype=dtype, chunks=chunks)
+    describe(dataset, units=units, description=description)
     for key, value in attrs.items():
         dataset.attrs[key] = value
+    return dataset
+
+
+def describe(dataset: h5py.Dataset, *, units: str | None = None, description: str | None = None) -> h5py.Dataset:
+    """Set a dataset's ``units`` and ``description`` attributes, from the schema unless given."""
+    spec = spec_for(dataset.name)
+    dataset.attrs["units"] = units if units is not None else (spec.units if spec else "")
+    if description is not None or spec is not None:
+        dataset.attrs["description"] = description if description is not None else spec.meaning
     return dataset
 
 

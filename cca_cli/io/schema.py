@@ -103,7 +103,7 @@ DATASETS: tuple[DatasetSpec, ...] = (
                 "position k, exposure e (ascending). Attribute saturation_level: clipping level in these counts. "
                 "With one exposure per position, ingest also writes /measurements (intensity in counts/s)."),
     DatasetSpec("/raw/exposure_s", "float64", "(K, E)", "s", "Exposure time of each frame."),
-    DatasetSpec("/capture/labels", "str", "(K,)", "", "Readable name of each position (stage position, first file)."),
+    DatasetSpec("/capture/labels", "str", "(K,)", "text", "Readable name of each position (stage position, first file)."),
     DatasetSpec("/hdr/dynamic_range_gain", "float64", "(K,)", "1",
                 "Dynamic range of the merged radiance over the best single exposure's, per position. With hdr, "
                 "/measurements/intensity is radiance in counts/s (relative units: the recovery is scale-free) and "
@@ -114,7 +114,7 @@ DATASETS: tuple[DatasetSpec, ...] = (
     DatasetSpec("/registration/rms_px", "float64", "(K,)", "px", "RMS reprojection error of the board corners."),
     DatasetSpec("/registration/kept_index", "int32", "(K,)", "1", "Index of each registered view among the ingested ones."),
     DatasetSpec("/registration/corners", "float32", "(K, N, 2)", "px", "Detected inner corners (x, y) in each view."),
-    DatasetSpec("/registration/dropped", "str", "(D,)", "", "Positions lost because no checkerboard was found."),
+    DatasetSpec("/registration/dropped", "str", "(D,)", "text", "Positions lost because no checkerboard was found."),
 )
 
 #: Attributes of /geometry (all SI).

@@ -1,12 +1,32 @@
-"""PNG figures of a reconstruction. The only module that imports matplotlib."""
+"""PNG figures of a reconstruction. The only module that imports matplotlib.
+
+Images are drawn on a pixel-exact layout: every image axes is an integer
+multiple of the image's own pixels wide, so the recovery appears at 1:1 (or
+at an integer magnification, pixels replicated), never resampled into a
+small panel. Panels compared side by side share the field, the size on
+screen and the intensity scale.
+"""
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["write_comparison_figures", "write_coverage_figure", "write_figures"]
+__all__ = ["write_comparison_figures", "write_coverage_figure", "write_figures", "magnification", "sqrt_units"]
+
+_DPI = 100
+# Layout in screen pixels: left margin (y ticks), gap between panels, panel title, x ticks and label,
+# colour bar gap and width, right margin (colour bar label).
+_LEFT, _GAP, _TITLE, _BOTTOM, _BAR_GAP, _BAR, _RIGHT = 72, 20, 30, 52, 14, 16, 86
+#: Screen size the recovery is magnified towards when it is small.
+_TARGET_PX = 400
+#: Full-field panels wider than this are drawn smaller (the 1:1 view is recovered_magnitude.png).
+_MAX_OVERVIEW_PX = 1100
+#: Phase is left out where the amplitude is below this share of its 99.5th percentile.
+_PHASE_MASK = 0.1
 
 
 def _plt():
@@ -18,97 +38,360 @@ def _plt():
     return plt
 
 
-def _save(plt, fig, path: Path) -> Path:
-    """Lay out ``fig``, write it to ``path`` and close it."""
-    fig.tight_layout()
-    fig.savefig(path)
+def _save(plt, fig, path: Path, *, tight: bool = True) -> Path:
+    """Write ``fig`` to ``path`` and close it (``tight``: let matplotlib lay it out first)."""
+    if tight:
+        fig.tight_layout()
+    fig.savefig(path, dpi=_DPI)
     plt.close(fig)
     return path
 
 
-def _image(plt, path: Path, image: np.ndarray, title: str, *, cmap: str = "gray", extent_mm: float | None = None,
-           label: str = "") -> None:
-    fig, ax = plt.subplots(figsize=(5.2, 4.6), dpi=110)
-    extent = None if extent_mm is None else (-extent_mm / 2, extent_mm / 2, extent_mm / 2, -extent_mm / 2)
-    shown = ax.imshow(image, cmap=cmap, extent=extent, interpolation="nearest")
-    ax.set_title(title)
-    if extent_mm is not None:
-        ax.set_xlabel("x at object (mm)")
-        ax.set_ylabel("y at object (mm)")
-    fig.colorbar(shown, ax=ax, label=label)
-    _save(plt, fig, path)
+def magnification(pixels: int, target: int = _TARGET_PX) -> int:
+    """Integer magnification that shows an image of ``pixels`` px at least ``target`` px wide (1 when it already is).
+
+    Examples
+    --------
+    >>> magnification(512), magnification(250), magnification(96)
+    (1, 2, 5)
+    """
+    return max(1, math.ceil(target / max(int(pixels), 1)))
+
+
+def sqrt_units(units: str) -> str:
+    """Units of an amplitude whose intensity is in ``units``.
+
+    Examples
+    --------
+    >>> sqrt_units("irradiance"), sqrt_units("counts/s")
+    ('√irradiance', '√(counts/s)')
+    """
+    return f"√{units}" if units.isalnum() else f"√({units})"
+
+
+@dataclass
+class _Panel:
+    """One image of a figure: values, title, colour map and what to draw on top."""
+
+    image: np.ndarray
+    title: str
+    cmap: str = "gray"
+    vmin: float | None = None
+    vmax: float | None = None
+    extent: tuple[float, float, float, float] | None = None   # (x0, x1, y1, y0) in `unit`: y grows downwards
+    boxes: list = field(default_factory=list)                 # (x0, y0, width, height) outlines in `unit`
+    unit: str = "mm"
+
+
+@dataclass
+class _Row:
+    """A row of equally sized panels with one colour bar."""
+
+    size_px: int
+    panels: list[_Panel]
+    colorbar: str = ""
+    ticks: dict | None = None   # colour-bar ticks: value -> label
+
+
+def _draw(plt, rows: list[_Row], title: str = ""):
+    """A figure whose image axes are exactly ``row.size_px`` screen pixels square.
+
+    Each image is drawn with nearest-neighbour rendering when it is no larger
+    than its axes, so an axes of ``k·n`` pixels shows an ``n``-pixel image with
+    every pixel replicated ``k`` times.
+    """
+    widths = [len(r.panels) * r.size_px + (len(r.panels) - 1) * _GAP for r in rows]
+    fig_w = _LEFT + max(widths) + _BAR_GAP + _BAR + _RIGHT
+    head = 14 + 18 * (title.count("\n") + 1) if title else 8
+    fig_h = head + sum(_TITLE + r.size_px + _BOTTOM for r in rows)
+    fig = plt.figure(figsize=(fig_w / _DPI, fig_h / _DPI), dpi=_DPI)
+    if title:
+        fig.suptitle(title, y=1 - 10 / fig_h, va="top", fontsize=11)
+    top = head
+    for row, width in zip(rows, widths):
+        top += _TITLE
+        bottom = fig_h - top - row.size_px
+        shown = None
+        for i, panel in enumerate(row.panels):
+            left = _LEFT + i * (row.size_px + _GAP)
+            ax = fig.add_axes((left / fig_w, bottom / fig_h, row.size_px / fig_w, row.size_px / fig_h))
+            image = np.asanyarray(panel.image)   # keeps a mask
+            interpolation = "nearest" if image.shape[-1] <= row.size_px else "antialiased"
+            shown = ax.imshow(image, cmap=panel.cmap, vmin=panel.vmin, vmax=panel.vmax, extent=panel.extent,
+                              interpolation=interpolation)
+            ax.set_title(panel.title, fontsize=9)
+            for x0, y0, w, h in panel.boxes:
+                ax.add_patch(plt.Rectangle((x0, y0), w, h, fill=False, edgecolor="#ffb000", lw=1.2))
+            if panel.extent is not None:
+                ax.set_xlabel(f"x at object ({panel.unit})", fontsize=8)
+                if i == 0:
+                    ax.set_ylabel(f"y at object ({panel.unit})", fontsize=8)
+                else:
+                    ax.tick_params(labelleft=False)
+                ax.tick_params(labelsize=7)
+            else:
+                ax.set_axis_off()
+        cax = fig.add_axes(((_LEFT + width + _BAR_GAP) / fig_w, bottom / fig_h, _BAR / fig_w, row.size_px / fig_h))
+        bar = fig.colorbar(shown, cax=cax)
+        bar.set_label(row.colorbar, fontsize=8)
+        bar.ax.tick_params(labelsize=7)
+        if row.ticks:
+            bar.set_ticks(list(row.ticks), labels=list(row.ticks.values()))
+        top += row.size_px + _BOTTOM
+    return fig
+
+
+def _display_unit(field_width_m: float) -> tuple[float, str]:
+    """Scale and name of the length unit the axes use: mm, or µm for fields under 2 mm."""
+    return (1e6, "µm") if field_width_m < 2e-3 else (1e3, "mm")
+
+
+def _extent(width: float, region=None) -> tuple[float, float, float, float]:
+    """imshow extent (x0, x1, y1, y0) of the field ``width`` wide, or of ``region`` of it (centred on the axis)."""
+    y0, y1, x0, x1 = region.fractions if region is not None else (0.0, 1.0, 0.0, 1.0)
+    half = width / 2
+    return (x0 * width - half, x1 * width - half, y1 * width - half, y0 * width - half)
+
+
+def _region_box(width: float, region) -> tuple[float, float, float, float]:
+    y0, y1, x0, x1 = region.fractions
+    half = width / 2
+    return (x0 * width - half, y0 * width - half, (x1 - x0) * width, (y1 - y0) * width)
+
+
+def _limits(*images) -> tuple[float, float]:
+    """Common intensity range of images: 0 (or the minimum, if negative) to the 99.9th percentile."""
+    values = np.concatenate([np.asarray(i, np.float32).ravel() for i in images])
+    low = min(0.0, float(np.percentile(values, 0.1)))
+    high = float(np.percentile(values, 99.9))
+    return low, high if high > low else low + 1.0
+
+
+def _single(plt, path: Path, image: np.ndarray, title: str, label: str, *, width: float, unit: str,
+            cmap: str = "gray", region=None, vmin=None, vmax=None, ticks=None) -> Path:
+    """One image at an integer magnification of its own pixels, with mm axes and a colour bar."""
+    k = magnification(image.shape[-1])
+    boxes = [_region_box(width, region)] if region is not None else []
+    scale = "1:1" if k == 1 else f"{k}x, pixels replicated"
+    panel = _Panel(image, f"{image.shape[-1]} x {image.shape[-2]} px ({scale})", cmap=cmap, vmin=vmin, vmax=vmax,
+                   extent=_extent(width), boxes=boxes, unit=unit)
+    fig = _draw(plt, [_Row(image.shape[-1] * k, [panel], label, ticks)], title)
+    return _save(plt, fig, path, tight=False)
+
+
+def _phase(obj: np.ndarray) -> np.ma.MaskedArray:
+    """Phase relative to the object's amplitude-weighted mean phase, masked where the amplitude is low."""
+    amplitude = np.abs(obj)
+    reference = np.angle(np.sum(obj * amplitude))
+    phase = np.angle(obj * np.exp(-1j * reference))
+    floor = _PHASE_MASK * float(np.percentile(amplitude, 99.5))
+    return np.ma.masked_where(amplitude < floor, phase)
 
 
 def write_figures(directory: Path, *, observed: np.ndarray, recovered_object: np.ndarray, spectrum: np.ndarray,
                   pupil_centres_px: np.ndarray, pupil_radius_px: float, field_width_m: float,
-                  residual: np.ndarray, change: np.ndarray, summary: dict, truth: np.ndarray | None = None) -> list[Path]:
-    """Write the report's PNGs into ``directory`` and return their paths."""
+                  residual: np.ndarray, change: np.ndarray, summary: dict, truth: np.ndarray | None = None,
+                  units: str = "irradiance", region=None, grid_indices: np.ndarray | None = None) -> list[Path]:
+    """Write the report's PNGs into ``directory`` and return their paths.
+
+    Parameters
+    ----------
+    directory : Path
+    observed : ndarray, (N, N)
+        Centre capture (intensity, ``units``).
+    recovered_object : ndarray, complex, (M, M)
+        Recovered field.
+    spectrum : ndarray, complex, (M, M)
+        Recovered spectrum (centred).
+    pupil_centres_px : ndarray, (K, 2)
+        Aperture footprints' centres [y, x] relative to DC (spectrum px).
+    pupil_radius_px : float
+    field_width_m : float
+        Object-plane width of the field (m).
+    residual, change : ndarray
+        Convergence history.
+    summary : dict
+        The report (titles, contrast tables, ``tol``, ``stopped_by``).
+    truth : ndarray, optional
+        Ground-truth intensity.
+    units : str
+        Intensity units (``irradiance`` for simulations, ``counts/s`` for recorded data).
+    region : Region, optional
+        Zoom region (:mod:`cca_cli.report.regions`).
+    grid_indices : ndarray, (K, 2), optional
+        Grid position of each footprint (the border ones are outlined).
+
+    Returns
+    -------
+    list of Path
+        ``observed_centre.png``, ``recovered_magnitude.png``,
+        ``recovered_phase.png``, ``observed_vs_recovered.png``,
+        ``spectrum.png`` and, when available, ``truth.png``,
+        ``contrast.png``, ``convergence.png``.
+    """
     plt = _plt()
     directory = Path(directory)
-    width_mm = field_width_m * 1e3
-    paths = []
-
-    def target(name: str) -> Path:
-        path = directory / name
-        paths.append(path)
-        return path
-
-    _image(plt, target("observed_centre.png"), observed, "Observed centre image", extent_mm=width_mm,
-           label="irradiance")
-    _image(plt, target("recovered_magnitude.png"), np.abs(recovered_object),
-           f"Recovered magnitude (SAR {summary['sar']:.2f})", extent_mm=width_mm, label="√irradiance")
-    _image(plt, target("recovered_phase.png"), np.angle(recovered_object), "Recovered phase", cmap="twilight",
-           extent_mm=width_mm, label="rad")
+    scale, unit = _display_unit(field_width_m)
+    width = field_width_m * scale
+    amplitude = np.abs(recovered_object).astype(np.float32)
+    m = amplitude.shape[-1]
+    pixel_um = field_width_m / m * 1e6
+    low, high = _limits(observed)
+    paths = [
+        _single(plt, directory / "observed_centre.png", observed, "Observed centre image (one camera)",
+                f"intensity ({units})", width=width, unit=unit, region=region, vmin=low, vmax=high),
+        _single(plt, directory / "recovered_magnitude.png", amplitude,
+                f"Recovered magnitude |O| (SAR {summary['sar']:.2f}, {pixel_um:.3g} µm pixels)",
+                f"|O| ({sqrt_units(units)})", width=width, unit=unit, region=region, vmin=0.0,
+                vmax=float(np.percentile(amplitude, 99.9)) or None),
+        _single(plt, directory / "recovered_phase.png", _phase(recovered_object),
+                f"Recovered phase, relative to its mean\n(black: |O| below {_PHASE_MASK:.0%} of its 99.5th percentile)",
+                "phase (rad)", width=width, unit=unit, cmap=_phase_cmap(plt), region=region, vmin=-np.pi, vmax=np.pi,
+                ticks={-np.pi: "−π", -np.pi / 2: "−π/2", 0.0: "0", np.pi / 2: "π/2", np.pi: "π"}),
+    ]
     if truth is not None:
-        _image(plt, target("truth.png"), truth, "Ground truth intensity", extent_mm=width_mm, label="irradiance")
-
-    fig, ax = plt.subplots(figsize=(5.6, 5), dpi=110)
-    m = spectrum.shape[-1]
-    log_mag = np.log10(np.abs(spectrum) + 1e-6 * np.abs(spectrum).max())
-    half = m / 2
-    ax.imshow(log_mag, cmap="magma", extent=(-half, half, half, -half))
-    theta = np.linspace(0, 2 * np.pi, 96)
-    centres = np.asarray(pupil_centres_px)
-    nearest = int(np.argmin(np.hypot(centres[:, 0], centres[:, 1])))
-    faint = 0.25 if len(centres) > 50 else 0.6
-    for i, (cy, cx) in enumerate(centres):
-        ax.plot(cx + pupil_radius_px * np.cos(theta), cy + pupil_radius_px * np.sin(theta),
-                lw=1.2 if i == nearest else 0.3, color="white" if i == nearest else "cyan",
-                alpha=1.0 if i == nearest else faint)
-    ax.set_title("Recovered spectrum (log10 |S|) and aperture footprints")
-    ax.set_xlabel("spectrum px (x)")
-    ax.set_ylabel("spectrum px (y)")
-    _save(plt, fig, target("spectrum.png"))
-
+        paths.append(_single(plt, directory / "truth.png", truth, "Ground truth intensity", f"intensity ({units})",
+                             width=width, unit=unit, region=region, vmin=0.0, vmax=_limits(truth)[1]))
+    images = {"observed (centre camera)": observed, "recovered": amplitude ** 2}
+    if truth is not None:
+        images = {"truth": truth, **images}
+    paths.append(_side_by_side(plt, directory / "observed_vs_recovered.png", images, width=width, unit=unit,
+                               region=region, grid=m, units=units,
+                               heading="Observed vs recovered intensity, same field and scale"))
+    paths.append(_spectrum(plt, directory / "spectrum.png", spectrum, pupil_centres_px, pupil_radius_px, field_width_m,
+                           grid_indices))
     if "contrast_observed" in summary:
-        fig, ax = plt.subplots(figsize=(6, 4), dpi=110)
-        for key, style, name in (("contrast_observed", "--", "observed"), ("contrast_recovered", "-", "recovered")):
-            table = summary[key]
-            widths = np.asarray(table["widths_px"])
-            ax.plot(widths, table["horizontal"], style, marker="o", ms=3, label=f"{name}, horizontal bars")
-            ax.plot(widths, table["vertical"], style, marker="s", ms=3, label=f"{name}, vertical bars")
-        ax.axhline(summary.get("mtf_threshold", 0.2), color="gray", lw=0.8, ls=":")
-        ax.set_xlabel("bar width (object px)")
-        ax.set_ylabel("contrast (w̄ − b̄)/(w̄ + b̄)")
-        ax.invert_xaxis()
-        ax.set_title("Bar contrast vs width")
-        ax.legend(fontsize=7)
-        _save(plt, fig, target("contrast.png"))
-
+        paths.append(_contrast(plt, directory / "contrast.png", summary))
     if len(residual):
-        fig, ax = plt.subplots(figsize=(6, 4), dpi=110)
-        it = np.arange(1, len(residual) + 1)
-        ax.semilogy(it, residual, label="data residual")
-        ax.semilogy(it, np.maximum(change, 1e-12), label="relative change")
-        ax.set_xlabel("iteration")
-        ax.set_ylabel("relative value")
-        ax.set_title("Convergence")
-        ax.legend()
-        _save(plt, fig, target("convergence.png"))
+        paths.append(_convergence(plt, directory / "convergence.png", residual, change, summary))
     return paths
 
 
-def write_comparison_figures(directory: Path, images: dict, summary: dict) -> list[Path]:
+def _phase_cmap(plt):
+    """Cyclic colour map for phase with black reserved for masked pixels."""
+    return plt.get_cmap("hsv").with_extremes(bad="black")
+
+
+def _side_by_side(plt, path: Path, images: dict, *, width: float, unit: str, region, grid: int, units: str,
+                  heading: str) -> Path:
+    """Full field (top row) and the zoom region (bottom row) of every image, on equal axes and one scale."""
+    k = magnification(grid)
+    size = grid * k if grid * k <= _MAX_OVERVIEW_PX else 768
+    low, high = _limits(*images.values())
+    boxes = [_region_box(width, region)] if region is not None else []
+    scale = "1:1" if size == grid else (f"{k}x" if size == grid * k else "shrunk")
+
+    def title(name: str, image) -> str:
+        return f"{name}, {image.shape[-1]} px ({scale if image.shape[-1] == grid else 'own pixels'})"
+
+    full = [_Panel(np.asarray(image), title(name, image), vmin=low, vmax=high, extent=_extent(width),
+                   boxes=boxes, unit=unit) for name, image in images.items()]
+    rows = [_Row(size, full, f"intensity ({units})")]
+    if region is not None:
+        crops = {name: region.crop(np.asarray(image)) for name, image in images.items()}
+        low_z, high_z = _limits(*crops.values())
+        side = region.pixels(grid)
+        crop_px = max(side[1] - side[0], side[3] - side[2])
+        zoom = max(1, round(_TARGET_PX / crop_px))
+        panels = [_Panel(crop, f"{name}, zoom", vmin=low_z, vmax=high_z, extent=_extent(width, region), unit=unit)
+                  for name, crop in crops.items()]
+        rows.append(_Row(crop_px * zoom, panels, f"intensity ({units})"))
+        heading += f"\nbottom: zoom on {region.label}"
+    fig = _draw(plt, rows, heading)
+    return _save(plt, fig, path, tight=False)
+
+
+def _spectrum(plt, path: Path, spectrum: np.ndarray, centres, radius_px: float, field_width_m: float,
+              grid_indices) -> Path:
+    """log10 |S| in cycles/mm at the object, with the aperture footprints and a colour bar."""
+    magnitude = np.abs(spectrum)
+    peak = float(magnitude.max()) or 1.0
+    log_mag = np.log10(np.maximum(magnitude / peak, 1e-12))
+    floor = float(np.percentile(log_mag[magnitude > 0], 1)) if np.any(magnitude > 0) else -6.0
+    m = spectrum.shape[-1]
+    per_px = 1.0 / (field_width_m * 1e3)              # spectrum pixel → cycles per mm at the object
+    half = m / 2 * per_px
+    fig, ax = plt.subplots(figsize=(7.2, 6.8), dpi=_DPI)
+    shown = ax.imshow(log_mag, cmap="magma", vmin=max(floor, -8.0), vmax=0.0, interpolation="nearest",
+                      extent=(-half - per_px / 2, half - per_px / 2, half - per_px / 2, -half - per_px / 2))
+    fig.colorbar(shown, ax=ax, label="log10 |S| / max |S|", shrink=0.85)
+    centres = np.asarray(centres, np.float64)
+    theta = np.linspace(0, 2 * np.pi, 128)
+    centre = int(np.argmin(np.hypot(centres[:, 0], centres[:, 1])))
+    outline = _border(centres, grid_indices)
+    for i in outline:
+        cy, cx = centres[i]
+        ax.plot((cx + radius_px * np.cos(theta)) * per_px, (cy + radius_px * np.sin(theta)) * per_px,
+                color="#00e5ff", lw=0.9, alpha=0.9)
+    ax.scatter(centres[:, 1] * per_px, centres[:, 0] * per_px, s=4, color="#00e5ff", linewidths=0)
+    cy, cx = centres[centre]
+    ax.plot((cx + radius_px * np.cos(theta)) * per_px, (cy + radius_px * np.sin(theta)) * per_px,
+            color="white", lw=1.8)
+    from matplotlib.lines import Line2D
+
+    handles = [Line2D([], [], color="white", lw=1.8,
+                      label=f"centre aperture (R = {radius_px:.1f} px = {radius_px * per_px:.3g} cycles/mm)"),
+               Line2D([], [], color="#00e5ff", lw=0.9, label="outer apertures" if len(outline) < len(centres)
+                      else "aperture footprints"),
+               Line2D([], [], color="#00e5ff", marker="o", ms=3, lw=0, label=f"all {len(centres)} aperture centres")]
+    ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.11), ncol=2, fontsize=7,
+              facecolor="#303030", labelcolor="white", framealpha=1.0)
+    reach = (float(np.max(np.abs(centres))) + radius_px) * 1.08 * per_px
+    lim = min(reach, half)
+    ax.set_xlim(-lim, lim)
+    ax.set_ylim(lim, -lim)
+    ax.set_xlabel("spatial frequency at object, x (cycles/mm)")
+    ax.set_ylabel("spatial frequency at object, y (cycles/mm)")
+    ax.set_title("Recovered spectrum and aperture footprints", fontsize=10)
+    return _save(plt, fig, path)
+
+
+def _border(centres: np.ndarray, grid_indices) -> list[int]:
+    """Footprints to outline: all of them when few, else those on the border of the capture grid."""
+    if len(centres) <= 60 or grid_indices is None or len(grid_indices) != len(centres):
+        return list(range(len(centres)))
+    g = np.asarray(grid_indices)
+    edge = (g[:, 0] == g[:, 0].min()) | (g[:, 0] == g[:, 0].max()) | (g[:, 1] == g[:, 1].min()) \
+        | (g[:, 1] == g[:, 1].max())
+    return [int(i) for i in np.flatnonzero(edge)]
+
+
+def _contrast(plt, path: Path, summary: dict) -> Path:
+    fig, ax = plt.subplots(figsize=(6.4, 4.2), dpi=_DPI)
+    for key, style, name in (("contrast_observed", "--", "observed"), ("contrast_recovered", "-", "recovered")):
+        table = summary[key]
+        widths = np.asarray(table["widths_px"])
+        ax.plot(widths, table["horizontal"], style, marker="o", ms=3, label=f"{name}, horizontal bars")
+        ax.plot(widths, table["vertical"], style, marker="s", ms=3, label=f"{name}, vertical bars")
+    ax.axhline(summary.get("mtf_threshold", 0.2), color="gray", lw=0.8, ls=":", label="threshold")
+    ax.set_xlabel("bar width (truth-grid px)")
+    ax.set_ylabel("contrast (w̄ − b̄)/(w̄ + b̄)")
+    ax.invert_xaxis()
+    limits = [f"{name} {summary.get(f'mtf20_{name}_px')} px" for name in ("observed", "recovered")]
+    ax.set_title("Bar contrast vs width; MTF20: " + ", ".join(limits), fontsize=10)
+    ax.legend(fontsize=7)
+    return _save(plt, fig, path)
+
+
+def _convergence(plt, path: Path, residual, change, summary: dict) -> Path:
+    fig, ax = plt.subplots(figsize=(6.4, 4.2), dpi=_DPI)
+    it = np.arange(1, len(residual) + 1)
+    ax.semilogy(it, residual, label="data residual")
+    ax.semilogy(it, np.maximum(change, 1e-12), label="relative change")
+    tol = summary.get("tol")
+    if tol:
+        ax.axhline(tol, color="gray", lw=0.8, ls=":", label=f"tol {tol:g}")
+    stopped = {"tol": "change fell below tol", "plateau": "misfit stopped falling (plateau)",
+               "cap": "iteration cap reached before tol"}.get(summary.get("stopped_by"))
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("relative value")
+    ax.set_title("Convergence" + (f": {stopped}" if stopped else ""), fontsize=10)
+    ax.legend(fontsize=8)
+    return _save(plt, fig, path)
+
+
+def write_comparison_figures(directory: Path, images: dict, summary: dict, *, field_width_m: float | None = None,
+                             region=None, units: str = "irradiance") -> list[Path]:
     """Side-by-side images (truth, observed, baselines, recovered) and contrast curves with the baselines.
 
     Parameters
@@ -118,6 +401,12 @@ def write_comparison_figures(directory: Path, images: dict, summary: dict) -> li
         ``name → intensity`` on the truth grid (``truth``, ``observed``, ``recovered`` and baseline labels).
     summary : dict
         The report; ``baselines`` entries provide the baselines' contrast tables.
+    field_width_m : float, optional
+        Field width (m), for the axes.
+    region : Region, optional
+        Zoom region, drawn as a second row.
+    units : str
+        Intensity units.
 
     Returns
     -------
@@ -129,23 +418,36 @@ def write_comparison_figures(directory: Path, images: dict, summary: dict) -> li
     order = [n for n in ("truth", "observed") if n in images]
     order += [n for n in images if n not in ("truth", "observed", "recovered")]
     order += ["recovered"]
-    cols = min(3, len(order))
-    rows = -(-len(order) // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 4 * rows), dpi=100, squeeze=False)
-    for ax in axes.ravel():
-        ax.axis("off")
-    for ax, name in zip(axes.ravel(), order):
-        image = np.asarray(images[name])
-        ax.imshow(image, cmap="gray", vmin=0, vmax=float(np.percentile(image, 99.5)) or None,
-                  interpolation="nearest")
+    titled = {}
+    for name in order:
         extra = ""
         if name in summary.get("baselines", {}):
             mtf = summary["baselines"][name].get("mtf20_px")
-            extra = f"\nMTF20 {mtf} px" if mtf is not None else ""
-        elif name in ("observed", "recovered") and f"mtf20_{name}_px" in summary:
-            extra = f"\nMTF20 {summary[f'mtf20_{name}_px']} px"
-        ax.set_title(name.replace("_", " ") + extra, fontsize=9)
-    paths.append(_save(plt, fig, directory / "comparison.png"))
+            extra = f" (MTF20 {mtf} px)" if mtf is not None else ""
+        elif name in ("observed", "recovered") and summary.get(f"mtf20_{name}_px") is not None:
+            extra = f" (MTF20 {summary[f'mtf20_{name}_px']} px)"
+        reading = (summary.get("usaf") or {}).get(name)
+        if isinstance(reading, dict) and reading.get("group") is not None:
+            extra += f" (USAF G{reading['group']} E{reading['element']})"
+        titled[name.replace("_", " ") + extra] = np.asarray(images[name], np.float32)
+    scale, unit = _display_unit(field_width_m or 1e-3)
+    width = (field_width_m or 1e-3) * scale
+    grid = next(iter(titled.values())).shape[-1]
+    size = grid * max(1, 420 // grid) if grid <= 420 else 420   # whole pixels, or shrunk when the grid is large
+    low, high = _limits(*titled.values())
+    boxes = [_region_box(width, region)] if region is not None else []
+    rows = [_Row(size, [_Panel(image, name, vmin=low, vmax=high, extent=_extent(width), boxes=boxes, unit=unit)
+                        for name, image in titled.items()], f"intensity ({units})")]
+    if region is not None:
+        crops = {name: region.crop(image) for name, image in titled.items()}
+        low_z, high_z = _limits(*crops.values())
+        crop_px = max(c.shape[-1] for c in crops.values())
+        zoom = max(1, round(300 / crop_px))
+        rows.append(_Row(crop_px * zoom, [_Panel(crop, f"{name.split(' (')[0]}: zoom", vmin=low_z, vmax=high_z,
+                                                 extent=_extent(width, region), unit=unit)
+                                          for name, crop in crops.items()], f"intensity ({units})"))
+    title = "Recovery vs single lenses, same field and scale" + (f"; zoom: {region.label}" if region else "")
+    paths.append(_save(plt, _draw(plt, rows, title), directory / "comparison.png", tight=False))
 
     tables = {}
     for name in ("contrast_observed", "contrast_recovered"):
@@ -162,7 +464,7 @@ def write_comparison_figures(directory: Path, images: dict, summary: dict) -> li
             ax.plot(widths, worst, marker="o", ms=3, lw=2 if name == "recovered" else 1,
                     label=name.replace("_", " "))
         ax.axhline(summary.get("mtf_threshold", 0.2), color="gray", lw=0.8, ls=":")
-        ax.set_xlabel("bar width (object px)")
+        ax.set_xlabel("bar width (truth-grid px)")
         ax.set_ylabel("contrast, worse orientation")
         ax.invert_xaxis()
         ax.set_title("Bar contrast: recovery vs single lenses")

@@ -15,7 +15,7 @@ from cca_cli.sampling.grid import band_layout
 from cca_cli.targets import BarGroup
 from cca_cli.units import grid_pixel_m, spot_size_m
 
-__all__ = ["ReportInputs", "summarize", "on_grid", "band_limited_truth", "sharpness_summary"]
+__all__ = ["ReportInputs", "summarize", "derived_quantities", "on_grid", "band_limited_truth", "sharpness_summary"]
 
 
 @dataclass(frozen=True)
@@ -77,25 +77,12 @@ def summarize(inputs: ReportInputs, *, threshold: float = 0.2) -> dict:
     band-limited truth (:func:`band_limited_truth`) instead.
     """
     g = inputs.geometry
-    sar = g.synthetic_aperture_ratio
-    out = {
-        "sar": round(sar, 4),
-        "grid": list(g.grid_shape),
-        "overlap": None if np.isnan(g.overlap) else g.overlap,
-        "n_images": g.n_images,
-        "engine": inputs.engine,
-        "iterations": int(inputs.iterations),
-        "seconds": round(float(inputs.seconds), 3),
-        "pupil_radius_px": round(g.pupil_radius_px, 4),
-        "step_m": _step_m(g),
-        "output_grid_px": inputs.hires_size,
-        "lowres_grid_px": inputs.lowres_size,
-        "object_pixel_m": grid_pixel_m(g.field_width_m, inputs.hires_size),
-        "spot_size_sensor_m": spot_size_m(g.wavelength_m, g.focal_length_m, g.aperture_diameter_m),
-        "spot_size_object_m": spot_size_m(g.wavelength_m, g.distance_m, g.aperture_diameter_m),
-        "spot_size_synthetic_object_m": spot_size_m(g.wavelength_m, g.distance_m, g.aperture_diameter_m * sar),
-        "mtf_threshold": threshold,
-    }
+    derived = derived_quantities(g, hires_size=inputs.hires_size, lowres_size=inputs.lowres_size)
+    out = {key: derived[key] for key in ("sar", "grid", "overlap", "n_images")}
+    out.update({"engine": inputs.engine, "iterations": int(inputs.iterations),
+                "seconds": round(float(inputs.seconds), 3)})
+    out.update({key: value for key, value in derived.items() if key not in out})
+    out["mtf_threshold"] = threshold
     if inputs.truth is None:
         out.update(sharpness_summary(inputs))
         return out
@@ -119,6 +106,59 @@ def summarize(inputs: ReportInputs, *, threshold: float = 0.2) -> dict:
         out["resolution_gain"] = resolution_gain(lim_obs, lim_rec)
         out["contrast_observed"] = table_obs.to_dict()
         out["contrast_recovered"] = table_rec.to_dict()
+    return out
+
+
+def derived_quantities(geometry: CaptureGeometry, *, sensor_pixels: int | None = None, hires_size: int | None = None,
+                       lowres_size: int | None = None) -> dict:
+    """The quantities a capture geometry implies: SAR, step, pupil radius, spot sizes, image count, output grid.
+
+    Parameters
+    ----------
+    geometry : CaptureGeometry
+    sensor_pixels : int, optional
+        Side of the captured images; used to work out the output grid when
+        ``hires_size`` is not given.
+    hires_size, lowres_size : int, optional
+        Recovery grid and per-capture band grid (px), when already known.
+
+    Returns
+    -------
+    dict
+        ``kind``, ``n_images``, ``grid`` ([rows, columns]), ``overlap`` (None
+        when not a regular grid), ``sar``, ``step_m`` (aperture-plane distance
+        of neighbouring positions; sin θ for LED arrays), ``pupil_radius_px``
+        (``d·W/(2λz)``), ``spot_size_sensor_m`` (``2.44·λ·f/d``, camera scans
+        only), ``spot_size_object_m`` (``2.44·λ·z/d``),
+        ``spot_size_synthetic_object_m`` (the same for an aperture SAR·d), and,
+        when the grid is known, ``output_grid_px``, ``lowres_grid_px`` and
+        ``object_pixel_m``.
+    """
+    g = geometry
+    sar = g.synthetic_aperture_ratio
+    out = {
+        "kind": g.kind,
+        "sar": round(sar, 4),
+        "grid": list(g.grid_shape),
+        "overlap": None if np.isnan(g.overlap) else g.overlap,
+        "n_images": g.n_images,
+        "pupil_radius_px": round(g.pupil_radius_px, 4),
+        "step_m": _step_m(g),
+    }
+    if hires_size is None and sensor_pixels is not None:
+        try:
+            layout = band_layout(g.spectrum_centres_yx_px, g.pupil_radius_px, sensor_size=int(sensor_pixels))
+            hires_size, lowres_size = layout.hires_size, layout.lowres_size
+        except ValueError:
+            pass
+    if hires_size is not None:
+        out["output_grid_px"] = int(hires_size)
+        if lowres_size is not None:
+            out["lowres_grid_px"] = int(lowres_size)
+        out["object_pixel_m"] = grid_pixel_m(g.field_width_m, int(hires_size))
+    out["spot_size_sensor_m"] = spot_size_m(g.wavelength_m, g.focal_length_m, g.aperture_diameter_m)
+    out["spot_size_object_m"] = spot_size_m(g.wavelength_m, g.distance_m, g.aperture_diameter_m)
+    out["spot_size_synthetic_object_m"] = spot_size_m(g.wavelength_m, g.distance_m, g.aperture_diameter_m * sar)
     return out
 
 

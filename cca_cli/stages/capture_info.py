@@ -7,6 +7,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from cca_cli.io.h5 import describe
+
 __all__ = ["capture_extras", "read_capture_summary"]
 
 _COPIED = ("/registration/rms_px", "/registration/dropped", "/hdr/dynamic_range_gain", "/hdr/valid_fraction")
@@ -15,15 +17,22 @@ _COPIED = ("/registration/rms_px", "/registration/dropped", "/hdr/dynamic_range_
 def capture_extras(captures_path: Path):
     """A ``write_recon`` ``extra`` callback copying registration/HDR records, or None when there are none."""
     with h5py.File(captures_path, "r") as src:
-        present = {name: (src[name][()], src[name].dtype) for name in _COPIED if name in src}
+        present = {name: (src[name][()], src[name].dtype, dict(src[name].attrs)) for name in _COPIED if name in src}
     if not present:
         return None
 
     def extra(handle: h5py.File) -> None:
-        for name, (data, dtype) in present.items():
-            handle.create_dataset(name, data=data, dtype=dtype)
+        for name, (data, dtype, attrs) in present.items():
+            copy = handle.create_dataset(name, data=data, dtype=dtype)
+            copy.attrs.update(attrs)
+            describe(copy, units=_text(attrs["units"]) if "units" in attrs else None,
+                     description=_text(attrs["description"]) if "description" in attrs else None)
 
     return extra
+
+
+def _text(value) -> str:
+    return value.decode() if isinstance(value, bytes) else str(value)
 
 
 def read_capture_summary(handle: h5py.File) -> dict:

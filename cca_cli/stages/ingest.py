@@ -18,7 +18,7 @@ import numpy as np
 
 from cca_cli.errors import InputError
 from cca_cli.io.geometry import write_geometry
-from cca_cli.io.h5 import Provenance, atomic_h5, check_output, write_dataset
+from cca_cli.io.h5 import Provenance, atomic_h5, check_output, describe, write_dataset
 from cca_cli.io.images import read_image, to_linear
 from cca_cli.io.manifest import CapturePlan, load_manifest, plan_captures
 from cca_cli.sampling.capture import led_array_geometry, stage_scan_geometry
@@ -127,7 +127,7 @@ def ingest(manifest_path: Path, *, progress: ProgressFn = silent) -> Ingested:
 
 def write_labels(handle: h5py.File, labels: list[str]) -> None:
     """Store one readable name per position as /capture/labels."""
-    handle.create_dataset("/capture/labels", data=np.array(labels, dtype=h5py.string_dtype()))
+    describe(handle.create_dataset("/capture/labels", data=np.array(labels, dtype=h5py.string_dtype())))
 
 
 def read_labels(handle: h5py.File, count: int) -> list[str]:

@@ -21,6 +21,7 @@ from cca_cli.engines.registry import get_engine
 from cca_cli.errors import ConfigError, InputError
 from cca_cli.io.geometry import read_geometry, write_geometry
 from cca_cli.io.h5 import Provenance, atomic_h5, check_output, open_input, require, write_dataset
+from cca_cli.io.schema import spec_for
 from cca_cli.optics import fft
 from cca_cli.optics.forward import ForwardModel
 from cca_cli.optics.pupil import circular_pupils
@@ -43,6 +44,7 @@ class Captures:
     weight: np.ndarray | None
     geometry: CaptureGeometry
     truth: dict
+    units: str | None = None   # units of /measurements/intensity when they are not the schema's (counts/s)
 
 
 @dataclass(frozen=True)
@@ -60,8 +62,19 @@ class Recovery:
     engine: str
     options: dict
     seconds: float
+    stopped_by: str = "tol"   # "tol": the change fell below tol; "plateau": the misfit stopped falling; "cap"
     calibration: Calibration | None = None
     fit: FitReport | None = None
+
+
+def stop_reason(history: History, options, engine=None) -> str:
+    """Why a run ended: ``"tol"`` (the last change fell below ``options.tol``), ``"plateau"`` (the engine's
+    misfit stopped falling) or ``"cap"`` (the iteration cap ended it first)."""
+    if history.records and history.records[-1].change < options.tol:
+        return "tol"
+    if engine is not None and getattr(engine, "on_plateau", lambda: False)():
+        return "plateau"
+    return "cap" if history.iterations >= options.max_iterations else "tol"
 
 
 def read_captures(path: Path) -> Captures:
@@ -76,7 +89,11 @@ def read_captures(path: Path) -> Captures:
 
 def read_measurements(handle, path: Path) -> Captures:
     """/measurements, /geometry and /truth of an open captures file, checked except for the image count."""
-    intensity = np.asarray(require(handle, "/measurements/intensity", ndim=3), dtype=np.float32)
+    dataset = require(handle, "/measurements/intensity", ndim=3)
+    intensity = np.asarray(dataset, dtype=np.float32)
+    units = dataset.attrs.get("units")
+    units = units.decode() if isinstance(units, bytes) else units
+    units = None if units in (None, "", spec_for("/measurements/intensity").units) else str(units)
     geometry = read_geometry(handle)
     weight = np.asarray(handle["/measurements/weight"], np.float32) if "/measurements/weight" in handle else None
     truth = {name: np.asarray(handle["truth"][name]) for name in handle["truth"]} if "truth" in handle else {}
@@ -88,7 +105,7 @@ def read_measurements(handle, path: Path) -> Captures:
         raise InputError(f"{path}: image {bad} of /measurements/intensity contains NaN or Inf; fix or mask it")
     if weight is not None and weight.shape != intensity.shape:
         raise InputError(f"{path}: /measurements/weight has shape {weight.shape}, expected {intensity.shape}")
-    return Captures(path=path, intensity=intensity, weight=weight, geometry=geometry, truth=truth)
+    return Captures(path=path, intensity=intensity, weight=weight, geometry=geometry, truth=truth, units=units)
 
 
 def build_model(geometry: CaptureGeometry, sensor_pixels: int, *, hires_size: int | None = None,
@@ -154,10 +171,37 @@ def problem_calibration(geometry: CaptureGeometry, layout: BandLayout) -> dict:
 
 
 def reconstruct(captures: Captures, section: ReconstructSection, *, progress: ProgressFn = silent) -> Recovery:
-    """Run the configured engine on ``captures``."""
+    """Run the configured engine on ``captures`` (``engine: auto`` resolved for the kind of data)."""
     kind = data_kind(captures)
     name, _ = resolve_engine(section, kind)
-    options = engine_options(section, kind)
+    return recover(captures, name, engine_options(section, kind), progress=progress)
+
+
+def recover(captures: Captures, engine: str, options, *, progress: ProgressFn = silent,
+            on_iteration=None) -> Recovery:
+    """Phase retrieval of ``captures`` with a named engine and its options object.
+
+    Builds the forward model on the smallest grids the band allows (wider when
+    positions are calibrated), tells the engine what the geometry knows (cameras,
+    how positions may move, a known defocus), runs it, and evaluates the final
+    model's residuals.
+
+    Parameters
+    ----------
+    captures : Captures
+    engine : str
+        Registered engine name.
+    options
+        The engine's options object.
+    progress : callable, optional
+        Receives a progress event per iteration.
+    on_iteration : callable, optional
+        Also called with each :class:`~cca_cli.engines.base.IterationRecord`.
+
+    Returns
+    -------
+    Recovery
+    """
     margin = 0
     if getattr(options, "position_refinement", "none") != "none":
         margin = int(np.ceil(captures.geometry.pupil_radius_px / 8)) + 2
@@ -167,24 +211,28 @@ def reconstruct(captures: Captures, section: ReconstructSection, *, progress: Pr
         raise InputError(f"{captures.path}: {exc}") from None
     problem = PhaseRetrievalProblem.from_sensor_images(model, captures.intensity, captures.weight,
                                                        **problem_calibration(captures.geometry, model.layout))
-    engine = get_engine(name).engine(problem, options)
-    recovery = drive_engine(engine, options, model.layout, name, progress=progress)
-    calibration = engine.calibration() if hasattr(engine, "calibration") else None
+    runner = get_engine(engine).engine(problem, options)
+    recovery = drive_engine(runner, options, model.layout, engine, progress=progress, on_iteration=on_iteration)
+    calibration = runner.calibration() if hasattr(runner, "calibration") else None
     return replace(recovery, calibration=calibration, fit=fit_report(problem, recovery.spectrum, calibration))
 
 
-def drive_engine(engine, options, layout: BandLayout, name: str, *, progress: ProgressFn = silent) -> Recovery:
-    """Run ``engine`` to completion, reporting every iteration as a progress event."""
+def drive_engine(engine, options, layout: BandLayout, name: str, *, progress: ProgressFn = silent,
+                 on_iteration=None) -> Recovery:
+    """Run ``engine`` to completion, reporting every iteration as a progress event (and to ``on_iteration``)."""
     total = options.max_iterations
 
-    def on_iteration(record: IterationRecord) -> None:
+    def report(record: IterationRecord) -> None:
         progress(ProgressEvent("reconstruct", "iterations", record.iteration, total,
                                {"residual": record.residual, "change": record.change}))
+        if on_iteration is not None:
+            on_iteration(record)
 
     start = time.perf_counter()
-    spectrum, history = run_engine(engine, on_iteration=on_iteration)
+    spectrum, history = run_engine(engine, on_iteration=report)
     return Recovery(spectrum=spectrum, layout=layout, history=history, engine=name,
-                    options=asdict(options), seconds=time.perf_counter() - start)
+                    options=asdict(options), seconds=time.perf_counter() - start,
+                    stopped_by=stop_reason(history, options, engine))
 
 
 def write_recon(path: Path, captures: Captures, recovery: Recovery, provenance: Provenance, *, force: bool = False,
@@ -196,27 +244,29 @@ def write_recon(path: Path, captures: Captures, recovery: Recovery, provenance: 
     """
     obj = fft.ifft2c(recovery.spectrum).astype(np.complex64)
     layout = recovery.layout
+    units = captures.units   # recorded captures: counts/s instead of the simulation's irradiance
     with atomic_h5(path, provenance, force=force) as handle:
-        write_dataset(handle, "/recon/spectrum", recovery.spectrum)
-        write_dataset(handle, "/recon/object", obj)
-        write_dataset(handle, "/recon/intensity", (np.abs(obj) ** 2).astype(np.float32))
+        write_dataset(handle, "/recon/spectrum", recovery.spectrum, units=units and f"√({units}) · px")
+        write_dataset(handle, "/recon/object", obj, units=units and f"√({units})")
+        write_dataset(handle, "/recon/intensity", (np.abs(obj) ** 2).astype(np.float32), units=units)
         for name in ("residual", "change", "seconds"):
             write_dataset(handle, f"/history/{name}", recovery.history.array(name))
         write_dataset(handle, "/observed/centre",
-                      captures.intensity[captures.geometry.centre_index] if observed is None else observed)
+                      captures.intensity[captures.geometry.centre_index] if observed is None else observed, units=units)
         for name, data in captures.truth.items():
             write_dataset(handle, f"/truth/{name}", data)
         write_geometry(handle, captures.geometry)
         if recovery.fit is not None:
             write_fit(handle, recovery.fit)
         if recovery.calibration is not None:
-            write_calibration(handle, recovery.calibration, captures.geometry, layout)
+            write_calibration(handle, recovery.calibration, captures.geometry)
         if extra is not None:
             extra(handle)
         recon = handle["recon"]
         recon.attrs["engine"] = recovery.engine
         recon.attrs["engine_options"] = json.dumps(recovery.options)
         recon.attrs["iterations"] = recovery.history.iterations
+        recon.attrs["stopped_by"] = recovery.stopped_by
         recon.attrs["seconds"] = recovery.seconds
         recon.attrs["hires_size"] = layout.hires_size
         recon.attrs["lowres_size"] = layout.lowres_size
@@ -234,19 +284,25 @@ def write_fit(handle, fit: FitReport) -> None:
         recon.attrs[f"residual_{name}_without_brightness"] = getattr(fit, f"{name}_without_brightness")
 
 
-def write_calibration(handle, calibration: Calibration, geometry: CaptureGeometry, layout: BandLayout) -> None:
+def calibrated_pupils(calibration: Calibration, radius_px: float) -> np.ndarray | None:
+    """Each recovered pupil on its box, NA disc included (centred at the box centre), complex64 (P, b, b)."""
+    if calibration.pupil is None:
+        return None
+    b = calibration.pupils.shape[-1]
+    disc = circular_pupils(b, np.full((1, 2), (b - 1) / 2.0), radius_px)[0]
+    return (disc[None] * calibration.pupil.maps).astype(np.complex64)
+
+
+def write_calibration(handle, calibration: Calibration, geometry: CaptureGeometry) -> None:
     """Pupils, refined positions and brightness under /calibration, SI next to pixels."""
     group = handle.require_group("calibration")
     if calibration.pupil is not None:
         estimate = calibration.pupil
-        b = layout.box_size
-        centre = np.full((1, 2), (b - 1) / 2.0)
-        disc = circular_pupils(b, centre, layout.pupil_radius_px)[0]
-        write_dataset(handle, "/calibration/pupil", (disc[None] * estimate.maps).astype(np.complex64))
+        write_dataset(handle, "/calibration/pupil", calibrated_pupils(calibration, geometry.pupil_radius_px))
         write_dataset(handle, "/calibration/zernike_waves", estimate.coefficients)
         write_dataset(handle, "/calibration/zernike_modes", np.asarray(estimate.modes, np.int32))
         group.attrs["pupil_model"] = estimate.model
-        group.attrs["pupil_radius_px"] = layout.pupil_radius_px
+        group.attrs["pupil_radius_px"] = geometry.pupil_radius_px
         group.attrs["spectrum_pixel_per_m"] = 1.0 / geometry.field_width_m
     write_dataset(handle, "/calibration/pupil_index", calibration.pupil_index.astype(np.int32))
     write_dataset(handle, "/calibration/spectrum_centres_yx_px", calibration.centres_px)

@@ -18,7 +18,7 @@ import numpy as np
 from cca_cli.config.model import RegisterSection
 from cca_cli.errors import CheckerboardNotFound, ConfigError, InputError
 from cca_cli.io.geometry import read_geometry, write_geometry
-from cca_cli.io.h5 import Provenance, atomic_h5, check_output, open_input, require, write_dataset
+from cca_cli.io.h5 import Provenance, atomic_h5, check_output, describe, open_input, require, write_dataset
 from cca_cli.registration.checkerboard import find_checkerboard
 from cca_cli.registration.homography import crop, estimate_homography, warp_views
 from cca_cli.sampling.capture import object_pixel_m, with_field_width
@@ -132,7 +132,7 @@ def run(captures_path: Path, section: RegisterSection | None, output: Path, *, p
             write_dataset(handle, "/registration/rms_px", reg.rms_px)
             write_dataset(handle, "/registration/kept_index", reg.kept)
             write_dataset(handle, "/registration/corners", reg.corners.astype(np.float32))
-            handle.create_dataset("/registration/dropped", data=np.array(reg.dropped, dtype=h5py.string_dtype()))
+            describe(handle.create_dataset("/registration/dropped", data=np.array(reg.dropped, dtype=h5py.string_dtype())))
             handle["registration"].attrs["crop_xywh"] = np.asarray(rect, np.int32)
             handle["registration"].attrs["reference_index"] = int(geometry.centre_index)
             write_labels(handle, [labels[i] for i in reg.kept])

@@ -36,6 +36,7 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
         bars = table_to_bars(np.asarray(handle["/truth/bars"])) if "/truth/bars" in handle else ()
         usaf_table = np.asarray(handle["/truth/usaf"]) if "/truth/usaf" in handle else None
         attrs = dict(handle["recon"].attrs)
+        units = _text(handle["/observed/centre"].attrs.get("units", "")) or "irradiance"
         multiplex = None
         if "multiplex" in handle:
             from cca_cli.io.multiplex import read_multiplex
@@ -50,6 +51,8 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
                           seconds=float(attrs.get("seconds", 0.0)), hires_size=int(attrs.get("hires_size")),
                           lowres_size=int(attrs.get("lowres_size")), truth_field=truth_obj)
     summary = summarize(inputs, threshold=section.mtf_threshold)
+    summary.update(_stopping(attrs, change))
+    summary["intensity_units"] = units
     summary.update(capture_summary)
     coverage = None
     if multiplex is not None:
@@ -59,6 +62,9 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
         summary.update(stats)
     comparison = _comparison(summary, section, geometry, truth_obj, truth, observed, recovered, bars, usaf_table,
                              recovered_object=obj)
+    region = _zoom_region(summary, bars, truth, usaf_table, recovered, geometry)
+    if region is not None:
+        summary["zoom_region"] = region.to_dict()
     progress(ProgressEvent("report", "metrics", 1, 2))
     with atomic_path(output, force=True) as tmp:
         tmp.mkdir(parents=True)
@@ -68,11 +74,13 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
             figures = write_figures(tmp, observed=observed, recovered_object=obj, spectrum=spectrum,
                                     pupil_centres_px=geometry.spectrum_centres_yx_px,
                                     pupil_radius_px=geometry.pupil_radius_px, field_width_m=geometry.field_width_m,
-                                    residual=residual, change=change, summary=summary, truth=truth)
+                                    residual=residual, change=change, summary=summary, truth=truth, units=units,
+                                    region=region, grid_indices=geometry.grid_indices)
             if comparison:
                 from cca_cli.report.figures import write_comparison_figures
 
-                figures += write_comparison_figures(tmp, comparison, summary)
+                figures += write_comparison_figures(tmp, comparison, summary, field_width_m=geometry.field_width_m,
+                                                    region=region, units=units)
             if coverage is not None:
                 from cca_cli.report.figures import write_coverage_figure
 
@@ -83,6 +91,39 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
         (tmp / REPORT_JSON).write_text(json.dumps(document, indent=2))
     progress(ProgressEvent("report", "figures", 2, 2))
     return summary
+
+
+def _text(value) -> str:
+    return value.decode() if isinstance(value, bytes) else str(value)
+
+
+def _stopping(attrs: dict, change: np.ndarray) -> dict:
+    """Why the reconstruction stopped (``stopped_by``: ``tol`` or ``cap``), its ``tol`` and last relative change."""
+    out = {}
+    if "stopped_by" in attrs:
+        out["stopped_by"] = _text(attrs["stopped_by"])
+    try:
+        out["tol"] = json.loads(_text(attrs.get("engine_options", "{}"))).get("tol")
+    except ValueError:
+        pass
+    if len(change):
+        out["final_change"] = float(change[-1])
+    return out
+
+
+def _zoom_region(summary: dict, bars, truth, usaf_table, recovered, geometry):
+    """Where the figures zoom: the finest resolved chart features, else the recovery's most detailed part."""
+    from cca_cli.report import regions
+
+    if usaf_table is not None and len(usaf_table):
+        from cca_cli.stages.scene import table_to_usaf
+
+        return regions.usaf_region(table_to_usaf(usaf_table), (summary.get("usaf") or {}).get("recovered"))
+    if bars and truth is not None:
+        return regions.bar_region(bars, summary.get("mtf20_recovered_px"), truth.shape[-1])
+    grid = recovered.shape[-1]
+    cutoff = min(2.0 * geometry.pupil_radius_px, grid / 2.0)
+    return regions.detail_region(recovered, cutoff)
 
 
 def _comparison(summary: dict, section: ReportSection, geometry, truth_obj, truth, observed, recovered, bars,

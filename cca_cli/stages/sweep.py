@@ -36,7 +36,7 @@ from cca_cli.config.load import apply_overrides, dump_config, parse_config
 from cca_cli.config.messages import accepted_keys
 from cca_cli.config.model import RunConfig, SweepSection
 from cca_cli.errors import CcaError, ConfigError
-from cca_cli.io.h5 import Provenance, atomic_h5, atomic_path, remove_temporaries
+from cca_cli.io.h5 import Provenance, atomic_h5, atomic_path, remove_temporaries, write_dataset
 
 __all__ = [
     "PAPER_STUDIES",
@@ -53,6 +53,7 @@ __all__ = [
     "open_client",
     "run_sweep",
     "table_columns",
+    "TABLE_COLUMNS",
     "write_table",
     "read_table",
     "default_axes",
@@ -488,17 +489,62 @@ def table_columns(rows: list[dict[str, Any]]) -> list[str]:
     return head + params + list(METRICS) + ["out_dir"]
 
 
-def _numeric(values: list[Any]) -> bool:
-    return all(v is None or (isinstance(v, (int, float, np.number)) and not isinstance(v, bool)) for v in values) \
-        and any(v is not None for v in values)
+#: Units and meaning of the sweep table's columns (parameter columns are described by :func:`_column_info`).
+TABLE_COLUMNS: dict[str, tuple[str, str]] = {
+    "point_id": ("text", "Point directory name: a readable slug of its overrides plus a short hash of them."),
+    "index": ("1", "Position of the point in the sweep (also its seed offset)."),
+    "status": ("text", "ok (ran now), cached (complete from an earlier run), failed, or pending (interrupted)."),
+    "error": ("text", "Why the point failed, in one line; empty otherwise."),
+    "wall_s": ("s", "Wall time of the point's whole run (every stage)."),
+    "sar": ("1", "Synthetic aperture ratio ((n - 1)·step + d)/d."),
+    "grid_n": ("1", "Aperture positions along one side of the grid."),
+    "n_images": ("1", "Number of captures."),
+    "iterations": ("1", "Iterations the reconstruction ran."),
+    "recon_seconds": ("s", "Reconstruction time."),
+    "mtf20_observed_px": ("px", "Finest bar width of the observed centre image whose contrast (and every wider "
+                                "one's) reaches the report's threshold, in truth-grid pixels."),
+    "mtf20_recovered_px": ("px", "Finest bar width of the recovery whose contrast (and every wider one's) reaches "
+                                 "the report's threshold, in truth-grid pixels."),
+    "resolution_gain": ("1", "mtf20_observed_px / mtf20_recovered_px."),
+    "rmse_observed": ("1", "RMSE of the observed centre intensity against the truth (least-squares scale, "
+                           "normalised by the truth's maximum)."),
+    "rmse_recovered": ("1", "RMSE of the recovered intensity against the truth (least-squares scale, "
+                            "normalised by the truth's maximum)."),
+    "rmse_observed_band": ("1", "RMSE of the observed centre intensity against the band-limited truth."),
+    "rmse_recovered_band": ("1", "RMSE of the recovered intensity against the band-limited truth."),
+    "out_dir": ("text", "The point's run directory."),
+}
+
+#: Units of a swept config key, from the suffix of its name (SI units appear in key names).
+_KEY_UNITS = (("_lp_per_mm", "lp/mm"), ("_m", "m"), ("_s", "s"), ("_db", "dB"), ("_px", "px"), ("_rad", "rad"),
+              ("_e", "electrons"))
+
+
+def _column_info(column: str, kind: str) -> tuple[str, str]:
+    """Units and description of a table column; ``kind`` is ``int``, ``float`` or ``text``."""
+    if column.startswith("param:"):
+        key = column.removeprefix("param:")
+        units = "text" if kind == "text" else next((u for suffix, u in _KEY_UNITS if key.endswith(suffix)), "1")
+        return units, f"Config value {key} of each point (a swept parameter or the point's seed)."
+    return TABLE_COLUMNS.get(column, ("text" if kind == "text" else "1", f"Sweep table column {column}."))
+
+
+def _kind(values: list[Any]) -> str:
+    """``int`` when every value present is an integer, ``float`` when every one is a number, else ``text``."""
+    present = [v for v in values if v is not None]
+    if not present or any(isinstance(v, bool) or not isinstance(v, (int, float, np.number)) for v in present):
+        return "text"
+    return "int" if all(isinstance(v, (int, np.integer)) for v in present) else "float"
 
 
 def write_table(rows: list[dict[str, Any]], sweep_dir: Path, *, spec: SweepSection, base: RunConfig) -> tuple[Path, Path]:
     """Write ``sweep.csv`` and ``sweep.h5`` atomically into ``sweep_dir``.
 
-    ``sweep.h5`` holds one dataset per column under ``/table`` (numbers as
-    float64 with NaN for missing, text as UTF-8 strings) and, as root
-    attributes, the provenance with the base config and the sweep spec.
+    ``sweep.h5`` holds one dataset per column under ``/table``, each with
+    ``units`` and ``description`` attributes: integers as int64 (a missing
+    value is the ``missing_value`` attribute), other numbers as float64 with
+    NaN for missing, text as UTF-8 strings. The root attributes hold the
+    provenance with the base config and the sweep spec.
     """
     sweep_dir = Path(sweep_dir)
     columns = table_columns(rows)
@@ -518,36 +564,49 @@ def write_table(rows: list[dict[str, Any]], sweep_dir: Path, *, spec: SweepSecti
         for column in columns:
             values = [row.get(column) for row in rows]
             name = column.removeprefix("param:")
-            if _numeric(values):
-                group.create_dataset(name, data=np.array([np.nan if v is None else float(v) for v in values]))
+            kind = _kind(values)
+            units, description = _column_info(column, kind)
+            extra = {}
+            if kind == "int":
+                missing = -1 if all(v >= 0 for v in values if v is not None) else int(np.iinfo(np.int64).min)
+                data = np.array([missing if v is None else int(v) for v in values], np.int64)
+                if any(v is None for v in values):
+                    extra["missing_value"] = missing
+            elif kind == "float":
+                data = np.array([np.nan if v is None else float(v) for v in values], np.float64)
             else:
-                text = ["" if v is None else (json.dumps(v) if isinstance(v, (list, dict)) else str(v)) for v in values]
-                group.create_dataset(name, data=np.array(text, dtype=object), dtype=_h5_str())
-            group[name].attrs["parameter"] = column.startswith("param:")
+                data = ["" if v is None else (json.dumps(v) if isinstance(v, (list, dict)) else str(v)) for v in values]
+            write_dataset(group, name, data, units=units, description=description,
+                          parameter=column.startswith("param:"), **extra)
         handle.attrs["study"] = spec.study
         handle.attrs["columns"] = json.dumps([c.removeprefix("param:") for c in columns])
     return csv_path, h5_path
 
 
-def _h5_str():
-    import h5py
-
-    return h5py.string_dtype("utf-8")
-
-
 def read_table(path: Path) -> list[dict[str, Any]]:
-    """Rows of a ``sweep.h5`` table (parameter columns keep their dotted names)."""
+    """Rows of a ``sweep.h5`` table (parameter columns keep their dotted names; missing numbers are None)."""
     import h5py
 
     with h5py.File(path, "r") as handle:
         columns = json.loads(handle.attrs["columns"])
         data = {}
         for c in columns:
-            values = handle["table"][c][()]
-            data[c] = [v.decode() if isinstance(v, bytes) else (float(v) if isinstance(v, np.floating) else v)
-                       for v in values]
+            dataset = handle["table"][c]
+            missing = dataset.attrs.get("missing_value")
+            values = dataset[()]
+            data[c] = [_cell(v, missing) for v in values]
     n = len(next(iter(data.values()))) if data else 0
     return [{c: data[c][i] for c in columns} for i in range(n)]
+
+
+def _cell(value, missing):
+    if isinstance(value, bytes):
+        return value.decode()
+    if isinstance(value, np.integer):
+        return None if missing is not None and int(value) == int(missing) else int(value)
+    if isinstance(value, np.floating):
+        return None if np.isnan(value) else float(value)
+    return value
 
 
 def default_axes(spec: SweepSection, points: list[SweepPoint]) -> tuple[str, str | None]:

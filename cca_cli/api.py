@@ -1,0 +1,818 @@
+"""The Python interface to cca: arrays in, arrays out, SI units at the boundary.
+
+Import it as ``import cca_cli as cca``; every name below is available there.
+
+Geometry
+    :func:`camera_scan` (a camera scanned over a grid of aperture positions),
+    :func:`stage_scan` (a camera at measured stage positions), :func:`led_array`
+    (an LED-array microscope), :func:`led_grid_sines` (illumination angles of a
+    flat LED grid).
+Scenes
+    :func:`resolution_chart`, :func:`usaf_chart`.
+Imaging and recovery
+    :func:`simulate` (object → captured intensities), :func:`reconstruct`
+    (intensities → :class:`Reconstruction`).
+Files
+    :func:`load` and :func:`save` of the pipeline's HDF5 files (a
+    :class:`CaptureSet` or a :class:`Reconstruction`), :func:`export` of a
+    recovery as TIFF, PNG or ``.npy``.
+Metrics
+    :func:`contrast`, :func:`mtf20`, :func:`usaf_reading`, :func:`rmse`.
+
+Examples
+--------
+Simulate a small camera array looking at a bar chart 50 m away, recover the
+chart and measure the resolution before and after:
+
+>>> import cca_cli as cca
+>>> geometry = cca.camera_scan(wavelength_m=550e-9, focal_length_m=0.8, aperture_diameter_m=45e-3,
+...                            pixel_pitch_m=2e-6, distance_m=50, field_width_m=12e-3, grid=5, overlap=0.61)
+>>> geometry.n_images, round(geometry.synthetic_aperture_ratio, 2)
+(25, 2.56)
+>>> chart = cca.resolution_chart(96, widths=(6, 4, 3, 2))
+>>> images = cca.simulate(chart.image, geometry, snr_db=40, seed=1)
+>>> images.shape
+(25, 96, 96)
+>>> result = cca.reconstruct(images, geometry, iterations=30, tol=0)
+>>> result.intensity.shape, result.stopped_by
+((96, 96), 'cap')
+>>> cca.mtf20(images[geometry.centre_index], chart), cca.mtf20(result.intensity, chart)
+(6, 2)
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from cca_cli.errors import InputError
+from cca_cli.sampling.geometry import CaptureGeometry
+
+__all__ = [
+    "CaptureGeometry",
+    "CaptureSet",
+    "Reconstruction",
+    "camera_scan",
+    "stage_scan",
+    "led_array",
+    "led_grid_sines",
+    "resolution_chart",
+    "usaf_chart",
+    "simulate",
+    "reconstruct",
+    "load",
+    "save",
+    "export",
+    "contrast",
+    "mtf20",
+    "usaf_reading",
+    "rmse",
+]
+
+
+# ---------------------------------------------------------------------------------------------------- geometry
+
+
+def camera_scan(*, wavelength_m: float, focal_length_m: float, aperture_diameter_m: float, pixel_pitch_m: float,
+                distance_m: float, field_width_m: float, grid: int | None = None, overlap: float = 0.61,
+                sar: float | None = None) -> CaptureGeometry:
+    """Geometry of a camera scanned over a square grid of aperture positions (the paper's array).
+
+    Parameters
+    ----------
+    wavelength_m, focal_length_m, aperture_diameter_m, pixel_pitch_m, distance_m : float
+        Illumination wavelength, lens focal length and aperture diameter,
+        sensor pixel pitch and object distance (m).
+    field_width_m : float
+        Object-plane width to image (m); rounded to whole sensor pixels.
+    grid : int, optional
+        Positions along each side. Give ``grid`` or ``sar``.
+    overlap : float
+        Linear overlap of neighbouring apertures, ``1 - step/d`` (0.61 by default; above 0.5).
+    sar : float, optional
+        Synthetic aperture ratio to reach; the grid is the smallest odd one that does.
+
+    Returns
+    -------
+    CaptureGeometry
+        Pupil centres in SI and spectrum pixels; ``field_width_m`` is a whole
+        number of sensor pixels.
+
+    Raises
+    ------
+    ValueError
+        Neither or both of ``grid`` and ``sar``, or optics that leave too few pixels.
+
+    Examples
+    --------
+    >>> g = camera_scan(wavelength_m=550e-9, focal_length_m=0.8, aperture_diameter_m=18e-3,
+    ...                 pixel_pitch_m=2e-6, distance_m=50, field_width_m=64e-3, grid=21, overlap=0.61)
+    >>> g.n_images, round(g.synthetic_aperture_ratio, 2), round(g.pupil_radius_px, 2)
+    (441, 8.8, 20.95)
+    """
+    from cca_cli.sampling.geometry import camera_scan_geometry
+    from cca_cli.sampling.overlap import grid_for_sar
+
+    if (grid is None) == (sar is None):
+        raise ValueError("give either grid (positions per side) or sar (synthetic aperture ratio), not both")
+    n = int(grid) if grid is not None else grid_for_sar(sar, overlap)
+    geometry, _ = camera_scan_geometry(wavelength_m=wavelength_m, focal_length_m=focal_length_m,
+                                       aperture_diameter_m=aperture_diameter_m, pixel_pitch_m=pixel_pitch_m,
+                                       distance_m=distance_m, field_width_m=field_width_m, grid=n, overlap=overlap)
+    return geometry
+
+
+def stage_scan(positions_yx_m, *, wavelength_m: float, focal_length_m: float, aperture_diameter_m: float,
+               pixel_pitch_m: float, distance_m: float, image_pixels: int) -> CaptureGeometry:
+    """Geometry of a camera moved to measured aperture-plane positions (a lab X–Y stage).
+
+    Parameters
+    ----------
+    positions_yx_m : array_like, (K, 2)
+        Aperture centre [y, x] of each capture in the aperture plane (m); +x is image right, +y image down.
+    wavelength_m, focal_length_m, aperture_diameter_m, pixel_pitch_m, distance_m : float
+        The camera and the object distance (m).
+    image_pixels : int
+        Side of the (square) images in sensor pixels.
+
+    Returns
+    -------
+    CaptureGeometry
+
+    Examples
+    --------
+    >>> steps = np.array([[y, x] for y in (-1e-3, 0, 1e-3) for x in (-1e-3, 0, 1e-3)])
+    >>> g = stage_scan(steps, wavelength_m=633e-9, focal_length_m=75e-3, aperture_diameter_m=2.5e-3,
+    ...                pixel_pitch_m=3.75e-6, distance_m=1.5, image_pixels=128)
+    >>> g.n_images, g.grid_shape, round(g.field_width_m * 1e3, 3)
+    (9, (3, 3), 9.6)
+    """
+    from cca_cli.sampling.capture import stage_scan_geometry
+    from cca_cli.units import sensor_field_width_m
+
+    field_width = sensor_field_width_m(int(image_pixels), pixel_pitch_m, focal_length_m, distance_m)
+    return stage_scan_geometry(positions_yx_m, wavelength_m=wavelength_m, focal_length_m=focal_length_m,
+                               aperture_diameter_m=aperture_diameter_m, pixel_pitch_m=pixel_pitch_m,
+                               distance_m=distance_m, field_width_m=field_width)
+
+
+def led_grid_sines(grid: int, *, pitch_m: float, height_m: float) -> np.ndarray:
+    """Illumination sines [sin θy, sin θx] of a flat ``grid x grid`` LED array centred under the sample.
+
+    Parameters
+    ----------
+    grid : int
+        LEDs along each side (odd, so one LED is on axis).
+    pitch_m : float
+        LED spacing (m).
+    height_m : float
+        Distance from the LED plane to the sample (m).
+
+    Returns
+    -------
+    ndarray, float64, (grid², 2)
+        Row-major over the LED grid.
+
+    Examples
+    --------
+    >>> s = led_grid_sines(3, pitch_m=4e-3, height_m=90e-3)
+    >>> s.shape, float(s[4, 0]), round(float(s[5, 1]), 4)
+    ((9, 2), 0.0, 0.0444)
+    """
+    offsets = (np.arange(int(grid)) - (int(grid) - 1) / 2) * float(pitch_m)
+    y, x = np.meshgrid(offsets, offsets, indexing="ij")
+    r = np.sqrt(x**2 + y**2 + float(height_m) ** 2)
+    return np.stack([(y / r).ravel(), (x / r).ravel()], axis=1)
+
+
+def led_array(sin_yx, *, wavelength_m: float, numerical_aperture: float, pixel_pitch_object_m: float,
+              image_pixels: int, sign: int = -1) -> CaptureGeometry:
+    """Geometry of an LED-array microscope (Fourier ptychographic microscopy).
+
+    Parameters
+    ----------
+    sin_yx : array_like, (K, 2)
+        Illumination direction of each capture, [sin θy, sin θx] (see :func:`led_grid_sines`).
+    wavelength_m : float
+        Wavelength (m).
+    numerical_aperture : float
+        Objective NA.
+    pixel_pitch_object_m : float
+        Camera pixel at the sample (m).
+    image_pixels : int
+        Side of the (square) images in pixels.
+    sign : {-1, +1}
+        Which side of DC the pupil of a positive ``sin θ`` sits on (-1: the usual FPM convention).
+
+    Returns
+    -------
+    CaptureGeometry
+        Pupil radius ``NA·W/λ`` pixels; capture k's pupil at ``sign · sin θ · W/λ``.
+
+    Examples
+    --------
+    >>> g = led_array(led_grid_sines(15, pitch_m=4e-3, height_m=90.88e-3), wavelength_m=532e-9,
+    ...               numerical_aperture=0.1, pixel_pitch_object_m=1.845e-6, image_pixels=128)
+    >>> g.n_images, round(g.pupil_radius_px, 2), round(g.synthetic_aperture_ratio, 2)
+    (225, 44.39, 3.94)
+    """
+    from cca_cli.sampling.capture import led_array_geometry
+
+    return led_array_geometry(sin_yx, wavelength_m=wavelength_m, numerical_aperture=numerical_aperture,
+                              pixel_pitch_object_m=pixel_pitch_object_m,
+                              field_width_m=int(image_pixels) * float(pixel_pitch_object_m), sign=sign)
+
+
+# ------------------------------------------------------------------------------------------------------ scenes
+
+
+def resolution_chart(size_px: int = 512, *, widths=(20, 18, 16, 14, 12, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1)):
+    """A bar chart with a known layout (the paper's Fig. 5 target): ``.image`` (amplitude) and ``.groups``.
+
+    Examples
+    --------
+    >>> chart = resolution_chart(64, widths=(4, 2))
+    >>> chart.image.shape, chart.widths
+    ((64, 64), (4, 2))
+    """
+    from cca_cli.targets import resolution_chart as draw
+
+    return draw(int(size_px), widths=tuple(widths))
+
+
+def usaf_chart(size_px: int, *, pixel_pitch_m: float, groups=(-1, 0, 1, 2, 3)):
+    """A USAF-1951 target drawn at ``pixel_pitch_m`` (m per pixel): ``.image`` (amplitude) and ``.elements``.
+
+    Elements too large for ``size_px`` are left out.
+
+    Examples
+    --------
+    >>> chart = usaf_chart(512, pixel_pitch_m=25e-6, groups=(0, 1))
+    >>> len(chart.elements), chart.elements[0].lp_per_mm
+    (12, 1.0)
+    """
+    from cca_cli.targets import usaf1951_chart
+
+    return usaf1951_chart(int(size_px), pixel_pitch_m=pixel_pitch_m, groups=tuple(groups))
+
+
+# -------------------------------------------------------------------------------------------- imaging, recovery
+
+
+def _sensor_pixels(geometry: CaptureGeometry) -> int:
+    from cca_cli.sampling.capture import object_pixel_m
+
+    return int(round(geometry.field_width_m / object_pixel_m(geometry)))
+
+
+def _layout(geometry: CaptureGeometry, sensor_pixels: int):
+    from cca_cli.sampling.grid import band_layout
+
+    return band_layout(geometry.spectrum_centres_yx_px, geometry.pupil_radius_px, sensor_size=sensor_pixels)
+
+
+def _spectrum_on(field: np.ndarray, size: int) -> np.ndarray:
+    """Centred spectrum of a square field, cropped or zero-padded to ``size`` (field values kept)."""
+    from cca_cli.optics import fft
+
+    n = field.shape[-1]
+    spectrum = fft.fft2c(field.astype(np.complex64))
+    if n == size:
+        return spectrum
+    out = np.zeros((size, size), np.complex64)
+    keep = min(n, size)
+    src, dst = n // 2 - keep // 2, size // 2 - keep // 2
+    out[dst:dst + keep, dst:dst + keep] = spectrum[src:src + keep, src:src + keep]
+    return out * np.float32(size / n)
+
+
+def simulate(obj, geometry: CaptureGeometry, *, snr_db: float | None = 30.0, photons_per_unit: float | None = None,
+             read_noise_e: float = 0.0, seed: int = 0) -> np.ndarray:
+    """Images the geometry's cameras record of an object.
+
+    Parameters
+    ----------
+    obj : array_like, (S, S)
+        The object's field over the geometry's field of view (complex, or a
+        real amplitude), on any square grid; it is resampled in Fourier space
+        to the recovery grid.
+    geometry : CaptureGeometry
+    snr_db : float or None
+        Gaussian noise at this SNR per image, ``σ² = var(I)/10^(SNR/10)`` (the
+        paper's definition); None for no Gaussian noise.
+    photons_per_unit, read_noise_e : float, optional
+        Shot noise (photons per unit intensity) and read noise (electrons)
+        instead of Gaussian noise.
+    seed : int
+        Seed of the noise.
+
+    Returns
+    -------
+    ndarray, float32, (K, N, N)
+        Intensities on the sensor grid (N pixels across the field), centred,
+        in the object's units squared (irradiance).
+
+    Examples
+    --------
+    >>> g = camera_scan(wavelength_m=550e-9, focal_length_m=0.8, aperture_diameter_m=45e-3,
+    ...                 pixel_pitch_m=2e-6, distance_m=50, field_width_m=12e-3, grid=3, overlap=0.61)
+    >>> flat = simulate(np.ones((96, 96)), g, snr_db=None)
+    >>> flat.shape, bool(np.allclose(flat[g.centre_index], 1.0, atol=1e-3))
+    ((9, 96, 96), True)
+    """
+    from cca_cli.optics import fft
+    from cca_cli.optics.forward import ForwardModel
+    from cca_cli.optics.noise import add_gaussian_noise, add_shot_and_read_noise
+    from cca_cli.optics.pupil import circular_pupils
+
+    field_in = np.asarray(obj)
+    if field_in.ndim != 2 or field_in.shape[0] != field_in.shape[1]:
+        raise ValueError(f"obj must be a square 2-D array, got shape {field_in.shape}")
+    sensor = _sensor_pixels(geometry)
+    layout = _layout(geometry, sensor)
+    model = ForwardModel(layout, circular_pupils(layout.box_size, layout.box_centres, layout.pupil_radius_px))
+    band = model.sensor_intensity(_spectrum_on(field_in, layout.hires_size))
+    images = fft.fourier_resample(band, sensor)
+    rng = np.random.default_rng(seed)
+    if photons_per_unit is not None:
+        return add_shot_and_read_noise(images, photons_per_unit=photons_per_unit, read_noise_e=read_noise_e, rng=rng)
+    if snr_db is not None:
+        return add_gaussian_noise(images, snr_db, rng)
+    return images.astype(np.float32)
+
+
+@dataclass(frozen=True)
+class CaptureSet:
+    """Captured intensities with their geometry (what ``captures.h5`` and its relatives hold).
+
+    Attributes
+    ----------
+    intensity : ndarray, float32, (K, N, N)
+        Images, centred on the optical axis, linear.
+    geometry : CaptureGeometry
+    weight : ndarray, float32, (K, N, N) or None
+        Per-pixel confidence in [0, 1] (0: ignored by the recovery).
+    truth : dict
+        Ground truth of simulations (``object`` and the chart layout tables), else empty.
+    units : str or None
+        Units of ``intensity`` when not the simulation's irradiance (``counts/s`` for recorded data).
+    """
+
+    intensity: np.ndarray
+    geometry: CaptureGeometry
+    weight: np.ndarray | None = None
+    truth: dict = field(default_factory=dict)
+    units: str | None = None
+
+
+@dataclass(frozen=True)
+class _GridSizes:
+    """The two grid sizes recon.h5 records (stands in for the engine's band layout when writing)."""
+
+    hires_size: int
+    lowres_size: int
+
+
+@dataclass(frozen=True)
+class Reconstruction:
+    """A recovered object and how it was obtained.
+
+    Attributes
+    ----------
+    object : ndarray, complex64, (M, M)
+        Recovered complex field at the object (``√`` of the intensity units).
+    spectrum : ndarray, complex64, (M, M)
+        Its centred spectrum (orthonormal FFT).
+    history : dict of ndarray
+        ``residual`` (relative data misfit), ``change`` (relative spectrum
+        change) and ``seconds`` (wall time) per iteration.
+    geometry : CaptureGeometry
+    engine : str
+    options : dict
+        The engine's options as run.
+    seconds : float
+        Reconstruction time.
+    stopped_by : str
+        ``tol`` (the change fell below ``tol``) or ``cap`` (the iteration cap came first).
+    observed : ndarray or None
+        The capture nearest the optical axis (what one camera sees).
+    truth : dict
+        Ground truth, when known.
+    units : str or None
+        Intensity units when not irradiance (``counts/s``).
+    band_grid_px : int
+        Side of the per-capture grid the engine worked on.
+    pupil : ndarray, complex64, (P, b, b) or None
+        Recovered pupil of each camera (NA disc × aberration, spectrum grid), for
+        engines that recover it; None otherwise.
+    positions_px : ndarray, (K, 2) or None
+        Pupil centres (spectrum px) the calibrating engine arrived at; None otherwise.
+    calibration : Calibration or None
+        Everything a calibrating engine found (pupils per capture, Zernike
+        coefficients, brightness, global position parameters).
+    fit : FitReport or None
+        Residuals of the final model: per capture and over all / bright-field / dark-field captures.
+    """
+
+    object: np.ndarray
+    spectrum: np.ndarray
+    history: dict
+    geometry: CaptureGeometry
+    engine: str
+    options: dict
+    seconds: float
+    stopped_by: str
+    observed: np.ndarray | None = None
+    truth: dict = field(default_factory=dict)
+    units: str | None = None
+    band_grid_px: int = 0
+    pupil: np.ndarray | None = None
+    positions_px: np.ndarray | None = None
+    calibration: object | None = None
+    fit: object | None = None
+
+    @property
+    def intensity(self) -> np.ndarray:
+        """``|object|²`` (float32)."""
+        return (np.abs(self.object) ** 2).astype(np.float32)
+
+    @property
+    def amplitude(self) -> np.ndarray:
+        """``|object|`` (float32)."""
+        return np.abs(self.object).astype(np.float32)
+
+    @property
+    def phase(self) -> np.ndarray:
+        """``angle(object)`` in radians (float32)."""
+        return np.angle(self.object).astype(np.float32)
+
+    @property
+    def iterations(self) -> int:
+        """Iterations run."""
+        return int(len(self.history["residual"]))
+
+    @property
+    def pixel_size_m(self) -> float:
+        """Object-plane pixel size of the recovery grid (m)."""
+        return self.geometry.field_width_m / self.object.shape[-1]
+
+
+def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine: str = "auto", weight=None,
+                callback: Callable | None = None, **options) -> Reconstruction:
+    """Recover the high-resolution object from captured intensities.
+
+    Parameters
+    ----------
+    intensities : array_like (K, N, N), or CaptureSet
+        Captured images (linear, centred), or a :class:`CaptureSet` (which
+        brings its geometry, weights, truth and units).
+    geometry : CaptureGeometry
+        Where each capture's pupil sits; not needed with a CaptureSet.
+    engine : str
+        ``auto`` (the paper's alternating minimisation when a ground truth is
+        given, the calibrating ``momentum`` engine for recorded captures; see
+        :mod:`cca_cli.engines.presets`), ``altmin`` or ``momentum``.
+    weight : array_like (K, N, N), optional
+        Per-pixel confidence in [0, 1].
+    callback : callable, optional
+        Called after every iteration with its record (``iteration``,
+        ``residual``, ``change``, ``seconds``).
+    **options
+        The engine's options: ``tau``, ``iterations`` (alias of
+        ``max_iterations``), ``tol`` and the engine's own (see
+        ``cca_cli.engines.registry.ENGINES[engine].options``).
+
+    Returns
+    -------
+    Reconstruction
+
+    Raises
+    ------
+    ValueError
+        Unknown engine or option (the message lists the valid ones), or
+        images that do not match the geometry.
+
+    Examples
+    --------
+    >>> g = camera_scan(wavelength_m=550e-9, focal_length_m=0.8, aperture_diameter_m=45e-3,
+    ...                 pixel_pitch_m=2e-6, distance_m=50, field_width_m=12e-3, grid=5, overlap=0.61)
+    >>> chart = resolution_chart(96, widths=(6, 4, 3, 2))
+    >>> result = reconstruct(simulate(chart.image, g, snr_db=40), g, engine="momentum", iterations=10)
+    >>> result.iterations <= 10, mtf20(result.intensity, chart)
+    (True, 2)
+    """
+    from cca_cli.engines.presets import preset
+    from cca_cli.engines.registry import engine_names, get_engine
+    from cca_cli.optics import fft
+    from cca_cli.stages.reconstruct import Captures, calibrated_pupils, recover
+
+    truth, units = {}, None
+    if isinstance(intensities, CaptureSet):
+        captures = intensities
+        geometry = captures.geometry if geometry is None else geometry
+        weight = captures.weight if weight is None else weight
+        truth, units = captures.truth, captures.units
+        intensities = captures.intensity
+    if geometry is None:
+        raise ValueError("give the capture geometry (camera_scan, stage_scan or led_array), or a CaptureSet")
+    images = np.asarray(intensities, np.float32)
+    if images.ndim != 3 or images.shape[-1] != images.shape[-2] or len(images) != geometry.n_images:
+        raise ValueError(f"intensities must be (K, N, N) with K = {geometry.n_images} images of the geometry, "
+                         f"got shape {images.shape}")
+    if "iterations" in options:
+        options["max_iterations"] = options.pop("iterations")
+    if engine == "auto":
+        engine, preset_options = preset("simulation" if truth else geometry.kind)
+        options = {**preset_options, **options}
+    if engine not in engine_names():
+        raise ValueError(f"engine {engine!r}: choose auto or one of {', '.join(engine_names())}")
+    entry = get_engine(engine)
+    unknown = sorted(set(options) - set(entry.option_names()))
+    if unknown:
+        raise ValueError(f"unknown option(s) {', '.join(unknown)} for engine {engine}; "
+                         f"accepted: iterations, {', '.join(entry.option_names())}")
+    engine_options = entry.options(**options)
+    weights = None if weight is None else np.asarray(weight, np.float32)
+    captures = Captures(path=Path("<arrays>"), intensity=images, weight=weights, geometry=geometry, truth=dict(truth),
+                        units=units)
+    recovery = recover(captures, engine, engine_options, on_iteration=callback)
+    calibration = recovery.calibration
+    from dataclasses import asdict
+
+    return Reconstruction(
+        object=fft.ifft2c(recovery.spectrum).astype(np.complex64), spectrum=recovery.spectrum,
+        history={name: recovery.history.array(name) for name in ("residual", "change", "seconds")},
+        geometry=geometry, engine=engine, options=asdict(engine_options), seconds=recovery.seconds,
+        stopped_by=recovery.stopped_by, observed=images[geometry.centre_index], truth=dict(truth),
+        units=units, band_grid_px=recovery.layout.lowres_size,
+        pupil=None if calibration is None else calibrated_pupils(calibration, geometry.pupil_radius_px),
+        positions_px=None if calibration is None else calibration.centres_px,
+        calibration=calibration, fit=recovery.fit)
+
+
+# ------------------------------------------------------------------------------------------------------- files
+
+
+def load(path) -> CaptureSet | Reconstruction:
+    """Read a pipeline file: a :class:`Reconstruction` from ``recon.h5``, else a :class:`CaptureSet`.
+
+    Parameters
+    ----------
+    path : path
+        ``captures.h5`` (simulate), ``raw.h5`` of single exposures (ingest),
+        ``hdr.h5``, ``registered.h5`` or ``recon.h5``.
+
+    Raises
+    ------
+    InputError
+        One line naming the file: missing, not a cca file, multiplexed
+        captures, or exposure brackets not yet merged.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> g = camera_scan(wavelength_m=550e-9, focal_length_m=0.8, aperture_diameter_m=45e-3,
+    ...                 pixel_pitch_m=2e-6, distance_m=50, field_width_m=12e-3, grid=3, overlap=0.61)
+    >>> path = pathlib.Path(tempfile.mkdtemp()) / "captures.h5"
+    >>> _ = save(CaptureSet(simulate(np.ones((96, 96)), g, snr_db=None), g), path)
+    >>> back = load(path)
+    >>> back.intensity.shape, back.geometry.n_images
+    ((9, 96, 96), 9)
+    """
+    from cca_cli.io.geometry import read_geometry
+    from cca_cli.io.h5 import open_input
+
+    with open_input(path) as handle:
+        stage = str(handle.attrs.get("stage", ""))
+        if "multiplex" in handle:
+            raise InputError(f"{path}: multiplexed captures cannot be loaded as a CaptureSet yet; "
+                             "use cca reconstruct on the file")
+        if "reconstruct" in stage.split(","):
+            return _load_recon(handle, read_geometry(handle))
+    if stage == "ingest":
+        with open_input(path) as handle:
+            if "/measurements/intensity" not in handle:
+                raise InputError(f"{path}: several exposures per position and no /measurements; "
+                                 "merge them first with cca hdr")
+    from cca_cli.stages.reconstruct import read_captures
+
+    captures = read_captures(Path(path))
+    return CaptureSet(intensity=captures.intensity, geometry=captures.geometry, weight=captures.weight,
+                      truth=captures.truth, units=captures.units)
+
+
+def _load_recon(handle, geometry: CaptureGeometry) -> Reconstruction:
+    attrs = handle["recon"].attrs
+
+    def text(value):
+        return value.decode() if isinstance(value, bytes) else str(value)
+
+    units = text(handle["/observed/centre"].attrs.get("units", "")) if "/observed/centre" in handle else ""
+    truth = {name: np.asarray(handle["truth"][name]) for name in handle["truth"]} if "truth" in handle else {}
+    return Reconstruction(
+        object=np.asarray(handle["/recon/object"]), spectrum=np.asarray(handle["/recon/spectrum"]),
+        history={name: np.asarray(handle[f"/history/{name}"]) for name in ("residual", "change", "seconds")},
+        geometry=geometry, engine=text(attrs.get("engine", "")),
+        options=json.loads(text(attrs.get("engine_options", "{}"))), seconds=float(attrs.get("seconds", 0.0)),
+        stopped_by=text(attrs.get("stopped_by", "")),
+        observed=np.asarray(handle["/observed/centre"]) if "/observed/centre" in handle else None, truth=truth,
+        units=None if units in ("", "irradiance") else units, band_grid_px=int(attrs.get("lowres_size", 0)),
+        pupil=np.asarray(handle["/calibration/pupil"]) if "/calibration/pupil" in handle else None,
+        positions_px=(np.asarray(handle["/calibration/spectrum_centres_yx_px"])
+                      if "/calibration/spectrum_centres_yx_px" in handle else None))
+
+
+def save(data: CaptureSet | Reconstruction, path, *, force: bool = False) -> Path:
+    """Write a :class:`CaptureSet` (as ``captures.h5``) or a :class:`Reconstruction` (as ``recon.h5``).
+
+    The files are the pipeline's own: ``cca reconstruct`` reads the first,
+    ``cca report`` and ``cca export`` the second. They appear atomically and an
+    existing file is replaced only with ``force``.
+
+    Returns
+    -------
+    Path
+
+    Raises
+    ------
+    OutputExistsError
+        ``path`` exists and ``force`` is False.
+    """
+    from cca_cli.io.h5 import Provenance, check_output
+
+    path = Path(path)
+    check_output(path, force=force)
+    if isinstance(data, Reconstruction):
+        import yaml
+
+        from cca_cli.engines.base import History, IterationRecord
+        from cca_cli.stages.reconstruct import Captures, Recovery, write_recon
+
+        section = {"reconstruct": {"engine": data.engine, "options": data.options}}
+        text = yaml.safe_dump(section, sort_keys=False)
+        import hashlib
+
+        provenance = Provenance.make("reconstruct", text, hashlib.sha256(text.encode()).hexdigest())
+        records = [IterationRecord(i + 1, float(r), float(c), float(s)) for i, (r, c, s) in
+                   enumerate(zip(data.history["residual"], data.history["change"], data.history["seconds"]))]
+        recovery = Recovery(spectrum=data.spectrum, layout=_GridSizes(data.object.shape[-1], data.band_grid_px),
+                            history=History(records), engine=data.engine, options=data.options, seconds=data.seconds,
+                            stopped_by=data.stopped_by, calibration=data.calibration, fit=data.fit)
+        observed = data.observed if data.observed is not None else np.abs(data.object) ** 2
+        captures = Captures(path=path, intensity=observed[None].astype(np.float32), weight=None,
+                            geometry=data.geometry, truth=data.truth, units=data.units)
+        write_recon(path, captures, recovery, provenance, force=force, observed=observed.astype(np.float32))
+        return path
+    if isinstance(data, CaptureSet):
+        from cca_cli.io.geometry import write_geometry
+        from cca_cli.io.h5 import atomic_h5, write_dataset
+
+        provenance = Provenance.make("api", "", "")
+        with atomic_h5(path, provenance, force=force) as handle:
+            write_dataset(handle, "/measurements/intensity", np.asarray(data.intensity, np.float32), units=data.units)
+            if data.weight is not None:
+                write_dataset(handle, "/measurements/weight", np.asarray(data.weight, np.float32))
+            write_geometry(handle, data.geometry)
+            for name, value in data.truth.items():
+                write_dataset(handle, f"/truth/{name}", value)
+        return path
+    raise TypeError(f"save takes a CaptureSet or a Reconstruction, got {type(data).__name__}")
+
+
+def export(data, path, *, quantity: str = "amplitude", pixel_size_m: float | None = None, format: str | None = None,
+           force: bool = False) -> Path:
+    """Write a recovery as float32 TIFF, 16-bit PNG or ``.npy`` with its pixel size (see ``cca export``).
+
+    Parameters
+    ----------
+    data : Reconstruction, path to recon.h5, or array_like (H, W)
+        What to export; an array needs ``pixel_size_m``.
+    path : path
+        ``.tif``/``.tiff`` (float32 at full resolution), ``.png`` (16-bit,
+        ``value = offset + scale · code`` in the text chunks) or ``.npy``.
+    quantity : {'amplitude', 'intensity', 'phase'}
+    pixel_size_m : float, optional
+        Object-plane pixel size (m) of an array.
+    format : {'tiff', 'png', 'npy'}, optional
+        Overrides the suffix.
+    force : bool
+        Replace an existing file.
+
+    Returns
+    -------
+    Path
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> folder = pathlib.Path(tempfile.mkdtemp())
+    >>> out = export(np.ones((4, 4)), folder / "flat.tif", quantity="intensity", pixel_size_m=1e-6)
+    >>> out.name
+    'flat.tif'
+    """
+    from cca_cli.io.export import QUANTITIES, export_image, export_recon
+
+    if isinstance(data, (str, Path)):
+        return export_recon(data, path, quantity=quantity, format=format, force=force)
+    if isinstance(data, Reconstruction):
+        if quantity not in QUANTITIES:
+            raise ValueError(f"quantity {quantity!r}: choose one of {', '.join(QUANTITIES)}")
+        values = {"amplitude": data.amplitude, "intensity": data.intensity, "phase": data.phase}[quantity]
+        base = data.units or "irradiance"
+        units = {"amplitude": f"√({base})", "intensity": base, "phase": "rad"}[quantity]
+        return export_image(values, path, pixel_size_m=data.pixel_size_m, quantity=quantity, units=units,
+                            format=format, force=force)
+    if pixel_size_m is None:
+        raise ValueError("pixel_size_m: give the object pixel size (m) when exporting an array")
+    return export_image(data, path, pixel_size_m=pixel_size_m, quantity=quantity, format=format, force=force)
+
+
+# ----------------------------------------------------------------------------------------------------- metrics
+
+
+def contrast(intensity, chart):
+    """Bar contrast ``(w̄ − b̄)/(w̄ + b̄)`` of every bar group of a chart, per width and orientation.
+
+    Parameters
+    ----------
+    intensity : array_like, (S, S)
+        Intensity image on the chart's grid.
+    chart : BarChart or sequence of BarGroup
+
+    Returns
+    -------
+    ContrastTable
+        ``widths_px``, ``horizontal``, ``vertical`` (and ``to_dict()``).
+
+    Examples
+    --------
+    >>> chart = resolution_chart(64, widths=(4, 2))
+    >>> table = contrast(chart.image ** 2, chart)
+    >>> table.widths_px.tolist(), [round(float(c), 3) for c in table.horizontal]
+    ([4, 2], [1.0, 1.0])
+    """
+    from cca_cli.metrics import contrast_table
+
+    return contrast_table(np.asarray(intensity), chart)
+
+
+def mtf20(intensity, chart, *, threshold: float = 0.2) -> int | None:
+    """Finest bar width (px) whose contrast, and every wider one's, reaches ``threshold`` in both orientations.
+
+    Returns None when not even the widest group is resolved.
+
+    Examples
+    --------
+    >>> chart = resolution_chart(64, widths=(4, 2))
+    >>> mtf20(chart.image ** 2, chart), mtf20(np.ones((64, 64)), chart)
+    (2, None)
+    """
+    from cca_cli.metrics import contrast_table, mtf_limit
+
+    return mtf_limit(contrast_table(np.asarray(intensity), chart), threshold=threshold)
+
+
+def usaf_reading(intensity, chart, *, threshold: float = 0.2):
+    """Finest resolved element of a USAF chart (every coarser one resolved too), with its lp/mm.
+
+    Parameters
+    ----------
+    intensity : array_like
+        Intensity on the chart's grid (``chart.size``).
+    chart : UsafChart
+    threshold : float
+        Three-bar contrast every element must reach in both orientations.
+
+    Returns
+    -------
+    UsafReading
+        ``group``, ``element``, ``lp_per_mm`` (None when nothing is resolved).
+
+    Examples
+    --------
+    >>> chart = usaf_chart(512, pixel_pitch_m=25e-6, groups=(0, 1))
+    >>> reading = usaf_reading(chart.image ** 2, chart)
+    >>> reading.group, reading.element, round(reading.lp_per_mm, 2)
+    (1, 6, 3.56)
+    """
+    from cca_cli.metrics import usaf_resolution
+
+    return usaf_resolution(np.asarray(intensity), chart, threshold=threshold)
+
+
+def rmse(recovered, truth) -> float:
+    """RMSE of an intensity against the truth after a least-squares intensity scale, over the truth's maximum.
+
+    Examples
+    --------
+    >>> truth = np.ones((8, 8)); truth[2:4] = 0
+    >>> rmse(2 * truth, truth), round(rmse(np.ones((8, 8)), truth), 3)
+    (0.0, 0.433)
+    """
+    from cca_cli.metrics import rmse as _rmse
+
+    return _rmse(np.asarray(recovered), np.asarray(truth))

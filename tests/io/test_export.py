@@ -1,0 +1,132 @@
+"""`cca export` and cca_cli.io.export: full-resolution float32 TIFF, 16-bit PNG and .npy with the pixel size."""
+
+from __future__ import annotations
+
+import json
+
+import h5py
+import numpy as np
+import OpenImageIO as oiio
+import pytest
+from typer.testing import CliRunner
+
+import cca_cli as cca
+from cca_cli.commands.app import app
+from cca_cli.io import export as export_module
+from cca_cli.io.export import read_exported
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def recon(tmp_path_factory):
+    """A recon.h5 holding a random complex object (no engine run needed)."""
+    rng = np.random.default_rng(3)
+    geometry = cca.camera_scan(wavelength_m=550e-9, focal_length_m=0.8, aperture_diameter_m=45e-3,
+                               pixel_pitch_m=2e-6, distance_m=50, field_width_m=8e-3, grid=3, overlap=0.61)
+    obj = (rng.random((64, 64)) * np.exp(2j * np.pi * rng.random((64, 64)))).astype(np.complex64)
+    result = cca.Reconstruction(object=obj, spectrum=np.fft.fft2(obj).astype(np.complex64),
+                                history={k: np.zeros(2) for k in ("residual", "change", "seconds")},
+                                geometry=geometry, engine="altmin", options={"tol": 0.0}, seconds=0.0,
+                                stopped_by="cap", band_grid_px=32)
+    return cca.save(result, tmp_path_factory.mktemp("export") / "recon.h5")
+
+
+def _h5(recon, quantity):
+    with h5py.File(recon) as handle:
+        obj = handle["/recon/object"][()]
+        pixel = float(handle["recon"].attrs["pixel_pitch_object_m"])
+        if quantity == "intensity":
+            return handle["/recon/intensity"][()], pixel
+    return (np.abs(obj) if quantity == "amplitude" else np.angle(obj)).astype(np.float32), pixel
+
+
+def _oiio(path):
+    inp = oiio.ImageInput.open(str(path))
+    spec = inp.spec()
+    data = inp.read_image(0, 0, 0, 1, spec.format)
+    attrs = {a.name: a.value for a in spec.extra_attribs}
+    inp.close()
+    return np.asarray(data).reshape(spec.height, spec.width), spec, attrs
+
+
+@pytest.mark.parametrize("quantity", ["amplitude", "intensity", "phase"])
+def test_tiff_read_back_equals_the_hdf5_data(recon, tmp_path, quantity):
+    result = runner.invoke(app, ["export", str(recon), "-o", str(tmp_path / "out.tif"), "--quantity", quantity])
+    assert result.exit_code == 0, result.output
+    data, spec, attrs = _oiio(tmp_path / "out.tif")
+    expected, pixel = _h5(recon, quantity)
+    assert str(spec.format) == "float" and data.shape == expected.shape == (64, 64)
+    assert np.array_equal(data, expected)
+    assert attrs["ResolutionUnit"] == "cm"
+    assert attrs["XResolution"] == pytest.approx(0.01 / pixel, rel=1e-6)
+    meta = json.loads(attrs["ImageDescription"])
+    assert meta["pixel_size_m"] == pixel and meta["quantity"] == quantity
+
+
+def test_png_is_16_bit_with_its_scale_and_pixel_size(recon, tmp_path):
+    path = cca.export(recon, tmp_path / "phase.png", quantity="phase")
+    codes, spec, attrs = _oiio(path)
+    expected, pixel = _h5(recon, "phase")
+    assert str(spec.format) == "uint16" and codes.max() == 65535
+    offset, scale = float(attrs["cca:offset"]), float(attrs["cca:scale"])
+    assert offset == pytest.approx(-np.pi) and float(attrs["cca:pixel_size_m"]) == pixel
+    assert np.max(np.abs(offset + scale * codes - expected)) <= scale / 2 + 1e-7
+    back = read_exported(path)
+    assert back.pixel_size_m == pixel and back.quantity == "phase" and back.units == "rad"
+    assert np.allclose(back.values, expected, atol=scale)
+    # the pHYs chunk holds the same pixel size (OpenImageIO reports it per inch)
+    assert 0.0254 / attrs["XResolution"] == pytest.approx(pixel, rel=1e-3)
+
+
+def test_npy_and_arrays_and_results(recon, tmp_path):
+    cca.export(recon, tmp_path / "a.npy", quantity="intensity")
+    assert np.array_equal(np.load(tmp_path / "a.npy"), _h5(recon, "intensity")[0])
+    loaded = cca.load(recon)
+    cca.export(loaded, tmp_path / "b.tif")
+    assert np.array_equal(read_exported(tmp_path / "b.tif").values, _h5(recon, "amplitude")[0])
+    with pytest.raises(ValueError, match="pixel_size_m"):
+        cca.export(np.ones((4, 4)), tmp_path / "c.tif")
+
+
+def test_existing_output_is_refused_and_kept_unless_forced(recon, tmp_path):
+    target = tmp_path / "out.tif"
+    target.write_bytes(b"mine")
+    result = runner.invoke(app, ["export", str(recon), "-o", str(target)])
+    assert result.exit_code == 4 and "already exists" in result.output and "--force" in result.output
+    assert target.read_bytes() == b"mine"
+    assert runner.invoke(app, ["export", str(recon), "-o", str(target), "--force"]).exit_code == 0
+    assert read_exported(target).values.shape == (64, 64)
+
+
+@pytest.mark.parametrize("args, code, needle", [
+    (["-o", "{tmp}/x.jpg"], 2, "unknown image format '.jpg'"),
+    (["-o", "{tmp}/x.tif", "--quantity", "real"], 2, "choose one of amplitude, intensity, phase"),
+    (["-o", "{tmp}/x.tif", "--format", "png"], 2, "make them agree"),
+])
+def test_bad_arguments_are_one_line_errors(recon, tmp_path, args, code, needle):
+    result = runner.invoke(app, ["export", str(recon)] + [a.format(tmp=tmp_path) for a in args])
+    assert result.exit_code == code
+    text = " ".join(result.output.split())
+    assert "error:" in text and needle in text
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_file_that_is_not_a_recovery_is_refused(tmp_path):
+    geometry = cca.camera_scan(wavelength_m=550e-9, focal_length_m=0.8, aperture_diameter_m=45e-3,
+                               pixel_pitch_m=2e-6, distance_m=50, field_width_m=8e-3, grid=3, overlap=0.61)
+    captures = cca.save(cca.CaptureSet(np.ones((9, 64, 64), np.float32), geometry), tmp_path / "captures.h5")
+    result = runner.invoke(app, ["export", str(captures), "-o", str(tmp_path / "x.tif")])
+    assert result.exit_code == 3 and "expected 'reconstruct'" in result.output
+    assert not (tmp_path / "x.tif").exists()
+
+
+def test_a_failed_write_leaves_nothing_behind(recon, tmp_path, monkeypatch):
+    def broken(tmp, *args):
+        tmp.write_bytes(b"half a file")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(export_module, "_write_oiio", broken)
+    with pytest.raises(OSError):
+        cca.export(recon, tmp_path / "x.tif")
+    assert list(tmp_path.iterdir()) == []

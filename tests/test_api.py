@@ -1,0 +1,86 @@
+"""The Python API (`import cca_cli as cca`): doctests, the same files as the CLI, light import, clear errors."""
+
+from __future__ import annotations
+
+import doctest
+import importlib
+import pydoc
+import subprocess
+import sys
+
+import h5py
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+import cca_cli as cca
+from cca_cli.commands.app import app
+
+DOCUMENTED = ["cca_cli.api", "cca_cli.io.export", "cca_cli.report.figures"]
+
+
+@pytest.mark.parametrize("module", DOCUMENTED)
+def test_docstring_examples_run(module):
+    result = doctest.testmod(importlib.import_module(module), optionflags=doctest.NORMALIZE_WHITESPACE)
+    assert result.attempted > 0
+    assert result.failed == 0
+
+
+def test_help_shows_the_api():
+    text = pydoc.render_doc(cca, renderer=pydoc.plaintext)
+    for name in ("camera_scan", "led_array", "simulate", "reconstruct", "load", "save", "export", "mtf20",
+                 "usaf_reading", "rmse", "Reconstruction"):
+        assert name in text
+    for name in cca.__all__:
+        assert getattr(cca, name) is not None
+        if name != "__version__":
+            assert getattr(cca, name).__doc__, name
+
+
+def test_importing_the_package_loads_no_numerics():
+    code = "import sys, cca_cli; print(sorted(m for m in sys.modules if m.startswith(('cca_cli.', 'numpy'))))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
+
+
+def test_unknown_names_engines_and_options_are_clear():
+    with pytest.raises(AttributeError, match="no attribute 'reconstrut'"):
+        cca.reconstrut  # noqa: B018
+    g = cca.camera_scan(wavelength_m=550e-9, focal_length_m=0.8, aperture_diameter_m=45e-3, pixel_pitch_m=2e-6,
+                        distance_m=50, field_width_m=8e-3, grid=3, overlap=0.61)
+    images = np.ones((9, 64, 64), np.float32)
+    with pytest.raises(ValueError, match="choose one of altmin, momentum"):
+        cca.reconstruct(images, g, engine="altmn")
+    with pytest.raises(ValueError, match="unknown option.*taw.*accepted: iterations, tau"):
+        cca.reconstruct(images, g, taw=1e-3)
+    with pytest.raises(ValueError, match="K = 9 images"):
+        cca.reconstruct(images[:4], g)
+    with pytest.raises(ValueError, match="grid .* or sar"):
+        cca.camera_scan(wavelength_m=550e-9, focal_length_m=0.8, aperture_diameter_m=45e-3, pixel_pitch_m=2e-6,
+                        distance_m=50, field_width_m=8e-3)
+
+
+def test_cli_and_api_write_the_same_recon_datasets(tmp_path, write_config, tiny_config_data):
+    tiny_config_data["reconstruct"].update(iterations=5)
+    config = write_config(tiny_config_data)
+    runner = CliRunner()
+    assert runner.invoke(app, ["simulate", str(config), "-o", str(tmp_path / "captures.h5"), "-q"]).exit_code == 0
+    result = runner.invoke(app, ["reconstruct", str(tmp_path / "captures.h5"), "-o", str(tmp_path / "cli.h5"),
+                                 "--config", str(config), "-q"])
+    assert result.exit_code == 0, result.output
+
+    section = tiny_config_data["reconstruct"]
+    recovery = cca.reconstruct(cca.load(tmp_path / "captures.h5"), engine=section["engine"], tau=section["tau"],
+                               iterations=section["iterations"], tol=section["tol"])
+    cca.save(recovery, tmp_path / "api.h5")
+    with h5py.File(tmp_path / "cli.h5") as cli, h5py.File(tmp_path / "api.h5") as api:
+        names = set()
+        cli.visititems(lambda name, obj: names.add(name) if isinstance(obj, h5py.Dataset) else None)
+        assert {"recon/object", "recon/spectrum", "observed/centre", "truth/object", "geometry/grid_indices"} <= names
+        for name in sorted(names - {"history/seconds"}):
+            assert name in api, name
+            assert np.array_equal(cli[name][()], api[name][()]), name
+            assert dict(cli[name].attrs) == dict(api[name].attrs), name
+        for key in ("engine", "engine_options", "iterations", "stopped_by", "hires_size", "lowres_size",
+                    "pixel_pitch_object_m"):
+            assert cli["recon"].attrs[key] == api["recon"].attrs[key], key
