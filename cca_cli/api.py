@@ -35,7 +35,7 @@ chart and measure the resolution before and after:
 (25, 96, 96)
 >>> result = cca.reconstruct(images, geometry, iterations=30, tol=0)
 >>> result.intensity.shape, result.stopped_by
-((96, 96), 'cap')
+((96, 96), 'plateau')
 >>> cca.mtf20(images[geometry.centre_index], chart), cca.mtf20(result.intensity, chart)
 (6, 2)
 """

@@ -49,7 +49,7 @@ def test_unknown_names_engines_and_options_are_clear():
     g = cca.camera_scan(wavelength_m=550e-9, focal_length_m=0.8, aperture_diameter_m=45e-3, pixel_pitch_m=2e-6,
                         distance_m=50, field_width_m=8e-3, grid=3, overlap=0.61)
     images = np.ones((9, 64, 64), np.float32)
-    with pytest.raises(ValueError, match="choose one of altmin, momentum"):
+    with pytest.raises(ValueError, match="choose auto or one of altmin, momentum"):
         cca.reconstruct(images, g, engine="altmn")
     with pytest.raises(ValueError, match="unknown option.*taw.*accepted: iterations, tau"):
         cca.reconstruct(images, g, taw=1e-3)

@@ -59,9 +59,9 @@ def _split(statistics: CaptureStatistics, brightness: np.ndarray, masks: list[np
     cross = statistics.cross * root
     scale = float(cross.sum() / max(power.sum(), 1e-300))
     squared = np.maximum(scale * scale * power - 2 * scale * cross + statistics.energy, 0.0)
-    per_image = np.sqrt(squared / np.maximum(statistics.energy, 1e-300))
-    totals = [float(np.sqrt(squared[m].sum() / statistics.energy[m].sum())) if np.any(m) else float("nan")
-              for m in masks]
+    per_image = np.sqrt(squared / np.maximum(statistics.energy, 1e-300))  # 0-energy captures: large, not nan
+    totals = [float(np.sqrt(squared[m].sum() / statistics.energy[m].sum())) if statistics.energy[m].sum() > 0
+              else float("nan") for m in masks]
     return per_image, totals
 
 

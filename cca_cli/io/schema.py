@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-__all__ = ["SCHEMA_VERSION", "DatasetSpec", "DATASETS", "spec_for", "GEOMETRY_ATTRS"]
+__all__ = ["SCHEMA_VERSION", "DatasetSpec", "DATASETS", "spec_for", "GEOMETRY_ATTRS", "markdown_table"]
 
 SCHEMA_VERSION = "cca/1"
 
@@ -139,3 +139,14 @@ def spec_for(path: str) -> DatasetSpec | None:
         if spec.path == path:
             return spec
     return None
+
+
+def markdown_table() -> str:
+    """The schema as the README's Markdown table (``python -m cca_cli.io.schema`` prints it)."""
+    rows = ["| dataset | dtype | shape | units | meaning |", "|---|---|---|---|---|"]
+    rows += [f"| `{d.path}` | {d.dtype} | {d.shape} | {d.units} | {d.meaning} |" for d in DATASETS]
+    return "\n".join(rows)
+
+
+if __name__ == "__main__":
+    print(markdown_table())
