@@ -108,23 +108,25 @@ class PositionModel:
 
 
 class StageModel(PositionModel):
-    """Scanned camera: nominal stage positions seen through a shift, a rotation and a scale.
+    """Scanned camera: nominal stage positions seen through a rotation and a scale about their mean.
 
-    ``c_i = (1 + s) R(φ) c⁰_i + d``: θ = (d_y, d_x) in spectrum pixels, φ in
-    radians, s the relative scale error (a wrong distance or pixel pitch).
+    ``c_i = c̄ + (1 + s) R(φ) (c⁰_i − c̄)``: φ in radians, s the relative scale
+    error (a wrong distance or pixel pitch). A shift of every position is left
+    out: it equals a tilt of the object's phase, which the object takes.
     """
 
-    names = ("shift_y_px", "shift_x_px", "rotation_rad", "scale")
+    names = ("rotation_rad", "scale")
     kind = "stage"
 
     def __init__(self, nominal_px: np.ndarray):
         self.nominal = np.asarray(nominal_px, np.float64).reshape(-1, 2)
+        self._mean = self.nominal.mean(axis=0)
 
     def centres(self, parameters: np.ndarray) -> np.ndarray:
-        dy, dx, angle, scale = parameters
+        angle, scale = parameters
         cos, sin = np.cos(angle), np.sin(angle)
-        y, x = self.nominal[:, 0], self.nominal[:, 1]
-        return np.stack([(1 + scale) * (cos * y + sin * x) + dy, (1 + scale) * (-sin * y + cos * x) + dx], axis=1)
+        y, x = (self.nominal - self._mean).T
+        return self._mean + (1 + scale) * np.stack([cos * y + sin * x, -sin * y + cos * x], axis=1)
 
 
 class LedArrayModel(PositionModel):
@@ -134,7 +136,9 @@ class LedArrayModel(PositionModel):
     height (``u = tan θ``); the array is shifted by ``(d_y, d_x)`` (in units of
     the height), rotated by φ and its height scaled by ``1 + h``:
     ``u' = R(φ)(u + d) / (1 + h)``, ``sin θ' = u' / √(1 + |u'|²)``, and the pupil
-    sits at ``pixels_per_sine · sin θ'``.
+    sits at ``pixels_per_sine · sin θ'``, less the mean move of all pupils: moving
+    every pupil alike equals a tilt of the object's phase, which the object
+    takes, so the shift acts only through how unevenly it moves the pupils.
 
     Parameters
     ----------
@@ -161,7 +165,8 @@ class LedArrayModel(PositionModel):
         x = self._tangent[:, 1] + dx
         u = np.stack([cos * y + sin * x, -sin * y + cos * x], axis=1) / (1.0 + height)
         sine = u / np.sqrt(1.0 + np.sum(u ** 2, axis=1, keepdims=True))
-        return self.pixels_per_sine * sine
+        centres = self.pixels_per_sine * sine
+        return centres - centres.mean(axis=0) + self.nominal.mean(axis=0)
 
 
 def capture_statistics(model: ForwardModel, spectrum: np.ndarray, amplitudes: np.ndarray,
@@ -255,12 +260,14 @@ def per_image_steps(statistics: CaptureStatistics, *, damping: float = 0.1,
 
     The damping adds ``damping`` times the mean of the curvature's diagonal over
     all captures, so captures with little light (small curvature) barely move.
+    The steps' mean is removed: moving every capture alike is the object's tilt.
     """
     curvature = statistics.curvature
     scale = float(np.mean(np.trace(curvature, axis1=1, axis2=2))) / 2
     damped = curvature + damping * max(scale, 1e-30) * np.eye(2)[None]
     step = -np.linalg.solve(damped, statistics.gradient[..., None])[..., 0]
-    return np.clip(step, -max_step, max_step)
+    step = np.clip(step, -max_step, max_step)
+    return step - step.mean(axis=0)
 
 
 def shrunk_brightness(statistics: CaptureStatistics, current: np.ndarray, *, shrinkage: float = 0.05) -> np.ndarray:

@@ -73,6 +73,8 @@ __all__ = ["MomentumOptions", "Calibration", "SequentialMomentum"]
 
 _COSTS = ("amplitude", "poisson")
 _PUPILS = ("none", "shared", "per_camera")
+#: Relative misfit drop a capture's position step must bring to be kept.
+_CLEAR_GAIN = 1e-2
 
 
 @dataclass(frozen=True)
@@ -557,8 +559,8 @@ class SequentialMomentum(IterativeEngine):
         trial = self._offsets + ill.per_image_steps(statistics)
         limit = self._offset_limit()
         trial = np.clip(trial, -limit, limit)
-        try:
-            better = self._evaluate(offsets=trial).misfit < statistics.misfit
+        try:  # keep a capture's move only where it lowers that capture's misfit clearly (not just its noise)
+            better = self._evaluate(offsets=trial).misfit < (1 - _CLEAR_GAIN) * statistics.misfit
         except ValueError:  # a pupil would leave the spectrum grid
             return False
         if not np.any(better):

@@ -57,7 +57,6 @@ PUPIL_MODELS = ("full", "zernike")
 _MAX_ZERNIKE_STEP = 0.1
 #: Damping of the full-map step, relative to the largest pupil power: pixels seen by little light move little.
 _MAP_DAMPING = 1e-3
-_MAP_PRIOR = 0.0
 
 
 @dataclass(frozen=True)
@@ -286,7 +285,7 @@ class PupilRecovery:
 
     def _map_step(self, numerator: np.ndarray, denominator: np.ndarray, peak: float) -> tuple[complex, np.ndarray]:
         seen = denominator > 0
-        change = (numerator - _MAP_PRIOR * peak * (self.maps - 1)) / (denominator + (_MAP_DAMPING + _MAP_PRIOR) * peak)
+        change = numerator / (denominator + _MAP_DAMPING * peak)
         maps = self.maps + (self._step * change).astype(np.complex64)
         if not self.amplitude:
             maps = np.where(seen, np.exp(1j * np.angle(maps)), maps)
