@@ -29,7 +29,8 @@ def _save(plt, fig, path: Path) -> Path:
 def _image(plt, path: Path, image: np.ndarray, title: str, *, cmap: str = "gray", extent_mm: float | None = None,
            label: str = "") -> None:
     fig, ax = plt.subplots(figsize=(5.2, 4.6), dpi=110)
-    extent = None if extent_mm is None else (-extent_mm / 2, extent_mm / 2, extent_mm / 2, -extent_mm / 2)
+    height_mm = None if extent_mm is None else extent_mm * image.shape[0] / image.shape[1]
+    extent = None if extent_mm is None else (-extent_mm / 2, extent_mm / 2, height_mm / 2, -height_mm / 2)
     shown = ax.imshow(image, cmap=cmap, extent=extent, interpolation="nearest")
     ax.set_title(title)
     if extent_mm is not None:

@@ -1,4 +1,4 @@
-"""Carry what ingest, hdr and register learned about recorded captures into recon.h5 for the report."""
+"""Carry what ingest, hdr and register learned about recorded captures from stage to stage, and into recon.h5."""
 
 from __future__ import annotations
 
@@ -7,21 +7,51 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-__all__ = ["capture_extras", "read_capture_summary"]
+__all__ = ["capture_extras", "read_capture_summary", "carry_capture_records"]
 
-_COPIED = ("/registration/rms_px", "/registration/dropped", "/hdr/dynamic_range_gain", "/hdr/valid_fraction")
+_COPIED = ("/registration/rms_px", "/registration/dropped", "/registration/object_rms_px",
+           "/registration/object_max_px", "/registration/board_hull_fraction", "/hdr/dynamic_range_gain",
+           "/hdr/dynamic_range", "/hdr/valid_fraction", "/hdr/flux_ratio", "/hdr/flux_ratio_sigma")
+
+
+def carry_capture_records(source: h5py.File, target: h5py.File, *, keep=None) -> None:
+    """Copy the records later stages need from one capture file to the next.
+
+    The known defocus (/geometry attribute ``defocus_m``; write /geometry
+    first), the initial pupil (/calibration), the board pattern and board
+    views (/registration/board*, only the views ``keep`` when given) and the
+    sensor calibration (/sensor).
+    """
+    if "geometry" in source and "defocus_m" in source["geometry"].attrs and "geometry" in target:
+        target["geometry"].attrs["defocus_m"] = source["geometry"].attrs["defocus_m"]
+    for name in ("/calibration/initial_pupil", "/sensor"):
+        if name in source and name not in target:
+            parent = target.require_group(str(Path(name).parent))
+            source.copy(source[name], parent, name=Path(name).name)
+    if "registration/board" in source:
+        board = target.require_group("registration/board")
+        for key, value in source["registration/board"].attrs.items():
+            board.attrs[key] = value
+    if "/registration/board_views" in source and "/registration/board_views" not in target:
+        views = source["/registration/board_views"]
+        data = views[()] if keep is None else views[()][np.asarray(keep)]
+        copy = target.create_dataset("/registration/board_views", data=data)
+        for key, value in views.attrs.items():
+            copy.attrs[key] = value
 
 
 def capture_extras(captures_path: Path):
     """A ``write_recon`` ``extra`` callback copying registration/HDR records, or None when there are none."""
     with h5py.File(captures_path, "r") as src:
-        present = {name: (src[name][()], src[name].dtype) for name in _COPIED if name in src}
+        present = {name: (src[name][()], src[name].dtype, dict(src[name].attrs)) for name in _COPIED if name in src}
     if not present:
         return None
 
     def extra(handle: h5py.File) -> None:
-        for name, (data, dtype) in present.items():
-            handle.create_dataset(name, data=data, dtype=dtype)
+        for name, (data, dtype, attrs) in present.items():
+            dataset = handle.create_dataset(name, data=data, dtype=dtype)
+            for key, value in attrs.items():
+                dataset.attrs[key] = value
 
     return extra
 
@@ -35,8 +65,23 @@ def read_capture_summary(handle: h5py.File) -> dict:
         rms = np.asarray(handle["/registration/rms_px"])
         out["registration_rms_px_max"] = round(float(rms.max()), 4)
         out["registration_rms_px_mean"] = round(float(rms.mean()), 4)
+    if "/registration/object_rms_px" in handle:
+        obj = np.asarray(handle["/registration/object_rms_px"])
+        out["registration_object_rms_px_mean"] = round(float(obj.mean()), 4)
+        out["registration_object_rms_px_max"] = round(float(obj.max()), 4)
+    if "/registration/object_max_px" in handle:
+        out["registration_object_max_px"] = round(float(np.max(handle["/registration/object_max_px"])), 4)
+    if "/registration/board_hull_fraction" in handle:
+        out["registration_object_in_board_hull"] = round(float(np.min(handle["/registration/board_hull_fraction"])), 4)
     if "/hdr/dynamic_range_gain" in handle:
         out["hdr_dynamic_range_gain_median"] = round(float(np.median(handle["/hdr/dynamic_range_gain"])), 3)
+    if "/hdr/dynamic_range" in handle:
+        out["hdr_dynamic_range_median"] = round(float(np.median(handle["/hdr/dynamic_range"])), 1)
     if "/hdr/valid_fraction" in handle:
         out["hdr_valid_fraction_mean"] = round(float(np.mean(handle["/hdr/valid_fraction"])), 4)
+    if "/hdr/flux_ratio" in handle:
+        ratio = np.asarray(handle["/hdr/flux_ratio"])
+        finite = ratio[np.isfinite(ratio)]
+        if finite.size:
+            out["hdr_flux_ratio_worst"] = round(float(finite[np.argmax(np.abs(finite - 1))]), 4)
     return out
