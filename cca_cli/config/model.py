@@ -9,7 +9,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, PositiveInt, field_validator, model_validator
+from pydantic import (BaseModel, ConfigDict, Field, NonNegativeInt, PositiveFloat, PositiveInt, field_validator,
+                      model_validator)
 
 __all__ = [
     "STAGES",
@@ -322,6 +323,9 @@ class RegisterSection(Section):
     crop_xywh: tuple[int, int, PositiveInt, PositiveInt] | None = Field(
         None, description="Object rectangle [x0, y0, width, height] in reference pixels, any aspect (default: the whole "
                           "frame); reconstruct pads it to its square grid.")
+    object_xywh: tuple[NonNegativeInt, NonNegativeInt, PositiveInt, PositiveInt] | None = Field(
+        None, description="Where the object is [x0, y0, width, height] (reference px), for the registration error "
+                          "estimate and the board-hull check (default: the crop).")
     drop_missing: bool = Field(False, description="Drop (with a warning) views where the board is not found.")
     ransac_threshold_px: PositiveFloat = Field(1.0, description="RANSAC inlier threshold (reference px).")
     interpolation: Literal["linear", "cubic", "lanczos"] = Field("cubic", description="Warp kernel.")

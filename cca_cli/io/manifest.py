@@ -319,15 +319,24 @@ def _resolve(base: Path, p) -> Path:
     return p if p.is_absolute() else base / p
 
 
-def _merge_setup(data: dict, setup_path: Path, source: str) -> dict:
-    """Sections of a setup file merged into a manifest mapping (a section given twice is an error)."""
+def _merge_setup(data: dict, setup_path: Path, source: str, notes: list[str]) -> dict:
+    """Sections of a setup file merged into a manifest mapping (a section given twice is an error).
+
+    A setup file that is the optics (or illumination) section itself may
+    carry the lab's other facts too: keys cca does not know are ignored,
+    with a note.
+    """
     setup = _read_mapping(setup_path, "setup file")
     if any(k in setup for k in ("images", "images_csv", "source", "setup")):
         raise ConfigError(f"{setup_path}: a setup file holds optics and sensor sections, not images; "
                           "remove images/images_csv/source/setup from it")
     if not any(k in setup for k in _SECTION_KEYS):
-        # The file is the optics (or illumination) section itself.
-        setup = {"illumination" if "numerical_aperture" in setup else "optics": setup}
+        name = "illumination" if "numerical_aperture" in setup else "optics"
+        model = IlluminationSpec if name == "illumination" else OpticsSpec
+        ignored = [k for k in setup if k not in model.model_fields]
+        if ignored:
+            notes.append(f"{setup_path.name}: keys not used by cca, ignored: {', '.join(ignored)}")
+        setup = {name: {k: v for k, v in setup.items() if k in model.model_fields}}
     for name in ("optics", "illumination"):
         section = setup.get(name)
         if isinstance(section, dict) and section.get("pupil") is not None:
@@ -480,9 +489,10 @@ def read_manifest(path: str | Path) -> LoadedManifest:
     else:
         data = _read_mapping(path, "manifest")
         source = str(path)
+    notes: list[str] = []
     if data.get("setup") is not None:
         setup_path = _resolve(path.parent, data["setup"])
-        data = _merge_setup(data, setup_path, source)
+        data = _merge_setup(data, setup_path, source, notes)
         data["setup"] = str(setup_path)
         files.append(setup_path)
     try:
@@ -490,10 +500,10 @@ def read_manifest(path: str | Path) -> LoadedManifest:
     except ValidationError as exc:
         raise ConfigError(_describe(_first_error(exc), source)) from None
     base = path.parent
-    notes: list[str] = []
     if manifest.images_csv is not None:
         table = _resolve(base, manifest.images_csv)
-        entries, notes = _table_entries(table, manifest, source)
+        entries, table_notes = _table_entries(table, manifest, source)
+        notes += table_notes
         manifest = manifest.model_copy(update={"images": [ImageEntry.model_validate(e) for e in entries],
                                                "images_csv": table})
         files.append(table)

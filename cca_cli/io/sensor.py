@@ -83,6 +83,7 @@ class FrameValues:
     channels: int
     max_value: float
     low_bits: int                   # bitwise OR of every integer value (0 for float data)
+    distinct: int = 0               # number of distinct integer values (0 for float data)
 
 
 @dataclass(frozen=True)
@@ -177,9 +178,12 @@ def frame_values(stored: StoredImage, rule: SensorRule) -> FrameValues:
         integer = np.asarray(stored.data[..., stored.colour_channels])
         low = int(np.bitwise_or.reduce(integer.ravel())) if integer.size else 0
         values = np.asarray(plane, np.float32)
+    distinct = 0
+    if stored.container_bits is not None and stored.container_bits <= 16 and values.size:
+        distinct = int(np.count_nonzero(np.bincount(np.asarray(stored.data, np.int64).ravel())))
     return FrameValues(values=values, path=stored.path, container_bits=stored.container_bits,
                        significant_bits=stored.significant_bits, channels=stored.data.shape[-1],
-                       max_value=float(values.max()) if values.size else 0.0, low_bits=low)
+                       max_value=float(values.max()) if values.size else 0.0, low_bits=low, distinct=distinct)
 
 
 def _trailing_zero_bits(value: int, limit: int) -> int:
@@ -244,10 +248,12 @@ def decide_decoding(frames: list[FrameValues], rule: SensorRule, *, white_level:
     for frame in frames:
         low_bits |= frame.low_bits
     top = max(frame.max_value for frame in frames)
+    # Enough distinct values that empty low bits in all of them are no accident.
+    varied = sum(frame.distinct for frame in frames) >= 16
     n = rule.bit_depth
     if n is None:
         zeros = _trailing_zero_bits(low_bits, container - 1)
-        if zeros >= 2 and low_bits:
+        if zeros >= 2 and low_bits and varied:
             bits = container - zeros
             notes.append(f"every value is a multiple of {2**zeros}: reading {bits}-bit data MSB-aligned in "
                          f"{container}-bit files, levels in stored units (full scale {(2**bits - 1) << zeros}); "
@@ -264,7 +270,7 @@ def decide_decoding(frames: list[FrameValues], rule: SensorRule, *, white_level:
         return _checked(frames, Decoding(0, n, full, "codes"), white_level, rule)
     alignment = rule.alignment
     if alignment is None:
-        if top > full and low_bits % (1 << shift) == 0:
+        if top > full and low_bits % (1 << shift) == 0 and varied:
             alignment = "msb"
             notes.append(f"{n}-bit data in {container}-bit files: the values are multiples of {1 << shift}, "
                          f"so they are read as MSB-aligned (divided by {1 << shift}); state sensor.alignment: msb "

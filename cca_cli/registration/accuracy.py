@@ -13,9 +13,10 @@ registration error at any point of the reference view from two parts:
   corners' hull.
 * **systematic**: where a homography cannot follow the board (lens
   distortion, a bent board), the corner residuals vary smoothly. A
-  quadratic polynomial fitted to the residual vectors ("the board fit") is
+  cubic polynomial fitted to the residual vectors ("the board fit") is
   evaluated at the point (at the nearest point of the corners' bounding
-  box outside it); its length is the model error there.
+  box outside it); its length, less what the corner noise alone would
+  give the fit, is the model error there.
 
 The estimate at a point is ``sqrt(statistical² + systematic²)``.
 """
@@ -99,27 +100,34 @@ def point_uncertainty(points_moving, matrix, covariance) -> np.ndarray:
     return np.sqrt(np.maximum(cov[:, 0, 0] + cov[:, 1, 1], 0.0))
 
 
-def _quadratic_terms(points: np.ndarray, centre: np.ndarray, span: np.ndarray) -> np.ndarray:
+def _cubic_terms(points: np.ndarray, centre: np.ndarray, span: np.ndarray) -> np.ndarray:
     x, y = ((points - centre) / span).T
-    return np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], axis=1)
+    return np.stack([np.ones_like(x), x, y, x * x, x * y, y * y, x**3, x * x * y, x * y * y, y**3], axis=1)
 
 
 def board_fit_deviation(moving, reference, matrix, points_reference) -> np.ndarray:
-    """Length of the smooth residual field of the corners (quadratic fit) at reference points (px).
+    """Length of the smooth residual field of the corners (cubic fit) at reference points (px).
 
-    Points outside the corners' bounding box are evaluated at its nearest point.
+    The part the corner noise alone would give the fit (its variance times the fit's leverage at the
+    point) is subtracted, so that a homography that fits is not charged twice for the noise. Points
+    outside the corners' bounding box are evaluated at its nearest point.
     """
     src = np.asarray(moving, np.float64).reshape(-1, 2)
     dst = np.asarray(reference, np.float64).reshape(-1, 2)
     resid = dst - apply_homography(src, np.asarray(matrix, np.float64))
     lo, hi = dst.min(axis=0), dst.max(axis=0)
     centre, span = (lo + hi) / 2.0, np.maximum((hi - lo) / 2.0, 1e-9)
-    design = _quadratic_terms(dst, centre, span)
-    if src.shape[0] < 2 * design.shape[1]:
-        return np.zeros(len(np.asarray(points_reference).reshape(-1, 2)))
-    coeffs, *_ = np.linalg.lstsq(design, resid, rcond=None)
+    design = _cubic_terms(dst, centre, span)
+    n_terms = design.shape[1]
     pts = np.clip(np.asarray(points_reference, np.float64).reshape(-1, 2), lo, hi)
-    return np.linalg.norm(_quadratic_terms(pts, centre, span) @ coeffs, axis=1)
+    if src.shape[0] < 2 * n_terms:
+        return np.zeros(len(pts))
+    coeffs, *_ = np.linalg.lstsq(design, resid, rcond=None)
+    noise_var = float(np.sum((resid - design @ coeffs) ** 2)) / (2 * (src.shape[0] - n_terms))  # per coordinate
+    terms = _cubic_terms(pts, centre, span)
+    leverage = np.einsum("ni,ij,nj->n", terms, np.linalg.pinv(design.T @ design), terms)
+    fitted = np.sum((terms @ coeffs) ** 2, axis=1)
+    return np.sqrt(np.maximum(fitted - 2.0 * noise_var * leverage, 0.0))
 
 
 def rectangle_points(rect, count: int = 9) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Carry what ingest, hdr and register learned about recorded captures from stage to stage, and into recon.h5."""
+"""Carry what ingest, hdr and register learned about recorded captures into recon.h5 for the report."""
 
 from __future__ import annotations
 
@@ -7,37 +7,11 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-__all__ = ["capture_extras", "read_capture_summary", "carry_capture_records"]
+__all__ = ["capture_extras", "read_capture_summary"]
 
 _COPIED = ("/registration/rms_px", "/registration/dropped", "/registration/object_rms_px",
            "/registration/object_max_px", "/registration/board_hull_fraction", "/hdr/dynamic_range_gain",
            "/hdr/dynamic_range", "/hdr/valid_fraction", "/hdr/flux_ratio", "/hdr/flux_ratio_sigma")
-
-
-def carry_capture_records(source: h5py.File, target: h5py.File, *, keep=None) -> None:
-    """Copy the records later stages need from one capture file to the next.
-
-    The known defocus (/geometry attribute ``defocus_m``; write /geometry
-    first), the initial pupil (/calibration), the board pattern and board
-    views (/registration/board*, only the views ``keep`` when given) and the
-    sensor calibration (/sensor).
-    """
-    if "geometry" in source and "defocus_m" in source["geometry"].attrs and "geometry" in target:
-        target["geometry"].attrs["defocus_m"] = source["geometry"].attrs["defocus_m"]
-    for name in ("/calibration/initial_pupil", "/sensor"):
-        if name in source and name not in target:
-            parent = target.require_group(str(Path(name).parent))
-            source.copy(source[name], parent, name=Path(name).name)
-    if "registration/board" in source:
-        board = target.require_group("registration/board")
-        for key, value in source["registration/board"].attrs.items():
-            board.attrs[key] = value
-    if "/registration/board_views" in source and "/registration/board_views" not in target:
-        views = source["/registration/board_views"]
-        data = views[()] if keep is None else views[()][np.asarray(keep)]
-        copy = target.create_dataset("/registration/board_views", data=data)
-        for key, value in views.attrs.items():
-            copy.attrs[key] = value
 
 
 def capture_extras(captures_path: Path):

@@ -21,11 +21,11 @@ from cca_cli.errors import ConfigError, InputError
 from cca_cli.hdr.merge import NoiseModel, estimate_noise, merge_exposures
 from cca_cli.io.geometry import read_geometry, write_geometry
 from cca_cli.io.h5 import Provenance, atomic_h5, check_output, open_input, require, write_dataset
-from cca_cli.stages.capture_info import carry_capture_records
+from cca_cli.io.records import carry_capture_records
 from cca_cli.stages.ingest import BOUNDARY_OPEN, read_labels, read_sensor, write_labels
 from cca_cli.stages.progress import ProgressEvent, ProgressFn, silent
 
-__all__ = ["SECTIONS", "HdrOutcome", "run", "copy_board"]
+__all__ = ["SECTIONS", "HdrOutcome", "run"]
 
 SECTIONS = ("hdr",)
 
@@ -44,11 +44,6 @@ class HdrOutcome:
     flux_ratio: np.ndarray | None = None   # (K, E)
     noise: NoiseModel | None = None
     flagged: tuple[str, ...] = ()    # views whose flux ratios do not follow the exposure ratios
-
-
-def copy_board(source, handle) -> None:
-    """Copy the records of :func:`cca_cli.stages.capture_info.carry_capture_records` (board, sensor, pupil)."""
-    carry_capture_records(source, handle)
 
 
 def _saturation_levels(src, frames_ds, exposure: np.ndarray, section: HdrSection):

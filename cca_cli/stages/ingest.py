@@ -29,6 +29,7 @@ from cca_cli.io.geometry import write_geometry
 from cca_cli.io.h5 import Provenance, atomic_h5, check_output, write_dataset
 from cca_cli.io.images import read_stored
 from cca_cli.io.manifest import CapturePlan, plan_captures, read_manifest, read_pupil
+from cca_cli.io.records import read_sensor_records, write_sensor_records
 from cca_cli.io.sensor import Decoding, FrameValues, SensorRule, decide_decoding, frame_values
 from cca_cli.sampling.capture import led_array_geometry, stage_scan_geometry
 from cca_cli.sampling.geometry import CaptureGeometry
@@ -72,24 +73,18 @@ class SensorCalibration:
         return level if self.gain is None else level / self.gain
 
 
-def read_sensor(handle: h5py.File) -> SensorCalibration | None:
-    """The sensor calibration stored by :func:`write_raw` (None when the file has no /sensor group)."""
-    if "sensor" not in handle:
+def read_sensor(handle) -> SensorCalibration | None:
+    """The sensor calibration stored by :func:`write_raw` (None when the file has none)."""
+    records = read_sensor_records(handle)
+    if records is None:
         return None
-    group = handle["sensor"]
-    attrs = group.attrs
     darks = None
-    if "black_level" in group:
-        darks = DarkModel(exposure_s=np.asarray(group["dark_exposure_s"], np.float64),
-                          black=np.asarray(group["black_level"], np.float32))
-    gain = np.asarray(group["gain_map"], np.float32) if "gain_map" in group else None
-    source = attrs.get("noise_source", "")
-    return SensorCalibration(
-        white_level=float(attrs["white_level"]) if "white_level" in attrs else None,
-        black_level=float(attrs.get("black_level", 0.0)), darks=darks, gain=gain,
-        read_noise=float(attrs["read_noise"]) if "read_noise" in attrs else None,
-        electrons_per_count=float(attrs["electrons_per_count"]) if "electrons_per_count" in attrs else None,
-        noise_source=source.decode() if isinstance(source, bytes) else str(source))
+    if records["black_maps"] is not None:
+        darks = DarkModel(exposure_s=records["dark_exposure_s"], black=records["black_maps"])
+    return SensorCalibration(white_level=records["white_level"], black_level=records["black_level"], darks=darks,
+                             gain=records["gain_map"], read_noise=records["read_noise"],
+                             electrons_per_count=records["electrons_per_count"],
+                             noise_source=records["noise_source"])
 
 
 @dataclass(frozen=True)
@@ -341,21 +336,13 @@ def read_labels(handle: h5py.File, count: int) -> list[str]:
     return [f"view {k}" for k in range(count)]
 
 
-def _write_sensor(handle: h5py.File, calibration: SensorCalibration) -> None:
-    group = handle.require_group("sensor")
-    if calibration.white_level is not None:
-        group.attrs["white_level"] = calibration.white_level
-    group.attrs["black_level"] = calibration.black_level
-    if calibration.read_noise is not None:
-        group.attrs["read_noise"] = calibration.read_noise
-    if calibration.electrons_per_count is not None:
-        group.attrs["electrons_per_count"] = calibration.electrons_per_count
-    group.attrs["noise_source"] = calibration.noise_source
-    if calibration.darks is not None:
-        write_dataset(handle, "/sensor/black_level", calibration.darks.black)
-        write_dataset(handle, "/sensor/dark_exposure_s", calibration.darks.exposure_s)
-    if calibration.gain is not None:
-        write_dataset(handle, "/sensor/gain_map", calibration.gain)
+def _write_sensor(handle, calibration: SensorCalibration) -> None:
+    darks = calibration.darks
+    write_sensor_records(handle, white_level=calibration.white_level, black_level=calibration.black_level,
+                         dark_exposure_s=None if darks is None else darks.exposure_s,
+                         black_maps=None if darks is None else darks.black, gain_map=calibration.gain,
+                         read_noise=calibration.read_noise, electrons_per_count=calibration.electrons_per_count,
+                         noise_source=calibration.noise_source)
 
 
 def write_raw(path: Path, data: Ingested, provenance: Provenance, *, force: bool = False) -> None:

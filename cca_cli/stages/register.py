@@ -27,7 +27,7 @@ from cca_cli.registration.accuracy import object_error
 from cca_cli.registration.checkerboard import find_checkerboard
 from cca_cli.registration.homography import crop, estimate_homography, warp_views
 from cca_cli.sampling.capture import object_pixel_m, with_field_width
-from cca_cli.stages.capture_info import carry_capture_records
+from cca_cli.io.records import carry_capture_records
 from cca_cli.stages.ingest import BOUNDARY_OPEN, read_labels, write_labels
 from cca_cli.stages.progress import ProgressEvent, ProgressFn, silent
 
@@ -56,7 +56,7 @@ class Registration:
 
 def register_views(intensity: np.ndarray, weight: np.ndarray | None, pattern: tuple[int, int], *, reference: int,
                    crop_xywh, labels: list[str], drop_missing: bool = False, ransac_threshold_px: float = 1.0,
-                   interpolation: str = "cubic", board_views: np.ndarray | None = None,
+                   interpolation: str = "cubic", board_views: np.ndarray | None = None, object_xywh=None,
                    progress: ProgressFn = silent) -> Registration:
     """Register ``intensity`` views (K, H, W) to view ``reference`` and cut out ``crop_xywh``.
 
@@ -65,6 +65,9 @@ def register_views(intensity: np.ndarray, weight: np.ndarray | None, pattern: tu
     board_views : ndarray, (K, H, W), optional
         Calibration images of the board at each position; the board is
         looked for in ``intensity`` itself when None.
+    object_xywh : tuple of int, optional
+        Where the object is (reference px), for the registration error
+        estimate; default ``crop_xywh``.
 
     Raises
     ------
@@ -103,10 +106,13 @@ def register_views(intensity: np.ndarray, weight: np.ndarray | None, pattern: tu
             raise InputError(f"{labels[i]}: cannot fit a homography to the checkerboard ({exc})") from None
     mats = np.stack([f.matrix for f in fits])
     rect = (x0, y0, cw, ch)
-    errors = [object_error(pts, ref, f.matrix, rect, inliers=f.inlier_mask) for pts, f in zip(corners, fits)]
+    where = rect if object_xywh is None else tuple(int(v) for v in object_xywh)
+    if where[0] + where[2] > w or where[1] + where[3] > h:
+        raise ConfigError(f"registration.object_xywh: {where} does not fit in the {w}x{h} px frames")
+    errors = [object_error(pts, ref, f.matrix, where, inliers=f.inlier_mask) for pts, f in zip(corners, fits)]
     hull = np.array([e.hull_fraction for e in errors])
     if (hull < 1).any():
-        _log.warning("the object rectangle lies %.0f%% outside the board corners' hull (worst view %s): the "
+        _log.warning("the object region lies %.0f%% outside the board corners' hull (worst view %s): the "
                      "homographies extrapolate there (estimated error up to %.3f px); photograph the board over the "
                      "object region", 100 * (1 - hull.min()), labels[kept[int(np.argmin(hull))]],
                      max(e.max_px for e in errors))
@@ -146,7 +152,7 @@ def run(captures_path: Path, section: RegisterSection | None, output: Path, *, p
         reg = register_views(intensity, weight, pattern, reference=geometry.centre_index, crop_xywh=rect,
                              labels=labels, drop_missing=section.drop_missing,
                              ransac_threshold_px=section.ransac_threshold_px, interpolation=section.interpolation,
-                             board_views=board_views, progress=progress)
+                             board_views=board_views, object_xywh=section.object_xywh, progress=progress)
         new_geometry = with_field_width(geometry, rect[2] * object_pixel_m(geometry), keep=reg.kept)
         with atomic_h5(output, provenance, force=force) as handle:
             units = src["/measurements/intensity"].attrs.get("units", "")
@@ -164,6 +170,7 @@ def run(captures_path: Path, section: RegisterSection | None, output: Path, *, p
             dropped.attrs["units"] = ""
             dropped.attrs["description"] = "Positions lost because no checkerboard was found."
             handle["registration"].attrs["crop_xywh"] = np.asarray(rect, np.int32)
+            handle["registration"].attrs["object_xywh"] = np.asarray(section.object_xywh or rect, np.int32)
             handle["registration"].attrs["reference_index"] = int(geometry.centre_index)
             handle["registration"].attrs["board_source"] = "calibration views" if board_views is not None else "captures"
             write_labels(handle, [labels[i] for i in reg.kept])
