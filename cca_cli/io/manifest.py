@@ -749,7 +749,7 @@ def _match_calibration(rows: list[ImageEntry], keys: list[tuple], positions: np.
         if key in index:
             views[index[key]].append((row.path, row.exposure_s))
             continue
-        if key[0] == "grid" or row.position_kind is None:
+        if row.position_kind in (None, "grid"):
             raise ConfigError(f"{path}: calibration image {row.path.name} is at {_position_text(key)}, where no "
                               "coherent image was taken; fix its position")
         if kind == "stage":
