@@ -34,7 +34,7 @@ sys.path.insert(0, str(ROOT / "pipelines"))
 
 from make_lab_capture import CHART_BOX, FRAME_HW, OBJECT_CROP, simulate_lab, write_lab  # noqa: E402
 
-from cca_cli.config.load import parse_config  # noqa: E402
+from cca_cli.config.load import load_config, parse_config  # noqa: E402
 from cca_cli.metrics import rmse  # noqa: E402
 from cca_cli.registration.accuracy import rectangle_points  # noqa: E402
 from cca_cli.registration.homography import apply_homography  # noqa: E402
@@ -91,13 +91,15 @@ def recovery_error(recon: Path, frame_box: tuple[int, int, int, int], truth: np.
 
 def run(manifest: Path, out: Path, stages: list[str], *, engine: str, iterations: int, registration=None,
         padding=None) -> float:
-    config = {"run": {"stages": stages}, "ingest": {"manifest": str(manifest)},
-              "reconstruct": {"engine": engine, "iterations": iterations, "tol": 0.0},
-              "report": {"figures": False}}
-    if registration is not None:
-        config["registration"] = registration
+    """The documented route (configs/lab_capture.yaml) on ``manifest`` with the given stages and overrides."""
+    config = load_config(ROOT / "configs" / "lab_capture.yaml").model_dump(mode="json")
+    config["run"] = {"stages": stages}
+    config["ingest"] = {"manifest": str(manifest)}
+    config["reconstruct"].update(engine=engine, iterations=iterations, tol=0.0)
+    config["report"]["figures"] = False
+    config["registration"].update(registration or {})
     if padding is not None:
-        config["reconstruct"]["padding"] = padding
+        config["reconstruct"]["padding"].update(padding)
     start = time.perf_counter()
     run_pipeline(parse_config(config), out, force=True)
     return time.perf_counter() - start
@@ -180,8 +182,7 @@ def main() -> None:
     aligned = write_lab(out / "aligned", simulate_lab(args.grid, seed=args.seed, misregistered=False), truth=False)
     common = {"engine": args.engine, "iterations": args.iterations}
 
-    seconds = run(manifest, out / "route", ["ingest", "hdr", "register", "reconstruct"],
-                  registration={"object_xywh": list(OBJECT_XYWH)}, **common)
+    seconds = run(manifest, out / "route", ["ingest", "hdr", "register", "reconstruct"], **common)
     figures["hdr"] = hdr_figures(out / "route" / "hdr.h5", lab.truth_flux, lab.grid)
     figures["registration"] = registration_figures(out / "route" / "registered.h5", lab.homographies)
     full = (0, 0) + FRAME_HW
@@ -191,13 +192,13 @@ def main() -> None:
     run(aligned, out / "reference", ["ingest", "hdr", "reconstruct"], **common)
     recovery["reference_aligned_full_frame"] = recovery_error(out / "reference" / "recon.h5", full, lab.truth_band)
     run(manifest, out / "object_rectangle", ["ingest", "hdr", "register", "reconstruct"],
-        registration={"crop_xywh": list(OBJECT_CROP)}, **common)
+        registration={"crop_xywh": list(OBJECT_CROP), "object_xywh": None}, **common)
     recovery["route_object_rectangle"] = recovery_error(out / "object_rectangle" / "recon.h5", (y0, x0, h, w),
                                                         lab.truth_band)
     side = FRAME_HW[0]
     square = ((FRAME_HW[1] - side) // 2, 0, side, side)
     run(manifest, out / "square_unpadded", ["ingest", "hdr", "register", "reconstruct"],
-        registration={"crop_xywh": list(square)}, padding={"mode": "off"}, **common)
+        registration={"crop_xywh": list(square), "object_xywh": None}, padding={"mode": "off"}, **common)
     recovery["square_crop_without_guard_band"] = recovery_error(out / "square_unpadded" / "recon.h5",
                                                                 (0, square[0], side, side), lab.truth_band)
     with h5py.File(out / "route" / "recon.h5") as f:

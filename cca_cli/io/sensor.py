@@ -306,15 +306,16 @@ def _checked(frames: list[FrameValues], decoding: Decoding, white_level: float |
         return decoding
     units = "codes" if decoding.level_units == "codes" else "stored units"
     if decoding.full_scale is not None and white_level > decoding.full_scale:
-        what = (f"{decoding.code_bits}-bit codes" if decoding.level_units == "codes"
-                else f"these files (full scale {decoding.full_scale:g})")
-        raise InputError(f"{frames[0].path}: sensor.white_level {white_level:g} is above what {what} can hold "
-                         f"({decoding.full_scale:g}); give the white level in {units} in {rule.source}")
+        what = (f"the largest {decoding.code_bits}-bit code" if decoding.level_units == "codes"
+                else f"the largest value these {frames[0].container_bits}-bit files hold")
+        raise InputError(f"{frames[0].path}: sensor.white_level {white_level:g} is above {decoding.full_scale:g}, "
+                         f"{what}; give the white level in {units} in {rule.source}")
     scale = float(2**decoding.shift)
     culprit = max(frames, key=lambda f: f.max_value)
     if culprit.max_value / scale > white_level:
-        hint = (f"state the levels in stored units or sensor.bit_depth (and alignment) so they are read as codes"
+        hint = ("give the clipping level in stored units, or state sensor.bit_depth (and alignment) to give it in codes"
                 if decoding.level_units == "stored" else "check sensor.white_level, bit_depth and alignment")
         raise InputError(f"{culprit.path}: holds values up to {culprit.max_value / scale:g} {units}, above "
-                         f"sensor.white_level {white_level:g}; {hint} ({rule.source})")
+                         f"sensor.white_level {white_level:g}: the level is too low or in other units; {hint} "
+                         f"({rule.source})")
     return decoding
