@@ -90,10 +90,12 @@ def run(raw_path: Path, section: HdrSection | None, output: Path, *, provenance:
         labels = read_labels(src, frames.shape[0])
         k, e = frames.shape[:2]
         levels = _saturation_levels(src, frames_ds, exposure, section)
-        all_levels = np.stack([np.broadcast_to(np.asarray(levels(i), np.float32), frames.shape[1:])
-                               for i in range(k)]) if not np.isscalar(levels(0)) else levels(0)
+        # The noise model is measured on at most 12 positions spread over the set (memory stays bounded).
+        sample = np.unique(np.linspace(0, k - 1, min(k, 12)).round().astype(int))
+        sample_levels = np.stack([np.broadcast_to(np.asarray(levels(i), np.float32), frames.shape[1:])
+                                  for i in sample]) if not np.isscalar(levels(0)) else levels(0)
         try:
-            noise = _noise_model(src, frames, exposure, all_levels, section)
+            noise = _noise_model(src, frames[sample], exposure[sample], sample_levels, section)
         except ValueError as exc:
             raise InputError(f"{raw_path}: {exc}") from None
         radiance = np.empty((k,) + frames.shape[2:], np.float32)
