@@ -46,24 +46,28 @@ def hdr_cli(
     raw: Annotated[Path, typer.Argument(help="raw.h5 from ingest.", show_default=False)],
     output: Annotated[Path, typer.Option("--output", "-o", help="hdr file to write.")] = Path("hdr.h5"),
     saturation_level: Annotated[Optional[float], typer.Option(help="Clipping level (black-subtracted counts).")] = None,
-    noise_floor: Annotated[Optional[float], typer.Option(help="Counts at or below this are ignored.")] = None,
+    read_noise: Annotated[Optional[float], typer.Option(help="Read noise, counts RMS (default: measured).")] = None,
     force: Force = False,
     quiet: Quiet = False,
 ) -> None:
     """Merge each position's exposure bracket into linear radiance + validity weights → hdr.h5."""
-    section = section_from_options(HdrSection, saturation_level=saturation_level, noise_floor=noise_floor)
+    section = section_from_options(HdrSection, saturation_level=saturation_level, read_noise=read_noise)
     out = run_stage("hdr", hdr_stage.run, raw, section, output=output, sections={"hdr": section}, inputs=[raw],
                     force=force, quiet=quiet)
+    noise = f", read noise {out.noise.read_noise:.2f} counts, {out.noise.electrons_per_count:.2f} e/count " \
+            f"({out.noise.source})" if out.noise is not None else ""
+    flagged = f", flux ratios off in {len(out.flagged)} view(s)" if out.flagged else ""
     console.print(f"{output}: {out.n_positions} positions merged from {out.n_exposures} exposures "
                   f"(ratio {out.exposure_ratio:.0f}), dynamic range gain median {np.median(out.dynamic_range_gain):.1f}x, "
-                  f"valid pixels {np.mean(out.valid_fraction):.1%}")
+                  f"valid pixels {np.mean(out.valid_fraction):.1%}{noise}{flagged}")
 
 
 @handle_errors
 def register_cli(
     captures: Annotated[Path, typer.Argument(help="hdr.h5 (or a single-exposure raw.h5).", show_default=False)],
     output: Annotated[Path, typer.Option("--output", "-o", help="registered file to write.")] = Path("registered.h5"),
-    crop: Annotated[Optional[str], typer.Option(help="Object rectangle x0,y0,width,height (reference px, square).")] = None,
+    crop: Annotated[Optional[str], typer.Option(help="Rectangle to keep x0,y0,width,height (reference px; "
+                                                     "default: the whole frame).")] = None,
     drop_missing: Annotated[bool, typer.Option("--drop-missing", help="Drop views without a board (warning).")] = False,
     ransac_threshold_px: Annotated[Optional[float], typer.Option(help="RANSAC inlier threshold (px).")] = None,
     force: Force = False,
@@ -84,4 +88,5 @@ def register_cli(
                     sections={"registration": section}, inputs=[captures], force=force, quiet=quiet)
     lost = f", lost: {'; '.join(reg.dropped)}" if reg.dropped else ""
     console.print(f"{output}: {len(reg.kept)} views registered, reprojection RMS max {reg.rms_px.max():.3f} px, "
-                  f"object {reg.intensity.shape[-1]}² px{lost}")
+                  f"estimated error over the object {reg.object_rms_px.mean():.3f} px RMS (max "
+                  f"{reg.object_max_px.max():.3f} px), region {reg.intensity.shape[-1]}x{reg.intensity.shape[-2]} px{lost}")

@@ -123,6 +123,8 @@ def summary_table(summary: dict, title: str = "Result") -> Table:
         ("spectral energy beyond 1-camera cutoff, observed", "energy_beyond_cutoff_observed", "{:.2%}"),
         ("spectral energy beyond 1-camera cutoff, recovered", "energy_beyond_cutoff_recovered", "{:.2%}"),
         ("registration RMS max (px)", "registration_rms_px_max", "{:.3f}"),
+        ("registration error over the object, max (px)", "registration_object_rms_px_max", "{:.3f}"),
+        ("HDR flux ratio, worst view", "hdr_flux_ratio_worst", "{:.3f}"),
         ("HDR dynamic-range gain (median)", "hdr_dynamic_range_gain_median", "{:.1f}"),
     ]
     for label, key, fmt in rows:

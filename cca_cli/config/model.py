@@ -9,7 +9,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, PositiveInt, field_validator, model_validator
+from pydantic import (BaseModel, ConfigDict, Field, NonNegativeInt, PositiveFloat, PositiveInt, field_validator,
+                      model_validator)
 
 __all__ = [
     "STAGES",
@@ -19,6 +20,7 @@ __all__ = [
     "ArraySection",
     "NoiseSection",
     "SimulateSection",
+    "PaddingSection",
     "ReconstructSection",
     "ReportSection",
     "BaselineSpec",
@@ -131,6 +133,17 @@ class SimulateSection(Section):
         "sensor", description="sensor: full sensor pixel grid as a camera records it; band: the smallest grid that holds the band.")
 
 
+class PaddingSection(Section):
+    """How recorded frames (windows on a larger scene) are placed on the recovery's square, periodic grid."""
+
+    mode: Literal["auto", "off"] = Field(
+        "auto", description="auto: pad recorded or non-square images with a weight-0 guard band and crop the "
+                            "recovery back; off: use square images as they are (periodic).")
+    guard_px: int | None = Field(None, ge=0, description="Guard band (sensor px); default 4 coherent resolution cells.")
+    apodize_px: int | None = Field(None, ge=0, description="Weight taper inside the region edge (sensor px); "
+                                                           "default one resolution cell.")
+
+
 class ReconstructSection(Section):
     """Phase retrieval."""
 
@@ -140,6 +153,7 @@ class ReconstructSection(Section):
     iterations: PositiveInt = Field(1000, description="Maximum iterations.")
     tol: float = Field(1e-5, ge=0.0, description="Stop when the relative spectrum change is below this.")
     options: dict[str, Any] = Field(default_factory=dict, description="Engine-specific options.")
+    padding: PaddingSection = Field(PaddingSection(), description="Guard band for recorded / non-square frames.")
 
     # Field validators (not a model validator) so that errors point at reconstruct.engine / .options.
     @field_validator("engine")
@@ -287,21 +301,36 @@ class IngestSection(Section):
 
 
 class HdrSection(Section):
-    """Merging exposure brackets into linear radiance."""
+    """Merging exposure brackets into linear radiance (README, "Real captures": HDR model)."""
 
     saturation_level: PositiveFloat | None = Field(
-        None, description="Clipping level in black-subtracted counts (default: from the manifest's sensor/bit depth).")
-    noise_floor: float = Field(0.0, ge=0.0, description="Counts at or below this are noise and ignored.")
+        None, description="Clipping level in black-subtracted counts (default: the manifest's white level minus "
+                          "each pixel's black level).")
+    read_noise: PositiveFloat | None = Field(
+        None, description="Read noise, counts RMS (default: from dark frames or the manifest, else measured "
+                          "from the exposure brackets).")
+    electrons_per_count: PositiveFloat | None = Field(
+        None, description="Conversion gain (default: from flat pairs or the manifest, else measured from the brackets).")
+    noise_floor: float | None = Field(
+        None, ge=0.0, description="Ignored (kept so that older configs load): every unsaturated frame counts, "
+                                  "weighted by its noise.")
     min_weight: float = Field(1e-3, gt=0.0, le=1.0, description="Smallest weight of a valid pixel.")
     saturation_margin: float = Field(0.01, ge=0.0, lt=1.0,
                                      description="Values ≥ saturation_level·(1 − margin) count as saturated.")
+    flux_tolerance: float = Field(0.02, gt=0.0, lt=1.0,
+                                  description="Warn when a view's flux ratio between exposures is off by more than "
+                                              "this (and by more than 4 standard deviations).")
 
 
 class RegisterSection(Section):
     """Aligning views to the centre view with the checkerboard (config key ``registration``)."""
 
     crop_xywh: tuple[int, int, PositiveInt, PositiveInt] | None = Field(
-        None, description="Square object rectangle [x0, y0, width, height] in reference pixels (default: whole frame).")
+        None, description="Object rectangle [x0, y0, width, height] in reference pixels, any aspect (default: the whole "
+                          "frame); reconstruct pads it to its square grid.")
+    object_xywh: tuple[NonNegativeInt, NonNegativeInt, PositiveInt, PositiveInt] | None = Field(
+        None, description="Where the object is [x0, y0, width, height] (reference px), for the registration error "
+                          "estimate and the board-hull check (default: the crop).")
     drop_missing: bool = Field(False, description="Drop (with a warning) views where the board is not found.")
     ransac_threshold_px: PositiveFloat = Field(1.0, description="RANSAC inlier threshold (reference px).")
     interpolation: Literal["linear", "cubic", "lanczos"] = Field("cubic", description="Warp kernel.")

@@ -63,10 +63,11 @@ from cca_cli.engines import calibration as cal
 from cca_cli.engines import illumination as ill
 from cca_cli.engines.base import IterativeEngine, check_options
 from cca_cli.engines.problem import PhaseRetrievalProblem, initial_spectrum
-from cca_cli.engines.pupil_recovery import PUPIL_MODELS, PupilEstimate, PupilRecovery
+from cca_cli.engines.pupil_recovery import PUPIL_MODELS, PupilEstimate, PupilRecovery, resample_pupil
 from cca_cli.engines.schedule import build_schedule
 from cca_cli.optics import fft, kernels
 from cca_cli.optics.forward import ForwardModel
+from cca_cli.optics.pupil import circular_pupils
 from cca_cli.sampling.grid import BandLayout, band_layout
 
 __all__ = ["MomentumOptions", "Calibration", "SequentialMomentum"]
@@ -281,12 +282,17 @@ class SequentialMomentum(IterativeEngine):
         self._position_model = problem.position_model if options.position_refinement in ("global", "both") else None
         self._parameters = None if self._position_model is None else self._position_model.initial
         self._fixed_coefficients = self._starting_coefficients()
+        self._fixed_map = None
+        if problem.initial_pupil is not None:
+            self._fixed_map = resample_pupil(problem.initial_pupil, self._nominal.box_size,
+                                             self._nominal.pupil_radius_px)
+            self._fixed_coefficients = None
         self._recovery = None
         if options.pupil_recovery != "none":
             self._recovery = PupilRecovery(
                 self._nominal, self._pupil_index, model=options.pupil_model, order=options.pupil_order,
                 coefficients=self._fixed_coefficients, amplitude=options.pupil_amplitude,
-                step=options.pupil_step, threads=self._threads)
+                step=options.pupil_step, threads=self._threads, maps=self._fixed_map)
         self._iteration = 0
         self._change = np.inf
         self._misfits: list[float] = []
@@ -330,6 +336,8 @@ class SequentialMomentum(IterativeEngine):
         """Pupils of captures laid out by ``layout`` that use pupils ``index``."""
         if self._recovery is not None:
             return self._recovery.pupils_at(layout, index)
+        if self._fixed_map is not None:
+            return circular_pupils(layout.box_size, layout.box_centres, layout.pupil_radius_px) * self._fixed_map
         coefficients = None
         if self._fixed_coefficients is not None:
             coefficients = self._fixed_coefficients[index]

@@ -52,6 +52,9 @@ class PhaseRetrievalProblem(MeasuredAmplitudes):
         Known Zernike phase coefficients (waves, modes of
         :func:`~cca_cli.engines.calibration.zernike_modes`) of the pupil(s),
         e.g. a known defocus; engines start from it.
+    initial_pupil : ndarray, complex, (n, n), or None
+        A known pupil (aberration and apodisation) with the objective's NA disc
+        inscribed in the array, for every camera; engines start from it.
     """
 
     model: ForwardModel
@@ -60,6 +63,7 @@ class PhaseRetrievalProblem(MeasuredAmplitudes):
     pupil_index: np.ndarray | None = None
     position_model: PositionModel | None = None
     aberration: np.ndarray | None = None
+    initial_pupil: np.ndarray | None = None
 
     def __post_init__(self):
         expected = (self.model.n_images,) + self.model.field_shape
@@ -96,7 +100,7 @@ class PhaseRetrievalProblem(MeasuredAmplitudes):
         weights : ndarray, (K, N, N), optional
             Validity weights in [0, 1] on the same grid (resampled by area when N > m).
         **calibration
-            ``pupil_index``, ``position_model``, ``aberration`` (see the class).
+            ``pupil_index``, ``position_model``, ``aberration``, ``initial_pupil`` (see the class).
         """
         amplitudes, resampled_weights = sensor_amplitudes(model, images, weights, count=model.n_images)
         return cls(model=model, amplitudes=amplitudes, weights=resampled_weights, **calibration)

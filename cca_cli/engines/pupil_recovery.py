@@ -50,7 +50,7 @@ from cca_cli.optics import kernels
 from cca_cli.optics.pupil import circular_pupils
 from cca_cli.sampling.grid import BandLayout
 
-__all__ = ["PUPIL_MODELS", "PupilEstimate", "PupilRecovery", "tilt_of"]
+__all__ = ["PUPIL_MODELS", "PupilEstimate", "PupilRecovery", "tilt_of", "resample_pupil"]
 
 PUPIL_MODELS = ("full", "zernike")
 #: Largest change of any Zernike coefficient in one step (waves): the linearisation holds within ~0.05.
@@ -92,6 +92,28 @@ class _Step:
     tilt: np.ndarray
 
 
+def resample_pupil(pupil: np.ndarray, box_size: int, radius_px: float) -> np.ndarray:
+    """A pupil given with its NA disc inscribed in an (n, n) array, on a pupil box of ``box_size``.
+
+    The disc lands centred on the box at ``(box_size − 1)/2`` with radius
+    ``radius_px``; values are interpolated linearly (real and imaginary parts),
+    and outside the given array the nearest edge value is kept.
+
+    Returns
+    -------
+    ndarray, complex64, (box_size, box_size)
+    """
+    from scipy import ndimage
+
+    pupil = np.asarray(pupil, np.complex64)
+    n = pupil.shape[0]
+    grid = (np.arange(box_size) - (box_size - 1) / 2.0) / radius_px  # unit disc coordinates
+    source = (n - 1) / 2.0 + grid * (n / 2.0)
+    rows, cols = np.meshgrid(source, source, indexing="ij")
+    sample = lambda part: ndimage.map_coordinates(part, [rows, cols], order=1, mode="nearest")
+    return (sample(pupil.real) + 1j * sample(pupil.imag)).astype(np.complex64)
+
+
 def tilt_of(field: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """Weighted mean phase gradient ``[gy, gx]`` (radians per pixel) of a complex map, free of wrapping."""
     gy = np.angle(np.sum(weights[1:, :] * weights[:-1, :] * field[1:, :] * np.conj(field[:-1, :])))
@@ -121,11 +143,14 @@ class PupilRecovery:
         Number of threads that accumulate (each has its own sums).
     offsets : ndarray, (K, 2), optional
         Position offsets of the pupil centres from the layout's (spectrum pixels).
+    maps : ndarray, complex, (b, b) or (P, b, b), optional
+        Starting aberration maps on the box grid (``full``); for ``zernike`` their
+        phase is projected on the modes.
     """
 
     def __init__(self, layout: BandLayout, pupil_index: np.ndarray, *, model: str = "full", order: int = 4,
                  coefficients: np.ndarray | None = None, amplitude: bool = True, step: float = 1.0,
-                 threads: int = 1, offsets: np.ndarray | None = None):
+                 threads: int = 1, offsets: np.ndarray | None = None, maps: np.ndarray | None = None):
         if model not in PUPIL_MODELS:
             raise ValueError(f"pupil model must be one of {', '.join(PUPIL_MODELS)}, got {model!r}")
         self.model = model
@@ -146,7 +171,12 @@ class PupilRecovery:
         self._rhs = np.zeros((threads, self.n_pupils, len(self.modes)), np.float64)
         self.set_geometry(layout, self.index, offsets)
         self.maps = np.ones((self.n_pupils, b, b), np.complex64)
-        if model == "full" and np.any(self.coefficients):  # the map starts from the given aberration
+        if maps is not None:  # a known pupil: the map starts from it, the modes from its phase
+            self.maps = np.broadcast_to(np.asarray(maps, np.complex64), (self.n_pupils, b, b)).copy()
+            if model == "zernike":
+                self.coefficients = self.project_zernike()
+                self.maps = np.ones((self.n_pupils, b, b), np.complex64)
+        elif model == "full" and np.any(self.coefficients):  # the map starts from the given aberration
             self.maps = self._zernike_maps(self.coefficients)
             self.coefficients[:] = 0
 

@@ -1,5 +1,5 @@
-"""Merge multi-exposure (HDR) brackets into linear radiance maps (numpy only)."""
+"""Merging exposure brackets into linear radiance (numeric core: arrays in, arrays out)."""
 
-from cca_cli.hdr.merge import HdrResult, merge_exposures
+from cca_cli.hdr.merge import HdrResult, NoiseModel, estimate_noise, merge_exposures
 
-__all__ = ["HdrResult", "merge_exposures"]
+__all__ = ["HdrResult", "NoiseModel", "estimate_noise", "merge_exposures"]

@@ -19,7 +19,7 @@ import OpenImageIO as oiio
 
 from cca_cli.errors import CcaError, InputError
 
-__all__ = ["RawImage", "read_image", "to_linear", "saturation_mask", "write_image"]
+__all__ = ["RawImage", "StoredImage", "read_image", "read_stored", "to_linear", "saturation_mask", "write_image"]
 
 _log = logging.getLogger(__name__)
 
@@ -63,6 +63,122 @@ def _one_line(text: str) -> str:
     return " ".join(str(text).split())
 
 
+@dataclass(frozen=True)
+class StoredImage:
+    """One image file's values exactly as stored, with what the file says about them.
+
+    Attributes
+    ----------
+    data : numpy.ndarray
+        ``(H, W, C)`` stored values: unsigned/signed integers for integer files
+        (packed n-bit data, e.g. a 12-bit TIFF, as n-bit codes), float32 for
+        float files.
+    container_bits : int or None
+        Bits per sample of the integer type that holds the values (8, 16, 32);
+        None for float data.
+    significant_bits : int or None
+        Bits the file declares as significant (``oiio:BitsPerSample``, e.g. 12
+        for a packed 12-bit TIFF); equals ``container_bits`` when the file
+        declares nothing; None for float data.
+    channel_names : tuple of str
+        Channel names (``R``, ``G``, ``B``, ``A``, ``Y`` …).
+    alpha_channel : int
+        Index of the alpha channel, or -1.
+    format : str
+        Stored pixel type as OpenImageIO names it.
+    path : str
+        The file that was read.
+    """
+
+    data: np.ndarray
+    container_bits: int | None
+    significant_bits: int | None
+    channel_names: tuple[str, ...]
+    alpha_channel: int
+    format: str
+    path: str
+
+    @property
+    def colour_channels(self) -> list[int]:
+        """Indices of the channels that are not alpha."""
+        return [c for c in range(self.data.shape[-1]) if c != self.alpha_channel] or list(range(self.data.shape[-1]))
+
+    @property
+    def code_bits(self) -> int | None:
+        """Bits of the codes in :attr:`data` (the significant bits; None for float data)."""
+        return self.significant_bits
+
+
+def read_stored(path) -> StoredImage:
+    """Read one image file's stored values, all channels, without any conversion.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Image file (TIFF, PNG, EXR, or anything OpenImageIO reads).
+
+    Returns
+    -------
+    StoredImage
+
+    Raises
+    ------
+    InputError
+        The file is missing, cannot be decoded, or is not a 2-D image; the
+        message is one line naming the file.
+
+    Notes
+    -----
+    OpenImageIO expands packed n-bit integer data (e.g. 12-bit TIFF) to the
+    full 16-bit range by bit replication; the codes are shifted back, so
+    ``data`` holds the n-bit codes the file stores. Only the first subimage
+    of multi-image files is read.
+    """
+    name = os.fspath(path)
+    if not os.path.exists(name):
+        raise InputError(f"{name}: file not found; check the path and the capture folder")
+    if os.path.isdir(name):
+        raise InputError(f"{name}: is a directory, not an image file; give the image file path")
+    inp = oiio.ImageInput.open(name)
+    if inp is None:
+        _log.debug("OpenImageIO could not open %s: %s", name, _one_line(oiio.geterror()))
+        raise InputError(f"{name}: cannot read image (not a supported format or corrupt); {_REEXPORT}")
+    try:
+        spec = inp.spec()
+        fmt = str(spec.format)
+        nch = int(spec.nchannels)
+        try:
+            data = inp.read_image(0, 0, 0, nch, spec.format)
+        except Exception as exc:  # noqa: BLE001 - any decoder failure is a corrupt file
+            _log.debug("OpenImageIO failed to read %s: %s", name, _one_line(exc))
+            data = None
+        err = inp.geterror() if hasattr(inp, "geterror") else ""
+        if data is None or err:
+            _log.debug("OpenImageIO error reading %s: %s", name, _one_line(err))
+            raise InputError(f"{name}: cannot read image (truncated or corrupt); {_REEXPORT}")
+        alpha = int(spec.alpha_channel)
+        names = tuple(str(n) for n in spec.channelnames) or tuple(str(c) for c in range(nch))
+        bits_attr = spec.getattribute("oiio:BitsPerSample")
+    finally:
+        inp.close()
+
+    data = np.asarray(data)
+    if data.ndim == 2:
+        data = data[..., None]
+    if data.ndim != 3:
+        raise InputError(f"{name}: is a volume or deep image (shape {data.shape}); {_REEXPORT} as a 2-D image")
+    container = significant = None
+    if fmt in _INT_BITS:
+        container = significant = _INT_BITS[fmt]
+        if bits_attr is not None and 0 < int(bits_attr) < container:
+            significant = int(bits_attr)
+            data = np.right_shift(data, container - significant)
+    else:
+        data = data.astype(np.float32, copy=False)
+    return StoredImage(data=np.ascontiguousarray(data), container_bits=container, significant_bits=significant,
+                       channel_names=names, alpha_channel=alpha, format=fmt, path=name)
+
+
 def read_image(path, *, channel: int | None = None) -> RawImage:
     """Read one image file as a single-channel float32 array.
 
@@ -73,7 +189,8 @@ def read_image(path, *, channel: int | None = None) -> RawImage:
     channel : int or None, optional
         Channel to return. None (default) returns the only channel of a mono
         image, or the mean of the colour channels (alpha excluded) of a
-        multi-channel image.
+        multi-channel image. Capture frames go through
+        :mod:`cca_cli.io.sensor`, which refuses colour frames without a rule.
 
     Returns
     -------
@@ -89,71 +206,28 @@ def read_image(path, *, channel: int | None = None) -> RawImage:
 
     Notes
     -----
-    OpenImageIO expands packed n-bit integer data (e.g. 12-bit TIFF) to the
-    full 16-bit range by bit replication; this function shifts it back, so
-    the returned counts are always the stored codes. Only the first
-    subimage of multi-image files is read.
+    Packed n-bit integer data (e.g. 12-bit TIFF) come back as their n-bit
+    codes (see :func:`read_stored`).
     """
-    name = os.fspath(path)
-    if not os.path.exists(name):
-        raise InputError(f"{name}: file not found; check the path and the capture folder")
-    if os.path.isdir(name):
-        raise InputError(f"{name}: is a directory, not an image file; give the image file path")
-    inp = oiio.ImageInput.open(name)
-    if inp is None:
-        _log.debug("OpenImageIO could not open %s: %s", name, _one_line(oiio.geterror()))
-        raise InputError(f"{name}: cannot read image (not a supported format or corrupt); {_REEXPORT}")
-    try:
-        spec = inp.spec()
-        fmt = str(spec.format)
-        nch = int(spec.nchannels)
-        if channel is not None and not 0 <= channel < nch:
-            raise InputError(
-                f"{name}: has {nch} channel(s), channel {channel} requested; use a channel in 0..{nch - 1}"
-            )
-        try:
-            data = inp.read_image(0, 0, 0, nch, spec.format)
-        except Exception as exc:  # noqa: BLE001 - any decoder failure is a corrupt file
-            _log.debug("OpenImageIO failed to read %s: %s", name, _one_line(exc))
-            data = None
-        err = inp.geterror() if hasattr(inp, "geterror") else ""
-        if data is None or err:
-            _log.debug("OpenImageIO error reading %s: %s", name, _one_line(err))
-            raise InputError(f"{name}: cannot read image (truncated or corrupt); {_REEXPORT}")
-        alpha = int(spec.alpha_channel)
-        bits_attr = spec.getattribute("oiio:BitsPerSample")
-    finally:
-        inp.close()
-
-    data = np.asarray(data)
-    if data.ndim == 2:
-        data = data[..., None]
-    if data.ndim != 3:
-        raise InputError(f"{name}: is a volume or deep image (shape {data.shape}); {_REEXPORT} as a 2-D image")
-
-    bit_depth: int | None = None
-    if fmt in _INT_BITS:
-        container = _INT_BITS[fmt]
-        bit_depth = container
-        if bits_attr is not None and 0 < int(bits_attr) < container:
-            bit_depth = int(bits_attr)
-            data = np.right_shift(data, container - bit_depth)
-
+    stored = read_stored(path)
+    name = stored.path
+    nch = stored.data.shape[-1]
+    if channel is not None and not 0 <= channel < nch:
+        raise InputError(f"{name}: has {nch} channel(s), channel {channel} requested; use a channel in 0..{nch - 1}")
     if channel is not None:
-        mono = data[..., channel].astype(np.float32)
+        mono = stored.data[..., channel].astype(np.float32)
     elif nch == 1:
-        mono = data[..., 0].astype(np.float32)
+        mono = stored.data[..., 0].astype(np.float32)
     else:
-        colour = [c for c in range(nch) if c != alpha] or list(range(nch))
-        mono = data[..., colour].astype(np.float32).mean(axis=-1, dtype=np.float32)
-
-    if bit_depth is None:
+        mono = stored.data[..., stored.colour_channels].astype(np.float32).mean(axis=-1, dtype=np.float32)
+    if stored.container_bits is None:
         bad = ~np.isfinite(mono)
         if bad.any():
             raise InputError(
                 f"{name}: {int(bad.sum())} pixel(s) are NaN or infinite; fix or mask them and re-export the image"
             )
-    return RawImage(pixels=np.ascontiguousarray(mono, dtype=np.float32), bit_depth=bit_depth, format=fmt, path=name)
+    return RawImage(pixels=np.ascontiguousarray(mono, dtype=np.float32), bit_depth=stored.significant_bits,
+                    format=stored.format, path=name)
 
 
 def to_linear(raw, *, black_level: float = 0.0, white_level: float | None = None) -> np.ndarray:

@@ -1,32 +1,65 @@
 """Capture manifests: which image files were recorded where, with which exposure and optics.
 
-A manifest is a YAML file (or a CSV table of images with a YAML sidecar of
-the same stem) validated here with one-line errors that name the manifest
-and the key. See the README section "Real captures" for the format.
+A manifest is a YAML file, or a CSV table of images with a YAML/JSON sidecar
+of the same stem. A YAML manifest may list its images itself (``images:``)
+or point at a lab's own table (``images_csv:``) whose column names it maps
+onto cca's (``columns:``, ``units:``); the optics may live in a separate
+setup file (``setup: setup.json``). Rows have a kind: ``coherent`` (the
+captures), ``calibration`` (the registration board photographed at a
+position), ``dark`` and ``flat`` (sensor calibration frames). Everything is
+validated here with one-line errors that name the file and the key. See the
+README section "Real captures" for the format.
 """
 
 from __future__ import annotations
 
 import csv
-from dataclasses import dataclass
+import json
+import math
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, PositiveInt, ValidationError, model_validator
+from pydantic import (BaseModel, ConfigDict, Field, PositiveFloat, PositiveInt, ValidationError, field_validator,
+                      model_validator)
 
 from cca_cli.config.messages import accepted_keys, error_message, yaml_error_text
 from cca_cli.errors import ConfigError, InputError
 
-__all__ = ["Manifest", "ImageEntry", "CapturePlan", "load_manifest", "plan_captures", "manifest_files"]
+__all__ = ["Manifest", "ImageEntry", "CapturePlan", "LoadedManifest", "KINDS", "TABLE_COLUMNS", "load_manifest",
+           "read_manifest", "plan_captures", "manifest_files", "read_pupil"]
+
+#: Kinds of image rows.
+KINDS = ("coherent", "calibration", "dark", "flat")
+Kind = Literal["coherent", "calibration", "dark", "flat"]
+
+#: cca's names for the columns of an image table, with the column read when ``columns:`` does not map them.
+TABLE_COLUMNS = {"path": "path", "kind": "kind", "exposure": "exposure_s", "stage_x": "stage_x_mm",
+                 "stage_y": "stage_y_mm", "row": "row", "col": "col", "kx_norm": "kx_norm", "ky_norm": "ky_norm",
+                 "bit_depth": "bit_depth"}
+_EXPOSURE_S = {"s": 1.0, "ms": 1e-3, "us": 1e-6}
+_POSITION_MM = {"m": 1e3, "mm": 1.0, "um": 1e-3}
+_SECTION_KEYS = ("optics", "illumination", "sensor", "checkerboard", "stage_pitch_mm", "values", "columns", "units",
+                 "kind_values")
 
 
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
-class OpticsSpec(_Strict):
+class _KnownPupil(_Strict):
+    """Optional prior knowledge of the pupil, for the engines (not used by ingest itself)."""
+
+    defocus_m: float | None = Field(None, allow_inf_nan=False,
+                                    description="Known defocus of the object plane (m), stored as /geometry defocus_m.")
+    pupil: Path | None = Field(None, description="Initial pupil: a .npy complex array sampled on the objective's NA "
+                                                 "disc (the disc inscribed in the array), stored as "
+                                                 "/calibration/initial_pupil.")
+
+
+class OpticsSpec(_KnownPupil):
     """Camera-scan optics (SI)."""
 
     wavelength_m: PositiveFloat
@@ -36,7 +69,7 @@ class OpticsSpec(_Strict):
     distance_m: PositiveFloat
 
 
-class IlluminationSpec(_Strict):
+class IlluminationSpec(_KnownPupil):
     """LED-array (angle-scan) microscope."""
 
     wavelength_m: PositiveFloat
@@ -45,16 +78,40 @@ class IlluminationSpec(_Strict):
     sign: Literal[-1, 1] = Field(-1, description="Pupil at sign·sinθ·W/λ (−1: Zheng's reference convention).")
 
 
-class SensorSpec(_Strict):
-    """Raw-value conversion."""
+class BayerSpec(_Strict):
+    """Which sites of a single-channel colour mosaic to keep (half resolution)."""
 
-    black_level: float = Field(0.0, ge=0)
-    bit_depth: PositiveInt | None = None
-    white_level: PositiveFloat | None = None
+    pattern: Literal["RGGB", "BGGR", "GRBG", "GBRG"]
+    colour: Literal["R", "G", "B"] = "G"
+
+
+class SensorSpec(_Strict):
+    """How stored values become linear counts (see :mod:`cca_cli.io.sensor`)."""
+
+    black_level: float = Field(0.0, ge=0, description="Offset to subtract when there are no dark frames (counts).")
+    bit_depth: PositiveInt | None = Field(None, le=32, description="Significant bits N; levels are then N-bit codes.")
+    container_bits: Literal[8, 16, 32] | None = Field(None, description="Bits of the files' integer type.")
+    alignment: Literal["msb", "lsb"] | None = Field(None, description="N-bit codes at the top (msb) or bottom of "
+                                                                      "the container; default: from the values.")
+    white_level: PositiveFloat | None = Field(None, description="Clipping level (default: full scale).")
+    channel: int | str | None = Field(None, description="Channel of colour files to use (index or name).")
+    bayer: BayerSpec | None = Field(None, description="Colour sites to keep from single-channel mosaics.")
+    read_noise: PositiveFloat | None = Field(None, description="Read noise, counts RMS (default: from dark frames "
+                                                               "or the exposure brackets).")
+    electrons_per_count: PositiveFloat | None = Field(None, description="Conversion gain (default: from flat "
+                                                                        "pairs or the exposure brackets).")
+
+    @model_validator(mode="after")
+    def _one_colour_rule(self):
+        if self.channel is not None and self.bayer is not None:
+            raise ValueError("give sensor.channel (colour files) or sensor.bayer (mosaics), not both")
+        if self.bit_depth is not None and self.container_bits is not None and self.bit_depth > self.container_bits:
+            raise ValueError(f"bit_depth {self.bit_depth} does not fit container_bits {self.container_bits}")
+        return self
 
 
 class CheckerboardSpec(_Strict):
-    """The registration board beside the object."""
+    """The registration board (beside the object, or photographed in calibration views)."""
 
     pattern: tuple[PositiveInt, PositiveInt]
     square_m: PositiveFloat | None = None
@@ -68,28 +125,48 @@ class SourceSpec(_Strict):
     illumination_csv: Path
 
 
+class UnitsSpec(_Strict):
+    """Units of an image table's exposure and position columns."""
+
+    exposure: Literal["s", "ms", "us"] = "s"
+    position: Literal["m", "mm", "um"] = "mm"
+
+
 class ImageEntry(_Strict):
-    """One image: where it was taken, its exposure and its file."""
+    """One image: its kind, where it was taken, its exposure and its file."""
 
     path: Path
-    exposure_s: PositiveFloat = 1.0
-    stage_x_mm: float | None = None
-    stage_y_mm: float | None = None
+    kind: Kind = "coherent"
+    exposure_s: PositiveFloat = Field(1.0, allow_inf_nan=False)
+    stage_x_mm: float | None = Field(None, allow_inf_nan=False)
+    stage_y_mm: float | None = Field(None, allow_inf_nan=False)
     grid: tuple[int, int] | None = None
-    kx_norm: float | None = Field(None, ge=-1, le=1)
-    ky_norm: float | None = Field(None, ge=-1, le=1)
+    kx_norm: float | None = Field(None, ge=-1, le=1, allow_inf_nan=False)
+    ky_norm: float | None = Field(None, ge=-1, le=1, allow_inf_nan=False)
+    bit_depth: PositiveInt | None = Field(None, le=32)
 
     @model_validator(mode="after")
     def _one_position(self):
         stage = self.stage_x_mm is not None or self.stage_y_mm is not None
         led = self.kx_norm is not None or self.ky_norm is not None
-        if sum((stage, led, self.grid is not None)) != 1:
-            raise ValueError("give exactly one position: stage_x_mm/stage_y_mm, grid, or kx_norm/ky_norm")
         if stage and (self.stage_x_mm is None or self.stage_y_mm is None):
             raise ValueError("give both stage_x_mm and stage_y_mm")
         if led and (self.kx_norm is None or self.ky_norm is None):
             raise ValueError("give both kx_norm and ky_norm")
+        if stage and led:
+            raise ValueError("give a stage position or an illumination angle, not both")
+        if self.kind in ("coherent", "calibration") and not (stage or led or self.grid is not None):
+            raise ValueError("give a position: stage_x_mm/stage_y_mm, grid, or kx_norm/ky_norm")
         return self
+
+    @property
+    def position_kind(self) -> str | None:
+        """``stage``, ``led``, ``grid`` (grid indices only) or None (dark/flat frames without a position)."""
+        if self.stage_x_mm is not None:
+            return "stage"
+        if self.kx_norm is not None:
+            return "led"
+        return "grid" if self.grid is not None else None
 
 
 class Manifest(_Strict):
@@ -101,9 +178,21 @@ class Manifest(_Strict):
     checkerboard: CheckerboardSpec | None = None
     stage_pitch_mm: PositiveFloat | None = None
     values: Literal["intensity", "amplitude"] = "intensity"
+    setup: Path | None = Field(None, description="YAML or JSON file holding the optics (or other sections).")
+    columns: dict[str, str] | None = Field(None, description="cca column name → the table's column name.")
+    units: UnitsSpec = UnitsSpec()
+    kind_values: dict[str, Kind] | None = Field(None, description="The table's kind words → cca kinds.")
     images: list[ImageEntry] | None = None
     images_csv: Path | None = None
     source: SourceSpec | None = None
+
+    @field_validator("columns")
+    @classmethod
+    def _known_columns(cls, columns):
+        unknown = sorted(set(columns or {}) - set(TABLE_COLUMNS))
+        if unknown:
+            raise ValueError(f"unknown cca column name(s) {', '.join(unknown)}; map any of {', '.join(TABLE_COLUMNS)}")
+        return columns
 
     @model_validator(mode="after")
     def _consistent(self):
@@ -115,10 +204,24 @@ class Manifest(_Strict):
             raise ValueError("source (a .mat of LED-array images) needs an illumination section")
         return self
 
+    @property
+    def known_pupil(self) -> _KnownPupil:
+        """The optics or illumination section (where defocus_m and pupil live)."""
+        return self.optics if self.optics is not None else self.illumination
+
+
+@dataclass(frozen=True)
+class LoadedManifest:
+    """A validated manifest, the files it was read from and the notes to show once."""
+
+    manifest: Manifest
+    files: list[Path]
+    notes: list[str] = field(default_factory=list)
+
 
 @dataclass(frozen=True)
 class CapturePlan:
-    """The images of a manifest grouped by position, exposures ascending.
+    """The images of a manifest grouped by kind and position, exposures ascending.
 
     Attributes
     ----------
@@ -126,14 +229,22 @@ class CapturePlan:
     path : Path
         The manifest file.
     files : list of list of Path
-        ``files[k][e]``: image of position k, exposure e (empty for a .mat source).
+        ``files[k][e]``: coherent image of position k, exposure e (empty for a .mat source).
     exposure_s : ndarray, (K, E)
     positions : ndarray, (K, 2)
         Stage [y, x] in metres (camera scan) or [sin θy, sin θx] (LED array).
     grid_indices : ndarray, (K, 2) or None
-        Given grid indices (grid entries), else None.
+        Given grid indices, else None.
     labels : list of str
         One readable name per position (used in errors and the report).
+    calibration : list of list of (Path, float) or None
+        Board images (file, exposure) of each position; None without calibration rows.
+    darks, flats : list of (Path, float)
+        Dark and flat frames with their exposures.
+    bit_depth : int or None
+        Bit depth the rows state (one value for the whole set).
+    notes : list of str
+        What was noticed while planning (ignored columns …), to show once.
     """
 
     manifest: Manifest
@@ -143,11 +254,23 @@ class CapturePlan:
     positions: np.ndarray
     grid_indices: np.ndarray | None
     labels: list[str]
+    calibration: list[list[tuple[Path, float]]] | None = None
+    darks: list[tuple[Path, float]] = field(default_factory=list)
+    flats: list[tuple[Path, float]] = field(default_factory=list)
+    bit_depth: int | None = None
+    notes: list[str] = field(default_factory=list)
 
     @property
     def kind(self) -> str:
         """``camera_scan`` or ``led_array``."""
         return "camera_scan" if self.manifest.optics is not None else "led_array"
+
+    def all_files(self) -> list[Path]:
+        """Every image file of the plan: coherent, calibration, dark and flat frames."""
+        out = [p for row in self.files for p in row]
+        for views in self.calibration or ():
+            out += [p for p, _ in views]
+        return out + [p for p, _ in self.darks] + [p for p, _ in self.flats]
 
 
 def _describe(error: dict, source: str) -> str:
@@ -166,68 +289,212 @@ def _first_error(exc: ValidationError) -> dict:
     return next((e for e in errors if e["type"] == "extra_forbidden"), errors[0])
 
 
-def _read_yaml(path: Path) -> dict:
+def _read_mapping(path: Path, what: str) -> dict:
+    """A YAML or JSON file that must hold a mapping."""
     try:
         text = path.read_text()
     except FileNotFoundError:
-        raise InputError(f"{path}: manifest not found; check the path") from None
+        raise InputError(f"{path}: {what} not found; check the path") from None
     except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: cannot read manifest ({exc})") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise ConfigError(yaml_error_text(path, exc)) from None
+        raise InputError(f"{path}: cannot read {what} ({exc})") from None
+    if path.suffix.lower() == ".json":
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise ConfigError(f"{path}: line {exc.lineno}: not valid JSON ({exc.msg})") from None
+    else:
+        try:
+            data = yaml.safe_load(text)
+        except yaml.YAMLError as exc:
+            raise ConfigError(yaml_error_text(path, exc)) from None
     if data is None:
         data = {}
     if not isinstance(data, dict):
-        raise ConfigError(f"{path}: the manifest must be a mapping (optics, sensor, images …)")
+        raise ConfigError(f"{path}: the {what} must be a mapping (optics, sensor, images …)")
     return data
 
 
-def _read_csv_rows(path: Path, source: str) -> list[dict]:
+def _resolve(base: Path, p) -> Path:
+    p = Path(p).expanduser()
+    return p if p.is_absolute() else base / p
+
+
+def _merge_setup(data: dict, setup_path: Path, source: str, notes: list[str]) -> dict:
+    """Sections of a setup file merged into a manifest mapping (a section given twice is an error).
+
+    A setup file that is the optics (or illumination) section itself may
+    carry the lab's other facts too: keys cca does not know are ignored,
+    with a note.
+    """
+    setup = _read_mapping(setup_path, "setup file")
+    if any(k in setup for k in ("images", "images_csv", "source", "setup")):
+        raise ConfigError(f"{setup_path}: a setup file holds optics and sensor sections, not images; "
+                          "remove images/images_csv/source/setup from it")
+    if not any(k in setup for k in _SECTION_KEYS):
+        name = "illumination" if "numerical_aperture" in setup else "optics"
+        model = IlluminationSpec if name == "illumination" else OpticsSpec
+        ignored = [k for k in setup if k not in model.model_fields]
+        if ignored:
+            notes.append(f"{setup_path.name}: keys not used by cca, ignored: {', '.join(ignored)}")
+        setup = {name: {k: v for k, v in setup.items() if k in model.model_fields}}
+    for name in ("optics", "illumination"):
+        section = setup.get(name)
+        if isinstance(section, dict) and section.get("pupil") is not None:
+            section["pupil"] = str(_resolve(setup_path.parent, section["pupil"]))
+    for key, value in setup.items():
+        if key in data:
+            raise ConfigError(f"{source}: {key} is given both here and in {setup_path.name}; keep one")
+        data[key] = value
+    return data
+
+
+def _unit_of_name(column: str, units: dict[str, float]) -> str | None:
+    """The unit a column name announces by its suffix (``exposure_ms`` → ``ms``), if any."""
+    lowered = column.lower().replace("µ", "u")
+    for unit in sorted(units, key=len, reverse=True):
+        if lowered.endswith(f"_{unit}") or lowered.endswith(f"[{unit}]") or lowered.endswith(f"({unit})"):
+            return unit
+    return None
+
+
+def _table_entries(table: Path, manifest: Manifest, source: str) -> tuple[list[dict], list[str]]:
+    """Rows of an image table as ImageEntry mappings (cca names, SI-ish units), and the notes."""
     try:
-        with open(path, newline="") as handle:
-            rows = list(csv.DictReader(handle))
+        with open(table, newline="") as handle:
+            reader = csv.DictReader(handle)
+            header = [h.strip() for h in (reader.fieldnames or []) if h is not None]
+            rows = []
+            for row in reader:
+                rows.append((reader.line_num, {(k or "").strip(): (v or "").strip() for k, v in row.items()
+                                               if k is not None and not isinstance(v, list)}))
     except FileNotFoundError:
-        raise InputError(f"{path}: image table not found (named by {source})") from None
+        raise InputError(f"{table}: image table not found (named by {source})") from None
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
-        raise InputError(f"{path}: cannot read image table ({exc})") from None
+        raise InputError(f"{table}: cannot read image table ({exc})") from None
+    mapping = dict(TABLE_COLUMNS)
+    explicit = manifest.columns or {}
+    mapping.update(explicit)
+    for name, column in explicit.items():
+        if column not in header:
+            raise ConfigError(f"{source}: columns.{name}: {table.name} has no column {column!r} "
+                              f"(its columns: {', '.join(header)})")
+    used = {name: column for name, column in mapping.items() if column in header}
+    if "path" not in used:
+        raise ConfigError(f"{table}: no file column (looked for {mapping['path']!r}); "
+                          f"map it with columns: {{path: <column>}} in {source}")
+    for name, table_units, chosen in (("exposure", _EXPOSURE_S, manifest.units.exposure),
+                                      ("stage_x", _POSITION_MM, manifest.units.position),
+                                      ("stage_y", _POSITION_MM, manifest.units.position)):
+        if name in used:
+            announced = _unit_of_name(used[name], table_units)
+            if announced is not None and announced != chosen:
+                key = "exposure" if name == "exposure" else "position"
+                raise ConfigError(f"{source}: column {used[name]!r} of {table.name} looks like {announced} but "
+                                  f"units.{key} is {chosen}; set units: {{{key}: {announced}}}")
+    notes = []
+    ignored = [h for h in header if h not in used.values()]
+    if ignored:
+        notes.append(f"{table.name}: columns not used by cca, ignored: {', '.join(ignored)}")
+    exposure_factor = _EXPOSURE_S[manifest.units.exposure]
+    position_factor = _POSITION_MM[manifest.units.position]
+    kind_words = {k.lower(): v for k, v in (manifest.kind_values or {}).items()}
+    entries = []
+    for line, row in rows:
+        def number(name: str):
+            text = row.get(used[name], "") if name in used else ""
+            if text == "":
+                return None
+            try:
+                value = float(text)
+            except ValueError:
+                raise ConfigError(f"{table}: line {line}: column {used[name]!r} is {text!r}, not a number; "
+                                  "fix the row") from None
+            if not math.isfinite(value):
+                where = f" ({row.get(used['path'])})" if row.get(used["path"]) else ""
+                raise ConfigError(f"{table}: line {line}{where}: column {used[name]!r} is {text!r}; every position "
+                                  "and exposure must be a finite number: fix or remove the row")
+            return value
+
+        entry: dict = {"path": row.get(used["path"], "")}
+        if not entry["path"]:
+            raise ConfigError(f"{table}: line {line}: column {used['path']!r} is empty; give the image file")
+        if "kind" in used and row.get(used["kind"]):
+            word = row[used["kind"]].lower()
+            kind = kind_words.get(word, word)
+            if kind not in KINDS:
+                accepted = ", ".join(KINDS + tuple(kind_words))
+                raise ConfigError(f"{table}: line {line}: kind {row[used['kind']]!r} is not one of {accepted}; "
+                                  f"map the table's words with kind_values: {{{row[used['kind']]}: coherent}} "
+                                  f"in {source}")
+            entry["kind"] = kind
+        exposure = number("exposure")
+        if exposure is not None:
+            entry["exposure_s"] = exposure * exposure_factor
+        x, y = number("stage_x"), number("stage_y")
+        if x is not None or y is not None:
+            entry["stage_x_mm"] = None if x is None else x * position_factor
+            entry["stage_y_mm"] = None if y is None else y * position_factor
+        row_index, col_index = number("row"), number("col")
+        if row_index is not None or col_index is not None:
+            entry["grid"] = [row_index, col_index]
+        for name in ("kx_norm", "ky_norm"):
+            value = number(name)
+            if value is not None:
+                entry[name] = value
+        bits = number("bit_depth")
+        if bits is not None:
+            entry["bit_depth"] = bits
+        entries.append((line, entry))
     out = []
-    for row in rows:
-        entry = {k.strip(): v.strip() for k, v in row.items() if k is not None and v not in (None, "")}
-        if "row" in entry or "col" in entry:
-            entry["grid"] = [entry.pop("row", None), entry.pop("col", None)]
+    for line, entry in entries:
+        try:
+            ImageEntry.model_validate(entry)
+        except ValidationError as exc:
+            err = _first_error(exc)
+            loc = ".".join(str(p) for p in err["loc"])
+            raise ConfigError(f"{table}: line {line} ({entry['path']}): {loc + ': ' if loc else ''}"
+                              f"{error_message(err)}") from None
         out.append(entry)
-    return out
+    return out, notes
 
 
-def load_manifest(path: str | Path) -> Manifest:
-    """Read and validate a manifest (YAML, or CSV with a sidecar ``<stem>.yaml``).
+def read_manifest(path: str | Path) -> LoadedManifest:
+    """Read and validate a manifest (YAML, or CSV with a sidecar ``<stem>.yaml``/``.json``).
 
-    Relative paths inside the manifest are resolved against its directory.
+    Relative paths are resolved against the directory of the file naming them.
 
     Raises
     ------
     ConfigError
         A key is unknown or a value is invalid: one line naming the file and key.
     InputError
-        The manifest (or its table) cannot be read.
+        The manifest (or its table or setup file) cannot be read.
     """
     path = Path(path)
+    files = [path]
     if path.suffix.lower() == ".csv":
-        sidecar = path.with_suffix(".yaml")
         if not path.is_file():
             raise InputError(f"{path}: manifest not found; check the path")
-        if not sidecar.is_file():
-            raise InputError(f"{path}: a CSV manifest needs the optics in {sidecar.name} next to it; write that YAML file")
-        data = _read_yaml(sidecar)
+        sidecar = next((s for s in (path.with_suffix(".yaml"), path.with_suffix(".yml"), path.with_suffix(".json"))
+                        if s.is_file()), None)
+        if sidecar is None:
+            raise InputError(f"{path}: a CSV manifest needs the optics in {path.with_suffix('.yaml').name} (or .json) "
+                             "next to it; write that file, or a YAML manifest with images_csv and setup")
+        data = _read_mapping(sidecar, "manifest")
         if any(k in data for k in ("images", "images_csv", "source")):
             raise ConfigError(f"{sidecar}: a CSV manifest's sidecar must not list images; remove images/images_csv/source")
         data["images_csv"] = str(path.resolve())
         source = str(sidecar)
+        files.append(sidecar)
     else:
-        data = _read_yaml(path)
+        data = _read_mapping(path, "manifest")
         source = str(path)
+    notes: list[str] = []
+    if data.get("setup") is not None:
+        setup_path = _resolve(path.parent, data["setup"])
+        data = _merge_setup(data, setup_path, source, notes)
+        data["setup"] = str(setup_path)
+        files.append(setup_path)
     try:
         manifest = Manifest.model_validate(data)
     except ValidationError as exc:
@@ -235,12 +502,13 @@ def load_manifest(path: str | Path) -> Manifest:
     base = path.parent
     if manifest.images_csv is not None:
         table = _resolve(base, manifest.images_csv)
-        try:
-            entries = [ImageEntry.model_validate(r) for r in _read_csv_rows(table, source)]
-        except ValidationError as exc:
-            err = _first_error(exc)
-            raise ConfigError(f"{table}: {'.'.join(str(p) for p in err['loc'])}: {error_message(err)}") from None
-        manifest = manifest.model_copy(update={"images": entries, "images_csv": table})
+        entries, table_notes = _table_entries(table, manifest, source)
+        notes += table_notes
+        manifest = manifest.model_copy(update={"images": [ImageEntry.model_validate(e) for e in entries],
+                                               "images_csv": table})
+        files.append(table)
+    elif manifest.columns is not None:
+        raise ConfigError(f"{source}: columns maps the columns of an image table; give images_csv or remove columns")
     if manifest.images is not None:
         manifest = manifest.model_copy(update={"images": [e.model_copy(update={"path": _resolve(base, e.path)})
                                                           for e in manifest.images]})
@@ -248,23 +516,27 @@ def load_manifest(path: str | Path) -> Manifest:
         manifest = manifest.model_copy(update={"source": manifest.source.model_copy(update={
             "mat": _resolve(base, manifest.source.mat),
             "illumination_csv": _resolve(base, manifest.source.illumination_csv)})})
+    known = manifest.known_pupil
+    if known.pupil is not None:
+        pupil = _resolve(base, known.pupil)
+        section = "optics" if manifest.optics is not None else "illumination"
+        manifest = manifest.model_copy(update={section: known.model_copy(update={"pupil": pupil})})
+        files.append(pupil)
     if manifest.images is not None and not manifest.images:
         raise ConfigError(f"{source}: images: the list is empty; list at least one image")
-    return manifest
+    return LoadedManifest(manifest=manifest, files=files, notes=notes)
 
 
-def _resolve(base: Path, p: Path) -> Path:
-    p = Path(p).expanduser()
-    return p if p.is_absolute() else base / p
+def load_manifest(path: str | Path) -> Manifest:
+    """Read and validate a manifest (see :func:`read_manifest`)."""
+    return read_manifest(path).manifest
 
 
 def manifest_files(path: str | Path) -> list[Path]:
     """The manifest and every file it names (for provenance hashing)."""
-    path = Path(path)
-    manifest = load_manifest(path)
-    files = [path]
-    if path.suffix.lower() == ".csv":
-        files.append(path.with_suffix(".yaml"))
+    loaded = read_manifest(path)
+    manifest = loaded.manifest
+    files = list(loaded.files)
     if manifest.images is not None:
         files += [e.path for e in manifest.images]
     if manifest.source is not None:
@@ -272,48 +544,124 @@ def manifest_files(path: str | Path) -> list[Path]:
     return files
 
 
+def read_pupil(path: Path, source: str) -> np.ndarray:
+    """Load an initial pupil file: a square complex (or real) .npy array on the objective's NA disc.
+
+    Raises
+    ------
+    InputError
+        Missing or unreadable file, wrong shape or non-finite values; one line naming the file.
+    """
+    try:
+        pupil = np.load(path, allow_pickle=False)
+    except FileNotFoundError:
+        raise InputError(f"{path}: pupil file not found (named by {source}); check the path") from None
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{path}: cannot read the pupil ({' '.join(str(exc).split())}); save it with numpy.save") from None
+    if pupil.ndim != 2 or pupil.shape[0] != pupil.shape[1] or pupil.shape[0] < 4:
+        raise InputError(f"{path}: the pupil must be a square 2-D array (the NA disc inscribed in it), "
+                         f"got shape {pupil.shape}")
+    if not np.issubdtype(pupil.dtype, np.number):
+        raise InputError(f"{path}: the pupil holds {pupil.dtype} values; save a complex array")
+    pupil = pupil.astype(np.complex64)
+    if not np.isfinite(pupil).all():
+        raise InputError(f"{path}: the pupil holds NaN or infinite values; fix it")
+    return pupil
+
+
 def _fmt(v: float) -> str:
     return f"{v:g}"
 
 
-def plan_captures(manifest: Manifest, path: str | Path) -> CapturePlan:
-    """Group a manifest's images by position and check the exposure brackets.
+def _position_text(key: tuple) -> str:
+    if key[0] == "stage":
+        return f"position (x {_fmt(key[2])}, y {_fmt(key[1])}) mm"
+    if key[0] == "grid":
+        return f"grid position (row {key[1]}, col {key[2]})"
+    return f"illumination (kx {_fmt(key[2])}, ky {_fmt(key[1])})"
+
+
+def _key(entry: ImageEntry) -> tuple:
+    """Group key of a coherent or calibration row: grid indices when given, else the position itself."""
+    if entry.grid is not None:
+        return ("grid", *entry.grid)
+    if entry.stage_x_mm is not None:
+        return ("stage", entry.stage_y_mm, entry.stage_x_mm)
+    return ("led", entry.ky_norm, entry.kx_norm)
+
+
+def _mat_plan(manifest: Manifest, path: Path) -> CapturePlan:
+    rows = []
+    try:
+        with open(manifest.source.illumination_csv, newline="") as handle:
+            rows = list(csv.DictReader(handle))
+    except FileNotFoundError:
+        raise InputError(f"{manifest.source.illumination_csv}: image table not found (named by {path})") from None
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise InputError(f"{manifest.source.illumination_csv}: cannot read image table ({exc})") from None
+    try:
+        kx = np.array([float(r["kx_norm"]) for r in rows])
+        ky = np.array([float(r["ky_norm"]) for r in rows])
+    except (KeyError, ValueError) as exc:
+        raise InputError(f"{manifest.source.illumination_csv}: needs numeric columns kx_norm and ky_norm ({exc})") from None
+    if not (np.isfinite(kx).all() and np.isfinite(ky).all()):
+        bad = int(np.argmax(~(np.isfinite(kx) & np.isfinite(ky))))
+        raise InputError(f"{manifest.source.illumination_csv}: row {bad + 1} has a NaN or infinite kx_norm/ky_norm; "
+                         "fix the row")
+    positions = np.stack([ky, kx], axis=1)
+    labels = [f"image {i + 1} (kx {a:+.4f}, ky {b:+.4f})" for i, (a, b) in enumerate(zip(kx, ky))]
+    grid = None
+    if rows and "led_row_abs" in rows[0] and "led_col_abs" in rows[0]:
+        grid = np.array([[int(r["led_row_abs"]), int(r["led_col_abs"])] for r in rows], np.int32)
+        grid -= grid.min(axis=0)
+    return CapturePlan(manifest, path, [[] for _ in rows], np.ones((len(rows), 1)), positions, grid, labels)
+
+
+def plan_captures(manifest: Manifest, path: str | Path, *, notes: list[str] | None = None) -> CapturePlan:
+    """Group a manifest's images by kind and position and check the exposure brackets.
+
+    Coherent rows are grouped by grid indices when the rows give them (a stage
+    read-back that varies between exposures then does no harm), else by their
+    position. Calibration rows are matched to the coherent positions the same
+    way; dark and flat rows need no position.
 
     Raises
     ------
     ConfigError
         An exposure listed twice at one position, positions with different
-        numbers of exposures, or grid entries without ``stage_pitch_mm``.
+        numbers of exposures, grid entries without ``stage_pitch_mm``, a
+        calibration row without a coherent position (or the reverse), rows
+        stating different bit depths, or no coherent rows.
     """
     path = Path(path)
     if manifest.source is not None:
-        rows = _read_csv_rows(manifest.source.illumination_csv, str(path))
-        try:
-            kx = np.array([float(r["kx_norm"]) for r in rows])
-            ky = np.array([float(r["ky_norm"]) for r in rows])
-        except (KeyError, ValueError) as exc:
-            raise InputError(f"{manifest.source.illumination_csv}: needs numeric columns kx_norm and ky_norm ({exc})") from None
-        positions = np.stack([ky, kx], axis=1)
-        labels = [f"image {i + 1} (kx {a:+.4f}, ky {b:+.4f})" for i, (a, b) in enumerate(zip(kx, ky))]
-        grid = None
-        if rows and "led_row_abs" in rows[0] and "led_col_abs" in rows[0]:
-            grid = np.array([[int(r["led_row_abs"]), int(r["led_col_abs"])] for r in rows], np.int32)
-            grid -= grid.min(axis=0)
-        return CapturePlan(manifest, path, [[] for _ in rows], np.ones((len(rows), 1)), positions, grid, labels)
-
-    groups: dict[tuple, list[ImageEntry]] = {}
+        return _mat_plan(manifest, path)
+    notes = list(notes or [])
+    by_kind: dict[str, list[ImageEntry]] = {k: [] for k in KINDS}
     for entry in manifest.images:
-        if entry.stage_x_mm is not None:
-            key = ("stage", entry.stage_y_mm, entry.stage_x_mm)
-        elif entry.grid is not None:
-            key = ("grid", *entry.grid)
-        else:
-            key = ("led", entry.ky_norm, entry.kx_norm)
-        groups.setdefault(key, []).append(entry)
-    kinds = {k[0] for k in groups}
-    if len(kinds) > 1:
-        raise ConfigError(f"{path}: images mix position kinds ({', '.join(sorted(kinds))}); use one kind for all images")
-    kind = kinds.pop()
+        by_kind[entry.kind].append(entry)
+    coherent = by_kind["coherent"]
+    if not coherent:
+        raise ConfigError(f"{path}: no coherent images listed (rows of kind coherent); list the captures")
+    bits = sorted({e.bit_depth for e in manifest.images if e.bit_depth is not None})
+    if len(bits) > 1:
+        first = next(e for e in manifest.images if e.bit_depth == bits[0])
+        other = next(e for e in manifest.images if e.bit_depth == bits[1])
+        raise ConfigError(f"{path}: rows state bit depths {bits[0]} ({first.path.name}) and {bits[1]} "
+                          f"({other.path.name}); every frame of a set must have the same bit depth")
+    bit_depth = bits[0] if bits else None
+    if bit_depth is not None and manifest.sensor.bit_depth is not None and bit_depth != manifest.sensor.bit_depth:
+        raise ConfigError(f"{path}: the rows state bit depth {bit_depth} but sensor.bit_depth is "
+                          f"{manifest.sensor.bit_depth}; make them agree")
+
+    kinds = {e.position_kind for e in coherent}
+    if "led" in kinds and "stage" in kinds:
+        raise ConfigError(f"{path}: images mix stage positions and illumination angles; use one kind for all images")
+    kind = "led" if "led" in kinds else "stage" if "stage" in kinds else "grid"
+    if kind != "grid" and "grid" in kinds and any(e.position_kind == "grid" for e in coherent):
+        bad = next(e for e in coherent if e.position_kind == "grid")
+        raise ConfigError(f"{path}: {bad.path.name} gives only grid indices while other rows give positions; "
+                          "give every row a position")
     if kind == "led" and manifest.illumination is None:
         raise ConfigError(f"{path}: images give kx_norm/ky_norm (LED array) but the manifest has optics, not illumination")
     if kind != "led" and manifest.optics is None:
@@ -321,6 +669,9 @@ def plan_captures(manifest: Manifest, path: str | Path) -> CapturePlan:
     if kind == "grid" and manifest.stage_pitch_mm is None:
         raise ConfigError(f"{path}: stage_pitch_mm: needed when images give grid: [row, col]")
 
+    groups: dict[tuple, list[ImageEntry]] = {}
+    for entry in coherent:
+        groups.setdefault(_key(entry), []).append(entry)
     files, exposures, positions, grid, labels = [], [], [], [], []
     n_exp = None
     for key, entries in groups.items():
@@ -337,27 +688,82 @@ def plan_captures(manifest: Manifest, path: str | Path) -> CapturePlan:
                               "list the same number of exposures at every position")
         files.append([e.path for e in entries])
         exposures.append(times)
+        if key[0] == "grid":
+            grid.append(key[1:])
         if kind == "stage":
-            positions.append((key[1] * 1e-3, key[2] * 1e-3))
-        elif kind == "grid":
-            grid.append((key[1], key[2]))
-            positions.append((key[1] * manifest.stage_pitch_mm * 1e-3, key[2] * manifest.stage_pitch_mm * 1e-3))
+            xy = np.array([[e.stage_y_mm, e.stage_x_mm] for e in entries])
+            positions.append(xy.mean(axis=0) * 1e-3)
+        elif kind == "led":
+            positions.append(np.array([[e.ky_norm, e.kx_norm] for e in entries]).mean(axis=0))
         else:
-            positions.append((key[1], key[2]))
+            positions.append(np.asarray(key[1:], np.float64) * manifest.stage_pitch_mm * 1e-3)
         labels.append(f"{where} ({entries[0].path.name})")
     pos = np.asarray(positions, np.float64)
     grid_idx = None
-    if kind == "grid":
+    if grid:
         g = np.asarray(grid, np.int32)
         grid_idx = g - g.min(axis=0)
-        centre = (g.max(axis=0) + g.min(axis=0)) / 2.0
-        pos = (g - centre) * manifest.stage_pitch_mm * 1e-3
-    return CapturePlan(manifest, path, files, np.asarray(exposures, np.float64), pos, grid_idx, labels)
+        if len({tuple(r) for r in grid_idx}) != len(grid_idx):
+            raise ConfigError(f"{path}: two positions share grid indices; fix the row/col columns")
+        if kind == "grid":
+            centre = (g.max(axis=0) + g.min(axis=0)) / 2.0
+            pos = (g - centre) * manifest.stage_pitch_mm * 1e-3
+        else:
+            _check_grouped_positions(groups, pos, path, kind)
+    calibration = _match_calibration(by_kind["calibration"], list(groups), pos, kind, path, labels)
+    darks = [(e.path, e.exposure_s) for e in by_kind["dark"]]
+    flats = [(e.path, e.exposure_s) for e in by_kind["flat"]]
+    if calibration is None and manifest.checkerboard is None and by_kind["calibration"]:
+        notes.append(f"{path.name}: calibration rows given but no checkerboard section; they are not used")
+    return CapturePlan(manifest, path, files, np.asarray(exposures, np.float64), pos, grid_idx, labels,
+                       calibration=calibration, darks=darks, flats=flats, bit_depth=bit_depth, notes=notes)
 
 
-def _position_text(key: tuple) -> str:
-    if key[0] == "stage":
-        return f"position (x {_fmt(key[2])}, y {_fmt(key[1])}) mm"
-    if key[0] == "grid":
-        return f"grid position (row {key[1]}, col {key[2]})"
-    return f"illumination (kx {_fmt(key[2])}, ky {_fmt(key[1])})"
+def _check_grouped_positions(groups: dict, pos: np.ndarray, path: Path, kind: str) -> None:
+    """Rows grouped by grid index must agree on their position (within a quarter of the smallest step)."""
+    if len(pos) < 2:
+        return
+    dist = np.hypot(*(pos[:, None, :] - pos[None, :, :]).transpose(2, 0, 1))
+    step = float(dist[dist > 0].min()) if (dist > 0).any() else 0.0
+    scale = 1e-3 if kind == "stage" else 1.0
+    for (key, entries), centre in zip(groups.items(), pos):
+        spread = max(np.hypot(((e.stage_y_mm if kind == "stage" else e.ky_norm) * scale - centre[0]),
+                              ((e.stage_x_mm if kind == "stage" else e.kx_norm) * scale - centre[1]))
+                     for e in entries)
+        if step > 0 and spread > 0.25 * step:
+            raise ConfigError(f"{path}: rows at {_position_text(key)} give positions that differ by more than a "
+                              "quarter of the grid step; fix the positions or the grid indices")
+
+
+def _match_calibration(rows: list[ImageEntry], keys: list[tuple], positions: np.ndarray, kind: str, path: Path,
+                       labels: list[str]) -> list[list[tuple[Path, float]]] | None:
+    """Calibration (board) images of each coherent position, matched by grid index or nearest position."""
+    if not rows:
+        return None
+    views: list[list[tuple[Path, float]]] = [[] for _ in keys]
+    index = {key: i for i, key in enumerate(keys)}
+    dist = np.hypot(*(positions[:, None, :] - positions[None, :, :]).transpose(2, 0, 1))
+    step = float(dist[dist > 0].min()) if (dist > 0).any() else 1.0
+    for row in rows:
+        key = _key(row)
+        if key in index:
+            views[index[key]].append((row.path, row.exposure_s))
+            continue
+        if row.position_kind in (None, "grid"):
+            raise ConfigError(f"{path}: calibration image {row.path.name} is at {_position_text(key)}, where no "
+                              "coherent image was taken; fix its position")
+        if kind == "stage":
+            where = np.array([row.stage_y_mm, row.stage_x_mm]) * 1e-3
+        else:
+            where = np.array([row.ky_norm, row.kx_norm])
+        gap = np.hypot(*(positions - where).T)
+        nearest = int(np.argmin(gap))
+        if gap[nearest] > 0.25 * step:
+            raise ConfigError(f"{path}: calibration image {row.path.name} is at {_position_text(key)}, where no "
+                              "coherent image was taken; fix its position")
+        views[nearest].append((row.path, row.exposure_s))
+    missing = [labels[i] for i, v in enumerate(views) if not v]
+    if missing:
+        raise ConfigError(f"{path}: {missing[0]} has no calibration image ({len(missing)} position(s) lack one); "
+                          "photograph the board at every position, or remove the calibration rows")
+    return views

@@ -26,7 +26,9 @@ class DatasetSpec:
 
 DATASETS: tuple[DatasetSpec, ...] = (
     DatasetSpec("/measurements/intensity", "float32", "(K, N, N)", "irradiance (unit plane wave = 1)",
-                "Captured images on the sensor pixel grid, centred on the optical axis, linear."),
+                "Captured images on the sensor pixel grid, centred on the optical axis, linear. Recorded captures "
+                "(counts/s) may be (K, H, W), any aspect; attribute boundary 'open' marks a window on a larger scene, "
+                "which reconstruct places on a square grid with a guard band (reconstruct.padding)."),
     DatasetSpec("/measurements/weight", "float32", "(K, N, N)", "1",
                 "Optional per-pixel confidence in [0, 1]; 0 = pixel ignored by the magnitude update."),
     DatasetSpec("/geometry/aperture_centres_yx_m", "float64", "(K, 2)", "m",
@@ -47,7 +49,8 @@ DATASETS: tuple[DatasetSpec, ...] = (
                 "size x size grid the chart was drawn on (scene.size_px); images are resampled to it to be read."),
     DatasetSpec("/recon/spectrum", "complex64", "(M, M)", "√irradiance · px",
                 "Recovered high-resolution spectrum, centred (DC at M//2), orthonormal FFT of the object."),
-    DatasetSpec("/recon/object", "complex64", "(M, M)", "√irradiance", "Recovered complex object field."),
+    DatasetSpec("/recon/object", "complex64", "(M, M)", "√irradiance",
+                "Recovered complex object field; with /recon/region_px only the region (h', w') of the padded grid."),
     DatasetSpec("/recon/intensity", "float32", "(M, M)", "irradiance", "Recovered intensity |object|²."),
     DatasetSpec("/recon/residual_per_image", "float64", "(K,)", "1",
                 "Relative amplitude misfit ‖s·√b_k |ψ_k| − √I_k‖ / ‖√I_k‖ of each capture under the final model "
@@ -72,8 +75,12 @@ DATASETS: tuple[DatasetSpec, ...] = (
     DatasetSpec("/calibration/bright_field", "bool", "(K,)", "1",
                 "Whether each capture is bright-field (its illumination falls inside the NA: pupil centre within "
                 "one pupil radius of DC)."),
+    DatasetSpec("/recon/region_px", "int32", "(2, 4)", "px",
+                "Padded recoveries: [y0, x0, height, width] of the recovered region on the M x M recovery grid "
+                "(row 0) and on the square sensor grid the captures were placed on (row 1); the rest of those grids "
+                "is the weight-0 guard band. Attributes guard_px, apodize_px, sensor_grid_px."),
     DatasetSpec("/observed/centre", "float32", "(N, N)", "irradiance",
-                "The capture nearest the optical axis (what a single camera sees)."),
+                "The capture nearest the optical axis (what a single camera sees); the region only when padded."),
     DatasetSpec("/history/residual", "float64", "(iterations,)", "1",
                 "Relative data misfit ‖w(|ψ| − √I)‖ / ‖w √I‖ per iteration."),
     DatasetSpec("/history/change", "float64", "(iterations,)", "1", "Relative spectrum change per iteration."),
@@ -99,19 +106,52 @@ DATASETS: tuple[DatasetSpec, ...] = (
     DatasetSpec("/multiplex/measurement_camera", "int32", "(G,)", "1", "Camera of each image."),
     DatasetSpec("/multiplex/measurement_pattern", "int32", "(G,)", "1", "Pattern of each image."),
     DatasetSpec("/raw/frames", "float32", "(K, E, H, W)", "counts",
-                "Recorded images (ingest): linear sensor counts, black level subtracted, clipped at the white level; "
-                "position k, exposure e (ascending). Attribute saturation_level: clipping level in these counts. "
-                "With one exposure per position, ingest also writes /measurements (intensity in counts/s)."),
+                "Recorded images (ingest): linear sensor counts (N-bit codes when sensor.bit_depth is given, else "
+                "stored values), black level subtracted (per pixel with dark frames) and divided by the gain map "
+                "(with flat frames); values below zero are kept (noise about a dark level). Position k, exposure e "
+                "(ascending). Attribute saturation_level: white minus scalar black level. With one exposure per "
+                "position, ingest also writes /measurements (intensity in counts/s)."),
+    DatasetSpec("/sensor/black_level", "float32", "(D, H, W)", "counts",
+                "Per-pixel black level: the mean dark frame at each dark exposure (/sensor/dark_exposure_s); other "
+                "exposures use the per-pixel line through them. Attributes of /sensor: white_level, black_level "
+                "(scalar), read_noise (counts RMS), electrons_per_count, noise_source."),
+    DatasetSpec("/sensor/dark_exposure_s", "float64", "(D,)", "s", "Exposure time of each dark level."),
+    DatasetSpec("/sensor/gain_map", "float32", "(H, W)", "1",
+                "Relative pixel gain from the flat frames (mean 1); the frames are divided by it."),
+    DatasetSpec("/calibration/initial_pupil", "complex64", "(P, P)", "1",
+                "Initial pupil from the manifest (optics.pupil / illumination.pupil): the objective's NA disc "
+                "inscribed in the P x P array, for the engines. A known defocus is the /geometry attribute defocus_m."),
     DatasetSpec("/raw/exposure_s", "float64", "(K, E)", "s", "Exposure time of each frame."),
     DatasetSpec("/capture/labels", "str", "(K,)", "text", "Readable name of each position (stage position, first file)."),
     DatasetSpec("/hdr/dynamic_range_gain", "float64", "(K,)", "1",
-                "Dynamic range of the merged radiance over the best single exposure's, per position. With hdr, "
-                "/measurements/intensity is radiance in counts/s (relative units: the recovery is scale-free) and "
-                "/measurements/weight the merge's validity weight (0 = saturated or below the noise floor)."),
+                "Per position: /hdr/dynamic_range over the same range measured by the best single exposure (≥ 1). "
+                "With hdr, /measurements/intensity is the inverse-variance merge of every unsaturated frame in "
+                "counts/s (relative units: the recovery is scale-free) and /measurements/weight its amplitude-domain "
+                "precision relative to a shot-limited pixel (0 = saturated in every exposure)."),
+    DatasetSpec("/hdr/dynamic_range", "float64", "(K,)", "1",
+                "Per position: brightest over faintest radiance (99.9th / 0.1st percentile) among pixels the merge "
+                "measured with SNR ≥ 10."),
+    DatasetSpec("/hdr/flux_ratio", "float64", "(K, E)", "1",
+                "Per position and exposure (ascending): the exposure's flux over the merged flux on the pixels usable "
+                "in every exposure; 1 when exposure times, black level and linearity agree."),
+    DatasetSpec("/hdr/flux_ratio_sigma", "float64", "(K, E)", "1",
+                "Standard deviation of /hdr/flux_ratio from the noise model."),
     DatasetSpec("/hdr/valid_fraction", "float64", "(K,)", "1", "Share of pixels with a usable exposure, per position."),
     DatasetSpec("/registration/homography", "float64", "(K, 3, 3)", "px",
                 "Homography mapping each view's pixels onto the reference (centre) view's, from the checkerboard."),
     DatasetSpec("/registration/rms_px", "float64", "(K,)", "px", "RMS reprojection error of the board corners."),
+    DatasetSpec("/registration/object_rms_px", "float64", "(K,)", "px",
+                "Estimated registration error over the object region (registration.object_xywh, default the crop): "
+                "the homography's uncertainty propagated from the corner residuals, combined with the deviation of "
+                "a smooth fit to the corner residuals; RMS over a 9 x 9 grid of points."),
+    DatasetSpec("/registration/object_max_px", "float64", "(K,)", "px",
+                "Largest estimated registration error over the object region."),
+    DatasetSpec("/registration/board_hull_fraction", "float64", "(K,)", "1",
+                "Share of the object region inside the convex hull of the board corners (below 1 the homography "
+                "extrapolates there)."),
+    DatasetSpec("/registration/board_views", "float32", "(K, H, W)", "counts/s",
+                "Calibration images of the board at each position (rows of kind calibration), linearised; the "
+                "board is found in these instead of the captures."),
     DatasetSpec("/registration/kept_index", "int32", "(K,)", "1", "Index of each registered view among the ingested ones."),
     DatasetSpec("/registration/corners", "float32", "(K, N, 2)", "px", "Detected inner corners (x, y) in each view."),
     DatasetSpec("/registration/dropped", "str", "(D,)", "text", "Positions lost because no checkerboard was found."),

@@ -33,10 +33,11 @@ def spectral_energy_beyond(image, radius_px: float) -> float:
 
     Parameters
     ----------
-    image : array_like, (N, N)
+    image : array_like, (N, N) or (H, W)
         Intensity image.
     radius_px : float
-        Radius in spectrum pixels of the N x N grid (cycles per field width).
+        Radius in spectrum pixels of the N x N grid (cycles per field width;
+        for a rectangle, cycles per image width along both axes).
 
     Returns
     -------
@@ -45,7 +46,7 @@ def spectral_energy_beyond(image, radius_px: float) -> float:
     """
     power = np.fft.fftshift(_power_spectrum(image))
     h, w = power.shape
-    fy = np.arange(h)[:, None] - h // 2
+    fy = (np.arange(h)[:, None] - h // 2) * (w / h)  # cycles per image width on both axes
     fx = np.arange(w)[None, :] - w // 2
     total = float(power.sum())
     if total <= 0:

@@ -51,6 +51,8 @@ class HomographyFit:
         Number of RANSAC inliers.
     n_points : int
         Number of point pairs given.
+    inlier_mask : numpy.ndarray or None
+        bool ``(n_points,)``, True for the RANSAC inliers.
     """
 
     matrix: np.ndarray
@@ -58,6 +60,7 @@ class HomographyFit:
     max_px: float
     inliers: int
     n_points: int
+    inlier_mask: np.ndarray | None = None
 
 
 def _as_points(points, name: str) -> np.ndarray:
@@ -165,6 +168,7 @@ def estimate_homography(moving_points, reference_points, *, ransac_threshold_px:
         max_px=float(resid.max()),
         inliers=int(inl.sum()),
         n_points=int(n),
+        inlier_mask=inl,
     )
 
 

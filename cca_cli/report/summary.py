@@ -53,11 +53,22 @@ def band_limited_truth(truth_field: np.ndarray, geometry: CaptureGeometry) -> np
     return (np.abs(field) ** 2).astype(np.float32)
 
 
-def on_grid(image: np.ndarray, size: int) -> np.ndarray:
-    """A band-limited intensity resampled to ``size`` x ``size`` (value-preserving)."""
-    if image.shape[-1] == size:
-        return np.asarray(image, np.float32)
-    return fft.fourier_resample(np.asarray(image, np.float32)[None], size)[0]
+def on_grid(image: np.ndarray, size) -> np.ndarray:
+    """A band-limited intensity resampled to ``size`` x ``size`` (or to ``size = (h, w)``), value-preserving."""
+    shape = (int(size), int(size)) if np.ndim(size) == 0 else tuple(int(v) for v in size)
+    image = np.asarray(image, np.float32)
+    if image.shape[-2:] == shape or (np.ndim(size) == 0 and image.shape[-1] == shape[-1]):
+        return image
+    if image.shape[-1] == image.shape[-2] and shape[0] == shape[1]:
+        return fft.fourier_resample(image[None], shape[0])[0]
+    spectrum = fft.fft2c(image.astype(np.complex64))
+    out = np.zeros(shape, np.complex64)
+    keep = [min(a, b) for a, b in zip(image.shape, shape)]
+    src = [n // 2 - k // 2 for n, k in zip(image.shape, keep)]
+    dst = [n // 2 - k // 2 for n, k in zip(shape, keep)]
+    out[dst[0]:dst[0] + keep[0], dst[1]:dst[1] + keep[1]] = spectrum[src[0]:src[0] + keep[0], src[1]:src[1] + keep[1]]
+    scale = np.sqrt(shape[0] * shape[1] / (image.shape[0] * image.shape[1]))
+    return (fft.ifft2c(out).real * scale).astype(np.float32)
 
 
 def summarize(inputs: ReportInputs, *, threshold: float = 0.2) -> dict:
@@ -184,10 +195,11 @@ def sharpness_summary(inputs: ReportInputs) -> dict:
     """
     from cca_cli.metrics.sharpness import rms_frequency, spectral_energy_beyond
 
-    size = inputs.recovered.shape[-1]
-    observed = on_grid(inputs.observed, size)
-    pixel_mm = grid_pixel_m(inputs.geometry.field_width_m, size) * 1e3
-    cutoff = min(2.0 * inputs.geometry.pupil_radius_px, inputs.observed.shape[-1] / 2.0)
+    observed = on_grid(inputs.observed, inputs.recovered.shape[-2:])
+    pixel_mm = grid_pixel_m(inputs.geometry.field_width_m, inputs.hires_size) * 1e3
+    # A recovered region narrower than the recovery grid holds proportionally fewer spectrum pixels per cycle.
+    share = inputs.recovered.shape[-1] / inputs.hires_size
+    cutoff = min(2.0 * inputs.geometry.pupil_radius_px * share, inputs.observed.shape[-1] / 2.0)
     f_obs = rms_frequency(observed, pixel_mm)
     f_rec = rms_frequency(inputs.recovered, pixel_mm)
     return {

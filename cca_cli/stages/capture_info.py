@@ -11,7 +11,9 @@ from cca_cli.io.h5 import describe
 
 __all__ = ["capture_extras", "read_capture_summary"]
 
-_COPIED = ("/registration/rms_px", "/registration/dropped", "/hdr/dynamic_range_gain", "/hdr/valid_fraction")
+_COPIED = ("/registration/rms_px", "/registration/dropped", "/registration/object_rms_px",
+           "/registration/object_max_px", "/registration/board_hull_fraction", "/hdr/dynamic_range_gain",
+           "/hdr/dynamic_range", "/hdr/valid_fraction", "/hdr/flux_ratio", "/hdr/flux_ratio_sigma")
 
 
 def capture_extras(captures_path: Path):
@@ -44,8 +46,23 @@ def read_capture_summary(handle: h5py.File) -> dict:
         rms = np.asarray(handle["/registration/rms_px"])
         out["registration_rms_px_max"] = round(float(rms.max()), 4)
         out["registration_rms_px_mean"] = round(float(rms.mean()), 4)
+    if "/registration/object_rms_px" in handle:
+        obj = np.asarray(handle["/registration/object_rms_px"])
+        out["registration_object_rms_px_mean"] = round(float(obj.mean()), 4)
+        out["registration_object_rms_px_max"] = round(float(obj.max()), 4)
+    if "/registration/object_max_px" in handle:
+        out["registration_object_max_px"] = round(float(np.max(handle["/registration/object_max_px"])), 4)
+    if "/registration/board_hull_fraction" in handle:
+        out["registration_object_in_board_hull"] = round(float(np.min(handle["/registration/board_hull_fraction"])), 4)
     if "/hdr/dynamic_range_gain" in handle:
         out["hdr_dynamic_range_gain_median"] = round(float(np.median(handle["/hdr/dynamic_range_gain"])), 3)
+    if "/hdr/dynamic_range" in handle:
+        out["hdr_dynamic_range_median"] = round(float(np.median(handle["/hdr/dynamic_range"])), 1)
     if "/hdr/valid_fraction" in handle:
         out["hdr_valid_fraction_mean"] = round(float(np.mean(handle["/hdr/valid_fraction"])), 4)
+    if "/hdr/flux_ratio" in handle:
+        ratio = np.asarray(handle["/hdr/flux_ratio"])
+        finite = ratio[np.isfinite(ratio)]
+        if finite.size:
+            out["hdr_flux_ratio_worst"] = round(float(finite[np.argmax(np.abs(finite - 1))]), 4)
     return out

@@ -1,44 +1,105 @@
 """Stage `ingest`: a capture manifest and its image files → raw.h5.
 
 Every image is read (OpenImageIO, or one MATLAB variable for LED-array
-datasets), black-level subtracted and clipped at the sensor's white level
-(linear float32 counts), and grouped by position into ``(K, E, H, W)``
-exposure brackets. Positions become pupil centres in spectrum pixels in
-:mod:`cca_cli.sampling.capture`. Single-exposure datasets also get
-``/measurements`` so they can go straight to `reconstruct` (or `register`).
+datasets) and decoded to counts (:mod:`cca_cli.io.sensor`: containers, bit
+depths, channels). Dark frames give a per-pixel black level per exposure,
+flat frames a gain map (:mod:`cca_cli.hdr.calibration`); the coherent frames
+are black-subtracted (negative values kept: clipping them would bias dim
+pixels upwards), divided by the gain map and grouped by position into
+``(K, E, H, W)`` exposure brackets. Calibration (board) images are stored
+per position for the register stage. Positions become pupil centres in
+spectrum pixels in :mod:`cca_cli.sampling.capture`. Single-exposure
+datasets also get ``/measurements`` so they can go straight to
+`reconstruct` (or `register`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import logging
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import h5py
 import numpy as np
 
 from cca_cli.errors import InputError
+from cca_cli.hdr.calibration import (DarkModel, dark_model, electrons_per_count_from_flats, gain_map,
+                                     read_noise_from_darks)
 from cca_cli.io.geometry import write_geometry
 from cca_cli.io.h5 import Provenance, atomic_h5, check_output, describe, write_dataset
-from cca_cli.io.images import read_image, to_linear
-from cca_cli.io.manifest import CapturePlan, load_manifest, plan_captures
+from cca_cli.io.images import read_stored
+from cca_cli.io.manifest import CapturePlan, plan_captures, read_manifest, read_pupil
+from cca_cli.io.records import read_sensor_records, write_sensor_records
+from cca_cli.io.sensor import Decoding, FrameValues, SensorRule, decide_decoding, frame_values
 from cca_cli.sampling.capture import led_array_geometry, stage_scan_geometry
 from cca_cli.sampling.geometry import CaptureGeometry
 from cca_cli.stages.progress import ProgressEvent, ProgressFn, silent
 
-__all__ = ["SECTIONS", "Ingested", "ingest", "write_raw", "run", "write_labels", "read_labels"]
+__all__ = ["SECTIONS", "Ingested", "SensorCalibration", "ingest", "write_raw", "run", "write_labels", "read_labels",
+           "read_sensor", "BOUNDARY_OPEN"]
 
 SECTIONS = ("ingest",)
+
+#: /measurements attribute ``boundary`` of recorded images: a window on a larger scene (not periodic).
+BOUNDARY_OPEN = "open"
+
+_log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class SensorCalibration:
+    """What the dark and flat frames (or the manifest) say about the sensor."""
+
+    white_level: float | None          # clipping level of the decoded values (counts); None: float data
+    black_level: float                 # scalar black level used where there are no dark frames (counts)
+    darks: DarkModel | None = None
+    gain: np.ndarray | None = None     # (H, W) relative gain, mean 1
+    read_noise: float | None = None    # counts RMS
+    electrons_per_count: float | None = None
+    noise_source: str = ""
+
+    def black_at(self, exposure_s: float) -> tuple[np.ndarray | float, str | None]:
+        """Black level (per pixel with dark frames, else the scalar) at an exposure, and a note."""
+        if self.darks is None:
+            return self.black_level, None
+        return self.darks.at(exposure_s)
+
+    def saturation_at(self, exposure_s: float) -> np.ndarray | float | None:
+        """Clipping level of a linearised frame at an exposure: ``(white − black) / gain`` (None: float data)."""
+        if self.white_level is None:
+            return None
+        black, _ = self.black_at(exposure_s)
+        level = np.float32(self.white_level) - np.asarray(black, np.float32)
+        return level if self.gain is None else level / self.gain
+
+
+def read_sensor(handle) -> SensorCalibration | None:
+    """The sensor calibration stored by :func:`write_raw` (None when the file has none)."""
+    records = read_sensor_records(handle)
+    if records is None:
+        return None
+    darks = None
+    if records["black_maps"] is not None:
+        darks = DarkModel(exposure_s=records["dark_exposure_s"], black=records["black_maps"])
+    return SensorCalibration(white_level=records["white_level"], black_level=records["black_level"], darks=darks,
+                             gain=records["gain_map"], read_noise=records["read_noise"],
+                             electrons_per_count=records["electrons_per_count"],
+                             noise_source=records["noise_source"])
 
 
 @dataclass(frozen=True)
 class Ingested:
-    """Linear frames of a capture set and their geometry."""
+    """Linear frames of a capture set, their calibration and their geometry."""
 
     plan: CapturePlan
-    frames: np.ndarray          # (K, E, H, W) float32 counts, black subtracted
+    frames: np.ndarray          # (K, E, H, W) float32 counts, black subtracted, gain corrected (negatives kept)
     exposure_s: np.ndarray      # (K, E)
-    saturation_level: float
+    saturation_level: float     # white level − black level (counts; the scalar case)
     geometry: CaptureGeometry
+    sensor: SensorCalibration | None = None
+    board_views: np.ndarray | None = None       # (K, H, W) float32 counts/s
+    initial_pupil: np.ndarray | None = None
+    notes: list[str] = field(default_factory=list)
 
 
 def _read_mat(plan: CapturePlan) -> np.ndarray:
@@ -66,63 +127,199 @@ def _read_mat(plan: CapturePlan) -> np.ndarray:
     return stack[:, None]
 
 
-def _read_files(plan: CapturePlan, progress: ProgressFn) -> tuple[np.ndarray, float | None]:
-    sensor = plan.manifest.sensor
+def _sensor_rule(plan: CapturePlan) -> SensorRule:
+    s = plan.manifest.sensor
+    return SensorRule(bit_depth=s.bit_depth or plan.bit_depth, container_bits=s.container_bits, alignment=s.alignment,
+                      channel=s.channel, bayer_pattern=s.bayer.pattern if s.bayer else None,
+                      bayer_colour=s.bayer.colour if s.bayer else None, source=str(plan.path))
+
+
+class _Reader:
+    """Reads every file once, checking that all frames have one size."""
+
+    def __init__(self, rule: SensorRule):
+        self.rule = rule
+        self.stats: list[FrameValues] = []
+        self.shape: tuple[int, int] | None = None
+        self.first: str | None = None
+
+    def read(self, path: Path) -> np.ndarray:
+        frame = frame_values(read_stored(path), self.rule)
+        if self.shape is None:
+            self.shape, self.first = frame.values.shape, frame.path
+        elif frame.values.shape != self.shape:
+            h0, w0 = self.shape
+            h1, w1 = frame.values.shape
+            raise InputError(f"{path}: image is {w1}x{h1} px but {self.first} is {w0}x{h0}; "
+                             "all images of a capture set must have the same size")
+        self.stats.append(replace(frame, values=np.empty(0, np.float32)))  # facts only; values live elsewhere
+        return frame.values
+
+
+def _read_files(plan: CapturePlan, progress: ProgressFn):
+    """All frames of the plan in stored units, and the decoding decided from them."""
+    rule = _sensor_rule(plan)
+    reader = _Reader(rule)
     k, e = plan.exposure_s.shape
+    total = k * e + len(plan.darks) + len(plan.flats) + sum(len(v) for v in plan.calibration or ())
+    done = 0
     frames = None
-    first = None
-    white_level = sensor.white_level
-    if white_level is None and sensor.bit_depth is not None:
-        white_level = float(2 ** sensor.bit_depth - 1)
     for i, row in enumerate(plan.files):
         for j, path in enumerate(row):
-            raw = read_image(path)
+            values = reader.read(path)
             if frames is None:
-                frames = np.empty((k, e) + raw.pixels.shape, np.float32)
-                first = raw
-                if white_level is None:
-                    white_level = raw.white_level
-            elif raw.pixels.shape != frames.shape[2:]:
-                h0, w0 = frames.shape[2:]
-                h1, w1 = raw.pixels.shape
-                raise InputError(f"{path}: image is {w1}x{h1} px but {first.path} is {w0}x{h0}; "
-                                 "all images of a capture set must have the same size")
-            if white_level is not None and white_level <= sensor.black_level:
-                raise InputError(f"{path}: white level {white_level:g} is not above the black level "
-                                 f"{sensor.black_level:g} (manifest sensor)")
-            frames[i, j] = to_linear(raw, black_level=sensor.black_level, white_level=white_level)
-        progress(ProgressEvent("ingest", "images", i + 1, k))
-    return frames, white_level
+                frames = np.empty((k, e) + values.shape, np.float32)
+            frames[i, j] = values
+            done += 1
+        progress(ProgressEvent("ingest", "images", done, total))
+
+    def read_list(items):
+        nonlocal done
+        out = []
+        for path, _ in items:
+            out.append(reader.read(path))
+            done += 1
+            progress(ProgressEvent("ingest", "images", done, total))
+        return out
+
+    darks = read_list(plan.darks)
+    flats = read_list(plan.flats)
+    boards = [read_list(views) for views in plan.calibration or ()]
+    white = plan.manifest.sensor.white_level
+    decoding = decide_decoding(reader.stats, rule, white_level=white)
+    if decoding.shift:
+        scale = np.float32(1.0 / 2**decoding.shift)
+        frames *= scale
+        darks = [d * scale for d in darks]
+        flats = [f * scale for f in flats]
+        boards = [[b * scale for b in views] for views in boards]
+    return frames, darks, flats, boards, decoding
+
+
+def _calibrate(plan: CapturePlan, decoding: Decoding, darks, flats, notes: list[str]) -> SensorCalibration:
+    sensor = plan.manifest.sensor
+    white = sensor.white_level if sensor.white_level is not None else decoding.full_scale
+    if white is not None and white <= sensor.black_level:
+        raise InputError(f"{plan.path}: sensor white level {white:g} is not above the black level "
+                         f"{sensor.black_level:g}; fix sensor.black_level / white_level")
+    model = None
+    read_noise, epc, source = sensor.read_noise, sensor.electrons_per_count, "manifest"
+    if darks:
+        model = dark_model(darks, [t for _, t in plan.darks])
+        measured = read_noise_from_darks(darks, [t for _, t in plan.darks])
+        if read_noise is None and measured is not None:
+            read_noise, source = measured, "dark frames"
+        if white is not None and (model.black >= white).any():
+            raise InputError(f"{plan.darks[0][0]}: dark frames reach the white level; they are not dark frames")
+    calibration = SensorCalibration(white_level=white, black_level=sensor.black_level, darks=model,
+                                    read_noise=read_noise, electrons_per_count=epc, noise_source=source)
+    if flats:
+        blacks = []
+        for path, t in plan.flats:
+            level, note = calibration.black_at(t)
+            if note:
+                notes.append(note)
+            blacks.append(np.broadcast_to(np.asarray(level, np.float32), flats[0].shape))
+        if white is not None:
+            hot = next((p for (p, _), f in zip(plan.flats, flats) if (f >= white * 0.99).any()), None)
+            if hot is not None:
+                raise InputError(f"{hot}: the flat frame reaches the white level; expose the flats darker")
+        try:
+            gain = gain_map(flats, blacks)
+        except ValueError as exc:
+            raise InputError(f"{plan.flats[0][0]}: {exc}") from None
+        if epc is None and read_noise is not None:
+            epc = electrons_per_count_from_flats(flats, blacks, [t for _, t in plan.flats], read_noise)
+            if epc is not None:
+                source = f"{source} and flat pairs" if source != "manifest" else "flat pairs"
+        calibration = replace(calibration, gain=gain, electrons_per_count=epc, noise_source=source)
+    return calibration
+
+
+def _linearise(frames: np.ndarray, exposure_s: np.ndarray, calibration: SensorCalibration, notes: list[str]) -> None:
+    """Subtract the black level of each frame's exposure and divide by the gain map, in place."""
+    levels: dict[float, np.ndarray | float] = {}
+    for t in np.unique(exposure_s):
+        level, note = calibration.black_at(float(t))
+        if note:
+            notes.append(note)
+        levels[float(t)] = np.asarray(level, np.float32)
+    inverse_gain = None if calibration.gain is None else (1.0 / calibration.gain).astype(np.float32)
+    for i in range(frames.shape[0]):
+        for j in range(frames.shape[1]):
+            frames[i, j] -= levels[float(exposure_s[i, j])]
+            if inverse_gain is not None:
+                frames[i, j] *= inverse_gain
+
+
+def _board_views(plan: CapturePlan, boards: list[list[np.ndarray]], calibration: SensorCalibration) -> np.ndarray:
+    """One board image per position (counts/s): the mean of its calibration frames, linearised."""
+    out = None
+    for k, (views, frames) in enumerate(zip(plan.calibration, boards)):
+        rates = []
+        for (path, t), frame in zip(views, frames):
+            level, _ = calibration.black_at(t)
+            linear = frame - np.asarray(level, np.float32)
+            if calibration.gain is not None:
+                linear = linear / calibration.gain
+            rates.append(linear / np.float32(t))
+        mean = np.mean(rates, axis=0, dtype=np.float64).astype(np.float32)
+        if out is None:
+            out = np.empty((len(boards),) + mean.shape, np.float32)
+        out[k] = mean
+    return out
 
 
 def ingest(manifest_path: Path, *, progress: ProgressFn = silent) -> Ingested:
     """Read a manifest and all its images (no file output)."""
-    manifest = load_manifest(manifest_path)
-    plan = plan_captures(manifest, manifest_path)
+    loaded = read_manifest(manifest_path)
+    manifest = loaded.manifest
+    plan = plan_captures(manifest, manifest_path, notes=loaded.notes)
+    notes = list(plan.notes)
+    boards = None
+    calibration = None
+    binning = 1
     if manifest.source is not None:
-        frames, white_level = _read_mat(plan), None
+        frames, saturation = _read_mat(plan), None
     else:
-        frames, white_level = _read_files(plan, progress)
-    if white_level is not None:
-        saturation = float(white_level - manifest.sensor.black_level)
-    else:  # float data without a white level: nothing counts as clipped
+        frames, darks, flats, board_frames, decoding = _read_files(plan, progress)
+        notes += decoding.notes
+        calibration = _calibrate(plan, decoding, darks, flats, notes)
+        _linearise(frames, plan.exposure_s, calibration, notes)
+        if plan.calibration is not None and manifest.checkerboard is not None:
+            boards = _board_views(plan, board_frames, calibration)
+        saturation = None if calibration.white_level is None else float(calibration.white_level
+                                                                            - calibration.black_level)
+        binning = 2 if manifest.sensor.bayer is not None else 1
+    if saturation is None:  # float data without a white level: nothing counts as clipped
         saturation = float(np.max(frames)) * 1.01 + 1e-30
+    pupil = None
+    known = manifest.known_pupil
+    if known.pupil is not None:
+        pupil = read_pupil(known.pupil, str(manifest_path))
     h, w = frames.shape[-2:]
     if manifest.optics is not None:
         o = manifest.optics
-        field = w * o.pixel_pitch_m * o.distance_m / o.focal_length_m
+        pitch = o.pixel_pitch_m * binning
+        field_width = w * pitch * o.distance_m / o.focal_length_m
         geometry = stage_scan_geometry(plan.positions, wavelength_m=o.wavelength_m, focal_length_m=o.focal_length_m,
-                                       aperture_diameter_m=o.aperture_diameter_m, pixel_pitch_m=o.pixel_pitch_m,
-                                       distance_m=o.distance_m, field_width_m=field, grid_indices=plan.grid_indices)
+                                       aperture_diameter_m=o.aperture_diameter_m, pixel_pitch_m=pitch,
+                                       distance_m=o.distance_m, field_width_m=field_width,
+                                       grid_indices=plan.grid_indices)
     else:
         il = manifest.illumination
+        pitch = il.pixel_pitch_object_m * binning
         geometry = led_array_geometry(plan.positions, wavelength_m=il.wavelength_m,
                                       numerical_aperture=il.numerical_aperture,
-                                      pixel_pitch_object_m=il.pixel_pitch_object_m,
-                                      field_width_m=w * il.pixel_pitch_object_m, sign=il.sign,
+                                      pixel_pitch_object_m=pitch, field_width_m=w * pitch, sign=il.sign,
                                       grid_indices=plan.grid_indices)
+    seen: set[str] = set()
+    unique_notes = [n for n in notes if not (n in seen or seen.add(n))]
+    for note in unique_notes:
+        _log.warning("note: %s", note)
     return Ingested(plan=plan, frames=frames, exposure_s=plan.exposure_s, saturation_level=saturation,
-                    geometry=geometry)
+                    geometry=geometry, sensor=calibration, board_views=boards, initial_pupil=pupil,
+                    notes=unique_notes)
 
 
 def write_labels(handle: h5py.File, labels: list[str]) -> None:
@@ -137,6 +334,15 @@ def read_labels(handle: h5py.File, count: int) -> list[str]:
     return [f"view {k}" for k in range(count)]
 
 
+def _write_sensor(handle, calibration: SensorCalibration) -> None:
+    darks = calibration.darks
+    write_sensor_records(handle, white_level=calibration.white_level, black_level=calibration.black_level,
+                         dark_exposure_s=None if darks is None else darks.exposure_s,
+                         black_maps=None if darks is None else darks.black, gain_map=calibration.gain,
+                         read_noise=calibration.read_noise, electrons_per_count=calibration.electrons_per_count,
+                         noise_source=calibration.noise_source)
+
+
 def write_raw(path: Path, data: Ingested, provenance: Provenance, *, force: bool = False) -> None:
     """Write ``raw.h5`` atomically."""
     manifest = data.plan.manifest
@@ -148,19 +354,33 @@ def write_raw(path: Path, data: Ingested, provenance: Provenance, *, force: bool
         write_dataset(handle, "/raw/exposure_s", data.exposure_s)
         write_labels(handle, data.plan.labels)
         write_geometry(handle, data.geometry)
+        if manifest.known_pupil.defocus_m is not None:
+            handle["geometry"].attrs["defocus_m"] = float(manifest.known_pupil.defocus_m)
+        if data.initial_pupil is not None:
+            write_dataset(handle, "/calibration/initial_pupil", data.initial_pupil)
+        if data.sensor is not None:
+            _write_sensor(handle, data.sensor)
         if manifest.checkerboard is not None:
             board = handle.require_group("registration/board")
             board.attrs["pattern"] = np.asarray(manifest.checkerboard.pattern, np.int32)
             if manifest.checkerboard.square_m is not None:
                 board.attrs["square_m"] = manifest.checkerboard.square_m
+            if data.board_views is not None:
+                write_dataset(handle, "/registration/board_views", data.board_views)
         k, e, h, w = data.frames.shape
         if e == 1:
             counts = data.frames[:, 0]
             intensity = counts / data.exposure_s[:, 0, None, None].astype(np.float32)
             if manifest.values == "amplitude":
                 intensity = intensity * intensity
-            weight = (counts < np.float32(data.saturation_level * 0.99)).astype(np.float32)
-            write_dataset(handle, "/measurements/intensity", intensity.astype(np.float32), units="counts/s")
+            weight = np.ones_like(counts)
+            if data.sensor is not None and data.sensor.white_level is not None:
+                for i in range(k):
+                    weight[i] = counts[i] < np.float32(0.99) * data.sensor.saturation_at(float(data.exposure_s[i, 0]))
+            else:
+                weight = (counts < np.float32(data.saturation_level * 0.99)).astype(np.float32)
+            ds = write_dataset(handle, "/measurements/intensity", intensity.astype(np.float32), units="counts/s")
+            ds.attrs["boundary"] = BOUNDARY_OPEN
             write_dataset(handle, "/measurements/weight", weight)
 
 

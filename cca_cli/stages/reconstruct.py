@@ -25,12 +25,14 @@ from cca_cli.io.schema import spec_for
 from cca_cli.optics import fft
 from cca_cli.optics.forward import ForwardModel
 from cca_cli.optics.pupil import circular_pupils
+from cca_cli.sampling.capture import with_field_width
 from cca_cli.sampling.geometry import CaptureGeometry
 from cca_cli.sampling.grid import BandLayout, band_layout, smallest_fft_size
+from cca_cli.sampling.region import RegionEmbedding, plan_embedding
 from cca_cli.stages.progress import ProgressEvent, ProgressFn, silent
 
 __all__ = ["SECTIONS", "Captures", "Recovery", "read_captures", "read_measurements", "build_model", "reconstruct",
-           "run"]
+           "embed_region", "run"]
 
 SECTIONS = ("reconstruct",)
 
@@ -45,6 +47,8 @@ class Captures:
     geometry: CaptureGeometry
     truth: dict
     units: str | None = None   # units of /measurements/intensity when they are not the schema's (counts/s)
+    boundary: str = "periodic"                 # "open": a window on a larger scene (recorded frames)
+    initial_pupil: np.ndarray | None = None    # (P, P) complex64 on the NA disc, from the manifest
 
 
 @dataclass(frozen=True)
@@ -98,14 +102,37 @@ def read_measurements(handle, path: Path) -> Captures:
     weight = np.asarray(handle["/measurements/weight"], np.float32) if "/measurements/weight" in handle else None
     truth = {name: np.asarray(handle["truth"][name]) for name in handle["truth"]} if "truth" in handle else {}
     k, h, w = intensity.shape
-    if h != w:
-        raise InputError(f"{path}: /measurements/intensity images are {h}x{w}; crop them square (register.crop)")
+    boundary = handle["/measurements/intensity"].attrs.get("boundary", "periodic" if h == w else "open")
+    pupil = np.asarray(handle["/calibration/initial_pupil"]) if "/calibration/initial_pupil" in handle else None
     if not np.all(np.isfinite(intensity)):
         bad = int(np.argmax(~np.isfinite(intensity).reshape(k, -1).all(axis=1)))
         raise InputError(f"{path}: image {bad} of /measurements/intensity contains NaN or Inf; fix or mask it")
     if weight is not None and weight.shape != intensity.shape:
         raise InputError(f"{path}: /measurements/weight has shape {weight.shape}, expected {intensity.shape}")
-    return Captures(path=path, intensity=intensity, weight=weight, geometry=geometry, truth=truth, units=units)
+    return Captures(path=path, intensity=intensity, weight=weight, geometry=geometry, truth=truth, units=units,
+                    boundary=boundary.decode() if isinstance(boundary, bytes) else str(boundary), initial_pupil=pupil)
+
+
+def embed_region(captures: Captures, section: ReconstructSection) -> tuple[Captures, RegionEmbedding | None]:
+    """Place recorded (open-boundary) or non-square images in the middle of a square grid with a guard band.
+
+    Returns the captures on the square grid (geometry widened to it, weights
+    0 in the guard band) and the embedding, or the captures unchanged and
+    None for periodic square images or ``padding.mode: off``.
+    See :mod:`cca_cli.sampling.region`.
+    """
+    k, h, w = captures.intensity.shape
+    padding = section.padding
+    if padding.mode == "off" or (captures.boundary != "open" and h == w):
+        if h != w:
+            raise InputError(f"{captures.path}: /measurements/intensity images are {w}x{h} px; with "
+                             "reconstruct.padding.mode off they must be square (register.crop_xywh)")
+        return captures, None
+    region = plan_embedding((h, w), captures.geometry.pupil_radius_px, guard_px=padding.guard_px,
+                            apodize_px=padding.apodize_px)
+    images, weights = region.embed(captures.intensity, captures.weight)
+    geometry = with_field_width(captures.geometry, captures.geometry.field_width_m * region.size / w)
+    return replace(captures, intensity=images, weight=weights, geometry=geometry), region
 
 
 def build_model(geometry: CaptureGeometry, sensor_pixels: int, *, hires_size: int | None = None,
@@ -157,9 +184,9 @@ def engine_options(section: ReconstructSection, kind: str = "simulation"):
         raise ConfigError(f"reconstruct.options: {exc}") from None
 
 
-def problem_calibration(geometry: CaptureGeometry, layout: BandLayout) -> dict:
-    """What the captures tell a calibrating engine: cameras, how positions may move, a known aberration."""
-    out = {}
+def problem_calibration(geometry: CaptureGeometry, layout: BandLayout, initial_pupil=None) -> dict:
+    """What the captures tell a calibrating engine: cameras, how positions may move, a known pupil or defocus."""
+    out = {} if initial_pupil is None else {"initial_pupil": np.asarray(initial_pupil, np.complex64)}
     if geometry.camera_index is not None:
         out["pupil_index"] = np.asarray(geometry.camera_index, np.int64)
     if geometry.kind == "led_array":
@@ -210,7 +237,8 @@ def recover(captures: Captures, engine: str, options, *, progress: ProgressFn = 
     except ValueError as exc:
         raise InputError(f"{captures.path}: {exc}") from None
     problem = PhaseRetrievalProblem.from_sensor_images(model, captures.intensity, captures.weight,
-                                                       **problem_calibration(captures.geometry, model.layout))
+                                                       **problem_calibration(captures.geometry, model.layout,
+                                                                             captures.initial_pupil))
     runner = get_engine(engine).engine(problem, options)
     recovery = drive_engine(runner, options, model.layout, engine, progress=progress, on_iteration=on_iteration)
     calibration = runner.calibration() if hasattr(runner, "calibration") else None
@@ -236,15 +264,22 @@ def drive_engine(engine, options, layout: BandLayout, name: str, *, progress: Pr
 
 
 def write_recon(path: Path, captures: Captures, recovery: Recovery, provenance: Provenance, *, force: bool = False,
-                observed: np.ndarray | None = None, extra=None) -> None:
+                observed: np.ndarray | None = None, extra=None, region: RegionEmbedding | None = None) -> None:
     """Write ``recon.h5`` atomically: recovery, history, centre capture, truth and geometry.
 
     ``observed`` replaces the centre capture as /observed/centre; ``extra(handle)``
-    writes further groups (multiplexed runs add /multiplex).
+    writes further groups (multiplexed runs add /multiplex). With ``region``
+    (padded captures) /recon/object, /recon/intensity and /observed/centre
+    hold the region only and /recon/region_px says where it sits.
     """
     obj = fft.ifft2c(recovery.spectrum).astype(np.complex64)
     layout = recovery.layout
     units = captures.units   # recorded captures: counts/s instead of the simulation's irradiance
+    if region is not None:
+        y0, x0, hh, ww = region.hires_box(layout.hires_size)
+        obj = np.ascontiguousarray(obj[y0:y0 + hh, x0:x0 + ww])
+        if observed is None:
+            observed = region.crop(captures.intensity[captures.geometry.centre_index])
     with atomic_h5(path, provenance, force=force) as handle:
         write_dataset(handle, "/recon/spectrum", recovery.spectrum, units=units and f"√({units}) · px")
         write_dataset(handle, "/recon/object", obj, units=units and f"√({units})")
@@ -256,6 +291,10 @@ def write_recon(path: Path, captures: Captures, recovery: Recovery, provenance: 
         for name, data in captures.truth.items():
             write_dataset(handle, f"/truth/{name}", data)
         write_geometry(handle, captures.geometry)
+        if region is not None:
+            oy, ox = region.offset_yx
+            write_dataset(handle, "/recon/region_px", np.array([[y0, x0, hh, ww], [oy, ox, *region.shape]], np.int32),
+                          guard_px=region.guard_px, apodize_px=region.apodize_px, sensor_grid_px=region.size)
         if recovery.fit is not None:
             write_fit(handle, recovery.fit)
         if recovery.calibration is not None:
@@ -325,9 +364,10 @@ def run(captures_path: Path, section: ReconstructSection, output: Path, *, prove
     if multiplex.is_multiplexed_file(captures_path):
         return multiplex.run_reconstruct(captures_path, section, output, provenance=provenance, force=force,
                                          progress=progress)
-    captures = read_captures(captures_path)
+    captures, region = embed_region(read_captures(captures_path), section)
     recovery = reconstruct(captures, section, progress=progress)
     from cca_cli.stages.capture_info import capture_extras
 
-    write_recon(output, captures, recovery, provenance, force=force, extra=capture_extras(captures_path))
+    write_recon(output, captures, recovery, provenance, force=force, extra=capture_extras(captures_path),
+                region=region)
     return recovery

@@ -1,9 +1,13 @@
 """Stage `register`: align every view to the centre view with checkerboard homographies → registered.h5.
 
-The board is found in each view (OpenCV, sub-pixel), each view's homography
-to the centre view is fitted with RANSAC, views and validity weights are
-warped onto the centre view's pixel grid and cropped to the object
-rectangle. Pixels that the warp could not fill get weight 0.
+The board is found in each position's calibration view (the board
+photographed at that position, stored by ingest) or, without calibration
+views, in the captures themselves (a board beside the object). Each view's
+homography to the centre view is fitted with RANSAC; views and validity
+weights are warped onto the centre view's pixel grid and cut to the object
+rectangle (any aspect; the whole frame by default). Pixels that the warp
+could not fill get weight 0. The registration error is estimated where the
+object is (:mod:`cca_cli.registration.accuracy`), not only at the corners.
 """
 
 from __future__ import annotations
@@ -19,11 +23,12 @@ from cca_cli.config.model import RegisterSection
 from cca_cli.errors import CheckerboardNotFound, ConfigError, InputError
 from cca_cli.io.geometry import read_geometry, write_geometry
 from cca_cli.io.h5 import Provenance, atomic_h5, check_output, describe, open_input, require, write_dataset
+from cca_cli.registration.accuracy import object_error
 from cca_cli.registration.checkerboard import find_checkerboard
 from cca_cli.registration.homography import crop, estimate_homography, warp_views
 from cca_cli.sampling.capture import object_pixel_m, with_field_width
-from cca_cli.stages.hdr import copy_board
-from cca_cli.stages.ingest import read_labels, write_labels
+from cca_cli.io.records import carry_capture_records
+from cca_cli.stages.ingest import BOUNDARY_OPEN, read_labels, write_labels
 from cca_cli.stages.progress import ProgressEvent, ProgressFn, silent
 
 __all__ = ["SECTIONS", "Registration", "register_views", "run"]
@@ -37,19 +42,32 @@ _log = logging.getLogger(__name__)
 class Registration:
     """Aligned, cropped views and how they were aligned."""
 
-    intensity: np.ndarray      # (K', h, h)
-    weight: np.ndarray         # (K', h, h)
+    intensity: np.ndarray      # (K', h, w)
+    weight: np.ndarray         # (K', h, w)
     homographies: np.ndarray   # (K', 3, 3) view → reference
     rms_px: np.ndarray         # (K',)
     kept: np.ndarray           # (K',) indices into the input views
     dropped: list[str]         # labels of the lost views
     corners: np.ndarray        # (K', N, 2) detected corners in each view
+    object_rms_px: np.ndarray | None = None      # (K',) estimated registration error over the object rectangle
+    object_max_px: np.ndarray | None = None      # (K',)
+    hull_fraction: np.ndarray | None = None      # (K',) share of the rectangle inside the board corners' hull
 
 
 def register_views(intensity: np.ndarray, weight: np.ndarray | None, pattern: tuple[int, int], *, reference: int,
                    crop_xywh, labels: list[str], drop_missing: bool = False, ransac_threshold_px: float = 1.0,
-                   interpolation: str = "cubic", progress: ProgressFn = silent) -> Registration:
-    """Register ``intensity`` views (K, H, W) to view ``reference`` and crop them.
+                   interpolation: str = "cubic", board_views: np.ndarray | None = None, object_xywh=None,
+                   progress: ProgressFn = silent) -> Registration:
+    """Register ``intensity`` views (K, H, W) to view ``reference`` and cut out ``crop_xywh``.
+
+    Parameters
+    ----------
+    board_views : ndarray, (K, H, W), optional
+        Calibration images of the board at each position; the board is
+        looked for in ``intensity`` itself when None.
+    object_xywh : tuple of int, optional
+        Where the object is (reference px), for the registration error
+        estimate; default ``crop_xywh``.
 
     Raises
     ------
@@ -57,23 +75,26 @@ def register_views(intensity: np.ndarray, weight: np.ndarray | None, pattern: tu
         The board is missing in the reference view, or in any view when
         ``drop_missing`` is false.
     ConfigError
-        The crop rectangle is not square or does not fit the frame.
+        The rectangle does not fit the frame.
     """
     k, h, w = intensity.shape
     x0, y0, cw, ch = (int(v) for v in crop_xywh)
-    if cw != ch:
-        raise ConfigError(f"registration.crop_xywh: the object rectangle must be square, got {cw}x{ch} px")
     if x0 < 0 or y0 < 0 or x0 + cw > w or y0 + ch > h:
         raise ConfigError(f"registration.crop_xywh: ({x0}, {y0}, {cw}, {ch}) does not fit in the {w}x{h} px frames")
+    search = intensity if board_views is None else board_views
+    if search.shape != intensity.shape:
+        raise InputError(f"calibration views are {search.shape[2]}x{search.shape[1]} px but the captures are "
+                         f"{w}x{h} px; photograph the board with the same camera settings")
     corners, kept, dropped = [], [], []
     for i in range(k):
+        name = labels[i] if board_views is None else f"{labels[i]} calibration view"
         try:
-            corners.append(find_checkerboard(intensity[i], pattern, source=labels[i]))
+            corners.append(find_checkerboard(search[i], pattern, source=name))
             kept.append(i)
         except CheckerboardNotFound:
             if not drop_missing or i == reference:
                 raise
-            _log.warning("%s: no checkerboard found; view dropped", labels[i])
+            _log.warning("%s: no checkerboard found; view dropped", name)
             dropped.append(labels[i])
         progress(ProgressEvent("register", "checkerboards", i + 1, k))
     ref = corners[kept.index(reference)]
@@ -84,8 +105,18 @@ def register_views(intensity: np.ndarray, weight: np.ndarray | None, pattern: tu
         except ValueError as exc:
             raise InputError(f"{labels[i]}: cannot fit a homography to the checkerboard ({exc})") from None
     mats = np.stack([f.matrix for f in fits])
+    rect = (x0, y0, cw, ch)
+    where = rect if object_xywh is None else tuple(int(v) for v in object_xywh)
+    if where[0] + where[2] > w or where[1] + where[3] > h:
+        raise ConfigError(f"registration.object_xywh: {where} does not fit in the {w}x{h} px frames")
+    errors = [object_error(pts, ref, f.matrix, where, inliers=f.inlier_mask) for pts, f in zip(corners, fits)]
+    hull = np.array([e.hull_fraction for e in errors])
+    if (hull < 1).any():
+        _log.warning("the object region lies %.0f%% outside the board corners' hull (worst view %s): the "
+                     "homographies extrapolate there (estimated error up to %.3f px); photograph the board over the "
+                     "object region", 100 * (1 - hull.min()), labels[kept[int(np.argmin(hull))]],
+                     max(e.max_px for e in errors))
     views, masks = warp_views(intensity[kept], mats, (h, w), interpolation=interpolation, with_mask=True)
-    np.clip(views, 0, None, out=views)
     if weight is not None:
         warped_w = warp_views(weight[kept], mats, (h, w), interpolation="linear")
         # A weight-0 (invalid) source pixel spoils every output pixel its kernel touches.
@@ -93,10 +124,11 @@ def register_views(intensity: np.ndarray, weight: np.ndarray | None, pattern: tu
         w_out = np.where(masks & ~invalid, np.clip(warped_w, 0, 1), 0).astype(np.float32)
     else:
         w_out = masks.astype(np.float32)
-    rect = (x0, y0, cw, ch)
     return Registration(intensity=crop(views, rect), weight=crop(w_out, rect), homographies=mats,
                         rms_px=np.array([f.rms_px for f in fits]), kept=np.asarray(kept, np.int32),
-                        dropped=dropped, corners=np.stack(corners))
+                        dropped=dropped, corners=np.stack(corners),
+                        object_rms_px=np.array([e.rms_px for e in errors]),
+                        object_max_px=np.array([e.max_px for e in errors]), hull_fraction=hull)
 
 
 def run(captures_path: Path, section: RegisterSection | None, output: Path, *, provenance: Provenance,
@@ -113,32 +145,37 @@ def run(captures_path: Path, section: RegisterSection | None, output: Path, *, p
             raise InputError(f"{captures_path}: no checkerboard pattern recorded; add checkerboard: {{pattern: [9, 6]}} "
                              "to the manifest and re-run ingest")
         pattern = tuple(int(v) for v in src["registration/board"].attrs["pattern"])
+        board_views = (np.asarray(src["/registration/board_views"], np.float32)
+                       if "/registration/board_views" in src else None)
         k, h, w = intensity.shape
-        rect = section.crop_xywh
-        if rect is None:
-            if h != w:
-                raise ConfigError(f"registration.crop_xywh: the {w}x{h} px frames are not square; give the object "
-                                  "rectangle [x0, y0, width, height] in reference pixels")
-            rect = (0, 0, w, h)
+        rect = tuple(section.crop_xywh) if section.crop_xywh is not None else (0, 0, w, h)
         reg = register_views(intensity, weight, pattern, reference=geometry.centre_index, crop_xywh=rect,
                              labels=labels, drop_missing=section.drop_missing,
                              ransac_threshold_px=section.ransac_threshold_px, interpolation=section.interpolation,
-                             progress=progress)
+                             board_views=board_views, object_xywh=section.object_xywh, progress=progress)
         new_geometry = with_field_width(geometry, rect[2] * object_pixel_m(geometry), keep=reg.kept)
         with atomic_h5(output, provenance, force=force) as handle:
-            write_dataset(handle, "/measurements/intensity", reg.intensity, units=src["/measurements/intensity"].attrs.get("units", ""))
+            units = src["/measurements/intensity"].attrs.get("units", "")
+            ds = write_dataset(handle, "/measurements/intensity", reg.intensity, units=units)
+            ds.attrs["boundary"] = BOUNDARY_OPEN
             write_dataset(handle, "/measurements/weight", reg.weight)
             write_dataset(handle, "/registration/homography", reg.homographies)
             write_dataset(handle, "/registration/rms_px", reg.rms_px)
+            write_dataset(handle, "/registration/object_rms_px", reg.object_rms_px)
+            write_dataset(handle, "/registration/object_max_px", reg.object_max_px)
+            write_dataset(handle, "/registration/board_hull_fraction", reg.hull_fraction)
             write_dataset(handle, "/registration/kept_index", reg.kept)
             write_dataset(handle, "/registration/corners", reg.corners.astype(np.float32))
             describe(handle.create_dataset("/registration/dropped", data=np.array(reg.dropped, dtype=h5py.string_dtype())))
             handle["registration"].attrs["crop_xywh"] = np.asarray(rect, np.int32)
+            handle["registration"].attrs["object_xywh"] = np.asarray(section.object_xywh or rect, np.int32)
             handle["registration"].attrs["reference_index"] = int(geometry.centre_index)
+            handle["registration"].attrs["board_source"] = "calibration views" if board_views is not None else "captures"
             write_labels(handle, [labels[i] for i in reg.kept])
             write_geometry(handle, new_geometry)
-            copy_board(src, handle)
+            carry_capture_records(src, handle, keep=reg.kept)
             if "hdr" in src:
-                for name in ("dynamic_range_gain", "valid_fraction"):
-                    write_dataset(handle, f"/hdr/{name}", np.asarray(src["hdr"][name])[reg.kept])
+                for name in ("dynamic_range_gain", "dynamic_range", "valid_fraction", "flux_ratio", "flux_ratio_sigma"):
+                    if name in src["hdr"]:
+                        write_dataset(handle, f"/hdr/{name}", np.asarray(src["hdr"][name])[reg.kept])
     return reg

@@ -73,7 +73,8 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
 
             figures = write_figures(tmp, observed=observed, recovered_object=obj, spectrum=spectrum,
                                     pupil_centres_px=geometry.spectrum_centres_yx_px,
-                                    pupil_radius_px=geometry.pupil_radius_px, field_width_m=geometry.field_width_m,
+                                    pupil_radius_px=geometry.pupil_radius_px,
+                                    field_width_m=geometry.field_width_m * obj.shape[-1] / int(attrs.get("hires_size")),
                                     residual=residual, change=change, summary=summary, truth=truth, units=units,
                                     region=region, grid_indices=geometry.grid_indices)
             if comparison:

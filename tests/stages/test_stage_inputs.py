@@ -71,14 +71,19 @@ def test_read_captures_rejects_nan_images(captures_file, tmp_path):
         reconstruct_stage.read_captures(_edited_copy(captures_file, tmp_path, poison))
 
 
-def test_read_captures_rejects_non_square_and_mismatched_images(captures_file, tmp_path):
+def test_read_captures_pads_non_square_and_rejects_mismatched_images(captures_file, tmp_path):
     def crop(handle):
         data = handle["/measurements/intensity"][()]
         del handle["/measurements/intensity"]
         handle["/measurements/intensity"] = data[:, :, :90]
 
+    # Non-square images are a window on a larger scene: padded to a square grid, unless padding is off.
+    cropped = reconstruct_stage.read_captures(_edited_copy(captures_file, tmp_path, crop))
+    assert cropped.boundary == "open"
+    padded, region = reconstruct_stage.embed_region(cropped, ReconstructSection())
+    assert padded.intensity.shape[1] == padded.intensity.shape[2] > 96 and region.shape == (96, 90)
     with pytest.raises(InputError, match="square"):
-        reconstruct_stage.read_captures(_edited_copy(captures_file, tmp_path, crop))
+        reconstruct_stage.embed_region(cropped, ReconstructSection(padding={"mode": "off"}))
 
     def drop(handle):
         data = handle["/measurements/intensity"][()]

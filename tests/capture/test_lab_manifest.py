@@ -1,0 +1,298 @@
+"""Lab tables, kinds, setup files, containers and refusals: ingest of directories laid out as labs record them.
+
+Every refusal is checked through the real entry point: one line naming the file and the fix, exit != 0,
+no output and no temporary file left.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import h5py
+import numpy as np
+import OpenImageIO as oiio
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from cca_cli.commands.app import app
+from cca_cli.io.images import write_image
+from cca_cli.stages.reconstruct import read_captures
+
+runner = CliRunner()
+OPTICS = {"wavelength_m": 550e-9, "focal_length_m": 0.05, "aperture_diameter_m": 1.5e-3, "pixel_pitch_m": 2.5e-6,
+          "distance_m": 5.0}
+HEADER = ["file", "kind", "exposure_ms", "x_mm", "y_mm", "r", "c", "bits", "operator"]
+MAPPING = {"path": "file", "kind": "kind", "exposure": "exposure_ms", "stage_x": "x_mm", "stage_y": "y_mm",
+           "row": "r", "col": "c", "bit_depth": "bits"}
+RNG = np.random.default_rng(0)
+
+
+def _codes(level: float, shape=(16, 20)) -> np.ndarray:
+    return np.clip(np.rint(level + RNG.normal(0, 2, shape)), 0, 4095).astype(np.uint16)
+
+
+def _lab(tmp_path, *, shift=4, calibration=False, darks=False, flats=False, extra_rows=(), edit=None, sensor=None,
+         manifest_extra=None):
+    """A 2 x 2-position, 2-exposure lab directory: lab table, setup.json, a user's lab.yaml."""
+    rows = []
+    for r in range(2):
+        for c in range(2):
+            for t in (1.0, 4.0):
+                name = f"p{r}{c}_{int(t)}.tif"
+                write_image(tmp_path / name, _codes(64 + 50 * t * (1 + r + c)) << shift, bit_depth=16)
+                rows.append([name, "coherent", t, 0.5 * c - 0.25, 0.5 * r - 0.25, r, c, 12, "ann"])
+            if calibration:
+                name = f"cal{r}{c}.tif"
+                write_image(tmp_path / name, _codes(1500) << shift, bit_depth=16)
+                rows.append([name, "calibration", 8.0, 0.5 * c - 0.25, 0.5 * r - 0.25, r, c, 12, "ann"])
+    if darks:
+        for t in (1.0, 4.0):
+            for n in range(2):
+                write_image(tmp_path / f"d{int(t)}_{n}.tif", _codes(64) << shift, bit_depth=16)
+                rows.append([f"d{int(t)}_{n}.tif", "dark", t, "", "", "", "", 12, "ann"])
+    if flats:
+        for n in range(2):
+            write_image(tmp_path / f"f{n}.tif", _codes(2000) << shift, bit_depth=16)
+            rows.append([f"f{n}.tif", "flat", 4.0, "", "", "", "", 12, "ann"])
+    rows += list(extra_rows)
+    if edit is not None:
+        rows = edit(rows)
+    with open(tmp_path / "table.csv", "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(HEADER)
+        writer.writerows(rows)
+    (tmp_path / "setup.json").write_text(json.dumps({**OPTICS, "lens": "50 mm macro"}))
+    manifest = {"images_csv": "table.csv", "setup": "setup.json", "columns": MAPPING,
+                "units": {"exposure": "ms", "position": "mm"},
+                "sensor": sensor if sensor is not None else {"bit_depth": 12, "container_bits": 16, "alignment": "msb",
+                                                              "black_level": 64}}
+    if calibration:
+        manifest["checkerboard"] = {"pattern": [4, 3]}
+    manifest.update(manifest_extra or {})
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump(manifest, sort_keys=False))
+    return tmp_path / "lab.yaml"
+
+
+def _ingest(manifest, out):
+    return runner.invoke(app, ["ingest", str(manifest), "-o", str(out), "-q"])
+
+
+def _refused(tmp_path, *needles):
+    """Ingest of lab.yaml fails with one line containing every needle, and writes nothing."""
+    out = tmp_path / "raw.h5"
+    result = _ingest(tmp_path / "lab.yaml", out)
+    assert result.exit_code != 0, result.output
+    text = " ".join(result.output.split())
+    assert text.startswith("error:") and text.count("error:") == 1, text
+    for needle in needles:
+        assert needle in text, (needle, text)
+    assert not out.exists() and not list(tmp_path.glob(".raw.h5*"))
+    return text
+
+
+def test_lab_table_with_its_own_names_ingests(tmp_path):
+    _lab(tmp_path, calibration=True, darks=True, flats=True)
+    result = _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
+    assert result.exit_code == 0, result.output
+    text = " ".join(result.output.split())
+    assert text.count("ignored: operator") == 1 and text.count("ignored: lens") == 1  # listed once
+    with h5py.File(tmp_path / "raw.h5") as f:
+        frames = f["/raw/frames"][()]
+        assert frames.shape == (4, 2, 16, 20)
+        np.testing.assert_allclose(f["/raw/exposure_s"][0], [0.001, 0.004])
+        np.testing.assert_allclose(f["/geometry/aperture_centres_yx_m"][()].min(axis=0), [-0.25e-3, -0.25e-3])
+        assert f["/registration/board_views"].shape == (4, 16, 20)
+        assert f["/sensor/black_level"].shape == (2, 16, 20)
+        assert f["/sensor/gain_map"][()].mean() == pytest.approx(1.0, abs=1e-6)
+        assert 1.0 < f["sensor"].attrs["read_noise"] < 3.5
+        assert f["/geometry/grid_indices"][()].max() == 1
+    # Codes shifted back (12-bit), black subtracted per pixel: position (0, 0) at 1 ms sits about 50 codes up.
+    assert abs(np.median(frames[0, 0]) - 50) < 3
+
+
+def test_values_below_the_black_level_are_kept(tmp_path):
+    _lab(tmp_path, sensor={"bit_depth": 12, "alignment": "msb", "black_level": 120})
+    assert _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5").exit_code == 0
+    with h5py.File(tmp_path / "raw.h5") as f:
+        dim = f["/raw/frames"][0, 0]
+    assert abs(np.median(dim) + 6) < 1.5 and (dim < 0).mean() > 0.9  # not clipped at zero
+
+
+def test_old_csv_with_fixed_name_sidecar_still_works(tmp_path):
+    for i in range(2):
+        write_image(tmp_path / f"v{i}.png", np.full((16, 16), 100 + i, np.float32), bit_depth=16)
+    (tmp_path / "captures.csv").write_text("path,exposure_s,stage_x_mm,stage_y_mm\nv0.png,0.01,0,0\nv1.png,0.01,1,0\n")
+    (tmp_path / "captures.yaml").write_text(yaml.safe_dump({"optics": OPTICS, "sensor": {"white_level": 4095}}))
+    result = _ingest(tmp_path / "captures.csv", tmp_path / "raw.h5")
+    assert result.exit_code == 0, result.output
+    with h5py.File(tmp_path / "raw.h5") as f:
+        np.testing.assert_allclose(f["/measurements/intensity"][1], 101 / 0.01, rtol=1e-6)
+
+
+def test_known_defocus_and_pupil_reach_reconstruct(tmp_path):
+    pupil = np.exp(1j * np.linspace(0, 1, 64)).reshape(8, 8).astype(np.complex64)
+    np.save(tmp_path / "pupil.npy", pupil)
+    (tmp_path / "setup.json").write_text("{}")
+    _lab(tmp_path)
+    manifest = yaml.safe_load((tmp_path / "lab.yaml").read_text())
+    manifest.pop("setup")
+    manifest["optics"] = {**OPTICS, "defocus_m": 1.5e-5, "pupil": "pupil.npy"}
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump(manifest))
+    assert _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5").exit_code == 0
+    result = runner.invoke(app, ["hdr", str(tmp_path / "raw.h5"), "-o", str(tmp_path / "hdr.h5"), "-q"])
+    assert result.exit_code == 0, result.output
+    with h5py.File(tmp_path / "hdr.h5") as f:
+        assert f["/calibration/initial_pupil"].attrs["units"] == "1"
+        assert "description" in f["/calibration/initial_pupil"].attrs
+    captures = read_captures(tmp_path / "hdr.h5")
+    assert captures.defocus_m == pytest.approx(1.5e-5)
+    np.testing.assert_array_equal(captures.initial_pupil, pupil)
+    assert captures.boundary == "open"
+
+
+def test_setup_section_given_twice(tmp_path):
+    _lab(tmp_path, manifest_extra={"optics": OPTICS})
+    _refused(tmp_path, "lab.yaml", "optics is given both here and in setup.json")
+
+
+def test_unit_suffix_contradicting_units(tmp_path):
+    _lab(tmp_path, manifest_extra={"units": {"exposure": "s", "position": "mm"}})
+    _refused(tmp_path, "exposure_ms", "units: {exposure: ms}")
+
+
+def test_mapped_column_missing(tmp_path):
+    _lab(tmp_path, manifest_extra={"columns": {**MAPPING, "stage_x": "X"}})
+    _refused(tmp_path, "columns.stage_x", "no column 'X'")
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-inf"])
+def test_non_finite_position(tmp_path, value):
+    _lab(tmp_path, edit=lambda rows: [r if i != 2 else r[:3] + [value] + r[4:] for i, r in enumerate(rows)])
+    _refused(tmp_path, "table.csv", "line 4", "p01_1.tif", "'x_mm'", "finite")
+
+
+def test_unknown_kind_and_kind_values(tmp_path):
+    _lab(tmp_path, edit=lambda rows: [r[:1] + ["obj"] + r[2:] for r in rows])
+    _refused(tmp_path, "table.csv", "kind 'obj'", "kind_values")
+    _lab(tmp_path, edit=lambda rows: [r[:1] + ["obj"] + r[2:] for r in rows],
+         manifest_extra={"kind_values": {"obj": "coherent"}})
+    assert _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5").exit_code == 0
+
+
+def test_calibration_view_missing_at_a_position(tmp_path):
+    _lab(tmp_path, calibration=True, edit=lambda rows: [r for r in rows if r[0] != "cal11.tif"])
+    _refused(tmp_path, "lab.yaml", "grid position (row 1, col 1)", "no calibration image")
+
+
+# --- containers -------------------------------------------------------------------------------------------
+
+
+def test_msb_alignment_detected_from_the_values_with_a_note(tmp_path):
+    _lab(tmp_path, sensor={"bit_depth": 12, "black_level": 64})
+    result = _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
+    assert result.exit_code == 0, result.output
+    assert "MSB-aligned" in " ".join(result.output.split())
+    with h5py.File(tmp_path / "raw.h5") as f:
+        assert f["sensor"].attrs["white_level"] == 4095
+        assert abs(np.median(f["/raw/frames"][0, 0]) - 50) < 3
+
+
+def test_levels_in_stored_units_without_a_bit_depth(tmp_path):
+    _lab(tmp_path, sensor={"black_level": 1024}, edit=lambda rows: [r[:7] + [""] + r[8:] for r in rows])
+    result = _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
+    assert result.exit_code == 0, result.output
+    assert "multiple of 16" in " ".join(result.output.split())
+    with h5py.File(tmp_path / "raw.h5") as f:
+        assert f["sensor"].attrs["white_level"] == 65520  # the largest MSB-aligned 12-bit value, not 65535
+
+
+def test_white_level_the_data_contradict(tmp_path):
+    # The report's case: bit_depth 12 and white_level 4095 stated, 16-bit values, alignment lsb.
+    _lab(tmp_path, sensor={"bit_depth": 12, "alignment": "lsb", "white_level": 4095})
+    _refused(tmp_path, ".tif", "above the largest 12-bit code 4095", "alignment: msb")
+
+
+def test_white_level_above_the_values(tmp_path):
+    _lab(tmp_path, shift=0, sensor={"white_level": 3000}, edit=lambda rows: [r[:7] + [""] + r[8:] for r in rows])
+    write_image(tmp_path / "p11_4.tif", np.full((16, 20), 3500, np.uint16), bit_depth=16)
+    _refused(tmp_path, "p11_4.tif", "above sensor.white_level 3000")
+
+
+def test_eight_bit_files_with_a_twelve_bit_white_level(tmp_path):
+    _lab(tmp_path, sensor={"white_level": 4095}, edit=lambda rows: [
+        [r[0].replace(".tif", ".png")] + r[1:7] + [""] + r[8:] for r in rows])
+    for path in tmp_path.glob("p*.tif"):
+        write_image(path.with_suffix(".png"), np.full((16, 20), 120, np.uint8), bit_depth=8)
+    _refused(tmp_path, ".png", "white_level 4095 is above", "255")
+
+
+def test_one_eight_bit_file_among_sixteen_bit_ones(tmp_path):
+    _lab(tmp_path, edit=lambda rows: [r if r[0] != "p10_4.tif" else ["p10_4.png"] + r[1:] for r in rows])
+    write_image(tmp_path / "p10_4.png", np.full((16, 20), 120, np.uint8), bit_depth=8)
+    _refused(tmp_path, "p10_4.png", "8-bit", "16-bit", "same bit depth")
+
+
+def test_rows_stating_different_bit_depths(tmp_path):
+    _lab(tmp_path, edit=lambda rows: [r if r[0] != "p00_4.tif" else r[:7] + [14] + r[8:] for r in rows],
+         sensor={})
+    _refused(tmp_path, "lab.yaml", "bit depths 12", "14", "same bit depth")
+
+
+def _rgb(path, values):
+    h, w, c = values.shape
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), oiio.ImageSpec(w, h, c, "uint16"))
+    assert out.write_image(np.ascontiguousarray(values))
+    out.close()
+
+
+def test_colour_frames_need_a_channel_rule(tmp_path):
+    _lab(tmp_path)
+    for path in tmp_path.glob("p*.tif"):
+        grey = np.asarray(oiio.ImageBuf(str(path)).get_pixels(oiio.UINT16))[..., 0]
+        _rgb(path, np.stack([grey // 2, grey, grey // 4], axis=-1).astype(np.uint16) & 0xFFF0)
+    _refused(tmp_path, ".tif", "colour image", "sensor.channel")
+    manifest = yaml.safe_load((tmp_path / "lab.yaml").read_text())
+    manifest["sensor"]["channel"] = "G"
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump(manifest))
+    assert _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5").exit_code == 0
+    with h5py.File(tmp_path / "raw.h5") as f:
+        assert abs(np.median(f["/raw/frames"][0, 0]) - 50) < 3  # the green channel, not the mean
+
+
+def test_bayer_rule_keeps_one_colour_at_half_resolution(tmp_path):
+    _lab(tmp_path, sensor={"bit_depth": 12, "alignment": "msb", "black_level": 64,
+                           "bayer": {"pattern": "RGGB", "colour": "R"}})
+    assert _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5").exit_code == 0
+    with h5py.File(tmp_path / "raw.h5") as f:
+        assert f["/raw/frames"].shape == (4, 2, 8, 10)
+        assert f["geometry"].attrs["pixel_pitch_m"] == pytest.approx(5e-6)
+
+
+def test_non_finite_position_in_a_yaml_manifest(tmp_path):
+    write_image(tmp_path / "a.png", np.full((16, 16), 100, np.uint16), bit_depth=16)
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump({"optics": OPTICS, "images": [
+        {"path": "a.png", "exposure_s": 0.01, "stage_x_mm": float("nan"), "stage_y_mm": 0.0}]}))
+    _refused(tmp_path, "lab.yaml", "images.0.stage_x_mm", "finite number")
+
+
+def test_non_square_led_array_frames_are_recovered_whole(tmp_path):
+    # A 3 x 3 LED grid, 24 x 40 px frames: ingest writes /measurements; reconstruct pads and crops back.
+    images = []
+    for i, (ky, kx) in enumerate([(a, b) for a in (-0.04, 0, 0.04) for b in (-0.04, 0, 0.04)]):
+        frame = 200 + 50 * np.cos(np.arange(40)[None, :] / 3.0 + i) * np.ones((24, 1))
+        write_image(tmp_path / f"led{i}.png", frame, bit_depth=16)
+        images.append({"path": f"led{i}.png", "kx_norm": kx, "ky_norm": ky})
+    illumination = {"wavelength_m": 532e-9, "numerical_aperture": 0.1, "pixel_pitch_object_m": 1.0e-6}
+    (tmp_path / "led.yaml").write_text(yaml.safe_dump({"illumination": illumination, "images": images}))
+    assert _ingest(tmp_path / "led.yaml", tmp_path / "raw.h5").exit_code == 0
+    result = runner.invoke(app, ["reconstruct", str(tmp_path / "raw.h5"), "-o", str(tmp_path / "recon.h5"),
+                                 "--iterations", "5", "-q"])
+    assert result.exit_code == 0, result.output
+    with h5py.File(tmp_path / "recon.h5") as f:
+        region = f["/recon/region_px"][()]
+        assert tuple(region[1, 2:]) == (24, 40)
+        assert f["/recon/intensity"].shape == tuple(region[0, 2:])
+        assert f["/recon/intensity"].shape[1] / f["/recon/intensity"].shape[0] == pytest.approx(40 / 24, rel=0.05)
+        assert f["/observed/centre"].shape == (24, 40)
