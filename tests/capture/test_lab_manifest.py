@@ -146,7 +146,7 @@ def test_known_defocus_and_pupil_reach_reconstruct(tmp_path):
         assert f["/calibration/initial_pupil"].attrs["units"] == "1"
         assert "description" in f["/calibration/initial_pupil"].attrs
     captures = read_captures(tmp_path / "hdr.h5")
-    assert captures.defocus_m == pytest.approx(1.5e-5)
+    assert captures.geometry.defocus_m == pytest.approx(1.5e-5)
     np.testing.assert_array_equal(captures.initial_pupil, pupil)
     assert captures.boundary == "open"
 
