@@ -126,8 +126,18 @@ def summary_table(summary: dict, title: str = "Result") -> Table:
         ("registration error over the object, max (px)", "registration_object_rms_px_max", "{:.3f}"),
         ("HDR flux ratio, worst view", "hdr_flux_ratio_worst", "{:.3f}"),
         ("HDR dynamic-range gain (median)", "hdr_dynamic_range_gain_median", "{:.1f}"),
+        ("data residual, all images", "residual_all", "{:.4f}"),
+        ("data residual, bright-field images", "residual_bright_field", "{:.4f}"),
+        ("data residual, dark-field images", "residual_dark_field", "{:.4f}"),
+        ("pupil model", "pupil_model", "{}"),
+        ("position change rms / max (spectrum px)", None, "positions"),
+        ("defocus equivalent of the pupil", "defocus_m_equivalent", "length"),
     ]
     for label, key, fmt in rows:
+        if key is None and fmt == "positions":
+            if summary.get("position_change_px_max"):
+                table.add_row(label, f"{summary['position_change_px_rms']:.3f} / {summary['position_change_px_max']:.3f}")
+            continue
         if key is None:
             table.add_row(label, f"{summary.get('engine')} / {summary.get('iterations')}")
             continue
@@ -150,7 +160,12 @@ def _nested_rows(summary: dict) -> list[tuple[str, str]]:
     """Rows for the report's nested entries: stop reason, USAF reading, baselines and speckle contrast."""
     rows = []
     if summary.get("stopped_by"):
-        rows.append(("stopped by", "tol" if summary["stopped_by"] == "tol" else "iteration cap (before tol)"))
+        reasons = {"tol": "tol", "plateau": "misfit plateau", "cap": "iteration cap (before tol)"}
+        rows.append(("stopped by", reasons.get(summary["stopped_by"], summary["stopped_by"])))
+    zernike = summary.get("zernike_waves") or {}
+    if zernike:
+        largest = sorted(zernike.items(), key=lambda item: -abs(item[1]))[:3]
+        rows.append(("largest pupil aberrations (waves RMS)", ", ".join(f"{k} {v:+.3f}" for k, v in largest)))
     usaf = summary.get("usaf") or {}
     for name, reading in usaf.items():
         if not isinstance(reading, dict):

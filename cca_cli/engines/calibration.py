@@ -67,6 +67,7 @@ __all__ = [
     "quadratic_to_zernike",
     "estimate_quadratic_aberration",
     "defocus_zernike",
+    "zernike_name",
 ]
 
 #: (radial order n, azimuthal frequency m) of the modes used, Noll order from defocus on;
@@ -76,6 +77,17 @@ ZERNIKE_MODES: tuple[tuple[int, int], ...] = (
     (3, 1), (3, -1), (3, 3), (3, -3),
     (4, 0), (4, 2), (4, -2), (4, 4), (4, -4),
 )
+
+
+_MODE_NAMES = {(2, 0): "defocus", (2, 2): "astigmatism_0", (2, -2): "astigmatism_45", (3, 1): "coma_x",
+               (3, -1): "coma_y", (3, 3): "trefoil_0", (3, -3): "trefoil_30", (4, 0): "spherical",
+               (4, 2): "secondary_astigmatism_0", (4, -2): "secondary_astigmatism_45", (4, 4): "tetrafoil_0",
+               (4, -4): "tetrafoil_22"}
+
+
+def zernike_name(n: int, m: int) -> str:
+    """Readable name of the Zernike mode (radial order n, azimuthal frequency m; m < 0 the sine term)."""
+    return _MODE_NAMES.get((n, m), f"Z({n},{m})")
 
 
 def zernike_modes(order: int) -> tuple[tuple[int, int], ...]:

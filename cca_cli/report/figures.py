@@ -517,3 +517,146 @@ def write_coverage_figure(path: Path, coverage: np.ndarray, band: np.ndarray, su
     ax.set_ylabel("spectrum px (y)")
     fig.colorbar(image, ax=ax, label="measurements per spectrum pixel")
     return _save(plt, fig, Path(path))
+
+
+def write_calibration_figures(directory: Path, calibration: dict) -> list[Path]:
+    """Figures of what a calibrating engine found: pupils, position changes, brightness, per-image residuals.
+
+    Parameters
+    ----------
+    directory : Path
+    calibration : dict
+        ``nominal_px`` (K, 2) and ``refined_px`` (K, 2) pupil centres, ``radius_px``,
+        ``bright_field`` (K,) bool, ``residual_per_image`` (K,), and optionally
+        ``pupil`` (P, b, b) complex, ``brightness`` (K,), ``pixels_per_sine`` (LED
+        arrays: spectrum pixels per unit sin θ) and ``zernike`` (names → waves).
+
+    Returns
+    -------
+    list of Path
+    """
+    plt = _plt()
+    paths = []
+    if calibration.get("pupil") is not None:
+        paths.append(_pupil_figure(plt, directory / "pupil.png", calibration))
+    moved = np.asarray(calibration["refined_px"]) - np.asarray(calibration["nominal_px"])
+    if np.any(np.abs(moved) > 1e-6):
+        paths.append(_positions_figure(plt, directory / "positions.png", calibration))
+    if calibration.get("brightness") is not None and np.ptp(calibration["brightness"]) > 0:
+        paths.append(_brightness_figure(plt, directory / "brightness.png", calibration))
+    paths.append(_residual_figure(plt, directory / "residual_per_image.png", calibration))
+    return paths
+
+
+def _pupil_figure(plt, path: Path, calibration: dict) -> Path:
+    """Amplitude and phase of the recovered pupil(s); one row per camera (up to 6) on the NA disc."""
+    pupils = np.asarray(calibration["pupil"])
+    shown = pupils[:6]
+    b = pupils.shape[-1]
+    radius = float(calibration["radius_px"])
+    grid = (np.arange(b) - (b - 1) / 2) / radius
+    inside = (grid[:, None] ** 2 + grid[None, :] ** 2) <= 1.0
+    extent = ((-0.5 - (b - 1) / 2) / radius, ((b - 1) / 2 + 0.5) / radius,
+              ((b - 1) / 2 + 0.5) / radius, (-0.5 - (b - 1) / 2) / radius)
+    fig, axes = plt.subplots(len(shown), 2, figsize=(8.4, 3.6 * len(shown)), squeeze=False)
+    for row, pupil in enumerate(shown):
+        reference = np.sum(pupil[inside])
+        phase = np.angle(pupil * np.exp(-1j * np.angle(reference)))
+        amplitude = np.abs(pupil)
+        label = "pupil" if len(pupils) == 1 else f"camera {row}"
+        for ax, image, title, cmap, bar in (
+                (axes[row, 0], amplitude, f"{label}: amplitude", "gray", "relative amplitude"),
+                (axes[row, 1], phase / (2 * np.pi), f"{label}: phase", _phase_cmap(plt), "waves")):
+            masked = np.ma.masked_where(~inside, image)
+            limit = max(float(np.max(np.abs(masked))), 1e-3) if bar == "waves" else None
+            shown_image = ax.imshow(masked, cmap=cmap, extent=extent, interpolation="nearest",
+                                    vmin=-limit if limit else None, vmax=limit)
+            ax.set_title(title, fontsize=10)
+            ax.set_xlabel("pupil x (units of NA)", fontsize=8)
+            ax.set_ylabel("pupil y (units of NA)", fontsize=8)
+            ax.tick_params(labelsize=7)
+            fig.colorbar(shown_image, ax=ax, label=bar, fraction=0.046, pad=0.04)
+    zernike = calibration.get("zernike") or {}
+    if zernike:
+        items = [f"{name} {value:+.3f}" for name, value in list(zernike.items())[:6]]
+        text = ", ".join(items[:3]) + ("\n" + ", ".join(items[3:]) if len(items) > 3 else "")
+        fig.suptitle(f"Recovered pupil. Zernike coefficients (waves RMS):\n{text}", fontsize=9)
+    if len(pupils) > len(shown):
+        fig.text(0.5, 0.005, f"first {len(shown)} of {len(pupils)} cameras shown", ha="center", fontsize=8)
+    return _save(plt, fig, path)
+
+
+def _sines(calibration: dict, key: str) -> tuple[np.ndarray, str]:
+    """Pupil centres as illumination sin θ (LED arrays) or spectrum pixels, with the axis label."""
+    centres = np.asarray(calibration[key], np.float64)
+    per_sine = calibration.get("pixels_per_sine")
+    if per_sine:
+        return centres / per_sine, "sin θ"
+    return centres, "spectrum px"
+
+
+def _positions_figure(plt, path: Path, calibration: dict) -> Path:
+    """Nominal pupil centres and the change calibration made, as arrows (scaled up to be seen)."""
+    nominal, unit = _sines(calibration, "nominal_px")
+    refined, _ = _sines(calibration, "refined_px")
+    moves_px = np.asarray(calibration["refined_px"]) - np.asarray(calibration["nominal_px"])
+    largest = float(np.max(np.hypot(moves_px[:, 0], moves_px[:, 1]))) if len(moves_px) else 0.0
+    fig, ax = plt.subplots(figsize=(6.4, 5.8))
+    bright = np.asarray(calibration["bright_field"], bool)
+    ax.scatter(nominal[~bright, 1], nominal[~bright, 0], s=10, c="#777777", label="dark-field (nominal)")
+    ax.scatter(nominal[bright, 1], nominal[bright, 0], s=14, c="#d62728", label="bright-field (nominal)")
+    if largest > 0:
+        span = float(np.ptp(nominal)) or 1.0
+        spacing = span / max(np.sqrt(len(nominal)) - 1, 1)
+        delta = refined - nominal
+        gain = 0.8 * spacing / float(np.max(np.hypot(delta[:, 0], delta[:, 1])))
+        ax.quiver(nominal[:, 1], nominal[:, 0], delta[:, 1] * gain, delta[:, 0] * gain, angles="xy",
+                  scale_units="xy", scale=1, width=0.004, color="#1f77b4")
+        ax.set_title(f"Position calibration: arrows ×{gain:.0f} (largest move {largest:.2f} spectrum px)", fontsize=10)
+    else:
+        ax.set_title("Pupil positions (not calibrated: nominal)", fontsize=10)
+    ax.invert_yaxis()
+    ax.set_aspect("equal")
+    ax.set_xlabel(f"x ({unit})")
+    ax.set_ylabel(f"y ({unit})")
+    ax.legend(fontsize=8, loc="upper right")
+    return _save(plt, fig, path)
+
+
+def _brightness_figure(plt, path: Path, calibration: dict) -> Path:
+    """Each capture's fitted illumination brightness at its nominal pupil centre."""
+    nominal, unit = _sines(calibration, "nominal_px")
+    brightness = np.asarray(calibration["brightness"])
+    fig, ax = plt.subplots(figsize=(6.4, 5.4))
+    shown = ax.scatter(nominal[:, 1], nominal[:, 0], c=brightness, s=40, cmap="viridis", edgecolors="none")
+    fig.colorbar(shown, ax=ax, label="brightness (1 = median)")
+    ax.invert_yaxis()
+    ax.set_aspect("equal")
+    ax.set_xlabel(f"x ({unit})")
+    ax.set_ylabel(f"y ({unit})")
+    ax.set_title(f"Illumination brightness: {brightness.min():.2f} … {brightness.max():.2f}", fontsize=10)
+    return _save(plt, fig, path)
+
+
+def _residual_figure(plt, path: Path, calibration: dict) -> Path:
+    """Each capture's relative amplitude residual against its distance from the optical axis."""
+    nominal, unit = _sines(calibration, "nominal_px")
+    distance = np.hypot(nominal[:, 0], nominal[:, 1])
+    residual = np.asarray(calibration["residual_per_image"])
+    bright = np.asarray(calibration["bright_field"], bool)
+    fig, ax = plt.subplots(figsize=(7.0, 4.2))
+    ax.scatter(distance[~bright], residual[~bright], s=12, c="#555555", label="dark-field")
+    ax.scatter(distance[bright], residual[bright], s=16, c="#d62728", label="bright-field")
+    edge = float(calibration["radius_px"]) / (calibration.get("pixels_per_sine") or 1.0)
+    ax.axvline(edge, color="#999999", lw=0.8, ls="--")
+    ax.text(edge, ax.get_ylim()[1], " NA", fontsize=8, va="top", color="#666666")
+    ax.set_xlabel(f"illumination offset from the axis ({unit})" if unit == "sin θ" else f"pupil offset ({unit})")
+    ax.set_ylabel("relative amplitude residual")
+    ax.set_yscale("log")
+    totals = calibration.get("totals") or {}
+    title = "Residual per image"
+    if totals:
+        title += " — all {all:.3f}, bright-field {bright_field:.3f}, dark-field {dark_field:.3f}".format(**totals)
+    ax.set_title(title, fontsize=10)
+    ax.legend(fontsize=8)
+    return _save(plt, fig, path)

@@ -45,6 +45,7 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
         from cca_cli.stages.capture_info import read_capture_summary
 
         capture_summary = read_capture_summary(handle)
+        calibration = _read_calibration(handle, geometry)
     truth = None if truth_obj is None else (np.abs(truth_obj) ** 2).astype(np.float32)
     inputs = ReportInputs(geometry=geometry, observed=observed, recovered=recovered, truth=truth, bars=bars,
                           engine=str(attrs.get("engine")), iterations=int(attrs.get("iterations", 0)),
@@ -54,6 +55,8 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
     summary.update(_stopping(attrs, change))
     summary["intensity_units"] = units
     summary.update(capture_summary)
+    if calibration is not None:
+        summary.update(calibration_summary(calibration, geometry))
     coverage = None
     if multiplex is not None:
         from cca_cli.stages.multiplex import coverage_summary
@@ -82,6 +85,10 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
 
                 figures += write_comparison_figures(tmp, comparison, summary, field_width_m=geometry.field_width_m,
                                                     region=region, units=units)
+            if calibration is not None:
+                from cca_cli.report.figures import write_calibration_figures
+
+                figures += write_calibration_figures(tmp, calibration)
             if coverage is not None:
                 from cca_cli.report.figures import write_coverage_figure
 
@@ -92,6 +99,72 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
         (tmp / REPORT_JSON).write_text(json.dumps(document, indent=2))
     progress(ProgressEvent("report", "figures", 2, 2))
     return summary
+
+
+def _read_calibration(handle, geometry) -> dict | None:
+    """What recon.h5 says about the final model: residuals per capture, pupils, positions, brightness."""
+    if "/recon/residual_per_image" not in handle:
+        return None
+    attrs = handle["recon"].attrs
+    out = {
+        "nominal_px": np.asarray(geometry.spectrum_centres_yx_px),
+        "refined_px": (np.asarray(handle["/calibration/spectrum_centres_yx_px"])
+                       if "/calibration/spectrum_centres_yx_px" in handle else np.asarray(geometry.spectrum_centres_yx_px)),
+        "radius_px": geometry.pupil_radius_px,
+        "bright_field": np.asarray(handle["/calibration/bright_field"]),
+        "residual_per_image": np.asarray(handle["/recon/residual_per_image"]),
+        "totals": {name: float(attrs[f"residual_{name}"]) for name in ("all", "bright_field", "dark_field")
+                   if f"residual_{name}" in attrs},
+        "totals_without_brightness": {name: float(attrs[f"residual_{name}_without_brightness"])
+                                      for name in ("all", "bright_field", "dark_field")
+                                      if f"residual_{name}_without_brightness" in attrs},
+        "brightness": np.asarray(handle["/calibration/brightness"]) if "/calibration/brightness" in handle else None,
+        "pupil": np.asarray(handle["/calibration/pupil"]) if "/calibration/pupil" in handle else None,
+        "pixels_per_sine": (geometry.field_width_m / geometry.wavelength_m) if geometry.kind == "led_array" else None,
+    }
+    group = handle["calibration"] if "calibration" in handle else None
+    if group is not None and "/calibration/zernike_waves" in handle:
+        from cca_cli.engines.calibration import zernike_name
+
+        waves = np.asarray(handle["/calibration/zernike_waves"])
+        modes = [tuple(int(v) for v in mode) for mode in np.asarray(handle["/calibration/zernike_modes"])]
+        out["zernike"] = {zernike_name(*mode): float(waves[0, j]) for j, mode in enumerate(modes)}
+        out["zernike_per_pupil"] = waves
+        out["pupil_model"] = _text(group.attrs.get("pupil_model", ""))
+    if group is not None and "position_model" in group.attrs:
+        out["position_model"] = _text(group.attrs["position_model"])
+        out["position_parameters"] = json.loads(_text(group.attrs["position_parameters"]))
+    return out
+
+
+def calibration_summary(calibration: dict, geometry) -> dict:
+    """report.json entries of the final model's fit and calibration."""
+    out = {f"residual_{k}": round(v, 5) for k, v in calibration["totals"].items()}
+    if calibration["totals_without_brightness"] != calibration["totals"]:
+        out.update({f"residual_{k}_without_brightness": round(v, 5)
+                    for k, v in calibration["totals_without_brightness"].items()})
+    out["bright_field_images"] = int(np.sum(calibration["bright_field"]))
+    moves = np.hypot(*(calibration["refined_px"] - calibration["nominal_px"]).T)
+    out["position_change_px_rms"] = round(float(np.sqrt(np.mean(moves ** 2))), 4)
+    out["position_change_px_max"] = round(float(moves.max()), 4) if moves.size else 0.0
+    if "position_model" in calibration:
+        out["position_model"] = calibration["position_model"]
+        out["position_parameters"] = {k: round(v, 6) for k, v in calibration["position_parameters"].items()}
+    if calibration.get("brightness") is not None:
+        b = calibration["brightness"]
+        out["brightness_min_median_max"] = [round(float(v), 4) for v in (b.min(), np.median(b), b.max())]
+    if "zernike" in calibration:
+        out["pupil_model"] = calibration["pupil_model"]
+        out["zernike_waves"] = {k: round(v, 4) for k, v in calibration["zernike"].items()}
+        if len(calibration["zernike_per_pupil"]) > 1:
+            out["zernike_waves_per_camera"] = np.round(calibration["zernike_per_pupil"], 4).tolist()
+        if geometry.kind == "led_array" and "defocus" in calibration["zernike"]:
+            from cca_cli.engines.calibration import defocus_zernike
+
+            per_metre = defocus_zernike(1e-6, wavelength_m=geometry.wavelength_m,
+                                        numerical_aperture=geometry.numerical_aperture)[0] / 1e-6
+            out["defocus_m_equivalent"] = float(f"{calibration['zernike']['defocus'] / per_metre:.4g}")
+    return out
 
 
 def _text(value) -> str:
