@@ -373,7 +373,7 @@ def estimate_quadratic_aberration(layout: BandLayout, amplitudes: np.ndarray,
     for g in range(groups.shape[0]):
         members = group_of == g
         cross = np.conj(spectra[first[members]]) * spectra[second[members]]
-        cross /= np.abs(cross) + 1e-3 * np.abs(cross).max(axis=(1, 2), keepdims=True) + 1e-300
+        cross /= np.abs(cross) + 1e-3 * np.abs(cross).max(axis=(1, 2), keepdims=True) + np.float32(1e-30)
         summed = cross.sum(axis=0)
         correlation = fft.ifft2(summed).real
         coarse = np.array(np.unravel_index(np.argmax(correlation), correlation.shape), np.float64)
@@ -387,7 +387,7 @@ def estimate_quadratic_aberration(layout: BandLayout, amplitudes: np.ndarray,
         height = float(correlation.max() / (np.abs(correlation).mean() + 1e-300))
         heights += [height, height]
     system = np.array(rows) * np.array(heights)[:, None]
-    if np.linalg.matrix_rank(system) < 3:
+    if not np.all(np.isfinite(system)) or np.linalg.matrix_rank(system) < 3:  # featureless images: no shifts
         return np.zeros(3)
     q, *_ = np.linalg.lstsq(system, np.array(vectors) * np.array(heights), rcond=None)
     return quadratic_to_zernike([[q[0], q[1]], [q[1], q[2]]], layout.pupil_radius_px)
