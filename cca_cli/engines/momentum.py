@@ -74,6 +74,8 @@ __all__ = ["MomentumOptions", "Calibration", "SequentialMomentum"]
 
 _COSTS = ("amplitude", "poisson")
 _PUPILS = ("none", "shared", "per_camera")
+#: Captures with less than this share of the brightest capture's energy are left out of the aberration estimate.
+_ESTIMATE_LIGHT = 0.01
 #: Relative misfit drop a capture's position step must bring to be kept.
 _CLEAR_GAIN = 1e-2
 
@@ -312,8 +314,11 @@ class SequentialMomentum(IterativeEngine):
         if opts.pupil_recovery == "none" or not opts.pupil_estimate:
             return None
         estimate = np.zeros((n_pupils, n_modes))
+        # Shifts are measured on the captures with light to spare: noise-dominated dark-field images only add cost.
+        energy = np.sum(np.square(problem.amplitudes, dtype=np.float64), axis=(1, 2))
+        lit = energy >= _ESTIMATE_LIGHT * energy.max()
         for p in range(n_pupils):
-            members = np.flatnonzero(self._pupil_index == p)
+            members = np.flatnonzero((self._pupil_index == p) & lit)
             layout = _subset(self._nominal, members)
             weights = None if problem.weights is None else problem.weights[members]
             estimate[p, :3] = cal.estimate_quadratic_aberration(layout, problem.amplitudes[members], weights)

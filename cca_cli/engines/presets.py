@@ -12,7 +12,7 @@ the light varies, so they get the sequential engine with calibration.
   cameras. A lattice leaves pupil patterns with its own period undetermined
   (the raster-grid ambiguity of ptychography); smooth modes cannot take them.
 
-Both stop when the data misfit falls by less than 0.1% over 10 passes (a few
+Both stop when the data misfit falls by less than 2% over 10 passes (a few
 seconds on the sets in the README), or after 150 passes. Momentum is moderate
 (η = 0.3): on recorded data a larger η makes the low spatial frequencies
 oscillate, on simulations η = 0.3 converges as fast as 0.7.
@@ -22,7 +22,7 @@ from __future__ import annotations
 
 __all__ = ["DATA_KINDS", "preset"]
 
-_REAL_DATA = dict(max_iterations=150, tol=1e-7, plateau=1e-3, plateau_window=10, eta=0.3)
+_REAL_DATA = dict(max_iterations=150, tol=1e-7, plateau=0.02, plateau_window=10, eta=0.3)
 
 _PRESETS = {
     "simulation": ("altmin", {}),
