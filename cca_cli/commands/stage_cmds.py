@@ -15,6 +15,7 @@ from cca_cli.config.model import ReconstructSection, ReportSection
 from cca_cli.stages import reconstruct as reconstruct_stage
 from cca_cli.stages import report as report_stage
 from cca_cli.stages import simulate as simulate_stage
+from cca_cli.stages.footprint import reconstruct_footprint, report_footprint, simulate_footprint
 from cca_cli.stages.runner import pick_sections
 
 
@@ -28,7 +29,8 @@ def simulate_cli(
     """Simulate the captures of CONFIG's array and scene → captures.h5."""
     cfg = load_config(config)
     sim = run_stage("simulate", simulate_stage.run, cfg, output=output,
-                    sections=pick_sections(cfg, simulate_stage.SECTIONS), force=force, quiet=quiet)
+                    sections=pick_sections(cfg, simulate_stage.SECTIONS), force=force, quiet=quiet, protect=[config],
+                    footprint=lambda: simulate_footprint(cfg))
     g = sim.geometry
     if cfg.multiplex is not None:
         mux = sim.multiplex
@@ -56,7 +58,8 @@ def reconstruct_cli(
     base = load_config(config).reconstruct if config else None
     section = section_from_options(ReconstructSection, base, engine=engine, tau=tau, iterations=iterations, tol=tol)
     recovery = run_stage("reconstruct", reconstruct_stage.run, captures, section, output=output,
-                         sections={"reconstruct": section}, inputs=[captures], force=force, quiet=quiet)
+                         sections={"reconstruct": section}, inputs=[captures], force=force, quiet=quiet,
+                         protect=[config] if config else [], footprint=lambda: reconstruct_footprint(captures))
     console.print(f"{output}: {recovery.engine}, {recovery.history.iterations} iterations in {recovery.seconds:.1f} s, "
                   f"{recovery.layout.hires_size}² output")
 
@@ -69,7 +72,7 @@ def report_cli(
     force: Force = False,
 ) -> None:
     """Metrics (report.json) and figures (PNG) of RECON → a report directory."""
-    section = ReportSection(mtf_threshold=threshold)
+    section = section_from_options(ReportSection, names={"mtf_threshold": "--threshold"}, mtf_threshold=threshold)
     summary = run_stage("report", report_stage.run, recon, section, output=output, sections={"report": section},
-                        inputs=[recon], force=force, quiet=True)
+                        inputs=[recon], force=force, quiet=True, kind="folder", footprint=lambda: report_footprint(recon))
     console.print(summary_table(summary, title=f"cca report → {output}"))

@@ -16,8 +16,9 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, PositiveInt, ValidationError, model_validator
 
-from cca_cli.config.messages import accepted_keys, error_message, yaml_error_text
-from cca_cli.errors import ConfigError, InputError
+from cca_cli.config.messages import accepted_keys, error_message
+from cca_cli.config.yaml_text import read_yaml_file
+from cca_cli.errors import ConfigError, InputError, short
 
 __all__ = ["Manifest", "ImageEntry", "CapturePlan", "load_manifest", "plan_captures", "manifest_files"]
 
@@ -156,7 +157,7 @@ def _describe(error: dict, source: str) -> str:
         keys = ", ".join(accepted_keys(Manifest, error["loc"])) or "see the README"
         return f"{source}: {loc}: unknown key; accepted keys here: {keys}"
     value = error.get("input")
-    suffix = f" (got {value!r})" if not isinstance(value, dict) else ""
+    suffix = f" (got {short(value)})" if not isinstance(value, dict) else ""
     return f"{source}: {loc}: {error_message(error)}{suffix}"
 
 
@@ -167,20 +168,14 @@ def _first_error(exc: ValidationError) -> dict:
 
 
 def _read_yaml(path: Path) -> dict:
-    try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise InputError(f"{path}: manifest not found; check the path") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: cannot read manifest ({exc})") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise ConfigError(yaml_error_text(path, exc)) from None
+    data = read_yaml_file(path, what="manifest")
     if data is None:
         data = {}
     if not isinstance(data, dict):
-        raise ConfigError(f"{path}: the manifest must be a mapping (optics, sensor, images …)")
+        raise ConfigError(f"{path}: not a capture manifest: the top level must be a mapping (optics, sensor, images …)")
+    if data and not set(map(str, data)) & set(Manifest.model_fields):
+        raise ConfigError(f"{path}: not a capture manifest: none of its top-level keys is a manifest key "
+                          f"({', '.join(Manifest.model_fields)})")
     return data
 
 

@@ -15,7 +15,8 @@ from cca_cli.engines.problem import PhaseRetrievalProblem
 from cca_cli.engines.registry import get_engine
 from cca_cli.errors import ConfigError, InputError
 from cca_cli.io.geometry import read_geometry, write_geometry
-from cca_cli.io.h5 import Provenance, atomic_h5, check_output, open_input, require, write_dataset
+from cca_cli.io.h5 import Provenance, atomic_h5, check_output, open_input, write_dataset
+from cca_cli.io.measurements import read_intensity, read_weight
 from cca_cli.optics import fft
 from cca_cli.optics.forward import ForwardModel
 from cca_cli.optics.pupil import circular_pupils
@@ -64,18 +65,13 @@ def read_captures(path: Path) -> Captures:
 
 def read_measurements(handle, path: Path) -> Captures:
     """/measurements, /geometry and /truth of an open captures file, checked except for the image count."""
-    intensity = np.asarray(require(handle, "/measurements/intensity", ndim=3), dtype=np.float32)
+    intensity = read_intensity(handle, path)
     geometry = read_geometry(handle)
-    weight = np.asarray(handle["/measurements/weight"], np.float32) if "/measurements/weight" in handle else None
+    weight = read_weight(handle, path, intensity.shape)
     truth = {name: np.asarray(handle["truth"][name]) for name in handle["truth"]} if "truth" in handle else {}
     k, h, w = intensity.shape
     if h != w:
         raise InputError(f"{path}: /measurements/intensity images are {h}x{w}; crop them square (register.crop)")
-    if not np.all(np.isfinite(intensity)):
-        bad = int(np.argmax(~np.isfinite(intensity).reshape(k, -1).all(axis=1)))
-        raise InputError(f"{path}: image {bad} of /measurements/intensity contains NaN or Inf; fix or mask it")
-    if weight is not None and weight.shape != intensity.shape:
-        raise InputError(f"{path}: /measurements/weight has shape {weight.shape}, expected {intensity.shape}")
     return Captures(path=path, intensity=intensity, weight=weight, geometry=geometry, truth=truth)
 
 
