@@ -26,8 +26,8 @@ from cca_cli.stages.progress import ProgressEvent
 __all__ = ["console", "err_console", "styled", "print_error", "print_warning", "handle_errors", "progress_reporter",
            "summary_table", "configure_logging", "EXIT_INTERNAL"]
 
-console = Console(markup=False)
-err_console = Console(stderr=True, markup=False)
+console = Console(markup=False, soft_wrap=True)
+err_console = Console(stderr=True, markup=False, soft_wrap=True)
 
 #: Exit code of an unexpected failure (a bug): one line, the traceback with --verbose.
 EXIT_INTERNAL = 70

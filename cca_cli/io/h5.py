@@ -84,20 +84,80 @@ def remove_temporaries(directory: str | Path) -> None:
     remove_stale_temporaries(directory)
 
 
+class _DiskSink:
+    """The file object HDF5 writes through: a write that fails (a full disk) is recorded, not passed on.
+
+    HDF5 cannot recover from a failed write: closing such a file crashes the
+    interpreter (a segmentation fault in H5Fclose, also at exit). Through this
+    sink every write seems to succeed, so HDF5 always closes cleanly; the first
+    error is kept in :attr:`error` and raised once the file is closed, and the
+    temporary file, now incomplete, is discarded.
+    """
+
+    def __init__(self, path: Path):
+        self._file = open(path, "w+b", buffering=0)
+        self.error: OSError | None = None
+
+    def write(self, data) -> int:
+        if self.error is None:
+            view = memoryview(data).cast("B")
+            try:
+                while view:
+                    view = view[self._file.write(view):]
+            except OSError as exc:
+                self.error = exc
+        return memoryview(data).nbytes
+
+    def truncate(self, size=None):
+        if self.error is None:
+            try:
+                return self._file.truncate(size)
+            except OSError as exc:
+                self.error = exc
+        return size
+
+    def read(self, size=-1) -> bytes:
+        return self._file.read(size)
+
+    def readinto(self, buffer) -> int:
+        return self._file.readinto(buffer)
+
+    def seek(self, offset, whence=0) -> int:
+        return self._file.seek(offset, whence)
+
+    def tell(self) -> int:
+        return self._file.tell()
+
+    def flush(self) -> None:
+        pass
+
+    def close(self) -> None:
+        if not self._file.closed:
+            try:
+                self._file.close()
+            except OSError as exc:
+                self.error = self.error or exc
+
+
 @contextlib.contextmanager
 def atomic_h5(path: str | Path, provenance: Provenance, *, force: bool = False) -> Iterator[h5py.File]:
-    """Open a new HDF5 file for writing that appears at ``path`` only when complete."""
+    """Open a new HDF5 file for writing that appears at ``path`` only when complete.
+
+    A write that fails (a full disk) raises a one-line
+    :class:`~cca_cli.errors.ResourceError` once the file is closed; the
+    previous ``path`` is kept and the temporary file removed.
+    """
     with atomic_path(path, force=force) as tmp:
-        handle = h5py.File(tmp, "w")
+        sink = _DiskSink(tmp)
         try:
-            for key, value in provenance.items():
-                handle.attrs[key] = value
-            yield handle
-        except BaseException:
-            with contextlib.suppress(Exception):  # a full disk can make closing fail too: the first error counts
-                handle.close()
-            raise
-        handle.close()
+            with h5py.File(sink, "w") as handle:
+                for key, value in provenance.items():
+                    handle.attrs[key] = value
+                yield handle
+        finally:
+            sink.close()
+        if sink.error is not None:
+            raise sink.error
 
 
 def write_dataset(group: h5py.Group, path: str, data, *, units: str | None = None, **attrs: Any) -> h5py.Dataset:

@@ -351,7 +351,7 @@ def atomic_path(path: str | Path, *, force: bool = False, kind: str = "file", in
     try:
         yield tmp
         _replace(tmp, path)
-    except OSError as exc:
+    except (OSError, RuntimeError) as exc:  # HDF5 reports some failed writes as RuntimeError
         if disk_full(exc):
             kept = "the previous version is kept" if existed else "nothing was written"
             raise ResourceError(f"{path}: no space left on the device while writing it ({kept}); free some space "

@@ -20,7 +20,7 @@ def library(tmp_path_factory) -> Library:
     config.write_text(yaml.safe_dump(micro_config(), sort_keys=False))
     runner = CliRunner()
     for args in (["simulate", str(config), "-o", str(root / "captures.h5"), "-q"],
-                 ["reconstruct", str(root / "captures.h5"), "-o", str(root / "recon.h5"), "-q"],
+                 ["reconstruct", str(root / "captures.h5"), "-o", str(root / "recon.h5"), "-c", str(config), "-q"],
                  ["report", str(root / "recon.h5"), "-o", str(root / "report")]):
         result = runner.invoke(app, args)
         assert result.exit_code == 0, result.output
