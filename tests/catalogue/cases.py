@@ -747,16 +747,29 @@ case("run-resumes-after-report-deleted", "works", RUN,
 
 # --- faults (in-process) ---------------------------------------------------------------------------------------------
 def _enospc_on_write(monkeypatch, folder: Path) -> None:
-    import h5py
+    """The disk fills after the first 4 kB of any HDF5 file written."""
+    from cca_cli.io import h5
 
-    original = h5py.Group.create_dataset
+    class FillingDisk:
+        def __init__(self, raw):
+            self.raw, self.written = raw, 0
 
-    def create_dataset(self, *args, **kwargs):
-        if self.file.filename.rsplit("/", 1)[-1].startswith("."):
-            raise OSError(errno.ENOSPC, "No space left on device")
-        return original(self, *args, **kwargs)
+        def write(self, data):
+            self.written += len(data)
+            if self.written > 4096:
+                raise OSError(errno.ENOSPC, "No space left on device")
+            return self.raw.write(data)
 
-    monkeypatch.setattr(h5py.Group, "create_dataset", create_dataset)
+        def __getattr__(self, name):
+            return getattr(self.raw, name)
+
+    original = h5._DiskSink.__init__
+
+    def init(self, path):
+        original(self, path)
+        self._file = FillingDisk(self._file)
+
+    monkeypatch.setattr(h5._DiskSink, "__init__", init)
 
 
 def _enospc_on_text(monkeypatch, folder: Path) -> None:
