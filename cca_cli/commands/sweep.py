@@ -37,8 +37,7 @@ def _sweep(study: str, config: Path, sets: list[str] | None, workers: int | None
     from cca_cli.config.load import load_config
     from cca_cli.stages import sweep as sw
 
-    if workers is not None and workers < 1:
-        raise ConfigError(f"--workers {workers}: give at least 1 worker process (or leave it out: one per core)")
+    sw.check_workers(workers)
     cfg = load_config(config)
     spec = sw.study_spec(cfg, study, sets=list(sets or []), source=str(config))
     sweep_dir = Path(out_dir or cfg.run.out_dir or Path("cca-runs") / f"{config.stem}-{study}")

@@ -13,7 +13,7 @@ from cca_cli.config.model import ReconstructSection
 from cca_cli.engines.base import History, IterationRecord, run_engine
 from cca_cli.engines.problem import PhaseRetrievalProblem
 from cca_cli.engines.registry import get_engine
-from cca_cli.errors import ConfigError, InputError
+from cca_cli.errors import CcaError, ConfigError, InputError
 from cca_cli.io.geometry import read_geometry, write_geometry
 from cca_cli.io.h5 import Provenance, atomic_h5, check_output, open_input, write_dataset
 from cca_cli.io.measurements import read_intensity, read_weight
@@ -113,6 +113,9 @@ def drive_engine(engine, options, layout: BandLayout, name: str, *, progress: Pr
 
     start = time.perf_counter()
     spectrum, history = run_engine(engine, on_iteration=on_iteration)
+    if not np.all(np.isfinite(spectrum)):
+        raise CcaError(f"reconstruct: the recovery diverged (NaN or Inf after {history.iterations} iterations), so "
+                       "nothing was written; raise reconstruct.tau or choose other reconstruct.options")
     return Recovery(spectrum=spectrum, layout=layout, history=history, engine=name,
                     options=asdict(options), seconds=time.perf_counter() - start)
 

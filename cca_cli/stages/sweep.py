@@ -54,6 +54,7 @@ __all__ = [
     "cached_result",
     "open_client",
     "check_scheduler",
+    "check_workers",
     "scheduler_timeout",
     "run_sweep",
     "table_columns",
@@ -404,8 +405,7 @@ def open_client(*, workers: int | None = None, scheduler: str | None = None) -> 
         return
     from cca_cli.optics.fft import cpu_count
 
-    if workers is not None and workers < 1:
-        raise ConfigError(f"--workers {workers}: give at least 1 worker process (or leave it out: one per core)")
+    check_workers(workers)
     n = workers or cpu_count()
     for name in ("distributed", "distributed.nanny", "distributed.scheduler", "distributed.worker"):
         logging.getLogger(name).setLevel(logging.ERROR)
@@ -417,6 +417,20 @@ def open_client(*, workers: int | None = None, scheduler: str | None = None) -> 
     finally:
         client.close()
         cluster.close()
+
+
+def check_workers(workers: int | None) -> None:
+    """Refuse a worker count below 1, or far above the cores this machine has (each worker is a process)."""
+    from cca_cli.optics.fft import cpu_count
+
+    if workers is None:
+        return
+    if workers < 1:
+        raise ConfigError(f"--workers {workers}: give at least 1 worker process (or leave it out: one per core)")
+    most = 8 * cpu_count()
+    if workers > most:
+        raise ConfigError(f"--workers {workers}: this machine has {cpu_count()} cores; start at most {most} worker "
+                          "processes (or use --scheduler for a cluster)")
 
 
 def scheduler_timeout() -> float:

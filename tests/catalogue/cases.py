@@ -802,3 +802,74 @@ case("disk-full-report-keeps-old", "faults", ["report", "recon.h5", "-o", "rep",
 case("interrupt-reconstruct", "faults", ["reconstruct", "c.h5", "-o", "r.h5", "--force", "-q"],
      {"c.h5": Copy("captures"), "r.h5": Copy("recon")}, exit=130, says=("interrupted",),
      patch=_interrupt_reconstruction)
+
+
+# --- more careless use ---------------------------------------------------------------------------------------------
+def _diverging_engine(monkeypatch, folder: Path) -> None:
+    from cca_cli.stages import reconstruct
+
+    run_engine = reconstruct.run_engine
+
+    def diverged(engine, *, on_iteration=None):
+        spectrum, history = run_engine(engine, on_iteration=on_iteration)
+        return spectrum * np.nan, history
+
+    monkeypatch.setattr(reconstruct, "run_engine", diverged)
+
+
+case("simulate-no-photons", "silent", SIM,
+     {"cfg.yaml": Config({"noise.model": "poisson", "noise.photons_per_unit": 1e-30})}, exit=2,
+     says=("photons_per_unit",))
+case("reconstruct-diverges", "silent", ["reconstruct", "c.h5", "-o", "r.h5", "-q", "--iterations", "3"],
+     {"c.h5": Copy("captures")}, exit=1, says=("diverged",), patch=_diverging_engine)
+case("reconstruct-intensity-strings", "validation", REC,
+     {"in.h5": Copy("captures", set_data("/measurements/intensity", lambda a: a.astype("S8")))}, exit=3,
+     says=("in.h5", "/measurements/intensity"))
+case("reconstruct-empty-stack", "validation", REC,
+     {"in.h5": Copy("captures", set_data("/measurements/intensity", lambda a: a[:0]))}, exit=3,
+     says=("in.h5", "no images"))
+case("run-ingest-manifest-missing", "validation", RUN,
+     {"cfg.yaml": Config({"run.stages": ["ingest", "reconstruct", "report"], "ingest": {"manifest": "gone.yaml"}})},
+     exit=3, says=("gone.yaml",))
+case("scene-image-missing", "validation", SIM,
+     {"cfg.yaml": Config({"scene.kind": "image", "scene.image_path": "missing.png"})}, exit=3, says=("missing.png",))
+case("scene-image-not-an-image", "validation", SIM,
+     {"cfg.yaml": Config({"scene.kind": "image", "scene.image_path": "notes.png"}), "notes.png": Text("hello\n")},
+     exit=3, says=("notes.png",))
+case("hdr-given-captures", "validation", ["hdr", "c.h5", "-o", "h.h5", "-q"], {"c.h5": Copy("captures")}, exit=3,
+     says=("c.h5", "ingest"))
+case("register-given-recon", "validation", ["register", "r.h5", "-o", "g.h5", "-q"], {"r.h5": Copy("recon")},
+     exit=3, says=("r.h5",))
+case("sweep-set-list-value", "usage", SWEEP + ["--set", "scene.widths_px=[4,3]"], {"cfg.yaml": Config()}, exit=2,
+     says=("scene.widths_px",))
+case("design-write-config-exists", "data-loss", ["design", "--sar", "3", "--no-measure", "--write-config", "p.yaml"],
+     {"p.yaml": Text("# Written by `cca design`.\nrun: {}\n")}, exit=4, says=("p.yaml", "--force"))
+case("report-to-symlinked-report", "data-loss", ["report", "recon.h5", "-o", "rep", "--force", "--no-figures"],
+     {"recon.h5": Copy("recon"), "elsewhere": Copy("report"), "rep": Symlink("elsewhere")}, exit=4, says=("rep",))
+case("run-report-is-a-file", "data-loss", RUN + ["--force"],
+     {"cfg.yaml": Config(), "out": Folder({"report": Text("my report, typed by hand\n")})}, exit=4,
+     says=("report",))
+case("manifest-duplicate-key", "silent", ING,
+     {"m.yaml": Text("values: intensity\nvalues: amplitude\nimages: []\n")}, exit=2, says=("m.yaml", "twice"))
+config_case("options-null", "validation", {"reconstruct.options": None}, ["reconstruct.options"])
+config_case("section-null", "validation", {"optics": None}, ["optics"])
+case("chart-does-not-fit", "validation", SIM, {"cfg.yaml": Config({"scene.size_px": 1})}, exit=2, says=("scene",))
+case("aperture-larger-than-the-sensor-samples", "validation", SIM,
+     {"cfg.yaml": Config({"optics.aperture_diameter_m": 10})}, exit=2, says=("optics",))
+case("report-threshold-negative", "usage", ["report", "in.h5", "-o", "rep", "--threshold", "-0.2"],
+     {"in.h5": Copy("recon")}, exit=2, says=("--threshold",))
+case("info-symlink", "works", ["info", "link.h5"], {"r.h5": Copy("recon"), "link.h5": Symlink("r.h5")}, exit=0)
+case("run-config-is-hdf5", "messages", ["run", "c.h5", "-q"], {"c.h5": Copy("captures")}, exit=2, says=("c.h5",),
+     not_says=("Traceback", "internal error", "HDF"))
+case("reconstruct-config-is-hdf5", "messages", ["reconstruct", "c.h5", "-o", "r.h5", "-c", "c.h5", "-q"],
+     {"c.h5": Copy("captures")}, exit=2, says=("c.h5",))
+case("manifest-is-a-run-config", "messages", ["ingest", "cfg.yaml", "-o", "raw.h5", "-q"], {"cfg.yaml": Config()},
+     exit=2, says=("cfg.yaml",))
+case("config-is-a-manifest", "messages", ["simulate", "lab/manifest.yaml", "-o", "c.h5", "-q"],
+     {"lab": Copy("manifest_dir")}, exit=2, says=("manifest.yaml",))
+case("workers-huge", "resources", ["sweep", "grid", "cfg.yaml", "--set", "noise.snr_db=20,30", "--workers", "100000",
+                                   "--out-dir", "sw"], {"cfg.yaml": Config()}, exit=2, says=("--workers",))
+case("run-cleans-a-stale-probe", "faults", RUN,
+     {"cfg.yaml": Config(), "out": Folder({".cca-probe.tmp-4194309": Bytes(b"")})}, exit=0, writes=("out",),
+     check=lambda folder, result: not list((folder / "out").glob(".cca-probe*")) or (_ for _ in ()).throw(
+         AssertionError("probe left")))
