@@ -26,6 +26,7 @@ import os
 import re
 import time
 import traceback
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator
@@ -409,14 +410,33 @@ def open_client(*, workers: int | None = None, scheduler: str | None = None) -> 
     n = workers or cpu_count()
     for name in ("distributed", "distributed.nanny", "distributed.scheduler", "distributed.worker"):
         logging.getLogger(name).setLevel(logging.ERROR)
-    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
-                           silence_logs=logging.ERROR)
-    client = Client(cluster)
     try:
-        yield client
+        with warnings.catch_warnings():  # another cluster on this machine holds the usual HTTP port: no matter
+            warnings.filterwarnings("ignore", message="Port .* is already in use", category=UserWarning)
+            cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
+                                   silence_logs=logging.ERROR)
+    except BaseException:  # Ctrl-C while the workers start: stop them now, not in distributed's exit hook
+        _close_unstarted_clusters()
+        raise
+    try:
+        client = Client(cluster)
+        try:
+            yield client
+        finally:
+            client.close()
     finally:
-        client.close()
-        cluster.close()
+        with contextlib.suppress(Exception):
+            cluster.close()
+
+
+def _close_unstarted_clusters() -> None:
+    """Close clusters whose start was interrupted (their own exit hook would fail with a traceback)."""
+    from distributed.deploy.spec import SpecCluster
+
+    for cluster in list(SpecCluster._instances):
+        with contextlib.suppress(BaseException):
+            cluster.close(timeout=5)
+        SpecCluster._instances.discard(cluster)
 
 
 def check_workers(workers: int | None) -> None:

@@ -6,6 +6,7 @@
 - ``CCA_TEST_NO_DISK_CHECK=1``: skip the free-space estimate, so that a write meets a full disk
   (as when another process fills it after the check).
 - ``CCA_TEST_MARK_ITERATING=<file>``: create ``<file>`` once the reconstruction's first iteration is done.
+- ``CCA_TEST_MARK_SIMULATING=<file>``: create ``<file>`` when a simulation starts computing.
 """
 
 from __future__ import annotations
@@ -43,6 +44,17 @@ def install() -> None:
             return run_engine(engine, on_iteration=report)
 
         reconstruct.run_engine = marked
+    simulating = os.environ.get("CCA_TEST_MARK_SIMULATING")
+    if simulating:
+        from cca_cli.stages import simulate
+
+        compute = simulate.simulate
+
+        def marked_simulate(*args, **kwargs):
+            open(simulating, "w").close()
+            return compute(*args, **kwargs)
+
+        simulate.simulate = marked_simulate
     if os.environ.get("CCA_TEST_NO_DISK_CHECK"):
         from cca_cli.stages import footprint
 

@@ -176,6 +176,29 @@ def test_a_full_disk_keeps_the_old_file_and_leaves_no_temporary(tmp_path, librar
     assert lines[-1].split()[0] == _sha(tmp_path / "old.h5")  # the old file is intact
 
 
+def test_an_output_folder_without_write_permission_is_refused_before_computing(tmp_path):
+    config = _write_config(tmp_path / "cfg.yaml")
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    mark = tmp_path / "simulating"
+    command = f"{sys.executable} {HOOKS} simulate cfg.yaml -o locked/sub/c.h5 -q"
+    if os.geteuid() != 0:
+        locked.chmod(0o555)
+        args = ["sh", "-c", command]
+    elif _unshare_works():  # root writes anywhere, except on a read-only mount
+        args = ["unshare", "--user", "--map-root-user", "--mount", "sh", "-c",
+                f"mount --bind {locked} {locked} && mount -o remount,ro,bind {locked} && {command}"]
+    else:
+        pytest.skip("root without user namespaces: no folder it cannot write")
+    result = subprocess.run(args, cwd=tmp_path, capture_output=True, text=True, timeout=120,
+                            env={**os.environ, "CCA_TEST_MARK_SIMULATING": str(mark)})
+    line = _one_line(result)
+    assert result.returncode == 4 and "locked" in line and "cannot write" in line, line
+    assert not mark.exists()  # refused before the simulation started
+    locked.chmod(0o755)
+    assert list(locked.iterdir()) == []
+
+
 def test_a_write_past_the_file_size_limit_keeps_the_old_file(tmp_path, library):
     shutil.copy(library.captures, tmp_path / "c.h5")
     config = _write_config(tmp_path / "cfg.yaml")
