@@ -76,5 +76,6 @@ def report_cli(
     section = section_from_options(ReportSection, names={"mtf_threshold": "--threshold"}, mtf_threshold=threshold,
                                    figures=figures)
     summary = run_stage("report", report_stage.run, recon, section, output=output, sections={"report": section},
-                        inputs=[recon], force=force, quiet=True, kind="folder", footprint=lambda: report_footprint(recon))
+                        inputs=[recon], force=force, quiet=True, kind="folder",
+                        footprint=lambda: report_footprint(recon))
     console.print(summary_table(summary, title=f"cca report → {output}"))

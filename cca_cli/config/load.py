@@ -70,7 +70,13 @@ def parse_config(data: Any, *, source: str = "config") -> RunConfig:
 
 
 def load_config(path: str | Path | None = None) -> RunConfig:
-    """Read and validate a YAML config; ``None`` loads the built-in headline preset."""
+    """Read and validate a YAML config; ``None`` loads the built-in headline preset.
+
+    Raises
+    ------
+    ConfigError
+        One line naming ``path``: not a readable YAML text file, empty, not a config, or an invalid key.
+    """
     path = preset_path() if path is None else Path(path)
     data = read_yaml_file(path, what="config")
     if data is None or data == {}:

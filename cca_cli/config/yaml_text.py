@@ -42,7 +42,8 @@ def read_text_file(path: str | Path, *, what: str = "config") -> str:
     try:
         mode = path.stat().st_mode
     except FileNotFoundError:
-        hint = "give an existing YAML file or omit it for the built-in default" if what == "config" else "check the path"
+        hint = ("give an existing YAML file or omit it for the built-in default" if what == "config"
+                else "check the path")
         raise error(f"{path}: {what} file not found; {hint}") from None
     except OSError as exc:
         raise error(f"{path}: cannot read {what} ({exc.strerror})") from None

@@ -27,8 +27,10 @@ from cca_cli.errors import ConfigError, InputError, ResourceError
 from cca_cli.sampling.design import reconstruction_memory_bytes
 from cca_cli.sampling.grid import band_sizes
 from cca_cli.sampling.overlap import grid_for_sar
+from cca_cli.units import FourierScale, object_pixel_pitch_m
 
-__all__ = ["LARGE_WRITE_BYTES", "Footprint", "SimulationSizes", "simulation_sizes", "simulate_footprint", "reconstruct_footprint", "report_footprint",
+__all__ = ["LARGE_WRITE_BYTES", "Footprint", "SimulationSizes", "simulation_sizes", "simulate_footprint",
+           "reconstruct_footprint", "report_footprint",
            "memory_available", "check_footprint", "size_text"]
 
 #: Writes above this size are announced before the stage starts.
@@ -131,14 +133,15 @@ def simulation_sizes(config: RunConfig) -> SimulationSizes:
         If the optics leave too few sensor pixels (the message the stage would give).
     """
     optics, scene = config.optics, config.scene
-    object_pixel = optics.pixel_pitch_m * optics.distance_m / optics.focal_length_m
+    object_pixel = object_pixel_pitch_m(optics.pixel_pitch_m, optics.focal_length_m, optics.distance_m)
     sensor = scene.field_width_m / object_pixel if object_pixel > 0 else math.inf
     if not sensor >= 8:
         raise ConfigError(f"optics/scene: the field of view spans only {sensor:.3g} sensor pixels; widen the scene "
                           "or use smaller pixels")
-    sensor = float(round(sensor)) if sensor < 1e15 else sensor
-    metres_per_px = optics.wavelength_m * optics.distance_m / (sensor * object_pixel)
-    radius = optics.aperture_diameter_m / 2 / metres_per_px
+    sensor = float(round(sensor)) if sensor < 1e15 else sensor  # as units.sensor_pixels_across, without overflow
+    scale = FourierScale.fraunhofer(optics.wavelength_m, optics.distance_m, sensor * object_pixel)
+    metres_per_px = scale.metres_per_pixel
+    radius = scale.pupil_radius_px(optics.aperture_diameter_m)
     if config.multiplex is not None:
         mux = config.multiplex
         cameras = float(mux.camera_grid[0]) * mux.camera_grid[1]

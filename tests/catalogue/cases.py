@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
-from makers import DROP, Bytes, Config, Copy, Fifo, Folder, H5, Symlink, Text, Truncated, chain, drop, set_attr, set_data
+from makers import DROP, Bytes, Config, Copy, Fifo, Folder, H5, Symlink, Text, Truncated, drop, set_attr, set_data
 
 __all__ = ["Case", "CASES"]
 
@@ -655,7 +655,8 @@ case("sweep-markup-in-set", "traceback", SWEEP + ["--set", "scene.kind=[/]x,usaf
 DESIGN = ["design", "--no-measure"]
 for args, says in ((["--sar", "inf"], "--sar"), (["--sar", "nan"], "--sar"), (["--sar", "-1"], "--sar"),
                    (["--sar", "0"], "--sar"), (["--sar", "3", "--overlap", "1"], "--overlap"),
-                   (["--sar", "3", "--overlap", "nan"], "--overlap"), (["--sar", "3", "--overlap", "-0.5"], "--overlap"),
+                   (["--sar", "3", "--overlap", "nan"], "--overlap"),
+                   (["--sar", "3", "--overlap", "-0.5"], "--overlap"),
                    (["--sar", "3", "--wavelength-m", "0"], "--wavelength-m"),
                    (["--sar", "3", "--wavelength-m", "inf"], "--wavelength-m"),
                    (["--sar", "3", "--distance-m", "-5"], "--distance-m"),
@@ -869,7 +870,15 @@ case("config-is-a-manifest", "messages", ["simulate", "lab/manifest.yaml", "-o",
      {"lab": Copy("manifest_dir")}, exit=2, says=("manifest.yaml",))
 case("workers-huge", "resources", ["sweep", "grid", "cfg.yaml", "--set", "noise.snr_db=20,30", "--workers", "100000",
                                    "--out-dir", "sw"], {"cfg.yaml": Config()}, exit=2, says=("--workers",))
+def _no_probe_left(folder: Path, result) -> None:
+    assert not list((folder / "out").glob(".cca-probe*"))
+
+
 case("run-cleans-a-stale-probe", "faults", RUN,
      {"cfg.yaml": Config(), "out": Folder({".cca-probe.tmp-4194309": Bytes(b"")})}, exit=0, writes=("out",),
-     check=lambda folder, result: not list((folder / "out").glob(".cca-probe*")) or (_ for _ in ()).throw(
-         AssertionError("probe left")))
+     check=_no_probe_left)
+case("report-markup-output-name", "messages", ["report", "recon.h5", "-o", "rep[red]x", "--no-figures"],
+     {"recon.h5": Copy("recon")}, exit=0, writes=("rep[red]x",),
+     check=lambda folder, result: _stdout_has(result, "rep[red]x"))
+case("run-markup-out-dir", "messages", ["run", "cfg.yaml", "--out-dir", "o[red]ut", "-q"], {"cfg.yaml": Config()},
+     exit=0, writes=("o[red]ut",), check=lambda folder, result: _stdout_has(result, "o[red]ut/captures.h5"))

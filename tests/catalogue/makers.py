@@ -15,7 +15,7 @@ import yaml
 from micro import Library, micro_config
 
 __all__ = ["DROP", "Config", "Text", "Bytes", "Copy", "H5", "Truncated", "Folder", "Symlink", "Fifo", "make",
-           "set_data", "drop", "set_attr", "chain"]
+           "set_data", "drop", "set_attr"]
 
 #: An override value that removes the key.
 DROP = object()
@@ -63,7 +63,7 @@ class Bytes:
 
 @dataclass(frozen=True)
 class Copy:
-    """A copy of a library file or folder (``captures``, ``recon``, ``report``, ``run_dir`` …), then ``edit(path)``."""
+    """A copy of a library file or folder (``captures``, ``recon``, ``report``, ``run_dir`` …), then ``edit``."""
 
     source: str
     edit: Callable[[Path], None] | None = None
@@ -170,10 +170,3 @@ def set_attr(where: str, key: str, value):
     def fn(handle):
         handle[where].attrs[key] = value
     return _h5_edit(fn)
-
-
-def chain(*edits):
-    def edit(path):
-        for e in edits:
-            e(path)
-    return edit

@@ -7,7 +7,6 @@ and reports in about a second, so every case can copy real, complete files.
 from __future__ import annotations
 
 import copy
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
