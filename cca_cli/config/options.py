@@ -14,7 +14,7 @@ import dataclasses
 import functools
 import typing
 
-from pydantic import BaseModel, ValidationError, create_model
+from pydantic import BaseModel, ConfigDict, ValidationError, create_model
 
 from cca_cli.config.messages import error_message
 from cca_cli.config.section import Section
@@ -26,10 +26,22 @@ __all__ = ["SECTION_KEYS", "options_model", "validate_options"]
 SECTION_KEYS = {"tau": "tau", "max_iterations": "iterations", "tol": "tol"}
 
 
+class _OptionsSection(Section):
+    """Section rules, plus fields of any type an engine may use (arrays are checked with isinstance)."""
+
+    model_config = ConfigDict(**Section.model_config, arbitrary_types_allowed=True)
+
+
 @functools.lru_cache(maxsize=None)
 def options_model(options_class: type) -> type[BaseModel]:
-    """A frozen pydantic model with the fields of an engine's options dataclass (section keys left out)."""
-    hints = typing.get_type_hints(options_class)
+    """A frozen pydantic model with the fields of an engine's options dataclass (section keys left out).
+
+    A field whose type hint cannot be resolved is taken as ``Any`` (the dataclass's own checks still run).
+    """
+    try:
+        hints = typing.get_type_hints(options_class)
+    except (NameError, TypeError):
+        hints = {}
     fields = {}
     for f in dataclasses.fields(options_class):
         if f.name in SECTION_KEYS:
@@ -40,8 +52,8 @@ def options_model(options_class: type) -> type[BaseModel]:
             default = f.default_factory()
         else:
             default = ...
-        fields[f.name] = (hints[f.name], default)
-    return create_model(f"{options_class.__name__}Model", __base__=Section, **fields)
+        fields[f.name] = (hints.get(f.name, typing.Any), default)
+    return create_model(f"{options_class.__name__}Model", __base__=_OptionsSection, **fields)
 
 
 def validate_options(engine: str, options: dict, section: dict) -> dict:

@@ -882,3 +882,4 @@ case("report-markup-output-name", "messages", ["report", "recon.h5", "-o", "rep[
      check=lambda folder, result: _stdout_has(result, "rep[red]x"))
 case("run-markup-out-dir", "messages", ["run", "cfg.yaml", "--out-dir", "o[red]ut", "-q"], {"cfg.yaml": Config()},
      exit=0, writes=("o[red]ut",), check=lambda folder, result: _stdout_has(result, "o[red]ut/captures.h5"))
+case("input-name-not-utf8", "messages", ["reconstruct", "bad\udcff.h5", "-o", "r.h5", "-q"], exit=3, says=("bad",))
