@@ -27,10 +27,12 @@ def run_cli(
 
     def on_stage(plan, status):
         if status == "skipped":
-            err_console.print(f"[dim]{plan.name}: {plan.output} is up to date, skipped[/]")
+            err_console.print(f"{plan.name}: {plan.output} is up to date, skipped", style="dim", highlight=False,
+                              soft_wrap=True)
 
     with progress_reporter(not quiet) as progress:
-        outcomes = run_pipeline(cfg, Path(directory), force=force, progress=progress, on_stage=on_stage)
+        outcomes = run_pipeline(cfg, Path(directory), force=force, progress=progress, on_stage=on_stage,
+                                source=config if config is not None else "the built-in default")
     report = next((o for o in outcomes if o.name == "report"), None)
     if report is not None:
         summary = report.result
