@@ -51,7 +51,8 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
         from cca_cli.stages.capture_info import read_capture_summary
 
         capture_summary = read_capture_summary(handle)
-    for name, image in (("/recon/object", obj), ("/recon/spectrum", spectrum), ("/truth/object", truth_obj)):
+    # The spectrum and the truth are square grids; a recovered region (/recon/region_px) may be a rectangle.
+    for name, image in (("/recon/spectrum", spectrum), ("/truth/object", truth_obj)):
         if image is not None and image.shape[0] != image.shape[1]:
             raise InputError(f"{recon_path}: {name} has shape {image.shape}, expected a square image")
     truth = None if truth_obj is None else (np.abs(truth_obj) ** 2).astype(np.float32)
