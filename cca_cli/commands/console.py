@@ -24,7 +24,7 @@ from cca_cli.io.outputs import disk_full
 from cca_cli.stages.progress import ProgressEvent
 
 __all__ = ["console", "err_console", "styled", "print_error", "print_warning", "handle_errors", "progress_reporter",
-           "summary_table", "configure_logging", "EXIT_INTERNAL", "stop_note", "recovery_stop_note", "length_text"]
+           "summary_table", "configure_logging", "EXIT_INTERNAL", "stop_note", "recovery_stop_note", "print_note", "length_text"]
 
 console = Console(markup=False, soft_wrap=True)
 err_console = Console(stderr=True, markup=False, soft_wrap=True)
@@ -124,8 +124,13 @@ def stop_note(stopped_by: str | None, iterations: int | None, change: float | No
     if stopped_by != "cap":
         return None
     reached = f" (last change {change:.3g} > tol {tol:.3g})" if change is not None and tol is not None else ""
-    return (f"[yellow]note:[/] reconstruct stopped at the iteration cap ({iterations}) before the change reached "
+    return (f"reconstruct stopped at the iteration cap ({iterations}) before the change reached "
             f"tol{reached}; raise reconstruct.iterations (--iterations) to go on")
+
+
+def print_note(message: str) -> None:
+    """One yellow ``note:`` line on stderr (the message is printed as it is, never as markup)."""
+    err_console.print(styled("note:", "yellow", message), highlight=False, soft_wrap=True)
 
 
 def recovery_stop_note(recovery) -> str | None:

@@ -7,8 +7,8 @@ from typing import Annotated, Optional
 
 import typer
 
-from cca_cli.commands.console import (console, err_console, handle_errors, progress_reporter, recovery_stop_note,
-                                     stop_note, summary_table)
+from cca_cli.commands.console import (console, err_console, handle_errors, print_note, progress_reporter,
+                                     recovery_stop_note, stop_note, summary_table)
 from cca_cli.commands.options import Force, OptionalConfigArg, Quiet
 from cca_cli.config.load import load_config
 from cca_cli.stages.runner import default_out_dir, run_pipeline
@@ -52,4 +52,4 @@ def run_cli(
     else:
         note = None
     if note:
-        err_console.print(note, highlight=False, soft_wrap=True)
+        print_note(note)

@@ -7,7 +7,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from cca_cli.commands.console import console, err_console, handle_errors, recovery_stop_note, summary_table
+from cca_cli.commands.console import console, handle_errors, print_note, recovery_stop_note, summary_table
 from cca_cli.commands.info import derived_lines
 from cca_cli.commands.options import ConfigArg, Force, Quiet, section_from_options
 from cca_cli.commands.stage_run import run_stage
@@ -69,7 +69,7 @@ def reconstruct_cli(
                   f"{recovery.layout.hires_size}² output")
     note = recovery_stop_note(recovery)
     if note:
-        err_console.print(note, highlight=False, soft_wrap=True)
+        print_note(note)
 
 
 @handle_errors

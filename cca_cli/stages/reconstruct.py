@@ -88,7 +88,7 @@ def read_measurements(handle, path: Path) -> Captures:
     weight = read_weight(handle, path, intensity.shape)
     truth = {name: np.asarray(handle["truth"][name]) for name in handle["truth"]} if "truth" in handle else {}
     k, h, w = intensity.shape
-    boundary = handle["/measurements/intensity"].attrs.get("boundary", "periodic" if h == w else "open")
+    boundary = handle["/measurements/intensity"].attrs.get("boundary", "periodic")  # recorded frames say "open"
     defocus = handle["geometry"].attrs.get("defocus_m") if "geometry" in handle else None
     pupil = np.asarray(handle["/calibration/initial_pupil"]) if "/calibration/initial_pupil" in handle else None
     return Captures(path=path, intensity=intensity, weight=weight, geometry=geometry, truth=truth, units=units,
@@ -106,10 +106,12 @@ def embed_region(captures: Captures, section: ReconstructSection) -> tuple[Captu
     """
     k, h, w = captures.intensity.shape
     padding = section.padding
-    if padding.mode == "off" or (captures.boundary != "open" and h == w):
+    if padding.mode == "off" or captures.boundary != "open":
         if h != w:
-            raise InputError(f"{captures.path}: /measurements/intensity images are {w}x{h} px; with "
-                             "reconstruct.padding.mode off they must be square (register.crop_xywh)")
+            why = ("with reconstruct.padding.mode off" if captures.boundary == "open"
+                   else "simulated (periodic) captures")
+            raise InputError(f"{captures.path}: /measurements/intensity images are {w}x{h} px; {why} must be square "
+                             "(register.crop_xywh)")
         return captures, None
     region = plan_embedding((h, w), captures.geometry.pupil_radius_px, guard_px=padding.guard_px,
                             apodize_px=padding.apodize_px)
