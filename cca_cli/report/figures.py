@@ -23,6 +23,8 @@ _DPI = 100
 # Layout in screen pixels: left margin (y ticks), gap between panels, panel title, x ticks and label,
 # colour bar gap and width, right margin (colour bar label).
 _LEFT, _GAP, _TITLE, _BOTTOM, _BAR_GAP, _BAR, _RIGHT = 72, 20, 30, 52, 14, 16, 86
+#: Panel titles: font size (pt) and the height each further line adds (screen px).
+_TITLE_PT, _TITLE_LINE = 9, 14
 #: Screen size the recovery is magnified towards when it is small.
 _TARGET_PX = 400
 #: Full-field panels wider than this are drawn smaller (the 1:1 view is recovered_magnitude.png).
@@ -105,15 +107,17 @@ def _draw(plt, rows: list[_Row], title: str = ""):
     (the layout, not matplotlib, keeps the aspect ratio).
     """
     widths = [len(r.panels) * r.width_px + (len(r.panels) - 1) * _GAP for r in rows]
+    titles = [[_fit_title(p.title, r.width_px) for p in r.panels] for r in rows]
+    title_px = [_TITLE + _TITLE_LINE * max(t.count("\n") for t in row_titles) for row_titles in titles]
     fig_w = _LEFT + max(widths) + _BAR_GAP + _BAR + _RIGHT
     head = 14 + 18 * (title.count("\n") + 1) if title else 8
-    fig_h = head + sum(_TITLE + r.height_px + _BOTTOM for r in rows)
+    fig_h = head + sum(t + r.height_px + _BOTTOM for t, r in zip(title_px, rows))
     fig = plt.figure(figsize=(fig_w / _DPI, fig_h / _DPI), dpi=_DPI)
     if title:
         fig.suptitle(title, y=1 - 10 / fig_h, va="top", fontsize=11)
     top = head
-    for row, width in zip(rows, widths):
-        top += _TITLE
+    for row, width, row_titles, row_title_px in zip(rows, widths, titles, title_px):
+        top += row_title_px
         bottom = fig_h - top - row.height_px
         shown = None
         for i, panel in enumerate(row.panels):
@@ -123,7 +127,7 @@ def _draw(plt, rows: list[_Row], title: str = ""):
             fits = image.shape[-1] <= row.width_px and image.shape[-2] <= row.height_px
             shown = ax.imshow(image, cmap=panel.cmap, vmin=panel.vmin, vmax=panel.vmax, extent=panel.extent,
                               interpolation="nearest" if fits else "antialiased", aspect="auto")
-            ax.set_title(panel.title, fontsize=9)
+            ax.set_title(row_titles[i], fontsize=_TITLE_PT)
             for x0, y0, w, h in panel.boxes:
                 ax.add_patch(plt.Rectangle((x0, y0), w, h, fill=False, edgecolor="#ffb000", lw=1.2))
             if panel.extent is not None:
@@ -148,6 +152,32 @@ def _draw(plt, rows: list[_Row], title: str = ""):
             bar.set_ticks(list(row.ticks), labels=list(row.ticks.values()))
         top += row.height_px + _BOTTOM
     return fig
+
+
+def _fit_title(title: str, width_px: int) -> str:
+    """``title`` broken onto two lines when it is wider than its panel: after its last top-level comma, else
+    before its first top-level parenthesis (``observed (centre camera),`` / ``40 x 96 px (5x)``)."""
+    from matplotlib.font_manager import FontProperties
+    from matplotlib.textpath import text_to_path
+
+    points, _, _ = text_to_path.get_text_width_height_descent(title, FontProperties(size=_TITLE_PT), ismath=False)
+    if "\n" in title or points * _DPI / 72 <= width_px:
+        return title
+    depth, commas, opens = 0, [], []
+    for i, char in enumerate(title):
+        if char == "(":
+            if depth == 0 and i > 0 and title[i - 1] == " ":
+                opens.append(i - 1)
+            depth += 1
+        elif char == ")":
+            depth -= 1
+        elif char == "," and depth == 0 and title[i + 1:i + 2] == " ":
+            commas.append(i + 1)
+    if commas:
+        return title[:commas[-1]] + "\n" + title[commas[-1] + 1:]
+    if opens:
+        return title[:opens[0]] + "\n" + title[opens[0] + 1:]
+    return title
 
 
 _SUPERSCRIPT = str.maketrans("-0123456789", "⁻⁰¹²³⁴⁵⁶⁷⁸⁹")
@@ -180,7 +210,8 @@ def _drop_ticks_at_left_edge(ax, width_px: int, clearance_px: float = 12.0) -> N
     its axis) also have one that near their right edge: the two labels would read as one across the gap."""
     lo, hi = sorted(ax.get_xlim())
     near = clearance_px * (hi - lo) / width_px
-    ticks = [t for t in ax.get_xticks() if lo <= t <= hi]
+    slack = 1e-6 * (hi - lo)    # a tick on the edge, up to rounding, is drawn
+    ticks = [t for t in ax.get_xticks() if lo - slack <= t <= hi + slack]
     if any(t >= hi - near for t in ticks):
         ax.set_xticks([t for t in ticks if t > lo + near])
 

@@ -163,14 +163,16 @@ def detail_region(intensity: np.ndarray, cutoff_px: float, *, share: float = 0.2
     """The square where the recovery holds the most detail beyond one camera's reach.
 
     The intensity is high-pass filtered at ``cutoff_px`` (what a single camera
-    cannot record) and the square window whose side is ``share`` of the
-    field's shorter side and that holds the most filtered energy relative to
-    its brightness is chosen, kept a sixteenth of the field off its border
-    (where recoveries carry edge artefacts). The energy is divided by the
-    window's mean intensity (floored at a tenth of the field's 99th
-    percentile): a recovery's amplitude error puts intensity noise whose
-    energy grows with the brightness on large bright areas, while structure's
-    energy grows with its square, so fine structure wins over bright noise.
+    cannot record), and of the square windows whose side is ``share`` of the
+    field's longer side (at most its shorter side: a narrow strip is zoomed
+    across its whole height) the one holding the most filtered energy
+    relative to its brightness is chosen, kept a sixteenth of the field off
+    its border where it can be (recoveries carry edge artefacts there). The
+    energy is divided by the window's mean intensity (floored at a tenth of
+    the field's 99th percentile): a recovery's amplitude error puts intensity
+    noise whose energy grows with the brightness on large bright areas, while
+    structure's energy grows with its square, so fine structure wins over
+    bright noise.
 
     Parameters
     ----------
@@ -180,7 +182,7 @@ def detail_region(intensity: np.ndarray, cutoff_px: float, *, share: float = 0.2
         width (spectrum pixels along x; along y a spectrum pixel is ``W/H``
         of them).
     share : float
-        Window side as a share of the field's shorter side.
+        Window side as a share of the field's longer side.
 
     Returns
     -------
@@ -196,7 +198,7 @@ def detail_region(intensity: np.ndarray, cutoff_px: float, *, share: float = 0.2
     fx = np.arange(cols)[None, :] - cols // 2
     spectrum[np.hypot(fy, fx) < cutoff_px] = 0
     energy = np.abs(fft.ifft2c(spectrum)) ** 2
-    side = min(max(8, int(round(share * min(rows, cols)))), rows, cols)
+    side = min(max(8, int(round(share * max(rows, cols)))), rows, cols)
     mean = ndimage.uniform_filter(image.astype(np.float64), size=side, mode="constant")
     floor = _BRIGHTNESS_FLOOR * abs(float(np.percentile(image, 99))) or 1.0
     score = ndimage.uniform_filter(energy.astype(np.float64), size=side, mode="constant") / (np.abs(mean) + floor)
