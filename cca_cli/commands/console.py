@@ -148,6 +148,7 @@ def summary_table(summary: dict, title: str = "Result") -> Table:
     rows = [
         ("synthetic aperture ratio", "sar", "{:.2f}"),
         ("images", "n_images", "{}"),
+        ("recovered image (width x height)", "recovered_shape_px", "image"),
         ("engine / iterations", None, None),
         ("reconstruction time (s)", "seconds", "{:.1f}"),
         ("spot size at sensor", "spot_size_sensor_m", "length"),
@@ -185,6 +186,11 @@ def summary_table(summary: dict, title: str = "Result") -> Table:
             text = "—"
         elif fmt == "length":
             text = length_text(value)
+        elif fmt == "image":
+            text = f"{value[1]} x {value[0]} px"
+            if summary.get("recovered_field_m"):
+                height, width = summary["recovered_field_m"]
+                text += f", {length_text(width)} x {length_text(height)}"
         else:
             text = fmt.format(value)
         table.add_row(label, text)

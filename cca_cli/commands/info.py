@@ -44,6 +44,11 @@ def derived_lines(derived: dict) -> list[str]:
         band = f", {derived['lowres_grid_px']} px band grid per capture" if "lowres_grid_px" in derived else ""
         lines.append(f"  output grid     {derived['output_grid_px']} x {derived['output_grid_px']} px of "
                      f"{length_text(derived['object_pixel_m'])}{band}")
+    if "recovered_shape_px" in derived and "object_pixel_m" in derived:
+        rows, cols = derived["recovered_shape_px"]
+        pixel = derived["object_pixel_m"]
+        lines.append(f"  recovered       {cols} x {rows} px region of it, {length_text(cols * pixel)} x "
+                     f"{length_text(rows * pixel)} (the rest is guard band)")
     return lines
 
 
@@ -60,8 +65,11 @@ def _derived(handle: h5py.File) -> dict | None:
         return None
     recon = handle["recon"].attrs if "recon" in handle else {}
     if "hires_size" in recon:
-        return derived_quantities(geometry, hires_size=int(recon["hires_size"]),
-                                  lowres_size=int(recon["lowres_size"]) if "lowres_size" in recon else None)
+        derived = derived_quantities(geometry, hires_size=int(recon["hires_size"]),
+                                     lowres_size=int(recon["lowres_size"]) if "lowres_size" in recon else None)
+        if "/recon/region_px" in handle:
+            derived["recovered_shape_px"] = [int(v) for v in handle["/recon/region_px"][0, 2:]]
+        return derived
     images = handle.get("/measurements/intensity")
     sensor = images.shape[-1] if images is not None and images.ndim == 3 and images.shape[-1] == images.shape[-2] \
         else None

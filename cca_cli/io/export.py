@@ -104,9 +104,9 @@ def recon_quantity(recon_path: str | Path, quantity: str = "amplitude") -> tuple
 
     Returns
     -------
-    values : ndarray, float32, (M, M)
+    values : ndarray, float32, (M, M), or (H, W) for a region (/recon/region_px)
     pixel_size_m : float
-        Object-plane pixel size of the recovery grid (m).
+        Object-plane pixel size of the recovery grid (m), the same along both axes.
     units : str
     """
     _check_quantity(quantity)
@@ -123,8 +123,9 @@ def recon_quantity(recon_path: str | Path, quantity: str = "amplitude") -> tuple
         attrs = handle["recon"].attrs
         if "pixel_pitch_object_m" in attrs:
             pixel = float(attrs["pixel_pitch_object_m"])
-        else:
-            pixel = float(handle["geometry"].attrs["field_width_m"]) / values.shape[-1]
+        else:   # /geometry's field is the whole recovery grid, which a region (/recon/region_px) is part of
+            grid = int(attrs["hires_size"]) if "hires_size" in attrs else values.shape[-1]
+            pixel = float(handle["geometry"].attrs["field_width_m"]) / grid
     return values, pixel, units
 
 

@@ -72,7 +72,7 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
         summary.update(stats)
     comparison = _comparison(summary, section, geometry, truth_obj, truth, observed, recovered, bars, usaf_table,
                              recovered_object=obj)
-    region = _zoom_region(summary, bars, truth, usaf_table, recovered, geometry)
+    region = _zoom_region(summary, bars, truth, usaf_table, recovered, geometry, int(attrs.get("hires_size")))
     if region is not None:
         summary["zoom_region"] = region.to_dict()
     progress(ProgressEvent("report", "metrics", 1, 2))
@@ -81,10 +81,13 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
         if section.figures:
             from cca_cli.report.figures import write_figures
 
+            # A region cut from the recovery grid (/recon/region_px) is that share of the grid's field wide;
+            # the spectrum (and the pupils' pixels) belong to the whole grid.
             figures = write_figures(tmp, observed=observed, recovered_object=obj, spectrum=spectrum,
                                     pupil_centres_px=geometry.spectrum_centres_yx_px,
                                     pupil_radius_px=geometry.pupil_radius_px,
                                     field_width_m=geometry.field_width_m * obj.shape[-1] / int(attrs.get("hires_size")),
+                                    spectrum_field_width_m=geometry.field_width_m,
                                     residual=residual, change=change, summary=summary, truth=truth, units=units,
                                     region=region, grid_indices=geometry.grid_indices)
             if comparison:
@@ -123,7 +126,7 @@ def _stopping(attrs: dict, change: np.ndarray) -> dict:
     return out
 
 
-def _zoom_region(summary: dict, bars, truth, usaf_table, recovered, geometry):
+def _zoom_region(summary: dict, bars, truth, usaf_table, recovered, geometry, hires_size: int):
     """Where the figures zoom: the finest resolved chart features, else the recovery's most detailed part."""
     from cca_cli.report import regions
 
@@ -133,8 +136,10 @@ def _zoom_region(summary: dict, bars, truth, usaf_table, recovered, geometry):
         return regions.usaf_region(table_to_usaf(usaf_table), (summary.get("usaf") or {}).get("recovered"))
     if bars and truth is not None:
         return regions.bar_region(bars, summary.get("mtf20_recovered_px"), truth.shape[-1])
-    grid = recovered.shape[-1]
-    cutoff = min(2.0 * geometry.pupil_radius_px, grid / 2.0)
+    width = recovered.shape[-1]
+    # The pupil radius is in spectrum px of the whole recovery grid; a region cut from it holds
+    # proportionally fewer cycles per its own width.
+    cutoff = min(2.0 * geometry.pupil_radius_px * width / hires_size, width / 2.0)
     return regions.detail_region(recovered, cutoff)
 
 
