@@ -88,7 +88,8 @@ def read_measurements(handle, path: Path) -> Captures:
     weight = read_weight(handle, path, intensity.shape)
     truth = {name: np.asarray(handle["truth"][name]) for name in handle["truth"]} if "truth" in handle else {}
     k, h, w = intensity.shape
-    boundary = handle["/measurements/intensity"].attrs.get("boundary", "periodic")  # recorded frames say "open"
+    # Recorded frames say "open"; a file without the attribute is a window on a larger scene unless square.
+    boundary = handle["/measurements/intensity"].attrs.get("boundary", "periodic" if h == w else "open")
     defocus = handle["geometry"].attrs.get("defocus_m") if "geometry" in handle else None
     pupil = np.asarray(handle["/calibration/initial_pupil"]) if "/calibration/initial_pupil" in handle else None
     return Captures(path=path, intensity=intensity, weight=weight, geometry=geometry, truth=truth, units=units,

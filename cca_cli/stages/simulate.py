@@ -125,7 +125,8 @@ def write_captures(path: Path, simulation: Simulation, provenance: Provenance, *
 
         geometry = replace(geometry, pixel_pitch_m=simulation.pixel_pitch_m)
     with atomic_h5(path, provenance, force=force) as handle:
-        write_dataset(handle, "/measurements/intensity", simulation.intensity, layout="centred sensor")
+        write_dataset(handle, "/measurements/intensity", simulation.intensity, layout="centred sensor",
+                      boundary="periodic")
         write_geometry(handle, geometry)
         write_dataset(handle, "/truth/object", simulation.scene.field)
         if simulation.scene.bars:
