@@ -6,26 +6,50 @@ field buffer, the magnitude projection with its misfit, and the pupil-weighted
 scatter back into the spectrum. The compiled kernels release the GIL, so the
 engines' worker threads run them in parallel on different chunks. They sit beside :mod:`cca_cli.optics.fft` as
 part of the array backend: another backend (e.g. CuPy) supplies its own
-versions of these few functions. Without numba, equivalent numpy code runs.
+versions of these few functions. Without numba, equivalent numpy code runs;
+``CCA_KERNELS=numpy`` selects it (numba is then not imported).
+
+Compiled code does not check its indices, so every public function checks
+shapes, dtypes, layouts and box origins first: a bad call raises ValueError
+and never reaches compiled code.
 """
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
-try:  # pragma: no cover - exercised when numba is installed
-    import numba
+from cca_cli.errors import ConfigError
+from cca_cli.optics import fft
 
-    _HAVE_NUMBA = True
-except ImportError:  # pragma: no cover
-    numba = None
-    _HAVE_NUMBA = False
+_kernels_error: ConfigError | None = None
+try:
+    _requested = fft.env_choice("CCA_KERNELS", "numba", ("numba", "numpy"))
+except ConfigError as _error:  # reported by check_settings(), when the first model is built, as one line
+    _requested, _kernels_error = "numpy", _error
 
-__all__ = ["kernels_name", "use_kernels", "warm_up", "place_boxes", "project_magnitudes", "magnitude_step",
-           "can_fuse_lanes", "sequential_lane",
-           "scatter_boxes", "momentum_step", "tikhonov_update"]
+numba = None
+if _requested == "numba":
+    try:  # pragma: no cover - exercised when numba is installed
+        import numba
+    except ImportError:  # pragma: no cover
+        numba = None
+_HAVE_NUMBA = numba is not None
 
+__all__ = ["HAVE_NUMBA", "kernels_name", "use_kernels", "check_settings", "warm_up", "place_boxes",
+           "project_magnitudes", "magnitude_step", "can_fuse_lanes", "sequential_lane", "scatter_boxes",
+           "momentum_step", "tikhonov_update"]
+
+#: Whether numba is installed and enabled (``CCA_KERNELS`` is not ``numpy``).
+HAVE_NUMBA = _HAVE_NUMBA
 _use_numba = _HAVE_NUMBA
+
+
+def check_settings() -> None:
+    """Raise :class:`~cca_cli.errors.ConfigError` if ``CCA_KERNELS`` has an unknown value."""
+    if _kernels_error is not None:
+        raise _kernels_error
 
 
 def kernels_name() -> str:
@@ -40,7 +64,7 @@ class use_kernels:
         if name not in ("numba", "numpy"):
             raise ValueError(f"unknown kernels {name!r}; choose 'numba' or 'numpy'")
         if name == "numba" and not _HAVE_NUMBA:
-            raise ValueError("numba kernels requested but numba is not installed")
+            raise ValueError("numba kernels requested but numba is not installed (or CCA_KERNELS=numpy)")
         self.name = name
 
     def __enter__(self):
@@ -106,8 +130,22 @@ if _HAVE_NUMBA:  # pragma: no branch
     _jit_fast = numba.njit(nogil=True, cache=True, error_model="numpy", fastmath=True)
 
     @_jit
+    def _first_bad_box(origins, start, count, last_y, last_x):  # pragma: no cover - compiled
+        """Index of the first capture in ``start … start + count - 1`` whose box leaves the spectrum, or -1."""
+        for j in range(start, start + count):
+            y0 = origins[j, 0]
+            x0 = origins[j, 1]
+            if y0 < 0 or x0 < 0 or y0 > last_y or x0 > last_x:
+                return j
+        return -1
+
+    @_jit
     def _place_boxes_numba(spectrum, origins, pupils, fields, start):  # pragma: no cover - compiled
+        """Returns -1, or the first capture whose box leaves the spectrum (then nothing is written)."""
         k, m, b = fields.shape[0], fields.shape[1], pupils.shape[1]
+        bad = _first_bad_box(origins, start, k, spectrum.shape[0] - b, spectrum.shape[1] - b)
+        if bad >= 0:
+            return bad
         s = m // 2 - b // 2
         for j in range(k):
             y0 = origins[start + j, 0]
@@ -123,6 +161,7 @@ if _HAVE_NUMBA:  # pragma: no branch
                         fields[j, r, s + c] = spectrum[y0 + r - s, x0 + c] * pupils[start + j, r - s, c]
                     for c in range(s + b, m):
                         fields[j, r, c] = 0
+        return -1
 
     #: Elements per float32 partial sum of the misfit (the partial sums are added in float64).
     _MISFIT_BLOCK = 2048
@@ -198,7 +237,11 @@ if _HAVE_NUMBA:  # pragma: no branch
 
     @_jit
     def _scatter_numba(fields, origins, pupils, accumulator, start):  # pragma: no cover - compiled
+        """Returns -1, or the first capture whose box leaves the spectrum (then nothing is written)."""
         k, m, b = fields.shape[0], fields.shape[1], pupils.shape[1]
+        bad = _first_bad_box(origins, start, k, accumulator.shape[0] - b, accumulator.shape[1] - b)
+        if bad >= 0:
+            return bad
         s = m // 2 - b // 2
         for j in range(k):
             y0 = origins[start + j, 0]
@@ -206,6 +249,7 @@ if _HAVE_NUMBA:  # pragma: no branch
             for r in range(b):
                 for c in range(b):
                     accumulator[y0 + r, x0 + c] += fields[j, s + r, s + c] * pupils[start + j, r, c]
+        return -1
 
     @_jit_fast
     def _momentum_numba(spectrum, anchor, velocity, eta):  # pragma: no cover - compiled
@@ -227,13 +271,79 @@ if _HAVE_NUMBA:  # pragma: no branch
         return change, norm
 
 
+# ----------------------------------------------------------------------------- argument checks
+def _is(array, dtype, ndim: int) -> bool:
+    return isinstance(array, np.ndarray) and array.dtype == dtype and array.ndim == ndim
+
+
+def _describe(array) -> str:
+    if isinstance(array, np.ndarray):
+        return f"{array.dtype} {array.shape}"
+    return type(array).__name__
+
+
+def _check_boxes(function: str, spectrum, origins, pupils, fields, start: int) -> None:
+    """Dtypes and shapes of a box placement or scatter of captures ``start …`` (origins are checked apart)."""
+    if not (_is(spectrum, np.complex64, 2) and _is(origins, np.int64, 2) and _is(pupils, np.complex64, 3)
+            and _is(fields, np.complex64, 3)):
+        raise ValueError(f"{function} needs spectrum complex64 (M, M), origins int64 (K, 2), pupils complex64 "
+                         f"(K, b, b) and fields complex64 (k, m, m); got {_describe(spectrum)}, "
+                         f"{_describe(origins)}, {_describe(pupils)}, {_describe(fields)}")
+    n, b, k, m = pupils.shape[0], pupils.shape[1], fields.shape[0], fields.shape[1]
+    if (origins.shape != (n, 2) or pupils.shape[2] != b or fields.shape[2] != m or b > m
+            or b > min(spectrum.shape)):
+        raise ValueError(f"{function}: shapes do not fit together: spectrum {spectrum.shape}, origins "
+                         f"{origins.shape}, pupils {pupils.shape}, fields {fields.shape} (need origins (K, 2), "
+                         "pupils (K, b, b), fields (k, m, m) with b <= m and b <= M)")
+    if not 0 <= start <= n - k:
+        raise ValueError(f"{function}: captures {start} to {start + k - 1} are not among the {n} captures")
+
+
+def _bad_box(function: str, origins, index: int, spectrum_shape, box: int) -> ValueError:
+    y0, x0 = (int(v) for v in origins[index])
+    return ValueError(f"{function}: the {box}x{box} box of capture {index} at origin ({y0}, {x0}) does not lie "
+                      f"inside the {spectrum_shape[0]}x{spectrum_shape[1]} spectrum")
+
+
+def _check_origins_numpy(function: str, origins, start: int, count: int, spectrum_shape, box: int) -> None:
+    used = origins[start:start + count]
+    if not count:
+        return
+    outside = ((used < 0).any(axis=1) | (used[:, 0] > spectrum_shape[0] - box)
+               | (used[:, 1] > spectrum_shape[1] - box))
+    if outside.any():
+        raise _bad_box(function, origins, start + int(np.argmax(outside)), spectrum_shape, box)
+
+
+def _check_same_shape(function: str, arrays: dict, dtypes: dict) -> None:
+    """Every array given has its dtype and the shape of the first."""
+    first = next(iter(arrays.values()))
+    shape = first.shape if isinstance(first, np.ndarray) else None
+    for name, array in arrays.items():
+        if not (isinstance(array, np.ndarray) and array.dtype == dtypes[name] and array.shape == shape):
+            expected = ", ".join(f"{key} {np.dtype(dtypes[key])}" for key in arrays)
+            got = ", ".join(f"{key} {_describe(value)}" for key, value in arrays.items())
+            raise ValueError(f"{function} needs arrays of one shape ({expected}); got {got}")
+
+
+def _contiguous(*arrays) -> bool:
+    return all(a.flags.c_contiguous for a in arrays)
+
+
 # ----------------------------------------------------------------------------- public entry points
 _warm = False
 
 
 def warm_up() -> None:
-    """Load (or compile) every kernel once, so no iteration pays for it; cheap after the first call."""
+    """Load (or compile) every kernel once, so no iteration pays for it; cheap after the first call.
+
+    Raises
+    ------
+    ConfigError
+        If ``CCA_KERNELS`` has an unknown value.
+    """
     global _warm
+    check_settings()
     if _warm or not _use_numba:
         return
     _warm = True
@@ -268,10 +378,20 @@ def place_boxes(spectrum: np.ndarray, origins: np.ndarray, pupils: np.ndarray, f
         Receives captures ``start … start + k - 1``; the box is centred on ``m // 2``.
     start : int
         Index of the first capture.
+
+    Raises
+    ------
+    ValueError
+        If dtypes or shapes do not fit, the captures are out of range or a box leaves the spectrum.
     """
+    start = int(start)
+    _check_boxes("place_boxes", spectrum, origins, pupils, fields, start)
     if _use_numba:
-        _place_boxes_numba(spectrum, origins, pupils, fields, start)
+        bad = _place_boxes_numba(spectrum, origins, pupils, fields, start)
+        if bad >= 0:
+            raise _bad_box("place_boxes", origins, bad, spectrum.shape, pupils.shape[1])
     else:
+        _check_origins_numpy("place_boxes", origins, start, fields.shape[0], spectrum.shape, pupils.shape[1])
         _place_boxes_numpy(spectrum, origins, pupils, fields, start)
 
 
@@ -280,7 +400,12 @@ def _magnitude(fields, amplitudes, weights, eps, keep, magnitude, misfit):
 
     ``magnitude`` and ``misfit`` (or None) are work arrays for the numpy implementation.
     """
-    if _use_numba and fields.flags.c_contiguous:
+    arrays = {"fields": fields, "amplitudes": amplitudes}
+    dtypes = {"fields": np.complex64, "amplitudes": np.float32, "weights": np.float32}
+    if weights is not None:
+        arrays["weights"] = weights
+    _check_same_shape("the magnitude projection", arrays, dtypes)
+    if _use_numba and _contiguous(*arrays.values()):
         confidence = amplitudes if weights is None else weights
         return float(_magnitude_numba(fields, amplitudes, confidence, np.float32(eps), np.float32(keep),
                                       weights is not None))
@@ -302,6 +427,11 @@ def project_magnitudes(fields: np.ndarray, amplitudes: np.ndarray, scratch: np.n
         Work arrays for the numpy implementation.
     weights : ndarray, float32, (k, m, m), optional
     eps : float
+
+    Raises
+    ------
+    ValueError
+        If the arrays' dtypes or shapes differ from those above.
     """
     return _magnitude(fields, amplitudes, weights, eps, 1.0, scratch[0], scratch[1])
 
@@ -320,10 +450,20 @@ def scatter_boxes(fields: np.ndarray, origins: np.ndarray, pupils: np.ndarray, a
         Adjoint pupil boxes (conjugate, with scaling folded in).
     accumulator : ndarray, complex64, (M, M)
     start : int
+
+    Raises
+    ------
+    ValueError
+        If dtypes or shapes do not fit, the captures are out of range or a box leaves the spectrum.
     """
+    start = int(start)
+    _check_boxes("scatter_boxes", accumulator, origins, pupils, fields, start)
     if _use_numba:
-        _scatter_numba(fields, origins, pupils, accumulator, start)
+        bad = _scatter_numba(fields, origins, pupils, accumulator, start)
+        if bad >= 0:
+            raise _bad_box("scatter_boxes", origins, bad, accumulator.shape, pupils.shape[1])
     else:
+        _check_origins_numpy("scatter_boxes", origins, start, fields.shape[0], accumulator.shape, pupils.shape[1])
         _scatter_numpy(fields, origins, pupils, accumulator, start)
 
 
@@ -341,8 +481,15 @@ def momentum_step(spectrum: np.ndarray, anchor: np.ndarray, velocity: np.ndarray
     -------
     change, norm : float
         ``‖S_new − S₀‖²`` and ``‖S₀‖²``: the squared change since the previous step and its reference.
+
+    Raises
+    ------
+    ValueError
+        If the three arrays are not complex64 of one shape.
     """
-    if _use_numba and spectrum.flags.c_contiguous and anchor.flags.c_contiguous and velocity.flags.c_contiguous:
+    _check_same_shape("momentum_step", {"spectrum": spectrum, "anchor": anchor, "velocity": velocity},
+                      {"spectrum": np.complex64, "anchor": np.complex64, "velocity": np.complex64})
+    if _use_numba and _contiguous(spectrum, anchor, velocity):
         change, norm = _momentum_numba(spectrum, anchor, velocity, np.float32(eta))
         return float(change), float(norm)
     norm = float(np.vdot(anchor.ravel(), anchor.ravel()).real)
@@ -365,8 +512,16 @@ def tikhonov_update(numerator: np.ndarray, inverse_normal: np.ndarray, spectrum:
         ``1 / (Σ |P_i|² + τ)``.
     spectrum : ndarray, complex64, (M, M)
         The previous spectrum (read only).
+
+    Raises
+    ------
+    ValueError
+        If the arrays' dtypes or shapes differ from those above.
     """
-    if _use_numba and numerator.flags.c_contiguous and spectrum.flags.c_contiguous:
+    _check_same_shape("tikhonov_update", {"numerator": numerator, "inverse_normal": inverse_normal,
+                                          "spectrum": spectrum},
+                      {"numerator": np.complex64, "inverse_normal": np.float32, "spectrum": np.complex64})
+    if _use_numba and _contiguous(numerator, inverse_normal, spectrum):
         change, norm = _tikhonov_numba(numerator, inverse_normal, spectrum)
         return float(change), float(norm)
     numerator *= inverse_normal
@@ -412,6 +567,13 @@ if _HAVE_NUMBA:  # pragma: no branch
     @_jit
     def _lane_numba(execute, counts, plans, batches, spectrum, origins, pupils, factors, fields, amplitudes, weights,
                     weighted, eps):  # pragma: no cover - compiled
+        """Returns the lane's misfit and -1, or 0 and the first capture whose box leaves the spectrum."""
+        b = pupils.shape[1]
+        for i in range(batches.shape[0]):  # every box is checked before anything runs
+            bad = _first_bad_box(origins, batches[i, 0], batches[i, 1] - batches[i, 0], spectrum.shape[0] - b,
+                                 spectrum.shape[1] - b)
+            if bad >= 0:
+                return 0.0, bad
         total = 0.0
         zero = np.float32(0.0)
         for i in range(batches.shape[0]):
@@ -427,28 +589,12 @@ if _HAVE_NUMBA:  # pragma: no branch
             _call_address(execute, plans[j, 2])
             _call_address(execute, plans[j, 3])
             _scatter_numba(fields[:k], origins, factors, spectrum, start)
-        return total
-
-
-_execute = None
-
-
-def _execute_address() -> int:
-    """Address of ``fftwf_execute`` in the loaded FFTW (0 if unavailable)."""
-    global _execute
-    if _execute is None:
-        import ctypes
-
-        from cca_cli.optics import fft
-
-        function = fft.fftw_execute()
-        _execute = 0 if function is None else int(ctypes.cast(function, ctypes.c_void_p).value)
-    return _execute
+        return total, -1
 
 
 def can_fuse_lanes(raw_plans) -> bool:
-    """Whether :func:`sequential_lane` can run with these raw plans (numba kernels and raw FFTW plans)."""
-    return _use_numba and raw_plans is not None and _execute_address() != 0
+    """Whether :func:`sequential_lane` can run with ``raw_plans`` (numba kernels and live raw FFTW plans)."""
+    return _use_numba and isinstance(raw_plans, fft.RawFFTPlans) and not raw_plans.released
 
 
 def sequential_lane(raw_plans, batches: np.ndarray, spectrum: np.ndarray, origins: np.ndarray, pupils: np.ndarray,
@@ -459,15 +605,16 @@ def sequential_lane(raw_plans, batches: np.ndarray, spectrum: np.ndarray, origin
     Each batch does what :meth:`~cca_cli.optics.forward.ForwardModel.forward_into`,
     :func:`magnitude_step`, the forward transform and :func:`scatter_boxes` do in turn, without
     returning to the interpreter in between, so two threads running lanes do not wait for each
-    other. Requires :func:`can_fuse_lanes`.
+    other. Requires :func:`can_fuse_lanes`. Every argument is checked before compiled code runs.
 
     Parameters
     ----------
-    raw_plans : tuple of ndarray
-        ``(counts, plans)`` from :meth:`~cca_cli.optics.fft.BandedFFT2.raw_plans` of the workspace holding ``fields``.
+    raw_plans : RawFFTPlans
+        :meth:`~cca_cli.optics.fft.BandedFFT2.raw_plans` of the workspace holding ``fields``; kept
+        unchanged (and alive) while the lane runs.
     batches : ndarray, int64, (n, 2)
         ``[start, stop)`` of each batch, in order.
-    spectrum : ndarray, complex64, (M, M)
+    spectrum : ndarray, complex64, (M, M), C-contiguous
         Updated in place.
     origins : ndarray, int64, (K, 2)
     pupils : ndarray, complex64, (K, b, b)
@@ -485,8 +632,43 @@ def sequential_lane(raw_plans, batches: np.ndarray, spectrum: np.ndarray, origin
     -------
     float
         The summed squared misfit ``Σ w (|ψ| − A)²`` of the lane.
+
+    Raises
+    ------
+    ValueError
+        If an argument has the wrong dtype, shape or layout, a batch is out of range, a box
+        leaves the spectrum, or ``fields`` is not the planned buffer.
+    RuntimeError
+        If the plans were released.
     """
-    counts, plans = raw_plans
+    if not (_use_numba and isinstance(raw_plans, fft.RawFFTPlans)):
+        raise ValueError("sequential_lane needs numba kernels and raw FFTW plans (see can_fuse_lanes)")
+    if raw_plans.released:
+        raise RuntimeError("sequential_lane: these raw FFTW plans were released; ask the workspace for new ones")
+    if not _is(fields, np.complex64, 3):
+        raise ValueError(f"sequential_lane: fields must be a complex64 (c, m, m) array, got {_describe(fields)}")
+    _check_boxes("sequential_lane", spectrum, origins, pupils, fields[:0], 0)
+    n, m = origins.shape[0], fields.shape[1]
+    checks = {"pupils": (pupils, np.complex64, pupils.shape), "factors": (factors, np.complex64, pupils.shape),
+              "amplitudes": (amplitudes, np.float32, (n, m, m)), "spectrum": (spectrum, np.complex64, spectrum.shape),
+              "origins": (origins, np.int64, (n, 2)), "batches": (batches, np.int64, None)}
+    if weights is not None:
+        checks["weights"] = (weights, np.float32, (n, m, m))
+    for name, (array, dtype, shape) in checks.items():
+        if not (isinstance(array, np.ndarray) and array.dtype == dtype and array.flags.c_contiguous
+                and (shape is None or array.shape == shape)):
+            wanted = "" if shape is None else f" {shape}"
+            raise ValueError(f"sequential_lane: {name} must be a C-contiguous {np.dtype(dtype)}{wanted} array, "
+                             f"got {_describe(array)}")
+    if batches.ndim != 2 or batches.shape[1] != 2:
+        raise ValueError(f"sequential_lane: batches must be (n, 2) [start, stop) rows, got {batches.shape}")
+    if batches.size and (batches[:, 0].min() < 0 or batches[:, 1].max() > n
+                         or (batches[:, 1] <= batches[:, 0]).any()):
+        raise ValueError(f"sequential_lane: every batch [start, stop) must satisfy 0 <= start < stop <= {n}")
     confidence = amplitudes if weights is None else weights
-    return float(_lane_numba(_execute_address(), counts, plans, batches, spectrum, origins, pupils, factors, fields,
-                             amplitudes, confidence, weights is not None, np.float32(eps)))
+    with raw_plans.executing(fields, batches[:, 1] - batches[:, 0]) as (execute, counts, plans):
+        total, bad = _lane_numba(execute, counts, plans, batches, spectrum, origins, pupils, factors, fields,
+                                 amplitudes, confidence, weights is not None, np.float32(eps))
+    if bad >= 0:
+        raise _bad_box("sequential_lane", origins, bad, spectrum.shape, pupils.shape[1])
+    return float(total)
