@@ -48,6 +48,7 @@ library cannot be found (not Linux): :meth:`BandedFFT2.raw_plans` gives None.
 
 from __future__ import annotations
 
+import bisect
 import contextlib
 import ctypes
 import os
@@ -515,7 +516,7 @@ class _Plans:
         self.raw_table: np.ndarray | None = None
         self.released = False
         self.budget = _budgets.setdefault((buffer.shape, tuple(specs), threads), _Budget())
-        self.lock = threading.Lock()
+        self.lock = threading.RLock()
         try:
             self._plan_all(effort)
         except BaseException:
@@ -901,6 +902,7 @@ class RawFFTPlans:
         self.generation = generation
         self.counts = np.array(owner._counts, dtype=np.int64)
         self.buffer = owner.buffer
+        self.execute_address = _fftw_library().execute_address
 
     @property
     def released(self) -> bool:
@@ -924,35 +926,24 @@ class RawFFTPlans:
             raise ValueError("fields must be the buffer these FFTW plans were made for "
                              f"({buffer.dtype} {buffer.shape}); got another array")
 
-    @contextlib.contextmanager
-    def executing(self, fields: np.ndarray, sizes: np.ndarray):
-        """Hold the plans for compiled code that transforms batches of ``sizes`` fields of ``fields``.
+    def executing(self, fields: np.ndarray) -> _PlansInUse:
+        """Hold the plans for compiled code that transforms ``fields`` (a context manager).
 
-        Yields ``(execute, counts, plans)``: the address of ``fftwf_execute``, :attr:`counts`
-        and the plan addresses, int64 (n, 4) — inverse rows and columns, forward columns
-        and rows for each count. The time spent inside counts as use of those plans.
+        Entering gives an object with ``execute`` (the address of ``fftwf_execute``),
+        ``counts`` and ``plans``: the plan addresses, int64 (n, 4) — inverse rows and columns,
+        forward columns and rows for each count. The plans stay alive and unchanged until
+        the block ends. Set its ``largest`` to the most fields a batch transformed: the
+        time spent counts as use of the plans of that count.
 
         Raises
         ------
         ValueError
-            If ``fields`` is not the planned buffer or a size is outside ``[1, counts[-1]]``.
+            If ``fields`` is not the planned buffer.
         RuntimeError
             If the plans were released.
         """
         self.check_buffer(fields)
-        sizes = np.asarray(sizes, dtype=np.int64)
-        if sizes.size and (sizes.min() < 1 or sizes.max() > self.counts[-1]):
-            raise ValueError(f"batch sizes must be in [1, {self.counts[-1]}], got {sizes.min()}..{sizes.max()}")
-        plans = self._owner._plans
-        with plans.lock:
-            if self.released:
-                raise RuntimeError("these raw FFTW plans were released; ask the transform for new ones")
-            table = plans.table((len(self.counts), 4))
-            start = time.perf_counter()
-            yield _fftw_library().execute_address, self.counts, table
-            groups = np.searchsorted(self.counts, sizes)
-            used = (4 * groups[:, None] + np.arange(4)).ravel().tolist()
-            plans.note_use(time.perf_counter() - start, used)
+        return _PlansInUse(self)
 
     def execute(self, count: int, step: int) -> None:
         """Run one plan from the interpreter: ``step`` (0–3, in :meth:`executing`'s order) of planned ``count``."""
@@ -964,3 +955,35 @@ class RawFFTPlans:
             if self.released:
                 raise RuntimeError("these raw FFTW plans were released; ask the transform for new ones")
             _fftw_library().fftwf_execute(plans.raw[4 * index + step])
+
+
+class _PlansInUse:
+    """The raw plans held for compiled code by :meth:`RawFFTPlans.executing`."""
+
+    __slots__ = ("_raw", "_plans", "execute", "counts", "plans", "largest", "_start")
+
+    def __init__(self, raw: RawFFTPlans):
+        self._raw = raw
+        self._plans = raw._owner._plans
+        self.execute = raw.execute_address
+        self.counts = raw.counts
+        self.largest = int(raw.counts[-1])
+
+    def __enter__(self) -> _PlansInUse:
+        plans = self._plans
+        plans.lock.acquire()
+        if self._raw.released:
+            plans.lock.release()
+            raise RuntimeError("these raw FFTW plans were released; ask the transform for new ones")
+        self.plans = plans.table((len(self.counts), 4))
+        self._start = time.perf_counter()
+        return self
+
+    def __exit__(self, kind, value, traceback) -> None:
+        plans = self._plans
+        try:
+            if kind is None and self.largest > 0:
+                group = 4 * bisect.bisect_left(self._raw._owner._counts, self.largest)
+                plans.note_use(time.perf_counter() - self._start, (group, group + 1, group + 2, group + 3))
+        finally:
+            plans.lock.release()

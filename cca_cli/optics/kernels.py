@@ -16,8 +16,6 @@ and never reaches compiled code.
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 
 from cca_cli.errors import ConfigError
@@ -272,30 +270,33 @@ if _HAVE_NUMBA:  # pragma: no branch
 
 
 # ----------------------------------------------------------------------------- argument checks
-def _is(array, dtype, ndim: int) -> bool:
-    return isinstance(array, np.ndarray) and array.dtype == dtype and array.ndim == ndim
+# These run before every compiled call, so they stay cheap: attribute reads and comparisons only.
+_C64, _F32, _I64 = np.dtype(np.complex64), np.dtype(np.float32), np.dtype(np.int64)
+_ndarray = np.ndarray
 
 
 def _describe(array) -> str:
-    if isinstance(array, np.ndarray):
+    if isinstance(array, _ndarray):
         return f"{array.dtype} {array.shape}"
     return type(array).__name__
 
 
 def _check_boxes(function: str, spectrum, origins, pupils, fields, start: int) -> None:
     """Dtypes and shapes of a box placement or scatter of captures ``start …`` (origins are checked apart)."""
-    if not (_is(spectrum, np.complex64, 2) and _is(origins, np.int64, 2) and _is(pupils, np.complex64, 3)
-            and _is(fields, np.complex64, 3)):
+    if not (isinstance(spectrum, _ndarray) and isinstance(origins, _ndarray) and isinstance(pupils, _ndarray)
+            and isinstance(fields, _ndarray) and spectrum.dtype == _C64 and origins.dtype == _I64 and pupils.dtype == _C64 and fields.dtype == _C64
+            and spectrum.ndim == 2 and origins.ndim == 2 and pupils.ndim == 3 and fields.ndim == 3):
         raise ValueError(f"{function} needs spectrum complex64 (M, M), origins int64 (K, 2), pupils complex64 "
                          f"(K, b, b) and fields complex64 (k, m, m); got {_describe(spectrum)}, "
                          f"{_describe(origins)}, {_describe(pupils)}, {_describe(fields)}")
-    n, b, k, m = pupils.shape[0], pupils.shape[1], fields.shape[0], fields.shape[1]
-    if (origins.shape != (n, 2) or pupils.shape[2] != b or fields.shape[2] != m or b > m
-            or b > min(spectrum.shape)):
+    n, b, b2 = pupils.shape
+    k, m, m2 = fields.shape
+    if (origins.shape[0] != n or origins.shape[1] != 2 or b2 != b or m2 != m or b > m or b > spectrum.shape[0]
+            or b > spectrum.shape[1]):
         raise ValueError(f"{function}: shapes do not fit together: spectrum {spectrum.shape}, origins "
                          f"{origins.shape}, pupils {pupils.shape}, fields {fields.shape} (need origins (K, 2), "
                          "pupils (K, b, b), fields (k, m, m) with b <= m and b <= M)")
-    if not 0 <= start <= n - k:
+    if start < 0 or start + k > n:
         raise ValueError(f"{function}: captures {start} to {start + k - 1} are not among the {n} captures")
 
 
@@ -315,19 +316,18 @@ def _check_origins_numpy(function: str, origins, start: int, count: int, spectru
         raise _bad_box(function, origins, start + int(np.argmax(outside)), spectrum_shape, box)
 
 
-def _check_same_shape(function: str, arrays: dict, dtypes: dict) -> None:
-    """Every array given has its dtype and the shape of the first."""
-    first = next(iter(arrays.values()))
-    shape = first.shape if isinstance(first, np.ndarray) else None
-    for name, array in arrays.items():
-        if not (isinstance(array, np.ndarray) and array.dtype == dtypes[name] and array.shape == shape):
-            expected = ", ".join(f"{key} {np.dtype(dtypes[key])}" for key in arrays)
-            got = ", ".join(f"{key} {_describe(value)}" for key, value in arrays.items())
+def _check_alike(function: str, names: tuple[str, ...], arrays: tuple, dtypes: tuple) -> bool:
+    """Every array has its dtype and the first one's shape; returns whether all are C-contiguous."""
+    first = arrays[0]
+    shape = first.shape if isinstance(first, _ndarray) else None
+    contiguous = True
+    for array, dtype in zip(arrays, dtypes):
+        if not (isinstance(array, _ndarray) and array.dtype == dtype and array.shape == shape):
+            expected = ", ".join(f"{name} {dtype}" for name, dtype in zip(names, dtypes))
+            got = ", ".join(f"{name} {_describe(value)}" for name, value in zip(names, arrays))
             raise ValueError(f"{function} needs arrays of one shape ({expected}); got {got}")
-
-
-def _contiguous(*arrays) -> bool:
-    return all(a.flags.c_contiguous for a in arrays)
+        contiguous = contiguous and array.flags.c_contiguous
+    return contiguous
 
 
 # ----------------------------------------------------------------------------- public entry points
@@ -384,7 +384,6 @@ def place_boxes(spectrum: np.ndarray, origins: np.ndarray, pupils: np.ndarray, f
     ValueError
         If dtypes or shapes do not fit, the captures are out of range or a box leaves the spectrum.
     """
-    start = int(start)
     _check_boxes("place_boxes", spectrum, origins, pupils, fields, start)
     if _use_numba:
         bad = _place_boxes_numba(spectrum, origins, pupils, fields, start)
@@ -400,12 +399,13 @@ def _magnitude(fields, amplitudes, weights, eps, keep, magnitude, misfit):
 
     ``magnitude`` and ``misfit`` (or None) are work arrays for the numpy implementation.
     """
-    arrays = {"fields": fields, "amplitudes": amplitudes}
-    dtypes = {"fields": np.complex64, "amplitudes": np.float32, "weights": np.float32}
-    if weights is not None:
-        arrays["weights"] = weights
-    _check_same_shape("the magnitude projection", arrays, dtypes)
-    if _use_numba and _contiguous(*arrays.values()):
+    if weights is None:
+        contiguous = _check_alike("the magnitude projection", ("fields", "amplitudes"), (fields, amplitudes),
+                                  (_C64, _F32))
+    else:
+        contiguous = _check_alike("the magnitude projection", ("fields", "amplitudes", "weights"),
+                                  (fields, amplitudes, weights), (_C64, _F32, _F32))
+    if _use_numba and contiguous:
         confidence = amplitudes if weights is None else weights
         return float(_magnitude_numba(fields, amplitudes, confidence, np.float32(eps), np.float32(keep),
                                       weights is not None))
@@ -456,7 +456,6 @@ def scatter_boxes(fields: np.ndarray, origins: np.ndarray, pupils: np.ndarray, a
     ValueError
         If dtypes or shapes do not fit, the captures are out of range or a box leaves the spectrum.
     """
-    start = int(start)
     _check_boxes("scatter_boxes", accumulator, origins, pupils, fields, start)
     if _use_numba:
         bad = _scatter_numba(fields, origins, pupils, accumulator, start)
@@ -487,9 +486,9 @@ def momentum_step(spectrum: np.ndarray, anchor: np.ndarray, velocity: np.ndarray
     ValueError
         If the three arrays are not complex64 of one shape.
     """
-    _check_same_shape("momentum_step", {"spectrum": spectrum, "anchor": anchor, "velocity": velocity},
-                      {"spectrum": np.complex64, "anchor": np.complex64, "velocity": np.complex64})
-    if _use_numba and _contiguous(spectrum, anchor, velocity):
+    contiguous = _check_alike("momentum_step", ("spectrum", "anchor", "velocity"), (spectrum, anchor, velocity),
+                              (_C64, _C64, _C64))
+    if _use_numba and contiguous:
         change, norm = _momentum_numba(spectrum, anchor, velocity, np.float32(eta))
         return float(change), float(norm)
     norm = float(np.vdot(anchor.ravel(), anchor.ravel()).real)
@@ -518,10 +517,9 @@ def tikhonov_update(numerator: np.ndarray, inverse_normal: np.ndarray, spectrum:
     ValueError
         If the arrays' dtypes or shapes differ from those above.
     """
-    _check_same_shape("tikhonov_update", {"numerator": numerator, "inverse_normal": inverse_normal,
-                                          "spectrum": spectrum},
-                      {"numerator": np.complex64, "inverse_normal": np.float32, "spectrum": np.complex64})
-    if _use_numba and _contiguous(numerator, inverse_normal, spectrum):
+    contiguous = _check_alike("tikhonov_update", ("numerator", "inverse_normal", "spectrum"),
+                              (numerator, inverse_normal, spectrum), (_C64, _F32, _C64))
+    if _use_numba and contiguous:
         change, norm = _tikhonov_numba(numerator, inverse_normal, spectrum)
         return float(change), float(norm)
     numerator *= inverse_normal
@@ -567,13 +565,21 @@ if _HAVE_NUMBA:  # pragma: no branch
     @_jit
     def _lane_numba(execute, counts, plans, batches, spectrum, origins, pupils, factors, fields, amplitudes, weights,
                     weighted, eps):  # pragma: no cover - compiled
-        """Returns the lane's misfit and -1, or 0 and the first capture whose box leaves the spectrum."""
+        """Returns the lane's misfit, a status and the largest batch.
+
+        The status is -1, or the first capture whose box leaves the spectrum, or ``-2 - i`` for
+        batch ``i`` outside the captures or larger than the plans; nothing runs unless it is -1.
+        """
         b = pupils.shape[1]
-        for i in range(batches.shape[0]):  # every box is checked before anything runs
-            bad = _first_bad_box(origins, batches[i, 0], batches[i, 1] - batches[i, 0], spectrum.shape[0] - b,
-                                 spectrum.shape[1] - b)
+        largest = 0
+        for i in range(batches.shape[0]):  # every batch and box is checked before anything runs
+            start, stop = batches[i, 0], batches[i, 1]
+            if start < 0 or stop <= start or stop > origins.shape[0] or stop - start > counts[counts.shape[0] - 1]:
+                return 0.0, -2 - i, 0
+            largest = max(largest, stop - start)
+            bad = _first_bad_box(origins, start, stop - start, spectrum.shape[0] - b, spectrum.shape[1] - b)
             if bad >= 0:
-                return 0.0, bad
+                return 0.0, bad, 0
         total = 0.0
         zero = np.float32(0.0)
         for i in range(batches.shape[0]):
@@ -589,7 +595,7 @@ if _HAVE_NUMBA:  # pragma: no branch
             _call_address(execute, plans[j, 2])
             _call_address(execute, plans[j, 3])
             _scatter_numba(fields[:k], origins, factors, spectrum, start)
-        return total, -1
+        return total, -1, largest
 
 
 def can_fuse_lanes(raw_plans) -> bool:
@@ -636,8 +642,9 @@ def sequential_lane(raw_plans, batches: np.ndarray, spectrum: np.ndarray, origin
     Raises
     ------
     ValueError
-        If an argument has the wrong dtype, shape or layout, a batch is out of range, a box
-        leaves the spectrum, or ``fields`` is not the planned buffer.
+        If an argument has the wrong dtype, shape or layout, a batch is out of range or larger
+        than the workspace, a box leaves the spectrum, or ``fields`` is not the planned buffer;
+        nothing has run then.
     RuntimeError
         If the plans were released.
     """
@@ -645,30 +652,30 @@ def sequential_lane(raw_plans, batches: np.ndarray, spectrum: np.ndarray, origin
         raise ValueError("sequential_lane needs numba kernels and raw FFTW plans (see can_fuse_lanes)")
     if raw_plans.released:
         raise RuntimeError("sequential_lane: these raw FFTW plans were released; ask the workspace for new ones")
-    if not _is(fields, np.complex64, 3):
+    if not (isinstance(fields, _ndarray) and fields.dtype == _C64 and fields.ndim == 3):
         raise ValueError(f"sequential_lane: fields must be a complex64 (c, m, m) array, got {_describe(fields)}")
     _check_boxes("sequential_lane", spectrum, origins, pupils, fields[:0], 0)
     n, m = origins.shape[0], fields.shape[1]
-    checks = {"pupils": (pupils, np.complex64, pupils.shape), "factors": (factors, np.complex64, pupils.shape),
-              "amplitudes": (amplitudes, np.float32, (n, m, m)), "spectrum": (spectrum, np.complex64, spectrum.shape),
-              "origins": (origins, np.int64, (n, 2)), "batches": (batches, np.int64, None)}
-    if weights is not None:
-        checks["weights"] = (weights, np.float32, (n, m, m))
-    for name, (array, dtype, shape) in checks.items():
-        if not (isinstance(array, np.ndarray) and array.dtype == dtype and array.flags.c_contiguous
+    confidence = amplitudes if weights is None else weights
+    for name, array, dtype, shape in (("spectrum", spectrum, _C64, spectrum.shape), ("origins", origins, _I64, None),
+                                      ("pupils", pupils, _C64, None), ("factors", factors, _C64, pupils.shape),
+                                      ("amplitudes", amplitudes, _F32, (n, m, m)),
+                                      ("weights", confidence, _F32, (n, m, m)), ("batches", batches, _I64, None)):
+        if not (isinstance(array, _ndarray) and array.dtype == dtype and array.flags.c_contiguous
                 and (shape is None or array.shape == shape)):
             wanted = "" if shape is None else f" {shape}"
-            raise ValueError(f"sequential_lane: {name} must be a C-contiguous {np.dtype(dtype)}{wanted} array, "
+            raise ValueError(f"sequential_lane: {name} must be a C-contiguous {dtype}{wanted} array, "
                              f"got {_describe(array)}")
     if batches.ndim != 2 or batches.shape[1] != 2:
         raise ValueError(f"sequential_lane: batches must be (n, 2) [start, stop) rows, got {batches.shape}")
-    if batches.size and (batches[:, 0].min() < 0 or batches[:, 1].max() > n
-                         or (batches[:, 1] <= batches[:, 0]).any()):
-        raise ValueError(f"sequential_lane: every batch [start, stop) must satisfy 0 <= start < stop <= {n}")
-    confidence = amplitudes if weights is None else weights
-    with raw_plans.executing(fields, batches[:, 1] - batches[:, 0]) as (execute, counts, plans):
-        total, bad = _lane_numba(execute, counts, plans, batches, spectrum, origins, pupils, factors, fields,
-                                 amplitudes, confidence, weights is not None, np.float32(eps))
-    if bad >= 0:
-        raise _bad_box("sequential_lane", origins, bad, spectrum.shape, pupils.shape[1])
+    with raw_plans.executing(fields) as held:
+        total, status, held.largest = _lane_numba(held.execute, held.counts, held.plans, batches, spectrum, origins,
+                                                  pupils, factors, fields, amplitudes, confidence,
+                                                  weights is not None, np.float32(eps))
+    if status >= 0:
+        raise _bad_box("sequential_lane", origins, status, spectrum.shape, pupils.shape[1])
+    if status < -1:
+        start, stop = (int(v) for v in batches[-2 - status])
+        raise ValueError(f"sequential_lane: batch {-2 - status} [{start}, {stop}) must lie within the {n} captures "
+                         f"and hold at most {int(raw_plans.counts[-1])} (the workspace's capacity)")
     return float(total)

@@ -183,8 +183,9 @@ RAISES = {
     "magnitude_step_of_complex128_fields": ("ValueError", "fields complex128"),
     "tikhonov_with_a_smaller_normal": ("ValueError", "inverse_normal float32 (16, 32)"),
     "momentum_with_a_complex128_velocity": ("ValueError", "velocity complex128"),
-    "lane_batch_larger_than_the_workspace": ("ValueError", r"batch sizes must be in [1, 4]"),
-    "lane_batch_beyond_the_last_capture": ("ValueError", "0 <= start < stop <= 6"),
+    "lane_batch_larger_than_the_workspace": ("ValueError", "batch 0 [0, 6) must lie within the 6 captures and "
+                                                           "hold at most 4"),
+    "lane_batch_beyond_the_last_capture": ("ValueError", "batch 0 [4, 7) must lie within the 6 captures"),
     "lane_box_outside_the_spectrum_runs_nothing": ("ValueError", "capture 3 at origin (32, 32)"),
     "lane_on_another_buffer_than_the_planned_one": ("ValueError", "buffer these FFTW plans were made for"),
     "raw_plans_of_a_collected_transform_still_run": ("none", ""),
