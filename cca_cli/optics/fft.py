@@ -22,10 +22,10 @@ FFTW finds fast plans by timing candidates. ``$CCA_FFTW_PLANNING`` sets how:
   the transforms run, their plans are improved one at a time, first to
   ``measure`` and then to ``patient`` quality, each step at most
   :data:`STEP_SECONDS` long and only while planning has cost less than
-  :data:`UPGRADE_SHARE` of the time the transforms ran, and at most
-  :data:`SHAPE_SECONDS` per shape and process. A short run plans next to
-  nothing; longer ones improve the plans they use most; the next run on the
-  machine starts with whatever was found and goes on from there.
+  :data:`UPGRADE_SHARE` of the time the transforms ran (and, beyond
+  :data:`SHAPE_SECONDS` per shape, less than :data:`LONG_RUN_SHARE`). A run
+  of seconds plans next to nothing, a long one ends with patient plans for
+  what it uses most, and the next run on the machine starts from them.
 * ``estimate``, ``measure`` or ``patient``: plan at that effort when the
   transform is made (``patient`` takes seconds per new shape).
 
@@ -72,6 +72,7 @@ __all__ = [
     "STEP_SECONDS",
     "UPGRADE_SHARE",
     "SHAPE_SECONDS",
+    "LONG_RUN_SHARE",
     "backend_name",
     "use_backend",
     "cpu_count",
@@ -135,10 +136,11 @@ PLANNER_LOCK = threading.RLock()
 
 #: Longest single planning step (s): Ctrl-C is answered within about this time.
 STEP_SECONDS = 2.0
-#: With ``auto`` planning, the most time spent improving plans, as a share of the time the transforms ran.
+#: With ``auto`` planning, the most time spent improving the plans of a shape, as a share of the time its
+#: transforms ran, up to :data:`SHAPE_SECONDS` per process; beyond that, :data:`LONG_RUN_SHARE`.
 UPGRADE_SHARE = 0.25
-#: With ``auto`` planning, the most time spent improving the plans of one shape in one process (s).
 SHAPE_SECONDS = 3.0
+LONG_RUN_SHARE = 0.1
 #: Expected cost (s) of the next planning step of each level, refined by what steps actually cost.
 _step_cost = {"measure": 0.05, "patient": 0.5}
 _planning = {"seconds": 0.0}
@@ -491,6 +493,17 @@ class _Budget:
         self.next_check = _step_cost["measure"] / UPGRADE_SHARE  # busy seconds before the next improvement
         self.stuck: set[int] = set()  # transforms whose search ran out of time
 
+    def allows(self, cost: float) -> bool:
+        """Whether a planning step of ``cost`` seconds fits; if not, when to ask again (``next_check``)."""
+        total = self.spent + cost
+        needed = total / UPGRADE_SHARE
+        if total > SHAPE_SECONDS:
+            needed = max(needed, total / LONG_RUN_SHARE)
+        if self.busy >= needed:
+            return True
+        self.next_check = needed
+        return False
+
 
 _budgets: dict = {}
 
@@ -593,12 +606,12 @@ class _Plans:
             self._improve_one()
 
     def _improve_one(self) -> None:
-        """One planning step: the most used transform below patient goes one level up (``lock`` held).
+        """One planning step: a used transform goes one level up (``lock`` held).
 
-        A step that times plans is taken only while the planning time of the transforms of
-        this shape stays within :data:`UPGRADE_SHARE` of the time they ran and within
-        :data:`SHAPE_SECONDS`; a plan another transform of the same shape already found is
-        adopted for free.
+        Transforms still at ``estimate`` come first (measuring is cheap and gains most), then
+        the most used. A step that times plans is taken only while the planning of this
+        shape stays within its share of the time the transforms ran (see :data:`UPGRADE_SHARE`);
+        a plan another transform of the same shape already found is adopted for free.
         """
         budget = self.budget
         pending = [i for i in range(len(self.specs))
@@ -606,25 +619,23 @@ class _Plans:
         if not pending:
             budget.next_check = budget.busy + _step_cost["measure"] / UPGRADE_SHARE
             return
-        i = max(pending, key=lambda j: (self.uses[j], -_LEVELS.index(self.level[j])))
+        i = max(pending, key=lambda j: (-_LEVELS.index(self.level[j]), self.uses[j]))
         target = _LEVELS[_LEVELS.index(self.level[i]) + 1]
         with PLANNER_LOCK:
-            if self._adopt(i, target):
+            if self._adopt(i, target) or not budget.allows(_step_cost[target]):
                 return
-            cost = _step_cost[target]
-            if budget.spent + cost > SHAPE_SECONDS:
-                self.auto = False  # this process has planned enough for the shape; the next run goes on
-                return
-            if cost > budget.busy * UPGRADE_SHARE - budget.spent:
-                budget.next_check = (budget.spent + cost) / UPGRADE_SHARE
-                return
-            timelimit = min(STEP_SECONDS, SHAPE_SECONDS - budget.spent)
-            seconds = self._search([i], target, timelimit=timelimit)
+            start = time.perf_counter()
+            try:
+                self._search([i], target, timelimit=STEP_SECONDS)
+                found = self._adopt(i, target)
+            except RuntimeError:  # an improvement is optional: keep the plans in use
+                found = False
+            seconds = time.perf_counter() - start
             budget.spent += seconds
             _step_cost[target] = 0.5 * _step_cost[target] + 0.5 * seconds
-            if self._adopt(i, target):
+            if found:
                 _save_wisdom()
-            else:  # the search ran out of time: keep the plans this process has
+            else:  # the search ran out of time (or failed): keep the plans this process has
                 budget.stuck.add(i)
 
     # ------------------------------------------------------------------ raw plans
