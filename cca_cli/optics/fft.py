@@ -10,76 +10,39 @@ Two kinds of transform are offered:
 * :class:`InPlaceFFT2` and :class:`BandedFFT2`: raw (unnormalised) 2-D FFTs
   planned once for one buffer and executed in place. FFTW (pyfftw) when
   installed, ``scipy.fft`` otherwise. Callers fold the normalisation into
-  arrays they multiply anyway.
+  arrays they multiply anyway. How FFTW plans them (``$CCA_FFTW_PLANNING``,
+  bounded and chosen by how long they run), who owns the plans and the one
+  planner lock are the business of :mod:`cca_cli.optics.fftw_plans`.
 
-Planning
---------
-FFTW finds fast plans by timing candidates. ``$CCA_FFTW_PLANNING`` sets how:
-
-* ``auto`` (default): a transform starts with the best plan FFTW already
-  knows for its shape (the wisdom kept in ``$CCA_CACHE_DIR``, default
-  ``~/.cache/cca``) or else an estimated plan (no timing, milliseconds). While
-  the transforms run, their plans are improved one at a time, first to
-  ``measure`` and then to ``patient`` quality, each step at most
-  :data:`STEP_SECONDS` long and only while planning has cost less than
-  :data:`UPGRADE_SHARE` of the time the transforms ran (and, beyond
-  :data:`SHAPE_SECONDS` per shape, less than :data:`LONG_RUN_SHARE`). A run
-  of seconds plans next to nothing, a long one ends with patient plans for
-  what it uses most, and the next run on the machine starts from them.
-* ``estimate``, ``measure`` or ``patient``: plan at that effort when the
-  transform is made (``patient`` takes seconds per new shape).
-
-Timed planning runs on a scratch copy of the buffer, so planning never
-touches the data.
-
-Thread safety
--------------
-FFTW's planner is not thread-safe. Every planner call made here (pyfftw and
-raw plans, their destruction, wisdom import and export, the planner's thread
-count) holds :data:`PLANNER_LOCK`. pyfftw's own planner lock is private to
-its extension module and FFTW's ``make_planner_thread_safe`` does nothing in
-the OpenMP build pyfftw ships, so this lock is the process-wide one: the
-pyfftw plans made here are also destroyed while holding it.
-
-Switches (for testing the fallbacks): ``CCA_FFT_BACKEND=scipy`` runs without
-pyfftw (it is not even imported); ``CCA_RAW_FFTW=off`` runs as where FFTW's
-library cannot be found (not Linux): :meth:`BandedFFT2.raw_plans` gives None.
+``CCA_FFT_BACKEND=scipy`` runs without pyfftw (it is not even imported) and
+``CCA_RAW_FFTW=off`` as where FFTW's library cannot be found (not Linux):
+see :mod:`cca_cli.optics.switches`.
 """
 
 from __future__ import annotations
 
-import bisect
 import contextlib
-import ctypes
 import os
-import pickle
-import tempfile
-import threading
 import time
-import weakref
-from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
 import scipy.fft
 
-from cca_cli.errors import ConfigError
+from cca_cli.optics import fftw_plans, switches
+from cca_cli.optics.fftw_plans import HAVE_PYFFTW, PLANNER_LOCK, RawFFTPlans, Spec, pyfftw, raw_fftw_available
+from cca_cli.optics.switches import planning_effort
 
 __all__ = [
     "xp",
     "HAVE_PYFFTW",
     "PLANNER_LOCK",
-    "STEP_SECONDS",
-    "UPGRADE_SHARE",
-    "SHAPE_SECONDS",
-    "LONG_RUN_SHARE",
     "backend_name",
     "use_backend",
     "cpu_count",
     "planning_effort",
     "planning_seconds",
     "check_settings",
-    "env_choice",
+    "raw_fftw_available",
     "empty",
     "zeros",
     "fft2",
@@ -90,152 +53,22 @@ __all__ = [
     "InPlaceFFT2",
     "BandedFFT2",
     "RawFFTPlans",
-    "raw_fftw_available",
 ]
-
-
-def env_choice(name: str, default: str, accepted: tuple[str, ...]) -> str:
-    """The value of environment variable ``name`` (lower case; ``default`` when unset or empty).
-
-    Raises
-    ------
-    ConfigError
-        If the value is not one of ``accepted``: one line naming the variable and the accepted values.
-    """
-    given = os.environ.get(name, "")
-    value = given.strip().lower() or default
-    if value not in accepted:
-        raise ConfigError(f"environment variable {name}={given!r} is not one of {', '.join(accepted)}; "
-                          "unset it or pick one")
-    return value
-
-
-_backend_error: ConfigError | None = None
-try:
-    _requested_backend = env_choice("CCA_FFT_BACKEND", "pyfftw", ("pyfftw", "scipy"))
-except ConfigError as _error:  # reported by check_settings(), at the first FFT, as one line
-    _requested_backend, _backend_error = "scipy", _error
-
-pyfftw = None
-if _requested_backend == "pyfftw":
-    try:  # pragma: no cover - exercised when pyfftw is installed
-        import pyfftw
-    except ImportError:  # pragma: no cover
-        pyfftw = None
-
-#: Whether pyfftw is installed and enabled (``CCA_FFT_BACKEND`` is not ``scipy``).
-HAVE_PYFFTW = pyfftw is not None
 
 #: Array module used by the numeric core.
 xp = np
 
 _backend = "pyfftw" if HAVE_PYFFTW else "scipy"
 
-#: Held by every FFTW planner call this module makes (see the module notes).
-PLANNER_LOCK = threading.RLock()
-
-#: Longest single planning step (s): Ctrl-C is answered within about this time.
-STEP_SECONDS = 2.0
-#: With ``auto`` planning, the most time spent improving the plans of a shape, as a share of the time its
-#: transforms ran, up to :data:`SHAPE_SECONDS` per process; beyond that, :data:`LONG_RUN_SHARE`.
-UPGRADE_SHARE = 0.25
-SHAPE_SECONDS = 3.0
-LONG_RUN_SHARE = 0.1
-#: Expected cost (s) of the next planning step of each level, refined by what steps actually cost.
-_step_cost = {"measure": 0.05, "patient": 0.5}
-_planning = {"seconds": 0.0}
-
-EFFORTS = ("auto", "estimate", "measure", "patient")
-_LEVELS = ("estimate", "measure", "patient")
-
 
 def check_settings() -> None:
-    """Raise :class:`~cca_cli.errors.ConfigError` if an FFT environment variable has an unknown value.
-
-    Checks ``CCA_FFT_BACKEND``, ``CCA_RAW_FFTW`` and ``CCA_FFTW_PLANNING``.
-    """
-    if _backend_error is not None:
-        raise _backend_error
-    env_choice("CCA_RAW_FFTW", "on", ("on", "off"))
-    planning_effort()
-
-
-def planning_effort() -> str:
-    """How FFTW plans: ``$CCA_FFTW_PLANNING``, default ``"auto"`` (see the module notes).
-
-    Raises
-    ------
-    ConfigError
-        If the variable names an unknown effort (one line naming the variable and the accepted values).
-    """
-    return env_choice("CCA_FFTW_PLANNING", "auto", EFFORTS)
+    """Raise :class:`~cca_cli.errors.ConfigError` (one line) if an FFT environment switch has an unknown value."""
+    switches.check()
 
 
 def planning_seconds() -> float:
     """Seconds this process has spent in timed FFTW planning so far."""
-    return _planning["seconds"]
-
-
-# ----------------------------------------------------------------------------- wisdom
-def _wisdom_path() -> Path:
-    """Where FFTW plans measured on this machine are kept between runs."""
-    root = os.environ.get("CCA_CACHE_DIR") or os.path.join(os.path.expanduser("~"), ".cache", "cca")
-    return Path(root) / f"fftw-wisdom-{pyfftw.__version__}.pickle"
-
-
-class _BytesOnly(pickle.Unpickler):
-    """Unpickles plain data only: a wisdom file holds a tuple of bytes and never names a class."""
-
-    def find_class(self, module, name):
-        raise pickle.UnpicklingError(f"unexpected {module}.{name} in an FFTW wisdom file")
-
-
-def _read_wisdom_file():
-    """The wisdom saved in the cache (a tuple of bytes), or None when absent or unreadable."""
-    try:
-        with open(_wisdom_path(), "rb") as handle:
-            wisdom = _BytesOnly(handle).load()
-    except Exception:  # noqa: BLE001 - a missing, truncated or foreign file only costs planning time
-        return None
-    if isinstance(wisdom, tuple) and all(isinstance(part, bytes) for part in wisdom):
-        return wisdom
-    return None
-
-
-_wisdom_loaded = False
-
-
-def _load_wisdom() -> None:
-    """Import the saved FFTW wisdom once per process (call with :data:`PLANNER_LOCK` held)."""
-    global _wisdom_loaded
-    if _wisdom_loaded:
-        return
-    _wisdom_loaded = True
-    wisdom = _read_wisdom_file()
-    if wisdom is not None:
-        pyfftw.import_wisdom(wisdom)
-
-
-def _save_wisdom() -> None:
-    """Merge the process's wisdom with the cache file and write it atomically (with the lock held).
-
-    Merging first keeps what concurrent processes (sweep workers) saved meanwhile.
-    """
-    on_disk = _read_wisdom_file()
-    if on_disk is not None:
-        pyfftw.import_wisdom(on_disk)
-    wisdom = pyfftw.export_wisdom()
-    if wisdom == on_disk:
-        return
-    try:
-        path = _wisdom_path()
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile("wb", dir=path.parent, delete=False, suffix=".tmp") as handle:
-            pickle.dump(wisdom, handle)
-        os.replace(handle.name, path)
-    except OSError:
-        with contextlib.suppress(OSError, NameError):
-            os.unlink(handle.name)  # a read-only or full cache only costs planning time
+    return fftw_plans.planning_seconds()
 
 
 def cpu_count() -> int:
@@ -345,353 +178,6 @@ def fourier_resample(images, size: int, *, workers: int | None = None) -> np.nda
     return out.astype(np.float32)
 
 
-# ----------------------------------------------------------------------------- FFTW library and planning
-class _IODim(ctypes.Structure):
-    _fields_ = [("n", ctypes.c_int), ("is_", ctypes.c_int), ("os", ctypes.c_int)]
-
-
-_RAW_FLAGS = {"estimate": 1 << 6, "measure": 0, "patient": 1 << 5}
-_FFTW_DESTROY_INPUT = 1
-_FFTW_WISDOM_ONLY = 1 << 21
-_FFTW_NO_TIMELIMIT = -1.0
-_raw_library = None
-
-
-def _fftw_library():
-    """The single-precision FFTW that pyfftw loaded, through ctypes; None where it cannot be found.
-
-    Plans made through it share pyfftw's wisdom, and compiled kernels can execute them
-    without the interpreter (see :class:`RawFFTPlans`). Found through ``/proc/self/maps``,
-    so only on Linux; ``CCA_RAW_FFTW=off`` acts as if it were not found.
-    """
-    global _raw_library
-    if not HAVE_PYFFTW or env_choice("CCA_RAW_FFTW", "on", ("on", "off")) == "off":
-        return None
-    if _raw_library is not None:
-        return _raw_library or None
-    _raw_library = False
-    try:
-        with open("/proc/self/maps") as maps:
-            paths = {line.split()[-1] for line in maps if "/libfftw3f" in line}
-    except OSError:
-        return None
-    threaded = [p for p in paths if "_omp" in p or "_threads" in p]
-    paths = [p for p in paths if p not in threaded]
-    if len(paths) != 1 or len(threaded) > 1:
-        return None
-    try:
-        library = ctypes.CDLL(paths[0])
-        threads = ctypes.CDLL(threaded[0]) if threaded else None
-        library.plan_with_nthreads = threads.fftwf_plan_with_nthreads if threads else None
-        if library.plan_with_nthreads is not None:
-            library.plan_with_nthreads.argtypes = [ctypes.c_int]
-            library.plan_with_nthreads.restype = None
-        # FFTW >= 3.3.9 reports the planner's thread count, so it can be put back after planning.
-        library.planner_nthreads = getattr(threads, "fftwf_planner_nthreads", None) if threads else None
-        if library.planner_nthreads is not None:
-            library.planner_nthreads.argtypes = []
-            library.planner_nthreads.restype = ctypes.c_int
-        library.fftwf_plan_guru_dft.restype = ctypes.c_void_p
-        library.fftwf_plan_guru_dft.argtypes = [ctypes.c_int, ctypes.POINTER(_IODim), ctypes.c_int,
-                                                ctypes.POINTER(_IODim), ctypes.c_void_p, ctypes.c_void_p,
-                                                ctypes.c_int, ctypes.c_uint]
-        library.fftwf_execute.argtypes = [ctypes.c_void_p]
-        library.fftwf_execute.restype = None
-        library.fftwf_destroy_plan.argtypes = [ctypes.c_void_p]
-        library.fftwf_destroy_plan.restype = None
-        library.fftwf_set_timelimit.argtypes = [ctypes.c_double]
-        library.fftwf_set_timelimit.restype = None
-        library.execute_address = int(ctypes.cast(library.fftwf_execute, ctypes.c_void_p).value)
-    except (OSError, AttributeError):
-        return None
-    _raw_library = library
-    return library
-
-
-def raw_fftw_available() -> bool:
-    """Whether raw FFTW plans (for compiled loops) can be made here: pyfftw, Linux, ``CCA_RAW_FFTW`` not off."""
-    return _fftw_library() is not None
-
-
-@contextlib.contextmanager
-def _single_threaded_planning(library):
-    """Plan with one thread and no time limit (with the lock held), then put the thread count back.
-
-    The thread count and time limit are planner-wide settings. pyfftw sets both before
-    each of its plans; FFTW >= 3.3.9 reports the count, which is then restored. Older
-    versions cannot report it and keep 1, FFTW's default.
-    """
-    previous = library.planner_nthreads() if library.planner_nthreads is not None else None
-    if library.plan_with_nthreads is not None:
-        library.plan_with_nthreads(1)
-    library.fftwf_set_timelimit(_FFTW_NO_TIMELIMIT)
-    try:
-        yield
-    finally:
-        if previous is not None and previous != 1:
-            library.plan_with_nthreads(previous)
-
-
-class _Spec(NamedTuple):
-    """One in-place transform of a view of a buffer."""
-
-    count: int | None  # leading fields transformed (None: the whole buffer)
-    rows: tuple[int, int] | None  # band of rows of the last-but-one axis (None: all)
-    axes: tuple[int, ...]  # transformed axes, negative
-    sign: int  # -1 forward, +1 inverse
-
-    def view(self, buffer: np.ndarray) -> np.ndarray:
-        view = buffer if self.count is None else buffer[:self.count]
-        return view if self.rows is None else view[..., self.rows[0]:self.rows[1], :]
-
-
-def _scratch_like(buffer: np.ndarray) -> np.ndarray:
-    """An array with ``buffer``'s shape and dtype at the same address alignment (FFTW keys wisdom on it)."""
-    align = 64
-    raw = np.empty(buffer.nbytes + align, np.uint8)
-    shift = (buffer.ctypes.data - raw.ctypes.data) % align
-    return raw[shift:shift + buffer.nbytes].view(buffer.dtype).reshape(buffer.shape)
-
-
-def _pyfftw_plan(view, spec: _Spec, threads: int, level: str, *, wisdom_only=False, timelimit=None):
-    """A pyfftw plan of ``view`` (call with the lock held); None when ``wisdom_only`` and FFTW knows none."""
-    flags = ["FFTW_" + level.upper(), "FFTW_DESTROY_INPUT"] + (["FFTW_WISDOM_ONLY"] if wisdom_only else [])
-    direction = "FFTW_FORWARD" if spec.sign < 0 else "FFTW_BACKWARD"
-    try:
-        return pyfftw.FFTW(view, view, axes=spec.axes, direction=direction, flags=flags, threads=threads,
-                           planning_timelimit=timelimit)
-    except RuntimeError:
-        if wisdom_only:
-            return None
-        raise
-
-
-def _raw_plan(library, view: np.ndarray, spec: _Spec, level: str) -> int:
-    """A raw FFTW plan of ``view`` from wisdom at ``level`` (estimate: no wisdom needed); 0 if none.
-
-    Neither way times anything, so the buffer is never touched. Call with the lock held.
-    """
-    ndim = view.ndim
-    axes = [a % ndim for a in spec.axes]
-    strides = [s // view.itemsize for s in view.strides]
-    dims = [_IODim(view.shape[a], strides[a], strides[a]) for a in axes]
-    loops = [_IODim(view.shape[a], strides[a], strides[a]) for a in range(ndim) if a not in axes]
-    flags = _RAW_FLAGS[level] | _FFTW_DESTROY_INPUT | (0 if level == "estimate" else _FFTW_WISDOM_ONLY)
-    start = view.ctypes.data
-    with _single_threaded_planning(library):
-        plan = library.fftwf_plan_guru_dft(len(dims), (_IODim * len(dims))(*dims), len(loops),
-                                           (_IODim * max(1, len(loops)))(*loops), start, start, spec.sign, flags)
-    return int(plan or 0)
-
-
-class _Budget:
-    """Planning accounts shared by the transforms of one shape (what one finds, all adopt)."""
-
-    def __init__(self):
-        self.busy = 0.0  # seconds the transforms ran
-        self.spent = 0.0  # seconds spent improving their plans
-        self.next_check = _step_cost["measure"] / UPGRADE_SHARE  # busy seconds before the next improvement
-        self.stuck: set[int] = set()  # transforms whose search ran out of time
-
-    def allows(self, cost: float) -> bool:
-        """Whether a planning step of ``cost`` seconds fits; if not, when to ask again (``next_check``)."""
-        total = self.spent + cost
-        needed = total / UPGRADE_SHARE
-        if total > SHAPE_SECONDS:
-            needed = max(needed, total / LONG_RUN_SHARE)
-        if self.busy >= needed:
-            return True
-        self.next_check = needed
-        return False
-
-
-_budgets: dict = {}
-
-
-class _Plans:
-    """The FFTW plans of one buffer, their upkeep and their release: the owner behind a transform object.
-
-    Holds the buffer, the pyfftw plans and (once asked for) the raw plans; all are
-    destroyed together, with :data:`PLANNER_LOCK` held, by :meth:`release` or when the
-    transform object is collected. ``lock`` serialises execution, plan upgrades and release.
-    """
-
-    def __init__(self, buffer: np.ndarray, specs: list[_Spec], threads: int, effort: str):
-        self.buffer = buffer
-        self.specs = specs
-        self.threads = threads
-        self.auto = effort == "auto"
-        self.fftw = [None] * len(specs)
-        self.level = ["estimate"] * len(specs)
-        self.uses = [0] * len(specs)
-        self.raw: list[int] | None = None
-        self.raw_generation = 0
-        self.raw_table: np.ndarray | None = None
-        self.released = False
-        self.budget = _budgets.setdefault((buffer.shape, tuple(specs), threads), _Budget())
-        self.lock = threading.RLock()
-        try:
-            self._plan_all(effort)
-        except BaseException:
-            self.release()
-            raise
-
-    # ------------------------------------------------------------------ planning (lock held)
-    def _adopt(self, i: int, level: str) -> bool:
-        """Plan transform ``i`` on the buffer from wisdom at ``level``; False when FFTW has none."""
-        spec = self.specs[i]
-        plan = _pyfftw_plan(spec.view(self.buffer), spec, self.threads, level, wisdom_only=True)
-        if plan is None:
-            return False
-        self.fftw[i], self.level[i] = plan, level  # the plan replaced is destroyed here, under the lock
-        if self.raw is not None:
-            self._replace_raw(i)
-        return True
-
-    def _search(self, indices, level: str, timelimit: float | None) -> float:
-        """Time candidate plans of transforms ``indices`` at ``level`` on a scratch buffer; returns seconds."""
-        scratch = _scratch_like(self.buffer)
-        start = time.perf_counter()
-        for i in indices:
-            spec = self.specs[i]
-            plan = _pyfftw_plan(spec.view(scratch), spec, self.threads, level, timelimit=timelimit)
-            del plan
-        seconds = time.perf_counter() - start
-        _planning["seconds"] += seconds
-        return seconds
-
-    def _plan_all(self, effort: str) -> None:
-        with PLANNER_LOCK:
-            _load_wisdom()
-            n = len(self.specs)
-            wanted = "patient" if effort == "auto" else effort
-            known = [i for i in range(n) if wanted != "estimate" and self._adopt(i, wanted)]
-            missing = [i for i in range(n) if i not in known]
-            if self.auto:  # no timing now: the best plan on file, else an estimate (improved while running)
-                missing = [i for i in missing if not self._adopt(i, "measure")]
-            elif wanted != "estimate" and missing:
-                self._search(missing, wanted, timelimit=None)
-                missing = [i for i in missing if not self._adopt(i, wanted)]
-                _save_wisdom()
-            for i in missing:
-                spec = self.specs[i]
-                self.fftw[i] = _pyfftw_plan(spec.view(self.buffer), spec, self.threads, "estimate")
-                self.level[i] = "estimate"
-
-    def _replace_raw(self, i: int) -> None:
-        """Re-plan raw plan ``i`` at its transform's level and destroy the old one (lock held)."""
-        library = _fftw_library()
-        spec = self.specs[i]
-        view = spec.view(self.buffer)
-        plan = _raw_plan(library, view, spec, self.level[i]) or _raw_plan(library, view, spec, "estimate")
-        if not plan:
-            raise RuntimeError("FFTW could not plan a transform")
-        old, self.raw[i] = self.raw[i], plan
-        if old:
-            library.fftwf_destroy_plan(old)
-        self.raw_table = None
-
-    # ------------------------------------------------------------------ use
-    def check_alive(self) -> None:
-        if self.released:
-            raise RuntimeError("this FFT's plans were released; make a new transform object")
-
-    def note_use(self, seconds: float, used) -> None:
-        """Count a run of transforms ``used`` (indices) lasting ``seconds``; improve a plan when it pays."""
-        budget = self.budget
-        budget.busy += seconds
-        for i in used:
-            self.uses[i] += 1
-        if self.auto and budget.busy >= budget.next_check:
-            self._improve_one()
-
-    def _improve_one(self) -> None:
-        """One planning step: a used transform goes one level up (``lock`` held).
-
-        Transforms still at ``estimate`` come first (measuring is cheap and gains most), then
-        the most used. A step that times plans is taken only while the planning of this
-        shape stays within its share of the time the transforms ran (see :data:`UPGRADE_SHARE`);
-        a plan another transform of the same shape already found is adopted for free.
-        """
-        budget = self.budget
-        pending = [i for i in range(len(self.specs))
-                   if self.uses[i] and self.level[i] != "patient" and i not in budget.stuck]
-        if not pending:
-            budget.next_check = budget.busy + _step_cost["measure"] / UPGRADE_SHARE
-            return
-        i = max(pending, key=lambda j: (-_LEVELS.index(self.level[j]), self.uses[j]))
-        target = _LEVELS[_LEVELS.index(self.level[i]) + 1]
-        with PLANNER_LOCK:
-            if self._adopt(i, target) or not budget.allows(_step_cost[target]):
-                return
-            start = time.perf_counter()
-            try:
-                self._search([i], target, timelimit=STEP_SECONDS)
-                found = self._adopt(i, target)
-            except RuntimeError:  # an improvement is optional: keep the plans in use
-                found = False
-            seconds = time.perf_counter() - start
-            budget.spent += seconds
-            _step_cost[target] = 0.5 * _step_cost[target] + 0.5 * seconds
-            if found:
-                _save_wisdom()
-            else:  # the search ran out of time (or failed): keep the plans this process has
-                budget.stuck.add(i)
-
-    # ------------------------------------------------------------------ raw plans
-    def make_raw(self) -> None:
-        """Raw plans of every transform, from the wisdom of their pyfftw plans (lock held by caller)."""
-        if self.raw is not None:
-            return
-        with PLANNER_LOCK:
-            self.raw = [0] * len(self.specs)
-            try:
-                for i in range(len(self.specs)):
-                    self._replace_raw(i)
-            except BaseException:
-                self.release_raw()
-                raise
-            self.raw_generation += 1
-
-    def table(self, shape) -> np.ndarray:
-        """The raw plan addresses as an int64 array of ``shape`` (rebuilt after a plan changes)."""
-        if self.raw_table is None:
-            self.raw_table = np.array(self.raw, dtype=np.int64).reshape(shape)
-        return self.raw_table
-
-    def release_raw(self) -> None:
-        with PLANNER_LOCK:
-            library = _fftw_library() if self.raw else None
-            for plan in self.raw or ():
-                if plan:
-                    library.fftwf_destroy_plan(plan)
-            self.raw = None
-            self.raw_table = None
-            self.raw_generation += 1
-
-    def release(self) -> None:
-        """Destroy every plan (idempotent); execution afterwards raises instead of crashing."""
-        with PLANNER_LOCK:
-            self.released = True
-            self.release_raw()
-            self.fftw = [None] * len(self.specs)  # pyfftw plans are destroyed here, under the lock
-
-
-def _release(plans: _Plans) -> None:
-    with plans.lock:
-        plans.release()
-
-
-def _owned_plans(owner, buffer, specs, threads, effort) -> _Plans:
-    """Plans for ``owner`` that are released when it is collected."""
-    effort = effort or planning_effort()
-    if effort not in EFFORTS:
-        raise ValueError(f"unknown FFTW planning effort {effort!r}; choose one of {', '.join(EFFORTS)}")
-    plans = _Plans(buffer, specs, threads, effort)
-    weakref.finalize(owner, _release, plans).atexit = False
-    return plans
-
-
 def _checked_buffer(buffer: np.ndarray, name: str) -> None:
     if not isinstance(buffer, np.ndarray) or buffer.dtype != np.complex64:
         raise ValueError(f"{name} needs a complex64 buffer, got {getattr(buffer, 'dtype', type(buffer))}")
@@ -726,8 +212,8 @@ class InPlaceFFT2:
         self.backend = _backend
         self._plans = None
         if self.backend == "pyfftw":
-            specs = [_Spec(None, None, (-2, -1), -1), _Spec(None, None, (-2, -1), +1)]
-            self._plans = _owned_plans(self, buffer, specs, self.threads, effort)
+            specs = [Spec(None, None, (-2, -1), -1), Spec(None, None, (-2, -1), +1)]
+            self._plans = fftw_plans.owned_plans(self, buffer, specs, self.threads, effort)
 
     def _execute(self, i: int) -> None:
         plans = self._plans
@@ -756,7 +242,7 @@ class InPlaceFFT2:
     def close(self) -> None:
         """Destroy the plans now; using the transform afterwards raises RuntimeError."""
         if self._plans is not None:
-            _release(self._plans)
+            fftw_plans.release(self._plans)
 
 
 def _planned_counts(capacity: int) -> list[int]:
@@ -820,9 +306,9 @@ class BandedFFT2:
         if self.backend == "pyfftw":
             specs = []
             for count in self._counts:
-                specs += [_Spec(count, self.rows, (-1,), +1), _Spec(count, None, (-2,), +1),
-                          _Spec(count, None, (-2,), -1), _Spec(count, self.rows, (-1,), -1)]
-            self._plans = _owned_plans(self, buffer, specs, self.threads, effort)
+                specs += [Spec(count, self.rows, (-1,), +1), Spec(count, None, (-2,), +1),
+                          Spec(count, None, (-2,), -1), Spec(count, self.rows, (-1,), -1)]
+            self._plans = fftw_plans.owned_plans(self, buffer, specs, self.threads, effort)
 
     def raw_plans(self) -> RawFFTPlans | None:
         """Plans compiled code can execute (see :class:`RawFFTPlans`), or None.
@@ -830,7 +316,7 @@ class BandedFFT2:
         Available with pyfftw on Linux, for single-threaded buffers. The plans
         live as long as the returned object.
         """
-        if self.backend != "pyfftw" or self.threads != 1 or _fftw_library() is None:
+        if self.backend != "pyfftw" or self.threads != 1 or not raw_fftw_available():
             return None
         handle = self._raw_handle
         plans = self._plans
@@ -838,7 +324,7 @@ class BandedFFT2:
             plans.check_alive()
             if handle is None or handle.generation != plans.raw_generation or plans.raw is None:
                 plans.make_raw()
-                handle = self._raw_handle = RawFFTPlans(self, plans.raw_generation)
+                handle = self._raw_handle = RawFFTPlans(self, plans, self._counts)
         return handle
 
     def _planned(self, count: int | None) -> int:
@@ -889,112 +375,6 @@ class BandedFFT2:
     def close(self) -> None:
         """Destroy the plans now (raw ones included); using them afterwards raises RuntimeError."""
         if self._plans is not None:
-            _release(self._plans)
+            fftw_plans.release(self._plans)
 
 
-class RawFFTPlans:
-    """A :class:`BandedFFT2`'s raw FFTW plans, for compiled code; the plans live as long as this object.
-
-    It keeps the transform object (and so its buffer and pyfftw plans) alive.
-    Compiled code gets the plan addresses only inside :meth:`executing`, which
-    holds the plans unchanged for the duration; after :meth:`release` (or the
-    transform's ``close``) executing raises RuntimeError instead of crashing.
-
-    Attributes
-    ----------
-    counts : ndarray, int64, (n,)
-        The planned field counts, ascending.
-    buffer : ndarray, complex64, (c, m, m)
-        The buffer the plans transform.
-    """
-
-    def __init__(self, owner: BandedFFT2, generation: int):
-        self._owner = owner
-        self.generation = generation
-        self.counts = np.array(owner._counts, dtype=np.int64)
-        self.buffer = owner.buffer
-        self.execute_address = _fftw_library().execute_address
-
-    @property
-    def released(self) -> bool:
-        """Whether these plans were destroyed."""
-        plans = self._owner._plans
-        return plans.released or plans.raw is None or plans.raw_generation != self.generation
-
-    def release(self) -> None:
-        """Destroy the raw plans now (the transform's own methods keep working)."""
-        plans = self._owner._plans
-        with plans.lock:
-            if plans.raw_generation == self.generation:
-                plans.release_raw()
-
-    def check_buffer(self, fields: np.ndarray) -> None:
-        """Raise ValueError unless ``fields`` is the buffer the plans were made for."""
-        buffer = self.buffer
-        if not (fields is buffer or (isinstance(fields, np.ndarray) and fields.dtype == buffer.dtype
-                                     and fields.shape == buffer.shape and fields.strides == buffer.strides
-                                     and fields.ctypes.data == buffer.ctypes.data)):
-            raise ValueError("fields must be the buffer these FFTW plans were made for "
-                             f"({buffer.dtype} {buffer.shape}); got another array")
-
-    def executing(self, fields: np.ndarray) -> _PlansInUse:
-        """Hold the plans for compiled code that transforms ``fields`` (a context manager).
-
-        Entering gives an object with ``execute`` (the address of ``fftwf_execute``),
-        ``counts`` and ``plans``: the plan addresses, int64 (n, 4) — inverse rows and columns,
-        forward columns and rows for each count. The plans stay alive and unchanged until
-        the block ends. Set its ``largest`` to the most fields a batch transformed: the
-        time spent counts as use of the plans of that count.
-
-        Raises
-        ------
-        ValueError
-            If ``fields`` is not the planned buffer.
-        RuntimeError
-            If the plans were released.
-        """
-        self.check_buffer(fields)
-        return _PlansInUse(self)
-
-    def execute(self, count: int, step: int) -> None:
-        """Run one plan from the interpreter: ``step`` (0–3, in :meth:`executing`'s order) of planned ``count``."""
-        index = int(np.searchsorted(self.counts, count))
-        if index >= len(self.counts) or self.counts[index] != count or not 0 <= step < 4:
-            raise ValueError(f"no plan for count {count}, step {step}; counts are {self.counts.tolist()}")
-        plans = self._owner._plans
-        with plans.lock:
-            if self.released:
-                raise RuntimeError("these raw FFTW plans were released; ask the transform for new ones")
-            _fftw_library().fftwf_execute(plans.raw[4 * index + step])
-
-
-class _PlansInUse:
-    """The raw plans held for compiled code by :meth:`RawFFTPlans.executing`."""
-
-    __slots__ = ("_raw", "_plans", "execute", "counts", "plans", "largest", "_start")
-
-    def __init__(self, raw: RawFFTPlans):
-        self._raw = raw
-        self._plans = raw._owner._plans
-        self.execute = raw.execute_address
-        self.counts = raw.counts
-        self.largest = int(raw.counts[-1])
-
-    def __enter__(self) -> _PlansInUse:
-        plans = self._plans
-        plans.lock.acquire()
-        if self._raw.released:
-            plans.lock.release()
-            raise RuntimeError("these raw FFTW plans were released; ask the transform for new ones")
-        self.plans = plans.table((len(self.counts), 4))
-        self._start = time.perf_counter()
-        return self
-
-    def __exit__(self, kind, value, traceback) -> None:
-        plans = self._plans
-        try:
-            if kind is None and self.largest > 0:
-                group = 4 * bisect.bisect_left(self._raw._owner._counts, self.largest)
-                plans.note_use(time.perf_counter() - self._start, (group, group + 1, group + 2, group + 3))
-        finally:
-            plans.lock.release()

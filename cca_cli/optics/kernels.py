@@ -18,17 +18,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from cca_cli.errors import ConfigError
-from cca_cli.optics import fft
-
-_kernels_error: ConfigError | None = None
-try:
-    _requested = fft.env_choice("CCA_KERNELS", "numba", ("numba", "numpy"))
-except ConfigError as _error:  # reported by check_settings(), when the first model is built, as one line
-    _requested, _kernels_error = "numpy", _error
+from cca_cli.optics import fft, switches
 
 numba = None
-if _requested == "numba":
+if switches.read_at_import("CCA_KERNELS", "numba", ("numba", "numpy")) == "numba":
     try:  # pragma: no cover - exercised when numba is installed
         import numba
     except ImportError:  # pragma: no cover
@@ -45,9 +38,9 @@ _use_numba = _HAVE_NUMBA
 
 
 def check_settings() -> None:
-    """Raise :class:`~cca_cli.errors.ConfigError` if ``CCA_KERNELS`` has an unknown value."""
-    if _kernels_error is not None:
-        raise _kernels_error
+    """Raise :class:`~cca_cli.errors.ConfigError` (one line) if a backend switch, ``CCA_KERNELS`` included,
+    has an unknown value (see :mod:`cca_cli.optics.switches`)."""
+    switches.check()
 
 
 def kernels_name() -> str:
@@ -340,7 +333,7 @@ def warm_up() -> None:
     Raises
     ------
     ConfigError
-        If ``CCA_KERNELS`` has an unknown value.
+        If a backend switch (``CCA_KERNELS`` …) has an unknown value.
     """
     global _warm
     check_settings()

@@ -12,7 +12,7 @@ import pytest
 from typer.testing import CliRunner
 
 from cca_cli.commands.app import app
-from cca_cli.optics import fft
+from cca_cli.optics import fft, fftw_plans
 
 pytestmark = pytest.mark.skipif(not fft.HAVE_PYFFTW, reason="FFTW planning needs pyfftw")
 RNG = np.random.default_rng(5)
@@ -25,9 +25,9 @@ def cold_cache(tmp_path, monkeypatch):
 
     monkeypatch.setenv("CCA_CACHE_DIR", str(tmp_path))
     monkeypatch.setenv("CCA_FFTW_PLANNING", "auto")
-    monkeypatch.setattr(fft, "_wisdom_loaded", False)
-    monkeypatch.setattr(fft, "_step_cost", dict(fft._step_cost))
-    monkeypatch.setattr(fft, "_budgets", {})
+    monkeypatch.setattr(fftw_plans, "_wisdom_loaded", False)
+    monkeypatch.setattr(fftw_plans, "_step_cost", dict(fftw_plans._step_cost))
+    monkeypatch.setattr(fftw_plans, "_budgets", {})
     with fft.PLANNER_LOCK:
         pyfftw.forget_wisdom()
     return tmp_path
@@ -40,7 +40,7 @@ def _band_data(shape, rows):
 
 
 def test_auto_planning_times_nothing_up_front_then_improves_the_plans_in_use(cold_cache, monkeypatch):
-    monkeypatch.setattr(fft, "UPGRADE_SHARE", 50.0)  # improve eagerly: the mechanism is tested here, not the budget
+    monkeypatch.setattr(fftw_plans, "UPGRADE_SHARE", 50.0)  # improve eagerly: the mechanism is tested here, not the budget
     before = fft.planning_seconds()
     transform = fft.BandedFFT2(fft.zeros((2, 16, 16)), 4, 12, threads=1)
     plans = transform._plans
@@ -57,7 +57,7 @@ def test_auto_planning_times_nothing_up_front_then_improves_the_plans_in_use(col
     assert plans.level[4:] == ["patient"] * 4  # the count-2 transforms that ran
     assert plans.level[:4] == ["estimate"] * 4  # the count-1 transforms never ran
     assert fft.planning_seconds() > before
-    assert (cold_cache / fft._wisdom_path().name).is_file()
+    assert (cold_cache / fftw_plans._wisdom_path().name).is_file()
     # Another transform of the same shape starts from what was found, without timing anything.
     spent = fft.planning_seconds()
     again = fft.BandedFFT2(fft.zeros((2, 16, 16)), 4, 12, threads=1)
@@ -65,7 +65,7 @@ def test_auto_planning_times_nothing_up_front_then_improves_the_plans_in_use(col
 
 
 def test_auto_planning_spends_at_most_its_share_of_the_run(cold_cache, monkeypatch):
-    monkeypatch.setattr(fft, "SHAPE_SECONDS", 0.2)  # reach the long-run share within the test
+    monkeypatch.setattr(fftw_plans, "SHAPE_SECONDS", 0.2)  # reach the long-run share within the test
     transform = fft.BandedFFT2(fft.zeros((16, 48, 48)), 12, 36, threads=1)
     transform.buffer[...] = _band_data((16, 48, 48), (12, 36))
     start = time.perf_counter()
@@ -75,17 +75,18 @@ def test_auto_planning_spends_at_most_its_share_of_the_run(cold_cache, monkeypat
     budget = transform._plans.budget
     assert budget.busy > 0.2
     # Each step starts only when it fits; one step may end past the share, by at most STEP_SECONDS.
-    limit = min(fft.UPGRADE_SHARE * budget.busy, max(fft.SHAPE_SECONDS, fft.LONG_RUN_SHARE * budget.busy))
-    assert budget.spent <= limit + fft.STEP_SECONDS
+    limit = min(fftw_plans.UPGRADE_SHARE * budget.busy,
+                max(fftw_plans.SHAPE_SECONDS, fftw_plans.LONG_RUN_SHARE * budget.busy))
+    assert budget.spent <= limit + fftw_plans.STEP_SECONDS
 
 
 def test_the_budget_lets_a_step_through_only_when_it_fits(monkeypatch):
-    budget = fft._Budget()
+    budget = fftw_plans._Budget()
     budget.busy, budget.spent = 4.0, 0.5
     assert budget.allows(0.5)  # 1.0 s in all is a quarter of 4 s
-    assert not budget.allows(0.6) and budget.next_check == pytest.approx(1.1 / fft.UPGRADE_SHARE)
+    assert not budget.allows(0.6) and budget.next_check == pytest.approx(1.1 / fftw_plans.UPGRADE_SHARE)
     budget.busy, budget.spent = 100.0, 2.9  # past SHAPE_SECONDS the long-run share applies
-    assert not budget.allows(7.2) and budget.next_check == pytest.approx(10.1 / fft.LONG_RUN_SHARE)
+    assert not budget.allows(7.2) and budget.next_check == pytest.approx(10.1 / fftw_plans.LONG_RUN_SHARE)
     assert budget.allows(7.0)
 
 
@@ -121,8 +122,8 @@ def test_a_new_process_reuses_the_plans_saved_in_the_cache(tmp_path):
 
 INTERRUPT_CHILD = textwrap.dedent('''
     import numpy as np
-    from cca_cli.optics import fft
-    fft.UPGRADE_SHARE = fft.LONG_RUN_SHARE = 1e6  # plan continuously: every call may take a planning step
+    from cca_cli.optics import fft, fftw_plans
+    fftw_plans.UPGRADE_SHARE = fftw_plans.LONG_RUN_SHARE = 1e6  # plan continuously: every call may take a planning step
     transform = fft.BandedFFT2(fft.zeros((64, 96, 96)), 24, 72, threads=1)
     transform.buffer[...] = 1
     print("planning", flush=True)
@@ -149,7 +150,7 @@ def test_ctrl_c_during_planning_is_answered_within_one_planning_step(tmp_path):
         if child.poll() is None:
             child.kill()
     assert "KeyboardInterrupt" in stderr
-    assert answered < fft.STEP_SECONDS + 1.5, answered
+    assert answered < fftw_plans.STEP_SECONDS + 1.5, answered
 
 
 def test_an_unknown_planning_effort_is_one_line_naming_the_variable(tmp_path, write_config, monkeypatch):
