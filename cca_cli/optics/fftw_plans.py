@@ -78,7 +78,7 @@ UPGRADE_SHARE = 0.25
 SHAPE_SECONDS = 3.0
 LONG_RUN_SHARE = 0.1
 #: Expected cost (s) of the next planning step of each level, refined by what steps actually cost.
-_step_cost = {"measure": 0.05, "patient": 0.5}
+_step_cost = {"measure": 0.05, "patient": 0.8}
 _planning = {"seconds": 0.0}
 
 _LEVELS = ("estimate", "measure", "patient")
@@ -303,14 +303,19 @@ class _Budget:
         self.next_check = _step_cost["measure"] / UPGRADE_SHARE  # busy seconds before the next improvement
         self.stuck: set[int] = set()  # transforms whose search ran out of time
 
+    def allowance(self) -> float:
+        """Seconds of planning the shape may still spend: its share of ``busy``, less what it spent."""
+        limit = min(UPGRADE_SHARE * self.busy, max(SHAPE_SECONDS, LONG_RUN_SHARE * self.busy))
+        return limit - self.spent
+
     def allows(self, cost: float) -> bool:
         """Whether a planning step of ``cost`` seconds fits; if not, when to ask again (``next_check``)."""
+        if self.allowance() >= cost:
+            return True
         total = self.spent + cost
         needed = total / UPGRADE_SHARE
         if total > SHAPE_SECONDS:
             needed = max(needed, total / LONG_RUN_SHARE)
-        if self.busy >= needed:
-            return True
         self.next_check = needed
         return False
 
@@ -437,9 +442,12 @@ class PlanSet:
         with PLANNER_LOCK:
             if self._adopt(i, target) or not budget.allows(_step_cost[target]):
                 return
+            # The budget caps the step, though not below twice its expected cost (a search cut
+            # short finds nothing): planning may end up past the share by about one step.
+            timelimit = min(STEP_SECONDS, max(budget.allowance(), 2 * _step_cost[target]))
             start = time.perf_counter()
             try:
-                self._search([i], target, timelimit=STEP_SECONDS)
+                self._search([i], target, timelimit=timelimit)
                 found = self._adopt(i, target)
             except RuntimeError:  # an improvement is optional: keep the plans in use
                 found = False
@@ -448,8 +456,10 @@ class PlanSet:
             _step_cost[target] = 0.5 * _step_cost[target] + 0.5 * seconds
             if found:
                 _save_wisdom()
-            else:  # the search ran out of time (or failed): keep the plans this process has
+            elif timelimit >= STEP_SECONDS:  # too slow even for a whole step: keep the plans this process has
                 budget.stuck.add(i)
+            else:  # cut short by the budget: try again when the run has earned more (at the higher cost)
+                _step_cost[target] = max(_step_cost[target], 2 * seconds)
 
     # ------------------------------------------------------------------ raw plans
     def make_raw(self) -> None:
