@@ -39,6 +39,7 @@ import json
 import os
 import platform
 import sys
+import textwrap
 import time
 from pathlib import Path
 
@@ -59,7 +60,8 @@ from cca_cli.metrics.sharpness import rms_frequency, spectral_energy_beyond  # n
 
 #: PtyLab mPIE set up as it works on these data (see benchmarks/README.md, "PtyLab's pupil recovery").
 PTYLAB_FIXED = {"label": "fixed", "betaProbe": 0.0}
-PTYLAB_PUPIL = {"label": "pupil", "weigh_probe_updates_by_intensity": True, "betaProbe": 0.05}
+PTYLAB_PUPIL = [{"label": "pupil_b025", "weigh_probe_updates_by_intensity": True, "betaProbe": 0.25},
+                {"label": "pupil_b005", "weigh_probe_updates_by_intensity": True, "betaProbe": 0.05}]
 FPMRS_EPRY = {"label": "pupil"}
 
 
@@ -75,6 +77,38 @@ def residuals(rec: Recovery, data: Prepared) -> dict:
         out["with_brightness" if with_brightness else "plain"] = {
             "all": r.all, "bright_field": r.bright_field, "dark_field": r.dark_field, "scale": r.scale}
     return out
+
+
+def pupil_summary(pupil: np.ndarray, radius: float) -> dict:
+    """What a recovered pupil looks like: amplitude inside/outside the disc and a low-order Zernike fit.
+
+    The phase (relative to the disc centre) is fitted, weighted by the amplitude, with RMS-normalised
+    modes over the disc of radius R: tilts (→ image shift in low-res pixels), defocus √3(2ρ²−1),
+    astigmatism √6ρ²cos2θ, √6ρ²sin2θ; coefficients in waves.
+    """
+    n = pupil.shape[-1]
+    yy, xx = np.mgrid[:n, :n] - n // 2
+    inside = np.hypot(yy, xx) <= radius
+    amp = np.abs(pupil)
+    p = pupil[inside] * np.exp(-1j * np.angle(pupil[n // 2, n // 2]))
+    y, x = yy[inside] / radius, xx[inside] / radius
+    r2 = x * x + y * y
+    basis = np.stack([np.ones_like(x), 2 * y, 2 * x, np.sqrt(3) * (2 * r2 - 1), np.sqrt(6) * (x * x - y * y),
+                      np.sqrt(6) * 2 * x * y], 1)
+    w = np.abs(p) / max(float(np.abs(p).max()), 1e-30)
+    coef, *_ = np.linalg.lstsq(basis * w[:, None], np.angle(p) * w, rcond=None)
+    waves = coef / (2 * np.pi)
+    fitted = basis @ coef
+    resid = np.angle(p * np.exp(-1j * fitted))
+    # tilt phase 2·a·y/R radians shifts the image by a·n/(π R) pixels
+    return {"amplitude_inside": {"mean": float(amp[inside].mean()), "std": float(amp[inside].std()),
+                                 "min": float(amp[inside].min()), "max": float(amp[inside].max())},
+            "amplitude_outside_max": float(amp[~inside].max()) if (~inside).any() else 0.0,
+            "phase_rms_rad": float(np.sqrt(np.average(np.angle(p) ** 2, weights=w))),
+            "zernike_waves": {"tilt_y": float(waves[1]), "tilt_x": float(waves[2]), "defocus": float(waves[3]),
+                              "astigmatism_0": float(waves[4]), "astigmatism_45": float(waves[5])},
+            "image_shift_lowres_px": [float(coef[1] * n / (np.pi * radius)), float(coef[2] * n / (np.pi * radius))],
+            "phase_rms_beyond_fit_rad": float(np.sqrt(np.average(resid ** 2, weights=w)))}
 
 
 def resample(spectrum: np.ndarray, size: int) -> np.ndarray:
@@ -115,8 +149,22 @@ def align(obj: np.ndarray, reference: np.ndarray, max_shift: int) -> tuple[np.nd
                                                              "correlation": score}
 
 
+def reference_method(results: dict) -> str | None:
+    """The result every amplitude is aligned to: a fixed-pupil recovery, whose frame is the frames' own.
+
+    cca altmin (fixed disc pupil, nominal centres, the README's sign) first, else a PtyLab fixed-pupil run.
+    A pupil that is recovered may carry a linear phase, which shifts the image; a blurred centre image is
+    too soft a reference for sub-pixel boxes.
+    """
+    ok = [k for k, v in results.items() if v.get("status") == "ok"]
+    for label in ok:
+        if label == "cca altmin":
+            return label
+    return next((k for k in ok if k.startswith("PtyLab mPIE fixed pupil")), None)
+
+
 def evaluate_images(results: dict, data: Prepared) -> dict:
-    """Objects on the analysis grid aligned to the centre image; sharpness and bar readings."""
+    """Objects on the analysis grid aligned to a common reference; sharpness and bar readings."""
     grid = data.spec.analysis_grid
     n = data.intensity.shape[-1]
     upsampling = grid / n
@@ -124,17 +172,24 @@ def evaluate_images(results: dict, data: Prepared) -> dict:
     centre = resample(fft2c(centre_amp), grid).real
     pixel_m = data.field_width / grid
     elements = parse_element_table(data.spec.readme.read_text()) if data.spec.usaf else []
-    images = {"centre image": centre}
-    out = {}
-    centre_sharp = rms_frequency(centre ** 2, pixel_m)
+    objects = {}
     for name, res in results.items():
         if res.get("status") != "ok":
             continue
         rec = res["final"]
-        obj = resample(np.asarray(rec.spectrum, np.complex128), grid)
-        obj, how = align(obj, centre, max_shift=int(round(grid * 0.2)))
         scale = res["residual"]["plain"]["scale"]
-        obj = obj * scale * (rec.spectrum.shape[-1] / n)  # in units of √(measured intensity): |ψ| = |object|·M/n
+        # in units of √(measured intensity): |ψ| = |object|·M/n for centred orthonormal transforms
+        objects[name] = resample(np.asarray(rec.spectrum, np.complex128), grid) * scale * (rec.spectrum.shape[-1] / n)
+    ref_name = reference_method(results)
+    reference = objects[ref_name] if ref_name else centre
+    images = {"centre image": centre}
+    out = {}
+    centre_sharp = rms_frequency(centre ** 2, pixel_m)
+    for name, obj in objects.items():
+        if name == ref_name:
+            how = {"dihedral": 0, "shift_px": [0, 0], "correlation": 1.0, "reference": True}
+        else:
+            obj, how = align(obj, reference, max_shift=int(round(grid * 0.2)))
         images[name] = obj
         intensity = np.abs(obj) ** 2
         entry = {"alignment": how,
@@ -144,11 +199,14 @@ def evaluate_images(results: dict, data: Prepared) -> dict:
         if elements:
             entry["bars"] = read_bar_elements(np.abs(obj), elements, data.field_width / n, upsampling)
         out[name] = entry
+    _, centre_how = align(centre.astype(np.complex128), reference, max_shift=int(round(grid * 0.2)))
     summary = {"centre": {"sharpness": {"rms_frequency_lp_per_mm": centre_sharp / 1e3,
-                                        "energy_beyond_2R": spectral_energy_beyond(centre ** 2, 2 * data.radius)}}}
+                                        "energy_beyond_2R": spectral_energy_beyond(centre ** 2, 2 * data.radius)},
+                          "alignment_to_reference": centre_how}}
     if elements:
         summary["centre"]["bars"] = read_bar_elements(np.abs(centre), elements, data.field_width / n, upsampling)
-    return {"methods": out, **summary, "images": images, "upsampling": upsampling}
+    return {"methods": out, **summary, "images": images, "upsampling": upsampling,
+            "alignment_reference": ref_name or "centre image"}
 
 
 def conversion_check(res: dict, data: Prepared) -> dict:
@@ -201,15 +259,19 @@ def run_dataset(name: str, args, cca_options: dict) -> tuple[dict, dict]:
     results: dict[str, dict] = {}
     peer_runs = []
     if "ptylab" in families:
-        for its in args.ptylab_iterations:
-            peer_runs.append((f"PtyLab mPIE fixed pupil ({its} its)", "ptylab:mPIE", PTYLAB_FIXED, its))
-            peer_runs.append((f"PtyLab mPIE + pupil ({its} its)", "ptylab:mPIE", PTYLAB_PUPIL, its))
+        longest = max(args.ptylab_iterations)
+        peer_runs.append((f"PtyLab mPIE fixed pupil ({longest} its)", "ptylab:mPIE", PTYLAB_FIXED, longest))
+        for options in PTYLAB_PUPIL:
+            for its in args.ptylab_iterations:
+                peer_runs.append((f"PtyLab mPIE + pupil, betaProbe {options['betaProbe']} ({its} its)", "ptylab:mPIE",
+                                  options, its))
     if "fpmrs" in families:
         for its in args.fpmrs_iterations:
             peer_runs.append((f"fpm-rs EPRY + pupil ({its} its)", "fpmrs:epry", FPMRS_EPRY, its))
     for label, method, options, its in peer_runs:
         print(f"   {label} ...", flush=True)
-        res = run_peer(method, dict(options, label=f"{options['label']}{its}"), its, data, workdir, args.timeout)
+        res = run_peer(method, dict(options, label=f"{options['label']}{its}"), its, data, workdir, args.timeout,
+                       reuse=args.reuse)
         if res["status"] != "ok":
             print(f"     {res['status']}: {res['reason']}", flush=True)
             results[label] = res
@@ -217,6 +279,7 @@ def run_dataset(name: str, args, cca_options: dict) -> tuple[dict, dict]:
         res["final"] = res["snaps"][-1][2]
         res["residual"] = residuals(res["final"], data)
         res["conversion_check"] = conversion_check(res, data)
+        res["pupil"] = pupil_summary(np.asarray(res["final"].pupils[0]), data.radius)
         res["curve"] = curve(res, data)
         sec = np.asarray(res["seconds"])
         res["s_per_iteration"] = float(np.median(np.diff(np.concatenate([[0.0], sec]))))
@@ -232,12 +295,14 @@ def run_dataset(name: str, args, cca_options: dict) -> tuple[dict, dict]:
         label = f"cca {engine}" + (f" {json.dumps(options)}" if options else "")
         print(f"   {label} (cca reconstruct, defaults) ...", flush=True)
         try:
-            rec, facts = run_cca_engine(engine, options, data, workdir)
+            rec, facts = run_cca_engine(engine, options, data, workdir, reuse=args.reuse)
         except RuntimeError as exc:
             print(f"     failed: {exc}", flush=True)
             results[label] = {"status": "failed", "reason": str(exc)}
             continue
         res = {"status": "ok", "final": rec, "facts": facts, "residual": residuals(rec, data)}
+        if rec.pupils.shape[0] == 1:
+            res["pupil"] = pupil_summary(np.asarray(rec.pupils[0]), data.radius)
         res["iterations"] = facts["iterations"]
         res["total_s"] = facts["seconds"]
         hist = np.asarray(facts["history"].get("seconds", []))
@@ -246,7 +311,7 @@ def run_dataset(name: str, args, cca_options: dict) -> tuple[dict, dict]:
         for its in args.cca_checkpoints:
             if its >= facts["iterations"]:
                 continue
-            r_rec, r_facts = run_cca_engine(engine, options, data, workdir, iterations=its)
+            r_rec, r_facts = run_cca_engine(engine, options, data, workdir, iterations=its, reuse=args.reuse)
             points.append({"iteration": r_facts["iterations"], "seconds": r_facts["seconds"],
                            **residuals(r_rec, data)["plain"]})
         points.append({"iteration": facts["iterations"], "seconds": facts["seconds"], **res["residual"]["plain"]})
@@ -256,9 +321,11 @@ def run_dataset(name: str, args, cca_options: dict) -> tuple[dict, dict]:
               f"{res['residual']['plain']['all']:.3f}/{res['residual']['plain']['bright_field']:.3f}/"
               f"{res['residual']['plain']['dark_field']:.3f}", flush=True)
         results[label] = res
-    target_name = next((k for k in results if k.startswith("PtyLab mPIE + pupil") and results[k]["status"] == "ok"
-                        and k.endswith(f"({max(args.ptylab_iterations)} its)")), None)
-    target = results[target_name]["residual"]["plain"]["all"] if target_name else None
+    # the target: PtyLab mPIE + pupil's best residual (all frames) over its settings and run lengths
+    pupil_runs = {k: v["residual"]["plain"]["all"] for k, v in results.items()
+                  if k.startswith("PtyLab mPIE + pupil") and v["status"] == "ok"}
+    target_name = min(pupil_runs, key=pupil_runs.get) if pupil_runs else None
+    target = pupil_runs[target_name] if target_name else None
     for res in results.values():
         if res.get("status") != "ok":
             continue
@@ -272,7 +339,7 @@ def run_dataset(name: str, args, cca_options: dict) -> tuple[dict, dict]:
                "frames": list(data.intensity.shape), "bright_field_frames": int(data.bright_field.sum()),
                "pupil_radius_px": data.radius, "forward_check": check,
                "target": {"method": target_name, "residual_all": target},
-               "centre": images["centre"], "methods": {}}
+               "centre": images["centre"], "alignment_reference": images["alignment_reference"], "methods": {}}
     for label, res in results.items():
         entry = {k: v for k, v in res.items() if k not in ("final", "snaps", "own_intensity", "seconds")}
         entry.update(images["methods"].get(label, {}))
@@ -292,10 +359,10 @@ def panels(images: dict, results: dict, data: Prepared, path: Path) -> None:
     names = list(items)
     amps = {k: np.abs(v) for k, v in items.items()}
     hi = float(np.percentile(np.concatenate([a.ravel() for a in amps.values()]), 99.5))
-    fig, axes = plt.subplots(2, len(names), figsize=(2.6 * len(names), 5.6), squeeze=False)
+    fig, axes = plt.subplots(2, len(names), figsize=(2.6 * len(names), 6.0), squeeze=False)
     for j, name in enumerate(names):
         axes[0, j].imshow(amps[name], cmap="gray", vmin=0, vmax=hi)
-        title = name if len(name) < 28 else name[:27] + "…"
+        title = "\n".join(textwrap.wrap(name, 30))
         res = results.get(name)
         if res is not None and res.get("status") == "ok":
             r = res["residual"]["plain"]
@@ -304,7 +371,7 @@ def panels(images: dict, results: dict, data: Prepared, path: Path) -> None:
         obj = items[name]
         if np.iscomplexobj(obj):
             phase = np.angle(obj * np.exp(-1j * np.angle(np.sum(obj))))
-            axes[1, j].imshow(phase, cmap="twilight", vmin=-np.pi, vmax=np.pi)
+            axes[1, j].imshow(phase, cmap="twilight_shifted", vmin=-np.pi, vmax=np.pi)
         else:
             axes[1, j].set_visible(False)
         for ax in axes[:, j]:
@@ -347,7 +414,7 @@ def table(summary: dict) -> str:
         lines.append(f"\n{ds['dataset']} ({ds['frames'][0]} frames of {ds['frames'][1]}², "
                      f"{ds['bright_field_frames']} bright-field)")
         bars = ds["centre"].get("bars")
-        elements = ["G9E1 col", "G9E1 row", "G9E2 col", "G9E3 col", "G9E4 row"] if bars else []
+        elements = ["G8E4 col", "G8E4 row", "G9E1 col", "G9E1 row", "G9E2 col", "G9E3 col"] if bars else []
         head = "| method | residual all / BF / DF | with brightness | " + " | ".join(elements) + \
                (" | " if elements else "") + "sharpness gain | s/iteration | total s | s to target |"
         lines += [head, "|" + "---|" * (7 + len(elements))]
@@ -392,6 +459,9 @@ def main() -> None:
     parser.add_argument("--ptylab-iterations", default="50,200")
     parser.add_argument("--fpmrs-iterations", default="50")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "real.json")
+    parser.add_argument("--reuse", action="store_true",
+                        help="read results an earlier run left in results/real_work instead of running again "
+                             "(re-evaluation only; timings are the earlier run's)")
     parser.add_argument("--timeout", type=float, default=3600, help="seconds allowed per peer run")
     args = parser.parse_args()
     args.engines = [e for e in args.engines.split(",") if e]

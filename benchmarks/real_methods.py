@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import subprocess
@@ -125,8 +126,12 @@ def forward_check(data: Prepared, families: list[str], workdir: Path, timeout: f
 
 # ----------------------------------------------------------------------------- peers
 
-def run_peer(method: str, options: dict, iterations: int, data: Prepared, workdir: Path, timeout: float) -> dict:
-    """Run one peer configuration; returns its curve of common-representation snapshots."""
+def run_peer(method: str, options: dict, iterations: int, data: Prepared, workdir: Path, timeout: float,
+             *, reuse: bool = False) -> dict:
+    """Run one peer configuration; returns its curve of common-representation snapshots.
+
+    With ``reuse`` an output file left by an earlier run is read instead of running the peer again.
+    """
     workdir = workdir.resolve()
     family = method.split(":")[0]
     ok, python = peer_available(family)
@@ -136,8 +141,9 @@ def run_peer(method: str, options: dict, iterations: int, data: Prepared, workdi
     opts = {k: v for k, v in options.items() if k != "label"}
     start = time.perf_counter()
     try:
-        _worker(python, ["run", method, str(data.peer_data), str(out), "--iterations", str(iterations),
-                         "--options", json.dumps(opts)], timeout, out.with_suffix(".log"))
+        if not (reuse and out.exists()):
+            _worker(python, ["run", method, str(data.peer_data), str(out), "--iterations", str(iterations),
+                             "--options", json.dumps(opts)], timeout, out.with_suffix(".log"))
     except (RuntimeError, subprocess.TimeoutExpired) as exc:
         return {"status": "failed", "reason": str(exc)[-400:]}
     wall = time.perf_counter() - start
@@ -194,19 +200,26 @@ def read_cca_recovery(recon: Path, data: Prepared) -> tuple[Recovery, dict]:
     return rec, facts
 
 
-def run_cca_engine(engine: str, options: dict, data: Prepared, workdir: Path, *, iterations: int | None = None
-                   ) -> tuple[Recovery, dict]:
-    """`cca reconstruct` with the engine's defaults (plus ``options``); ``iterations`` caps the run."""
+def run_cca_engine(engine: str, options: dict, data: Prepared, workdir: Path, *, iterations: int | None = None,
+                   reuse: bool = False) -> tuple[Recovery, dict]:
+    """`cca reconstruct` with the engine's defaults (plus ``options``); ``iterations`` caps the run.
+
+    With ``reuse`` a recon.h5 left by an earlier run with the same config is read instead.
+    """
     workdir = workdir.resolve()
-    tag = f"{engine}" + ("" if iterations is None else f"_it{iterations}")
+    suffix = "" if not options else "_" + hashlib.sha1(json.dumps(options, sort_keys=True).encode()).hexdigest()[:8]
+    tag = f"{engine}{suffix}" + ("" if iterations is None else f"_it{iterations}")
     config = workdir / f"reconstruct_{tag}.yaml"
-    config.write_text(yaml.safe_dump({"reconstruct": {"engine": engine, "options": options}}, sort_keys=False))
+    text = yaml.safe_dump({"reconstruct": {"engine": engine, "options": options}}, sort_keys=False)
     recon = workdir / f"recon_{tag}.h5"
+    same = config.exists() and config.read_text() == text
+    config.write_text(text)
     args = ["reconstruct", str(data.raw_h5), "-o", str(recon), "--config", str(config), "--force"]
     if iterations is not None:
         args += ["--iterations", str(iterations)]
     start = time.perf_counter()
-    run_cca(args, log=workdir / f"reconstruct_{tag}.log")
+    if not (reuse and same and recon.exists()):
+        run_cca(args, log=workdir / f"reconstruct_{tag}.log")
     rec, facts = read_cca_recovery(recon, data)
     facts["wall_s"] = time.perf_counter() - start
     facts["command"] = "cca " + " ".join(args)
