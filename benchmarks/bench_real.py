@@ -178,8 +178,13 @@ def evaluate_images(results: dict, data: Prepared) -> dict:
             continue
         rec = res["final"]
         scale = res["residual"]["plain"]["scale"]
-        # in units of √(measured intensity): |ψ| = |object|·M/n for centred orthonormal transforms
-        objects[name] = resample(np.asarray(rec.spectrum, np.complex128), grid) * scale * (rec.spectrum.shape[-1] / n)
+        # in units of √(measured intensity): |ψ| = |object|·|P|·M/n for centred orthonormal transforms;
+        # a recovered pupil's mean amplitude over the disc is moved into the object for display
+        yy, xx = np.mgrid[:n, :n] - n // 2
+        disc = np.hypot(yy, xx) <= data.radius
+        gain = float(np.mean(np.abs(np.asarray(rec.pupils))[:, disc]))
+        objects[name] = (resample(np.asarray(rec.spectrum, np.complex128), grid) * scale * gain
+                         * (rec.spectrum.shape[-1] / n))
     ref_name = reference_method(results)
     reference = objects[ref_name] if ref_name else centre
     images = {"centre image": centre}
