@@ -1,5 +1,5 @@
 """``python -m cca_cli`` runs the command-line interface."""
 
-from cca_cli.commands.app import app
+from cca_cli.commands.entry import main
 
-app()
+main()

@@ -51,6 +51,7 @@ import numpy as np
 
 from cca_cli.errors import InputError
 from cca_cli.sampling.geometry import CaptureGeometry
+from cca_cli.sampling.region import RegionEmbedding
 
 __all__ = [
     "CaptureGeometry",
@@ -383,10 +384,12 @@ class Reconstruction:
 
     Attributes
     ----------
-    object : ndarray, complex64, (M, M)
-        Recovered complex field at the object (``√`` of the intensity units).
+    object : ndarray, complex64, (M, M) or (H, W)
+        Recovered complex field at the object (``√`` of the intensity units):
+        the whole recovery grid, or the region the captures covered when they
+        were placed on a larger square grid (see ``region``).
     spectrum : ndarray, complex64, (M, M)
-        Its centred spectrum (orthonormal FFT).
+        Centred spectrum (orthonormal FFT) of the whole recovery grid.
     history : dict of ndarray
         ``residual`` (relative data misfit), ``change`` (relative spectrum
         change) and ``seconds`` (wall time) per iteration.
@@ -416,6 +419,10 @@ class Reconstruction:
         coefficients, brightness, global position parameters).
     fit : FitReport or None
         Residuals of the final model: per capture and over all / bright-field / dark-field captures.
+    region : RegionEmbedding or None
+        Where ``object`` sits when it is a region of the recovery grid (non-square
+        or recorded captures placed on a square grid with a guard band; ``geometry``
+        then describes the whole grid); None when ``object`` is the whole grid.
     """
 
     object: np.ndarray
@@ -434,6 +441,7 @@ class Reconstruction:
     positions_px: np.ndarray | None = None
     calibration: object | None = None
     fit: object | None = None
+    region: RegionEmbedding | None = None
 
     @property
     def intensity(self) -> np.ndarray:
@@ -458,7 +466,13 @@ class Reconstruction:
     @property
     def pixel_size_m(self) -> float:
         """Object-plane pixel size of the recovery grid (m)."""
-        return self.geometry.field_width_m / self.object.shape[-1]
+        return self.geometry.field_width_m / self.spectrum.shape[-1]
+
+    @property
+    def field_m(self) -> tuple[float, float]:
+        """``(height, width)`` of ``object`` at the object plane (m)."""
+        rows, cols = self.object.shape[-2:]
+        return rows * self.pixel_size_m, cols * self.pixel_size_m
 
 
 def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine: str = "auto", weight=None,
@@ -467,16 +481,19 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
 
     Parameters
     ----------
-    intensities : array_like (K, N, N), or CaptureSet
+    intensities : array_like (K, N, N) or (K, H, W), or CaptureSet
         Captured images (linear, centred), or a :class:`CaptureSet` (which
-        brings its geometry, weights, truth and units).
+        brings its geometry, weights, truth and units). Non-square images are
+        placed in the middle of a square grid with a weight-0 guard band
+        (:mod:`cca_cli.sampling.region`) and the recovery is cut back to them.
     geometry : CaptureGeometry
-        Where each capture's pupil sits; not needed with a CaptureSet.
+        Where each capture's pupil sits (for non-square images, over a field
+        ``W`` pixels wide); not needed with a CaptureSet.
     engine : str
         ``auto`` (the paper's alternating minimisation when a ground truth is
         given, the calibrating ``momentum`` engine for recorded captures; see
         :mod:`cca_cli.engines.presets`), ``altmin`` or ``momentum``.
-    weight : array_like (K, N, N), optional
+    weight : array_like, shaped as the images, optional
         Per-pixel confidence in [0, 1].
     callback : callable, optional
         Called after every iteration with its record (``iteration``,
@@ -520,9 +537,9 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
     if geometry is None:
         raise ValueError("give the capture geometry (camera_scan, stage_scan or led_array), or a CaptureSet")
     images = np.asarray(intensities, np.float32)
-    if images.ndim != 3 or images.shape[-1] != images.shape[-2] or len(images) != geometry.n_images:
-        raise ValueError(f"intensities must be (K, N, N) with K = {geometry.n_images} images of the geometry, "
-                         f"got shape {images.shape}")
+    if images.ndim != 3 or len(images) != geometry.n_images:
+        raise ValueError(f"intensities must be (K, N, N) or (K, H, W) with K = {geometry.n_images} images of the "
+                         f"geometry, got shape {images.shape}")
     if "iterations" in options:
         options["max_iterations"] = options.pop("iterations")
     if engine == "auto":
@@ -537,21 +554,36 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
                          f"accepted: iterations, {', '.join(entry.option_names())}")
     engine_options = entry.options(**options)
     weights = None if weight is None else np.asarray(weight, np.float32)
+    if weights is not None and weights.shape != images.shape:
+        raise ValueError(f"weight has shape {weights.shape}, the images {images.shape}")
+    region = None
+    observed = images[geometry.centre_index]
+    if images.shape[-1] != images.shape[-2]:
+        from cca_cli.sampling.capture import with_field_width
+        from cca_cli.sampling.region import plan_embedding
+
+        region = plan_embedding(images.shape[-2:], geometry.pupil_radius_px)
+        images, weights = region.embed(images, weights)
+        geometry = with_field_width(geometry, geometry.field_width_m * region.size / observed.shape[-1])
     captures = Captures(path=Path("<arrays>"), intensity=images, weight=weights, geometry=geometry, truth=dict(truth),
                         units=units)
     recovery = recover(captures, engine, engine_options, on_iteration=callback)
     calibration = recovery.calibration
     from dataclasses import asdict
 
+    obj = fft.ifft2c(recovery.spectrum).astype(np.complex64)
+    if region is not None:
+        y0, x0, rows, cols = region.hires_box(recovery.layout.hires_size)
+        obj = np.ascontiguousarray(obj[y0:y0 + rows, x0:x0 + cols])
     return Reconstruction(
-        object=fft.ifft2c(recovery.spectrum).astype(np.complex64), spectrum=recovery.spectrum,
+        object=obj, spectrum=recovery.spectrum,
         history={name: recovery.history.array(name) for name in ("residual", "change", "seconds")},
         geometry=geometry, engine=engine, options=asdict(engine_options), seconds=recovery.seconds,
-        stopped_by=recovery.stopped_by, observed=images[geometry.centre_index], truth=dict(truth),
+        stopped_by=recovery.stopped_by, observed=observed, truth=dict(truth),
         units=units, band_grid_px=recovery.layout.lowres_size,
         pupil=None if calibration is None else calibrated_pupils(calibration, geometry.pupil_radius_px),
         positions_px=None if calibration is None else calibration.centres_px,
-        calibration=calibration, fit=recovery.fit)
+        calibration=calibration, fit=recovery.fit, region=region)
 
 
 # ------------------------------------------------------------------------------------------------------- files
@@ -623,7 +655,19 @@ def _load_recon(handle, geometry: CaptureGeometry) -> Reconstruction:
         units=None if units in ("", "irradiance") else units, band_grid_px=int(attrs.get("lowres_size", 0)),
         pupil=np.asarray(handle["/calibration/pupil"]) if "/calibration/pupil" in handle else None,
         positions_px=(np.asarray(handle["/calibration/spectrum_centres_yx_px"])
-                      if "/calibration/spectrum_centres_yx_px" in handle else None))
+                      if "/calibration/spectrum_centres_yx_px" in handle else None),
+        region=_read_region(handle))
+
+
+def _read_region(handle) -> RegionEmbedding | None:
+    """The embedding /recon/region_px records (row 1: the region on the square sensor grid), or None."""
+    if "/recon/region_px" not in handle:
+        return None
+    dataset = handle["/recon/region_px"]
+    oy, ox, rows, cols = (int(v) for v in dataset[1])
+    attrs = dataset.attrs
+    return RegionEmbedding(size=int(attrs["sensor_grid_px"]), offset_yx=(oy, ox), shape=(rows, cols),
+                           guard_px=int(attrs.get("guard_px", 0)), apodize_px=int(attrs.get("apodize_px", 0)))
 
 
 def save(data: CaptureSet | Reconstruction, path, *, force: bool = False) -> Path:
@@ -659,13 +703,14 @@ def save(data: CaptureSet | Reconstruction, path, *, force: bool = False) -> Pat
         provenance = Provenance.make("reconstruct", text, hashlib.sha256(text.encode()).hexdigest())
         records = [IterationRecord(i + 1, float(r), float(c), float(s)) for i, (r, c, s) in
                    enumerate(zip(data.history["residual"], data.history["change"], data.history["seconds"]))]
-        recovery = Recovery(spectrum=data.spectrum, layout=_GridSizes(data.object.shape[-1], data.band_grid_px),
+        recovery = Recovery(spectrum=data.spectrum, layout=_GridSizes(data.spectrum.shape[-1], data.band_grid_px),
                             history=History(records), engine=data.engine, options=data.options, seconds=data.seconds,
                             stopped_by=data.stopped_by, calibration=data.calibration, fit=data.fit)
         observed = data.observed if data.observed is not None else np.abs(data.object) ** 2
         captures = Captures(path=path, intensity=observed[None].astype(np.float32), weight=None,
                             geometry=data.geometry, truth=data.truth, units=data.units)
-        write_recon(path, captures, recovery, provenance, force=force, observed=observed.astype(np.float32))
+        write_recon(path, captures, recovery, provenance, force=force, observed=observed.astype(np.float32),
+                    region=data.region)
         return path
     if isinstance(data, CaptureSet):
         from cca_cli.io.geometry import write_geometry

@@ -8,12 +8,22 @@ The command layer prints ``str(error)`` on one line and exits with
 from __future__ import annotations
 
 __all__ = [
+    "short",
     "CcaError",
     "ConfigError",
     "InputError",
+    "OutputError",
     "OutputExistsError",
+    "ResourceError",
+    "RunLockedError",
     "CheckerboardNotFound",
 ]
+
+
+def short(value, limit: int = 60) -> str:
+    """``repr(value)`` cut to ``limit`` characters: how messages quote what the user wrote."""
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 1] + "…"
 
 
 class CcaError(Exception):
@@ -38,10 +48,27 @@ class InputError(CcaError):
     exit_code = 3
 
 
-class OutputExistsError(CcaError):
-    """An output already exists and ``--force`` was not given."""
+class OutputError(CcaError):
+    """An output cannot be written where asked: over an input, over what cca did not write, in a file or an
+    unwritable folder."""
 
     exit_code = 4
+
+
+class OutputExistsError(OutputError):
+    """An output already exists and ``--force`` was not given."""
+
+
+class ResourceError(CcaError):
+    """The machine cannot hold the run: not enough memory or disk space (estimated, or met while writing)."""
+
+    exit_code = 5
+
+
+class RunLockedError(CcaError):
+    """Another cca run is writing in the same folder."""
+
+    exit_code = 6
 
 
 class CheckerboardNotFound(InputError):

@@ -16,7 +16,7 @@ from typer.testing import CliRunner
 import cca_cli as cca
 from cca_cli.commands.app import app
 
-DOCUMENTED = ["cca_cli.api", "cca_cli.io.export", "cca_cli.report.figures"]
+DOCUMENTED = ["cca_cli.api", "cca_cli.io.export", "cca_cli.report.figures", "cca_cli.report.regions"]
 
 
 @pytest.mark.parametrize("module", DOCUMENTED)

@@ -82,8 +82,8 @@ def register_cli(
             raise ConfigError(f"--crop: {crop!r} is not four integers x0,y0,width,height") from None
         if len(rect) != 4:
             raise ConfigError(f"--crop: {crop!r} is not four integers x0,y0,width,height")
-    section = section_from_options(RegisterSection, crop_xywh=rect, drop_missing=drop_missing or None,
-                                   ransac_threshold_px=ransac_threshold_px)
+    section = section_from_options(RegisterSection, names={"crop_xywh": "--crop"}, crop_xywh=rect,
+                                   drop_missing=drop_missing or None, ransac_threshold_px=ransac_threshold_px)
     reg = run_stage("register", register_stage.run, captures, section, output=output,
                     sections={"registration": section}, inputs=[captures], force=force, quiet=quiet)
     lost = f", lost: {'; '.join(reg.dropped)}" if reg.dropped else ""

@@ -1,4 +1,9 @@
-"""Rich console, progress bars and the one-line error convention."""
+"""Rich console, progress bars and the one-line error convention.
+
+Both consoles print text as it is (``markup=False``): paths, keys and values
+the user wrote may contain ``[`` and ``]``. Styled words go through
+:func:`styled`, never through markup.
+"""
 
 from __future__ import annotations
 
@@ -12,15 +17,35 @@ from rich.console import Console
 from rich.logging import RichHandler
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
+from rich.text import Text
 
 from cca_cli.errors import CcaError
+from cca_cli.io.outputs import disk_full
 from cca_cli.stages.progress import ProgressEvent
 
-__all__ = ["console", "err_console", "handle_errors", "progress_reporter", "summary_table", "configure_logging",
-           "stop_note", "recovery_stop_note", "length_text"]
+__all__ = ["console", "err_console", "styled", "print_error", "print_warning", "handle_errors", "progress_reporter",
+           "summary_table", "configure_logging", "EXIT_INTERNAL", "stop_note", "recovery_stop_note", "print_note", "length_text"]
 
-console = Console()
-err_console = Console(stderr=True)
+console = Console(markup=False, soft_wrap=True)
+err_console = Console(stderr=True, markup=False, soft_wrap=True)
+
+#: Exit code of an unexpected failure (a bug): one line, the traceback with --verbose.
+EXIT_INTERNAL = 70
+
+
+def styled(label: str, style: str, rest: str = "") -> Text:
+    """``label`` in ``style`` followed by ``rest`` as plain text (no markup is parsed)."""
+    return Text.assemble((label, style), " " if rest else "", rest)
+
+
+def print_error(message: str) -> None:
+    """One red ``error:`` line on stderr."""
+    err_console.print(styled("error:", "bold red", message), highlight=False, soft_wrap=True)
+
+
+def print_warning(message: str) -> None:
+    """One yellow ``warning:`` line on stderr."""
+    err_console.print(styled("warning:", "bold yellow", message), highlight=False, soft_wrap=True)
 
 
 def configure_logging(verbose: bool = False) -> None:
@@ -37,12 +62,29 @@ def handle_errors(func):
         try:
             return func(*args, **kwargs)
         except CcaError as exc:
-            err_console.print(f"[bold red]error:[/] {exc}", highlight=False, soft_wrap=True)
+            print_error(" ".join(str(exc).split()))
             raise typer.Exit(exc.exit_code) from None
         except KeyboardInterrupt:
-            err_console.print("[bold red]interrupted:[/] no partial output was kept; re-run to resume",
-                              highlight=False)
+            err_console.print(styled("interrupted:", "bold red", "no partial output was kept; re-run to resume"),
+                              highlight=False, soft_wrap=True)
             raise typer.Exit(130) from None
+        except MemoryError:
+            print_error("out of memory: the run needs more than this machine has free; make it smaller "
+                        "(fewer or smaller images) or free memory")
+            raise typer.Exit(5) from None
+        except OSError as exc:
+            where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
+            if disk_full(exc):
+                print_error(f"{where}no space left on the device; free some space or write elsewhere")
+                raise typer.Exit(5) from None
+            print_error(f"{where}{exc.strerror or exc}")
+            raise typer.Exit(1) from None
+        except Exception as exc:  # a bug: one line for the user, the traceback with --verbose
+            logging.getLogger("cca").info("the failure, for a bug report:", exc_info=True)
+            first = (str(exc).strip().splitlines() or [""])[0][:200]
+            print_error(f"internal error ({type(exc).__name__}: {first}); please report it with the command "
+                        "line (-v shows where it happened)")
+            raise typer.Exit(EXIT_INTERNAL) from None
 
     return wrapper
 
@@ -82,8 +124,13 @@ def stop_note(stopped_by: str | None, iterations: int | None, change: float | No
     if stopped_by != "cap":
         return None
     reached = f" (last change {change:.3g} > tol {tol:.3g})" if change is not None and tol is not None else ""
-    return (f"[yellow]note:[/] reconstruct stopped at the iteration cap ({iterations}) before the change reached "
+    return (f"reconstruct stopped at the iteration cap ({iterations}) before the change reached "
             f"tol{reached}; raise reconstruct.iterations (--iterations) to go on")
+
+
+def print_note(message: str) -> None:
+    """One yellow ``note:`` line on stderr (the message is printed as it is, never as markup)."""
+    err_console.print(styled("note:", "yellow", message), highlight=False, soft_wrap=True)
 
 
 def recovery_stop_note(recovery) -> str | None:
@@ -101,6 +148,7 @@ def summary_table(summary: dict, title: str = "Result") -> Table:
     rows = [
         ("synthetic aperture ratio", "sar", "{:.2f}"),
         ("images", "n_images", "{}"),
+        ("recovered image (width x height)", "recovered_shape_px", "image"),
         ("engine / iterations", None, None),
         ("reconstruction time (s)", "seconds", "{:.1f}"),
         ("spot size at sensor", "spot_size_sensor_m", "length"),
@@ -148,6 +196,11 @@ def summary_table(summary: dict, title: str = "Result") -> Table:
             text = "—"
         elif fmt == "length":
             text = length_text(value)
+        elif fmt == "image":
+            text = f"{value[1]} x {value[0]} px"
+            if summary.get("recovered_field_m"):
+                height, width = summary["recovered_field_m"]
+                text += f", {length_text(width)} x {length_text(height)}"
         else:
             text = fmt.format(value)
         table.add_row(label, text)

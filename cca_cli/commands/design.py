@@ -3,15 +3,19 @@
 from __future__ import annotations
 
 import json
+from decimal import Decimal
 from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
 from rich.table import Table
 
-from cca_cli.commands.console import console, err_console, handle_errors
+from cca_cli.commands.console import console, err_console, handle_errors, print_warning
 from cca_cli.errors import ConfigError
-from cca_cli.io.h5 import check_output
+from cca_cli.io.outputs import atomic_path, check_output, starts_with
+
+#: First line of a config written by --write-config (how --force recognises one).
+WRITTEN_BY = "# Written by `cca design`."
 
 __all__ = ["design_cli", "plan_config"]
 
@@ -25,12 +29,42 @@ def _si(value: float | None, unit: str = "m") -> str:
     return f"{value:.3g} {unit}"
 
 
+def _count(n: int) -> str:
+    """An integer, in scientific notation once it is too long to read."""
+    return str(n) if n < 10 ** 7 else format(Decimal(n), ".3e")
+
+
 def _bytes(n: int) -> str:
+    if n >= 1024 ** 5:
+        return f"{_count(n)} B"
     for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
         if n < 1024 or unit == "TiB":
             return f"{n:.1f} {unit}" if unit != "B" else f"{n} B"
         n /= 1024
     return f"{n} B"
+
+
+def _option_names(exc: ValueError) -> str:
+    """The message of a planning error with its keys spelled as the command's options (--wavelength-m …)."""
+    text = str(exc)
+    for key in ("wavelength_m", "focal_length_m", "aperture_diameter_m", "pixel_pitch_m", "distance_m",
+                "field_width_m", "sensor_px", "overlap"):
+        option = "--aperture-m" if key == "aperture_diameter_m" else "--" + key.replace("_", "-")
+        text = text.replace(key, option) if text.startswith(key) or f" {key}" in text else text
+    for kind, option in (("feature", "--feature-m"), ("sar", "--sar"), ("beat_lens", "--beat-lens-m")):
+        text = text.replace(f"the {kind} target", f"the target {option}")
+    return text
+
+
+def _machine_warnings(plan) -> tuple[str, ...]:
+    """Warnings when this machine cannot hold the plan's captures or its reconstruction."""
+    from cca_cli.stages.footprint import memory_available, size_text
+
+    available = memory_available()
+    if plan.memory_bytes > available:
+        return (f"reconstructing this plan needs about {size_text(float(min(plan.memory_bytes, 1e300)))} of memory; "
+                f"this machine has {size_text(available)} available",)
+    return ()
 
 
 def plan_config(plan, *, iterations: int = 300) -> dict:
@@ -85,12 +119,16 @@ def design_cli(
     """Plan an array: spot sizes, SAR, grid, step, images, data volume, output size, memory and time."""
     from cca_cli.sampling.design import iteration_seconds, plan_array
 
+    if iterations < 1:
+        raise ConfigError(f"--iterations: must be at least 1, got {iterations}")
+    if write_config is not None:
+        check_output(write_config, force=force, owned=starts_with(WRITTEN_BY))
     try:
         plan = plan_array(wavelength_m=wavelength_m, focal_length_m=focal_length_m, aperture_diameter_m=aperture_m,
                           pixel_pitch_m=pixel_pitch_m, distance_m=distance_m, feature_m=feature_m, sar=sar,
                           beat_lens_m=beat_lens_m, overlap=overlap, field_width_m=field_width_m, sensor_px=sensor_px)
     except ValueError as exc:
-        raise ConfigError(f"cca design: {exc}") from None
+        raise ConfigError(f"cca design: {_option_names(exc)}") from None
     seconds = None
     fft_s = None
     if measure:
@@ -101,9 +139,9 @@ def design_cli(
     if write_config is not None:
         import yaml
 
-        check_output(write_config, force=force)
-        write_config.write_text("# Written by `cca design`.\n" + yaml.safe_dump(plan_config(plan, iterations=iterations),
-                                                                                  sort_keys=False))
+        text = WRITTEN_BY + "\n" + yaml.safe_dump(plan_config(plan, iterations=iterations), sort_keys=False)
+        with atomic_path(write_config, force=force, owned=starts_with(WRITTEN_BY)) as tmp:
+            tmp.write_text(text)
     if as_json:
         data = plan.to_dict()
         data["fft_seconds"] = fft_s
@@ -121,15 +159,15 @@ def design_cli(
             ("spot at object, synthetic aperture", _si(plan.spot_synthetic_m)),
             *([("spot at object, lens to beat", _si(plan.spot_beat_m))] if plan.spot_beat_m else []),
             ("spot at sensor, one lens", _si(plan.spot_sensor_m)),
-            ("required SAR", f"{plan.required_sar:.3f}"),
-            ("grid / SAR reached", f"{plan.grid} x {plan.grid} / {plan.sar:.3f}"),
+            ("required SAR", f"{plan.required_sar:.4g}"),
+            ("grid / SAR reached", f"{_count(plan.grid)} x {_count(plan.grid)} / {plan.sar:.4g}"),
             ("synthetic aperture", _si(plan.synthetic_aperture_m)),
             ("overlap / step", f"{plan.overlap:.0%} / {_si(plan.step_m)}"),
-            ("images", f"{plan.n_images}"),
+            ("images", _count(plan.n_images)),
             ("object pixel (sensor)", _si(plan.object_pixel_m)),
             ("field / pixels per capture", f"{_si(plan.field_width_m)} / {plan.capture_px} px"),
             ("capture data (float32)", _bytes(plan.capture_bytes)),
-            ("output image", f"{plan.output_px} x {plan.output_px} px at {_si(plan.output_pixel_m)}"),
+            ("output image", f"{_count(plan.output_px)} x {_count(plan.output_px)} px at {_si(plan.output_pixel_m)}"),
             ("per-capture model grid", f"{plan.lowres_px} px (pupil radius {plan.pupil_radius_px:.1f} px)"),
             ("reconstruction memory (est.)", _bytes(plan.memory_bytes)),
             ("time per iteration (est.)", "—" if seconds is None else f"{seconds:.3g} s"),
@@ -138,7 +176,7 @@ def design_cli(
         for label, value in rows:
             table.add_row(label, value)
         console.print(table)
-    for warning in plan.warnings:
-        err_console.print(f"[bold yellow]warning:[/] {warning}", highlight=False, soft_wrap=True)
+    for warning in plan.warnings + _machine_warnings(plan):
+        print_warning(warning)
     if write_config is not None:
         err_console.print(f"wrote {write_config}; run it with: cca run {write_config}", highlight=False)

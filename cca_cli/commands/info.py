@@ -6,16 +6,23 @@ from pathlib import Path
 from typing import Annotated
 
 import h5py
+import numpy as np
 import typer
 
 from cca_cli.commands.console import console, handle_errors, length_text
 from cca_cli.errors import InputError
+from cca_cli.io.h5 import check_input_file
 
 __all__ = ["info_cli", "derived_lines"]
 
 
 def _text(value) -> str:
-    return value.decode() if isinstance(value, bytes) else str(value)
+    """An attribute as text, whatever it holds (undecodable bytes are replaced, opaque data described)."""
+    if isinstance(value, bytes):
+        return value.decode("utf-8", errors="replace")
+    if isinstance(value, np.void):
+        return f"<{len(value.tobytes())} bytes of opaque data>"
+    return str(value)
 
 
 def derived_lines(derived: dict) -> list[str]:
@@ -37,6 +44,11 @@ def derived_lines(derived: dict) -> list[str]:
         band = f", {derived['lowres_grid_px']} px band grid per capture" if "lowres_grid_px" in derived else ""
         lines.append(f"  output grid     {derived['output_grid_px']} x {derived['output_grid_px']} px of "
                      f"{length_text(derived['object_pixel_m'])}{band}")
+    if "recovered_shape_px" in derived and "object_pixel_m" in derived:
+        rows, cols = derived["recovered_shape_px"]
+        pixel = derived["object_pixel_m"]
+        lines.append(f"  recovered       {cols} x {rows} px region of it, {length_text(cols * pixel)} x "
+                     f"{length_text(rows * pixel)} (the rest is guard band)")
     return lines
 
 
@@ -53,8 +65,11 @@ def _derived(handle: h5py.File) -> dict | None:
         return None
     recon = handle["recon"].attrs if "recon" in handle else {}
     if "hires_size" in recon:
-        return derived_quantities(geometry, hires_size=int(recon["hires_size"]),
-                                  lowres_size=int(recon["lowres_size"]) if "lowres_size" in recon else None)
+        derived = derived_quantities(geometry, hires_size=int(recon["hires_size"]),
+                                     lowres_size=int(recon["lowres_size"]) if "lowres_size" in recon else None)
+        if "/recon/region_px" in handle:
+            derived["recovered_shape_px"] = [int(v) for v in handle["/recon/region_px"][0, 2:]]
+        return derived
     images = handle.get("/measurements/intensity")
     sensor = images.shape[-1] if images is not None and images.ndim == 3 and images.shape[-1] == images.shape[-2] \
         else None
@@ -64,41 +79,76 @@ def _derived(handle: h5py.File) -> dict | None:
 @handle_errors
 def info_cli(path: Annotated[Path, typer.Argument(help="An HDF5 file written by cca.", show_default=False)]) -> None:
     """List the datasets of PATH with dtype, shape, units and meaning, its provenance and derived quantities."""
-    if not path.exists():
-        raise InputError(f"{path}: file not found")
+    check_input_file(path)
     if not h5py.is_hdf5(path):
         raise InputError(f"{path}: not an HDF5 file")
+    try:
+        handle = h5py.File(path, "r")
+    except OSError as exc:
+        raise InputError(f"{path}: cannot open HDF5 file ({exc}); it may be truncated") from None
     out = lambda text="": console.print(text, markup=False, highlight=False, soft_wrap=True)  # noqa: E731
-    with h5py.File(path, "r") as handle:
-        attrs = {k: _text(v) for k, v in handle.attrs.items()}
-        out(f"{path}: stage {attrs.get('stage', '?')}, cca {attrs.get('cca_version', '?')}, "
-            f"schema {attrs.get('cca_schema', '?')}, created {attrs.get('created_utc', '?')}")
+    try:
+        with handle:
+            _describe(handle, path, out)
+    except (OSError, KeyError, RuntimeError) as exc:
+        raise InputError(f"{path}: cannot read the file ({exc}); it may be truncated or damaged") from None
+
+
+def _attrs(obj) -> dict[str, str]:
+    out = {}
+    for key in obj.attrs:
+        try:
+            out[key] = obj.attrs[key]
+        except (OSError, TypeError, ValueError):
+            out[key] = "<unreadable>"
+    return out
+
+
+def _describe(handle: h5py.File, path: Path, out) -> None:
+    attrs = {k: _text(v) for k, v in _attrs(handle).items()}
+    out(f"{path}: stage {attrs.get('stage', '?')}, cca {attrs.get('cca_version', '?')}, "
+        f"schema {attrs.get('cca_schema', '?')}, created {attrs.get('created_utc', '?')}")
+    out()
+
+    def visit(name, obj):
+        if isinstance(obj, h5py.Dataset):
+            dataset_attrs = _attrs(obj)
+            units = _text(dataset_attrs.get("units", ""))
+            out(f"  /{name}  {obj.dtype}  {obj.shape}  [{units}]")
+            if "description" in dataset_attrs:
+                out(f"      {_text(dataset_attrs['description'])}")
+
+    handle.visititems(visit)
+    for group in ("geometry", "recon"):
+        if group in handle and isinstance(handle[group], h5py.Group):
+            items = [f"{k}={v:.6g}" if isinstance(v, float) else f"{k}={_text(v)}"
+                     for k, v in _attrs(handle[group]).items() if k != "units"]
+            out()
+            out(f"{group}: " + ", ".join(items))
+    derived = _derived(handle)
+    if derived is not None:
         out()
+        out("derived quantities:")
+        for line in derived_lines(derived):
+            out(line)
+    if attrs.get("inputs"):
+        out()
+        out(f"inputs: {_inputs_text(attrs['inputs'])}")
+    if attrs.get("config"):
+        out()
+        out("config:")
+        out(attrs["config"].rstrip())
 
-        def visit(name, obj):
-            if isinstance(obj, h5py.Dataset):
-                units = _text(obj.attrs.get("units", ""))
-                out(f"  /{name}  {obj.dtype}  {obj.shape}  [{units}]")
-                if "description" in obj.attrs:
-                    out(f"      {_text(obj.attrs['description'])}")
 
-        handle.visititems(visit)
-        for group in ("geometry", "recon"):
-            if group in handle:
-                items = [f"{k}={v:.6g}" if isinstance(v, float) else f"{k}={_text(v)}"
-                         for k, v in handle[group].attrs.items() if k != "units"]
-                out()
-                out(f"{group}: " + ", ".join(items))
-        derived = _derived(handle)
-        if derived is not None:
-            out()
-            out("derived quantities:")
-            for line in derived_lines(derived):
-                out(line)
-        if attrs.get("inputs"):
-            out()
-            out(f"inputs: {attrs['inputs']}")
-        if attrs.get("config"):
-            out()
-            out("config:")
-            out(attrs["config"].rstrip())
+def _inputs_text(inputs: str) -> str:
+    """The provenance's input files: all of them when few, else the count and the first three."""
+    import json
+
+    try:
+        files = json.loads(inputs)
+    except ValueError:
+        return inputs
+    if not isinstance(files, list) or len(files) <= 5:
+        return inputs
+    first = ", ".join(str(f.get("path")) for f in files[:3] if isinstance(f, dict))
+    return f"{len(files)} files with SHA-256 (first: {first}, …)"

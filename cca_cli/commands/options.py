@@ -9,7 +9,7 @@ import typer
 from pydantic import BaseModel, ValidationError
 
 from cca_cli.config.messages import error_message
-from cca_cli.errors import ConfigError
+from cca_cli.errors import ConfigError, short
 
 __all__ = ["ConfigArg", "OptionalConfigArg", "Force", "Output", "Quiet", "section_from_options"]
 
@@ -24,7 +24,8 @@ Output = Annotated[Path, typer.Option("--output", "-o", help="Output path.", dir
 Quiet = Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")]
 
 
-def section_from_options(model: type[SectionT], base: BaseModel | None = None, **values) -> SectionT:
+def section_from_options(model: type[SectionT], base: BaseModel | None = None, *, names: dict[str, str] | None = None,
+                         **values) -> SectionT:
     """A config section from ``base`` (or the defaults) with the option values that were given on top.
 
     Parameters
@@ -33,6 +34,8 @@ def section_from_options(model: type[SectionT], base: BaseModel | None = None, *
         The section's model (``HdrSection`` …).
     base : BaseModel, optional
         Section whose values the options override (e.g. from ``--config``).
+    names : dict, optional
+        Option spelling of keys whose option is not ``--<key-with-dashes>`` (``{"mtf_threshold": "--threshold"}``).
     **values
         Option values by key; None means the option was not given.
 
@@ -47,5 +50,8 @@ def section_from_options(model: type[SectionT], base: BaseModel | None = None, *
         return model.model_validate(data)
     except ValidationError as exc:
         err = exc.errors()[0]
-        option = ".".join(str(p) for p in err["loc"]).replace("_", "-")
-        raise ConfigError(f"--{option}: {error_message(err)}") from None
+        key = str(err["loc"][0]) if err["loc"] else ""
+        option = (names or {}).get(key, "--" + key.replace("_", "-"))
+        shown = "input" in err and not isinstance(err["input"], dict) and err["type"] != "value_error"
+        got = f" (got {short(err['input'])})" if shown else ""
+        raise ConfigError(f"{option}: {error_message(err)}{got}") from None

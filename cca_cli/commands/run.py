@@ -7,8 +7,8 @@ from typing import Annotated, Optional
 
 import typer
 
-from cca_cli.commands.console import (console, err_console, handle_errors, progress_reporter, recovery_stop_note,
-                                     stop_note, summary_table)
+from cca_cli.commands.console import (console, err_console, handle_errors, print_note, progress_reporter,
+                                     recovery_stop_note, stop_note, summary_table)
 from cca_cli.commands.options import Force, OptionalConfigArg, Quiet
 from cca_cli.config.load import load_config
 from cca_cli.stages.runner import default_out_dir, run_pipeline
@@ -27,10 +27,12 @@ def run_cli(
 
     def on_stage(plan, status):
         if status == "skipped":
-            err_console.print(f"[dim]{plan.name}: {plan.output} is up to date, skipped[/]")
+            err_console.print(f"{plan.name}: {plan.output} is up to date, skipped", style="dim", highlight=False,
+                              soft_wrap=True)
 
     with progress_reporter(not quiet) as progress:
-        outcomes = run_pipeline(cfg, Path(directory), force=force, progress=progress, on_stage=on_stage)
+        outcomes = run_pipeline(cfg, Path(directory), force=force, progress=progress, on_stage=on_stage,
+                                source=config if config is not None else "the built-in default")
     report = next((o for o in outcomes if o.name == "report"), None)
     if report is not None:
         summary = report.result
@@ -50,4 +52,4 @@ def run_cli(
     else:
         note = None
     if note:
-        err_console.print(note, highlight=False, soft_wrap=True)
+        print_note(note)

@@ -7,7 +7,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from cca_cli.commands.console import console, err_console, handle_errors, recovery_stop_note, summary_table
+from cca_cli.commands.console import console, handle_errors, print_note, recovery_stop_note, summary_table
 from cca_cli.commands.info import derived_lines
 from cca_cli.commands.options import ConfigArg, Force, Quiet, section_from_options
 from cca_cli.commands.stage_run import run_stage
@@ -16,6 +16,7 @@ from cca_cli.config.model import ReconstructSection, ReportSection
 from cca_cli.stages import reconstruct as reconstruct_stage
 from cca_cli.stages import report as report_stage
 from cca_cli.stages import simulate as simulate_stage
+from cca_cli.stages.footprint import reconstruct_footprint, report_footprint, simulate_footprint
 from cca_cli.stages.runner import pick_sections
 
 
@@ -29,7 +30,8 @@ def simulate_cli(
     """Simulate the captures of CONFIG's array and scene → captures.h5."""
     cfg = load_config(config)
     sim = run_stage("simulate", simulate_stage.run, cfg, output=output,
-                    sections=pick_sections(cfg, simulate_stage.SECTIONS), force=force, quiet=quiet)
+                    sections=pick_sections(cfg, simulate_stage.SECTIONS), force=force, quiet=quiet, protect=[config],
+                    footprint=lambda: simulate_footprint(cfg))
     g = sim.geometry
     if cfg.multiplex is not None:
         mux = sim.multiplex
@@ -61,12 +63,13 @@ def reconstruct_cli(
     base = load_config(config).reconstruct if config else None
     section = section_from_options(ReconstructSection, base, engine=engine, tau=tau, iterations=iterations, tol=tol)
     recovery = run_stage("reconstruct", reconstruct_stage.run, captures, section, output=output,
-                         sections={"reconstruct": section}, inputs=[captures], force=force, quiet=quiet)
+                         sections={"reconstruct": section}, inputs=[captures], force=force, quiet=quiet,
+                         protect=[config] if config else [], footprint=lambda: reconstruct_footprint(captures))
     console.print(f"{output}: {recovery.engine}, {recovery.history.iterations} iterations in {recovery.seconds:.1f} s, "
                   f"{recovery.layout.hires_size}² output")
     note = recovery_stop_note(recovery)
     if note:
-        err_console.print(note, highlight=False, soft_wrap=True)
+        print_note(note)
 
 
 @handle_errors
@@ -74,10 +77,13 @@ def report_cli(
     recon: Annotated[Path, typer.Argument(help="recon.h5 from reconstruct.", show_default=False)],
     output: Annotated[Path, typer.Option("--output", "-o", help="Report directory.")] = Path("report"),
     threshold: Annotated[float, typer.Option(help="Contrast threshold of the resolution limit.")] = 0.2,
+    figures: Annotated[bool, typer.Option("--figures/--no-figures", help="Write the PNG figures.")] = True,
     force: Force = False,
 ) -> None:
     """Metrics (report.json) and figures (PNG) of RECON → a report directory."""
-    section = ReportSection(mtf_threshold=threshold)
+    section = section_from_options(ReportSection, names={"mtf_threshold": "--threshold"}, mtf_threshold=threshold,
+                                   figures=figures)
     summary = run_stage("report", report_stage.run, recon, section, output=output, sections={"report": section},
-                        inputs=[recon], force=force, quiet=True)
+                        inputs=[recon], force=force, quiet=True, kind="folder",
+                        footprint=lambda: report_footprint(recon))
     console.print(summary_table(summary, title=f"cca report → {output}"))

@@ -1,4 +1,4 @@
-"""What every one-stage command does around the stage: the output check, provenance and progress bars."""
+"""What every one-stage command does around the stage: output and resource checks, provenance, progress bars."""
 
 from __future__ import annotations
 
@@ -8,7 +8,9 @@ from typing import Callable, TypeVar
 from pydantic import BaseModel
 
 from cca_cli.commands.console import progress_reporter
-from cca_cli.io.h5 import check_output
+from cca_cli.io.h5 import check_input_file
+from cca_cli.io.outputs import check_output
+from cca_cli.stages.footprint import Footprint, check_footprint
 from cca_cli.stages.runner import stage_provenance
 
 __all__ = ["run_stage"]
@@ -17,8 +19,13 @@ T = TypeVar("T")
 
 
 def run_stage(stage: str, run: Callable[..., T], *args, output: Path, sections: dict[str, BaseModel], inputs=(),
-              force: bool, quiet: bool = False) -> T:
+              force: bool, quiet: bool = False, protect=(), footprint: Callable[[], Footprint] | None = None,
+              kind: str = "file") -> T:
     """Call ``run(*args, output, provenance=…, force=…, progress=…)``, a stage's ``run`` function.
+
+    Everything that can be checked before the work starts is checked first, in
+    this order: the output path (:func:`~cca_cli.io.outputs.check_output`), the
+    inputs, the memory and disk the stage needs.
 
     Parameters
     ----------
@@ -27,17 +34,28 @@ def run_stage(stage: str, run: Callable[..., T], *args, output: Path, sections: 
     run : callable
         The stage's ``run``; ``args`` are its arguments before ``output``.
     output : Path
-        Refused before any input is hashed when it exists and ``force`` is not set.
+        Refused when it exists without ``force``, is an input, is not cca's, or cannot be written.
     sections : dict
         The config sections the stage reads (hashed into the provenance).
     inputs : sequence of Path, or a callable returning one
-        Input files (hashed into the provenance); a callable is called after the output check.
+        Input files (hashed into the provenance; a callable such as a manifest's file list is called first).
     force : bool
-        Overwrite ``output``.
+        Overwrite ``output`` (when cca wrote it).
     quiet : bool
         No progress bars.
+    protect : sequence of Path
+        Further files the output must not replace (the config file).
+    footprint : callable, optional
+        The stage's :class:`~cca_cli.stages.footprint.Footprint`, checked against the machine.
+    kind : {"file", "folder"}
+        What the output is.
     """
-    check_output(output, force=force)
-    provenance = stage_provenance(stage, sections, inputs() if callable(inputs) else inputs)
+    files = list(inputs() if callable(inputs) else inputs)
+    check_output(output, force=force, kind=kind, inputs=[*files, *protect])
+    for index, path in enumerate(files):
+        check_input_file(path, listed_in=files[0] if callable(inputs) and index else None)
+    if footprint is not None:
+        check_footprint(footprint(), output, source=files[0] if files else (protect[0] if protect else None))
+    provenance = stage_provenance(stage, sections, files)
     with progress_reporter(not quiet) as progress:
         return run(*args, output, provenance=provenance, force=force, progress=progress)

@@ -8,9 +8,14 @@ from typing import Annotated, Optional
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
+from rich.text import Text
 
-from cca_cli.commands.console import console, err_console, handle_errors
+from cca_cli.commands.console import console, err_console, handle_errors, styled
 from cca_cli.commands.options import ConfigArg, Force, Quiet
+from cca_cli.errors import ConfigError
+from cca_cli.io.lock import folder_lock
+from cca_cli.io.outputs import check_folder
+from cca_cli.stages.runner import prepare_folder
 
 __all__ = ["sweep_app"]
 
@@ -32,15 +37,22 @@ def _sweep(study: str, config: Path, sets: list[str] | None, workers: int | None
     from cca_cli.config.load import load_config
     from cca_cli.stages import sweep as sw
 
+    sw.check_workers(workers)
     cfg = load_config(config)
     spec = sw.study_spec(cfg, study, sets=list(sets or []), source=str(config))
     sweep_dir = Path(out_dir or cfg.run.out_dir or Path("cca-runs") / f"{config.stem}-{study}")
+    check_folder(sweep_dir)
     points = sw.expand_points(cfg, spec, sweep_dir, source=str(config))
+    if all(p.error for p in points):
+        raise ConfigError(f"every point of the sweep is invalid; the first: {points[0].error}")
+    if scheduler and not dry_run:
+        sw.check_scheduler(scheduler, sw.scheduler_timeout())
     costs = {p.index: sw.point_cost(p) for p in points}
     images = sum(c.images for c in costs.values() if c)
     work = sum(c.work * c.iterations for c in costs.values() if c)
-    err_console.print(f"[bold]{len(points)} points[/] ({spec.study} study) → {sweep_dir}: {images} images in all; "
-                      f"work ≤ {work / 1e9:.2f} G pixel-iterations (Σ images × m² × iteration cap)", highlight=False)
+    err_console.print(styled(f"{len(points)} points", "bold",
+                             f"({spec.study} study) → {sweep_dir}: {images} images in all; work ≤ {work / 1e9:.2f} "
+                             "G pixel-iterations (Σ images × m² × iteration cap)"), highlight=False, soft_wrap=True)
     if dry_run:
         table = Table(title=f"cca sweep {study} --dry-run", header_style="bold")
         for name in ("#", "point id", "overrides", "images", "m", "M", "iterations ≤", "status"):
@@ -57,26 +69,30 @@ def _sweep(study: str, config: Path, sets: list[str] | None, workers: int | None
     columns = (TextColumn("[bold]points"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                TimeRemainingColumn(), TextColumn("{task.fields[info]}"))
     counts = {"ok": 0, "cached": 0, "failed": 0}
-    with Progress(*columns, console=err_console, disable=quiet) as bars:
-        task = bars.add_task("points", total=len(points), info="")
+    prepare_folder(sweep_dir)
+    with folder_lock(sweep_dir):
+        with Progress(*columns, console=err_console, disable=quiet) as bars:
+            task = bars.add_task("points", total=len(points), info="")
 
-        def on_row(row, done, total):
-            counts[row["status"]] = counts.get(row["status"], 0) + 1
-            if row["status"] == "failed" and not quiet:
-                bars.console.print(f"[red]point {row['point_id']} failed:[/] {row['error']}", highlight=False)
-            bars.update(task, completed=done,
-                        info=f"ran {counts['ok']}  cached {counts['cached']}  failed {counts['failed']}")
+            def on_row(row, done, total):
+                counts[row["status"]] = counts.get(row["status"], 0) + 1
+                if row["status"] == "failed" and not quiet:
+                    bars.console.print(styled(f"point {row['point_id']} failed:", "red", str(row["error"])),
+                                       highlight=False, soft_wrap=True)
+                bars.update(task, completed=done,
+                            info=f"ran {counts['ok']}  cached {counts['cached']}  failed {counts['failed']}")
 
-        with sw.open_client(workers=workers, scheduler=scheduler) as client:
-            rows = sw.run_sweep(points, client, force=force, on_row=on_row)
-    csv_path, h5_path = sw.write_table(rows, sweep_dir, spec=spec, base=cfg)
-    figures = sw.write_sweep_figures(rows, sweep_dir, spec=spec, points=points) if spec.figures else []
+            with sw.open_client(workers=workers, scheduler=scheduler) as client:
+                rows = sw.run_sweep(points, client, force=force, on_row=on_row)
+        csv_path, h5_path = sw.write_table(rows, sweep_dir, spec=spec, base=cfg)
+        figures = sw.write_sweep_figures(rows, sweep_dir, spec=spec, points=points) if spec.figures else []
     _print_rows(rows, spec, points)
     console.print(f"table: {csv_path}  {h5_path}")
     for path in figures:
         console.print(f"figure: {path}")
     if counts["failed"]:
-        err_console.print(f"[bold red]{counts['failed']} of {len(points)} points failed[/] (see the error column)")
+        err_console.print(styled(f"{counts['failed']} of {len(points)} points failed", "bold red",
+                                 "(see the error column)"), highlight=False)
         raise typer.Exit(1)
 
 
@@ -96,7 +112,7 @@ def _print_rows(rows, spec, points) -> None:
         return "—" if v is None else (fmt.format(v) if isinstance(v, (int, float)) else str(v))
 
     for row in rows:
-        table.add_row(row["point_id"], row["status"] if row["status"] != "failed" else "[red]failed[/]",
+        table.add_row(row["point_id"], row["status"] if row["status"] != "failed" else Text("failed", style="red"),
                       *(f(row.get(p)) for p in params), f(row.get("sar"), "{:.2f}"), f(row.get("n_images")),
                       f(row.get("rmse_observed")), f(row.get("rmse_recovered")), f(row.get("mtf20_recovered_px")))
     console.print(table)

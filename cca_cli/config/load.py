@@ -9,9 +9,10 @@ from typing import Any
 import yaml
 from pydantic import BaseModel, ValidationError
 
-from cca_cli.config.messages import accepted_keys, error_message, yaml_error_text
+from cca_cli.config.messages import accepted_keys, error_message
 from cca_cli.config.model import RunConfig
-from cca_cli.errors import ConfigError
+from cca_cli.config.yaml_text import read_yaml_file
+from cca_cli.errors import ConfigError, short
 
 __all__ = ["load_config", "parse_config", "dump_config", "preset_path", "PRESETS", "apply_overrides"]
 
@@ -26,18 +27,23 @@ def preset_path(name: str = "headline") -> Path:
     return Path(str(resources.files("cca_cli.config") / "presets" / f"{name}.yaml"))
 
 
+def _key_text(loc: tuple) -> str:
+    """A dotted key for messages; parts the user wrote are cut short."""
+    parts = [p if isinstance(p, str) and len(p) <= 40 else short(p, 40) for p in loc]
+    return ".".join(str(p) for p in parts) or "(top level)"
+
+
 def _describe(error: dict, source: str) -> str:
-    key = ".".join(str(p) for p in error["loc"]) or "(top level)"
+    key = _key_text(error["loc"])
     kind = error["type"]
     if kind == "extra_forbidden":
         accepted = sorted(accepted_keys(RunConfig, error["loc"]))
         return f"{source}: {key}: unknown key; accepted keys here: {', '.join(accepted)}"
     value = error.get("input")
     message = error_message(error)
-    if kind.startswith(("float", "int")) or kind in ("greater_than", "less_than", "greater_than_equal", "less_than_equal"):
-        return f"{source}: {key}: {message} (got {value!r})"
-    if kind == "literal_error":
-        return f"{source}: {key}: {message} (got {value!r})"
+    if kind.startswith(("float", "int", "bool", "finite")) or kind in (
+            "greater_than", "less_than", "greater_than_equal", "less_than_equal", "literal_error"):
+        return f"{source}: {key}: {message} (got {short(value)})"
     return f"{source}: {key}: {message}"
 
 
@@ -52,7 +58,11 @@ def parse_config(data: Any, *, source: str = "config") -> RunConfig:
     if data is None:
         data = {}
     if not isinstance(data, dict):
-        raise ConfigError(f"{source}: the top level must be a mapping of sections, got {type(data).__name__}")
+        raise ConfigError(f"{source}: not a cca config: the top level must be a mapping of sections "
+                          f"({', '.join(RunConfig.model_fields)}), got {type(data).__name__}")
+    if data and not set(map(str, data)) & set(RunConfig.model_fields):
+        raise ConfigError(f"{source}: not a cca config: none of its top-level keys is a section "
+                          f"({', '.join(RunConfig.model_fields)})")
     try:
         return RunConfig.model_validate(data)
     except ValidationError as exc:
@@ -60,18 +70,18 @@ def parse_config(data: Any, *, source: str = "config") -> RunConfig:
 
 
 def load_config(path: str | Path | None = None) -> RunConfig:
-    """Read and validate a YAML config; ``None`` loads the built-in headline preset."""
+    """Read and validate a YAML config; ``None`` loads the built-in headline preset.
+
+    Raises
+    ------
+    ConfigError
+        One line naming ``path``: not a readable YAML text file, empty, not a config, or an invalid key.
+    """
     path = preset_path() if path is None else Path(path)
-    try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: config file not found; give an existing YAML file or omit it for the built-in default") from None
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read config ({exc.strerror})") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise ConfigError(yaml_error_text(path, exc)) from None
+    data = read_yaml_file(path, what="config")
+    if data is None or data == {}:
+        raise ConfigError(f"{path}: the config is empty; write its sections (see configs/headline.yaml), "
+                          "or give no CONFIG to run the built-in default")
     return _resolve_relative_paths(parse_config(data, source=str(path)), path.parent)
 
 

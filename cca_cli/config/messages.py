@@ -1,13 +1,10 @@
-"""Pieces of the one-line messages for invalid YAML and pydantic validation errors (configs and manifests)."""
+"""Pieces of the one-line messages for pydantic validation errors (configs and manifests)."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
-import yaml
 from pydantic import BaseModel
 
-__all__ = ["model_in", "accepted_keys", "error_message", "yaml_error_text"]
+__all__ = ["model_in", "accepted_keys", "error_message"]
 
 
 def model_in(annotation) -> type[BaseModel] | None:
@@ -41,10 +38,3 @@ def accepted_keys(model: type[BaseModel], loc: tuple) -> list[str]:
 def error_message(error: dict) -> str:
     """The message of one pydantic error, without pydantic's ``Value error,`` prefix."""
     return error["msg"].removeprefix("Value error, ")
-
-
-def yaml_error_text(path: str | Path, exc: yaml.YAMLError) -> str:
-    """``<path>: line <n>: not valid YAML (<problem>)`` for a YAML syntax error."""
-    mark = getattr(exc, "problem_mark", None)
-    where = f" line {mark.line + 1}:" if mark else ""
-    return f"{path}:{where} not valid YAML ({getattr(exc, 'problem', exc)})"

@@ -1,7 +1,8 @@
 """Typed, frozen configuration models: one section per concern, SI units in key names.
 
 Unknown keys are rejected (``extra="forbid"``) and values are coerced to their
-annotated types, so ``550e-9`` (a string to PyYAML) is read as a number.
+annotated types, so ``550e-9`` (a string to PyYAML) is read as a number; booleans,
+integers and finite numbers are read strictly (:mod:`cca_cli.config.values`).
 """
 
 from __future__ import annotations
@@ -9,8 +10,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import (BaseModel, ConfigDict, Field, NonNegativeInt, PositiveFloat, PositiveInt, field_validator,
-                      model_validator)
+from pydantic import Field, NonNegativeInt, PositiveFloat, PositiveInt, field_validator, model_validator
+
+from cca_cli.config.section import Section
 
 __all__ = [
     "STAGES",
@@ -40,26 +42,23 @@ StageName = Literal["simulate", "ingest", "hdr", "register", "reconstruct", "rep
 DEFAULT_STAGES = ("simulate", "reconstruct", "report")
 
 
-class Section(BaseModel):
-    """Base of every section: frozen, unknown keys rejected."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
 class RunSection(Section):
     """Which stages run and where their files go."""
 
     out_dir: Path | None = Field(None, description="Output directory; default ./cca-runs/<config name>.")
     stages: list[StageName] = Field(list(DEFAULT_STAGES), description="Stages to run, in pipeline order.")
 
-    @model_validator(mode="after")
-    def _stages_in_order(self):
-        order = [STAGES.index(s) for s in self.stages]
+    @field_validator("stages")
+    @classmethod
+    def _stages_in_order(cls, stages):
+        if not stages:
+            raise ValueError("the list is empty, so nothing would run; list stages, e.g. [simulate, reconstruct, report]")
+        order = [STAGES.index(s) for s in stages]
         if order != sorted(order) or len(set(order)) != len(order):
             raise ValueError(f"stages must be distinct and in the order {', '.join(STAGES)}")
-        if "simulate" in self.stages and "ingest" in self.stages:
+        if "simulate" in stages and "ingest" in stages:
             raise ValueError("simulate and ingest are alternative sources of captures; list only one")
-        return self
+        return stages
 
 
 class OpticsSection(Section):
@@ -93,7 +92,7 @@ class SceneSection(Section):
         "none", description="random: a rough, diffuse surface (random phase) that makes speckle.")
     surface_roughness_rad: float = Field(3.0, ge=0.0, description="RMS of the random surface phase (rad).")
     surface_correlation_px: float = Field(0.0, ge=0.0, description="Gaussian correlation length of the surface phase (simulation px; 0 = per pixel).")
-    surface_seed: int = Field(0, description="Seed of the random surface phase.")
+    surface_seed: int = Field(0, ge=0, description="Seed of the random surface phase (≥ 0).")
 
     @model_validator(mode="after")
     def _image_needs_path(self):
@@ -121,9 +120,10 @@ class NoiseSection(Section):
 
     model: Literal["none", "gaussian", "poisson"] = Field("gaussian", description="none, gaussian (SNR) or poisson (shot + read).")
     snr_db: float = Field(30.0, description="Gaussian SNR per image: 10 log10(var(I) / σ²) (dB).")
-    photons_per_unit: PositiveFloat = Field(1000.0, description="Poisson: electrons per pixel at irradiance 1.")
+    photons_per_unit: PositiveFloat = Field(
+        1000.0, le=1e12, description="Poisson: electrons per pixel at irradiance 1 (at most 1e12, beyond any sensor).")
     read_noise_e: float = Field(2.0, ge=0.0, description="Poisson: read noise (electrons RMS).")
-    seed: int = Field(0, description="Seed of the noise generator.")
+    seed: int = Field(0, ge=0, description="Seed of the noise generator (≥ 0).")
 
 
 class SimulateSection(Section):
@@ -167,22 +167,24 @@ class ReconstructSection(Section):
 
     @field_validator("options")
     @classmethod
-    def _known_options(cls, options, info):
+    def _engine_options(cls, options, info):
+        """Read ``options`` with the options model of ``engine`` (:mod:`cca_cli.config.options`)."""
+        from cca_cli.config.options import SECTION_KEYS, validate_options
         from cca_cli.engines.registry import ENGINES
 
         engine = info.data.get("engine")
-        if engine == "auto":  # the engine depends on the data: accept what any engine accepts
-            accepted = set().union(*(set(entry.option_names()) for entry in ENGINES.values()))
-            accepted -= {"tau", "max_iterations", "tol"}
+        if engine == "auto":  # the engine depends on the data: read the options with an engine that takes them all
+            fitting = [name for name in ("momentum", *ENGINES) if set(options) <= set(ENGINES[name].option_names())]
+            if not fitting:
+                accepted = set().union(*(set(entry.option_names()) for entry in ENGINES.values()))
+                unknown = sorted(set(options) - accepted) or sorted(options)
+                raise ValueError(f"unknown option(s) {', '.join(unknown)} for engine auto; accepted: "
+                                 f"{', '.join(sorted(accepted - set(SECTION_KEYS)))}")
+            engine = fitting[0]
         elif engine not in ENGINES:
             return options
-        else:
-            accepted = set(ENGINES[engine].option_names()) - {"tau", "max_iterations", "tol"}
-        unknown = sorted(set(options) - accepted)
-        if unknown:
-            raise ValueError(f"unknown option(s) {', '.join(unknown)} for engine {engine}; "
-                             f"accepted: {', '.join(sorted(accepted)) or 'none'}")
-        return options
+        section = {name: info.data.get(key, cls.model_fields[key].default) for name, key in SECTION_KEYS.items()}
+        return validate_options(engine, options, section)
 
 
 class BaselineSpec(Section):
@@ -255,7 +257,7 @@ class MultiplexSection(Section):
     source_distance_m: PositiveFloat | None = Field(None, description="Distance from the sources to the object (m).")
     n_mux: PositiveInt = Field(1, description="Active sources per illumination pattern N_mux.")
     patterns: PositiveInt = Field(1, description="Number of illumination patterns T (random, see pattern_seed).")
-    pattern_seed: int = Field(0, description="Seed of the random patterns.")
+    pattern_seed: int = Field(0, ge=0, description="Seed of the random patterns (≥ 0).")
     pattern_list: list[list[int]] | None = Field(
         None, description="Explicit patterns: lists of source indices (row-major, 0…Q−1); overrides n_mux/patterns.")
 

@@ -104,9 +104,9 @@ def recon_quantity(recon_path: str | Path, quantity: str = "amplitude") -> tuple
 
     Returns
     -------
-    values : ndarray, float32, (M, M)
+    values : ndarray, float32, (M, M), or (H, W) for a region (/recon/region_px)
     pixel_size_m : float
-        Object-plane pixel size of the recovery grid (m).
+        Object-plane pixel size of the recovery grid (m), the same along both axes.
     units : str
     """
     _check_quantity(quantity)
@@ -123,8 +123,9 @@ def recon_quantity(recon_path: str | Path, quantity: str = "amplitude") -> tuple
         attrs = handle["recon"].attrs
         if "pixel_pitch_object_m" in attrs:
             pixel = float(attrs["pixel_pitch_object_m"])
-        else:
-            pixel = float(handle["geometry"].attrs["field_width_m"]) / values.shape[-1]
+        else:   # /geometry's field is the whole recovery grid, which a region (/recon/region_px) is part of
+            grid = int(attrs["hires_size"]) if "hires_size" in attrs else values.shape[-1]
+            pixel = float(handle["geometry"].attrs["field_width_m"]) / grid
     return values, pixel, units
 
 
@@ -189,7 +190,7 @@ def export_image(image, path: str | Path, *, pixel_size_m: float, quantity: str 
     if not (np.isfinite(pixel_size_m) and pixel_size_m > 0):
         raise ConfigError(f"pixel_size_m {pixel_size_m!r}: give the object pixel size in metres (> 0)")
     meta = {"software": "cca", "quantity": quantity, "units": units, "pixel_size_m": float(pixel_size_m)}
-    with atomic_path(path, force=force) as tmp:
+    with atomic_path(path, force=force, owned=written_by_export) as tmp:
         if kind == "npy":
             with open(tmp, "wb") as handle:
                 np.save(handle, values)
@@ -260,9 +261,28 @@ def export_recon(recon_path: str | Path, path: str | Path, *, quantity: str = "a
     kind = export_format(path, format)
     from cca_cli.io.h5 import check_output
 
-    check_output(Path(path), force=force)
+    check_output(Path(path), force=force, owned=written_by_export)
     values, pixel, units = recon_quantity(recon_path, quantity)
     return export_image(values, path, pixel_size_m=pixel, quantity=quantity, units=units, format=kind, force=force)
+
+
+def written_by_export(path: Path) -> bool:
+    """Whether ``path`` is a TIFF or PNG that :func:`export_image` wrote (its Software tag says cca).
+
+    A ``.npy`` file carries no such mark, so cca never replaces one it finds.
+    """
+    if Path(path).suffix.lower() not in (".tif", ".tiff", ".png"):
+        return False
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        oiio.geterror()
+        return False
+    try:
+        return inp.spec().getattribute("Software") == "cca"
+    finally:
+        inp.close()
 
 
 def read_exported(path: str | Path) -> ExportedImage:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import h5py
 import numpy as np
 
-from cca_cli.errors import InputError
+from cca_cli.errors import InputError, short
 from cca_cli.io.h5 import write_dataset
 from cca_cli.io.schema import GEOMETRY_ATTRS
 from cca_cli.sampling.geometry import CaptureGeometry
@@ -40,14 +40,34 @@ def read_geometry(handle: h5py.File) -> CaptureGeometry:
     if "geometry" not in handle:
         raise InputError(f"{handle.filename}: no /geometry group; the file was not written by cca simulate/ingest")
     group = handle["geometry"]
-    try:
-        values = {name: float(group.attrs[name]) for name in _SCALARS}
-        arrays = {name: np.asarray(group[name]) for name in _ARRAYS}
-    except KeyError as exc:
-        raise InputError(f"{handle.filename}: /geometry lacks {exc.args[0]}; the file is incomplete") from None
+    if not isinstance(group, h5py.Group):
+        raise InputError(f"{handle.filename}: /geometry is not a group; the file was not written by cca")
+    values = {}
+    for name in _SCALARS:
+        if name not in group.attrs:
+            raise InputError(f"{handle.filename}: /geometry lacks {name}; the file is incomplete")
+        try:
+            values[name] = float(group.attrs[name])
+        except (TypeError, ValueError):
+            raise InputError(f"{handle.filename}: /geometry attribute {name} is {short(group.attrs[name])}, "
+                             "expected a number") from None
+        if name != "overlap" and not (values[name] > 0 and np.isfinite(values[name])):
+            raise InputError(f"{handle.filename}: /geometry attribute {name} is {values[name]}, expected a "
+                             "positive number (pupil radius, optics)")
+    arrays = {}
+    for name in _ARRAYS:
+        if name not in group or not isinstance(group[name], h5py.Dataset):
+            raise InputError(f"{handle.filename}: /geometry lacks {name}; the file is incomplete")
+        arrays[name] = np.asarray(group[name])
+        if arrays[name].dtype.kind not in "biuf" or not np.isfinite(arrays[name]).all():
+            raise InputError(f"{handle.filename}: /geometry/{name} holds NaN, Inf or non-numbers; the file is "
+                             "damaged — re-run the stage that wrote it")
     kind = group.attrs.get("kind", "camera_scan")
-    values["kind"] = kind.decode() if isinstance(kind, bytes) else str(kind)
-    values["numerical_aperture"] = float(group.attrs.get("numerical_aperture", float("nan")))
+    values["kind"] = kind.decode(errors="replace") if isinstance(kind, bytes) else str(kind)
+    try:
+        values["numerical_aperture"] = float(group.attrs.get("numerical_aperture", float("nan")))
+    except (TypeError, ValueError):
+        values["numerical_aperture"] = float("nan")
     k = arrays["spectrum_centres_yx_px"].shape[0]
     for name, arr in arrays.items():
         if arr.shape != (k, 2):

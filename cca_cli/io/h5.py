@@ -6,8 +6,6 @@ import contextlib
 import datetime as _dt
 import hashlib
 import json
-import os
-import shutil
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -15,13 +13,15 @@ import h5py
 import numpy as np
 
 from cca_cli import __version__
-from cca_cli.errors import InputError, OutputExistsError
+from cca_cli.errors import InputError, short
+from cca_cli.io.outputs import atomic_path, check_output, remove_stale_temporaries
 from cca_cli.io.schema import SCHEMA_VERSION, spec_for
 
 __all__ = [
     "Provenance",
     "atomic_h5",
     "atomic_path",
+    "check_input_file",
     "check_output",
     "file_sha256",
     "open_input",
@@ -30,6 +30,8 @@ __all__ = [
     "read_provenance",
     "remove_temporaries",
     "require",
+    "require_attr",
+    "read_finite",
 ]
 
 
@@ -49,8 +51,7 @@ class Provenance(dict):
     def make(cls, stage: str, config_yaml: str, config_hash: str, inputs: list[str | Path] = ()) -> "Provenance":
         """Provenance for a stage run now, hashing its input files."""
         for p in inputs:
-            if not Path(p).is_file():
-                raise InputError(f"{p}: input file not found; check the path or run the stage that writes it")
+            check_input_file(p)
         return cls(
             cca_schema=SCHEMA_VERSION,
             stage=stage,
@@ -62,54 +63,102 @@ class Provenance(dict):
         )
 
 
-def check_output(path: Path, *, force: bool) -> None:
-    """Refuse to overwrite an existing output unless ``force``."""
-    if path.exists() and not force:
-        raise OutputExistsError(f"{path}: already exists; use --force to overwrite it or choose another output")
+def check_input_file(path: str | Path, *, listed_in: str | Path | None = None) -> Path:
+    """``path`` as a Path if it is an existing regular file, else a one-line InputError.
 
-
-@contextlib.contextmanager
-def atomic_path(path: str | Path, *, force: bool = False) -> Iterator[Path]:
-    """Yield a temporary sibling path; on success rename it onto ``path``.
-
-    The caller may create a file or a directory at the temporary path; an
-    existing directory at ``path`` (overwritten with ``force``) is replaced whole.
-    On any error (or Ctrl-C) the temporary file is removed and ``path`` is untouched.
+    ``listed_in`` names the file (a manifest) that lists ``path``, for the message.
     """
     path = Path(path)
-    check_output(path, force=force)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        yield tmp
-        if tmp.is_dir() and path.is_dir():  # os.replace cannot replace a non-empty directory
-            shutil.rmtree(path)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            if tmp.is_dir():
-                shutil.rmtree(tmp, ignore_errors=True)
-            else:
-                tmp.unlink()
+    if not path.exists():
+        if listed_in is not None:
+            raise InputError(f"{path}: listed in {listed_in} but not found; check the path there")
+        raise InputError(f"{path}: input file not found; check the path or run the stage that writes it")
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder, not a file")
+    if not path.is_file():
+        raise InputError(f"{path}: is not a regular file (a pipe or device); give a file")
+    return path
 
 
 def remove_temporaries(directory: str | Path) -> None:
-    """Remove what interrupted :func:`atomic_path` writes left in ``directory`` (their temporary siblings)."""
-    for stale in Path(directory).glob(".*.tmp-*"):
-        if stale.is_dir():
-            shutil.rmtree(stale, ignore_errors=True)
-        else:
-            stale.unlink(missing_ok=True)
+    """Remove what interrupted writes of dead processes left in ``directory`` (cca's own temporary names only)."""
+    remove_stale_temporaries(directory)
+
+
+class _DiskSink:
+    """The file object HDF5 writes through: a write that fails (a full disk) is recorded, not passed on.
+
+    HDF5 cannot recover from a failed write: closing such a file crashes the
+    interpreter (a segmentation fault in H5Fclose, also at exit). Through this
+    sink every write seems to succeed, so HDF5 always closes cleanly; the first
+    error is kept in :attr:`error` and raised once the file is closed, and the
+    temporary file, now incomplete, is discarded.
+    """
+
+    def __init__(self, path: Path):
+        self._file = open(path, "w+b", buffering=0)
+        self.error: OSError | None = None
+
+    def write(self, data) -> int:
+        if self.error is None:
+            view = memoryview(data).cast("B")
+            try:
+                while view:
+                    view = view[self._file.write(view):]
+            except OSError as exc:
+                self.error = exc
+        return memoryview(data).nbytes
+
+    def truncate(self, size=None):
+        if self.error is None:
+            try:
+                return self._file.truncate(size)
+            except OSError as exc:
+                self.error = exc
+        return size
+
+    def read(self, size=-1) -> bytes:
+        return self._file.read(size)
+
+    def readinto(self, buffer) -> int:
+        return self._file.readinto(buffer)
+
+    def seek(self, offset, whence=0) -> int:
+        return self._file.seek(offset, whence)
+
+    def tell(self) -> int:
+        return self._file.tell()
+
+    def flush(self) -> None:
+        pass
+
+    def close(self) -> None:
+        if not self._file.closed:
+            try:
+                self._file.close()
+            except OSError as exc:
+                self.error = self.error or exc
 
 
 @contextlib.contextmanager
 def atomic_h5(path: str | Path, provenance: Provenance, *, force: bool = False) -> Iterator[h5py.File]:
-    """Open a new HDF5 file for writing that appears at ``path`` only when complete."""
+    """Open a new HDF5 file for writing that appears at ``path`` only when complete.
+
+    A write that fails (a full disk) raises a one-line
+    :class:`~cca_cli.errors.ResourceError` once the file is closed; the
+    previous ``path`` is kept and the temporary file removed.
+    """
     with atomic_path(path, force=force) as tmp:
-        with h5py.File(tmp, "w") as handle:
-            for key, value in provenance.items():
-                handle.attrs[key] = value
-            yield handle
+        sink = _DiskSink(tmp)
+        try:
+            with h5py.File(sink, "w") as handle:
+                for key, value in provenance.items():
+                    handle.attrs[key] = value
+                yield handle
+        finally:
+            sink.close()
+        if sink.error is not None:
+            raise sink.error
 
 
 def write_dataset(group: h5py.Group, path: str, data, *, units: str | None = None, description: str | None = None,
@@ -155,14 +204,19 @@ def open_input(path: str | Path, *, stage: str | None = None) -> h5py.File:
     path = Path(path)
     if not path.exists():
         raise InputError(f"{path}: file not found; check the path or run the stage that writes it")
+    check_input_file(path)
     if not h5py.is_hdf5(path):
         raise InputError(f"{path}: not an HDF5 file; give a file written by cca (captures.h5, recon.h5 …)")
     try:
         handle = h5py.File(path, "r")
     except OSError as exc:
         raise InputError(f"{path}: cannot open HDF5 file ({exc}); it may be truncated — re-run the stage") from None
-    if handle.attrs.get("cca_schema") != SCHEMA_VERSION:
+    schema = handle.attrs.get("cca_schema")
+    if schema != SCHEMA_VERSION:
         handle.close()
+        if isinstance(schema, str) and schema.startswith("cca/"):
+            raise InputError(f"{path}: written in schema {short(schema, 20)}, but this cca reads {SCHEMA_VERSION}; "
+                             "use the cca version that wrote it")
         raise InputError(f"{path}: not a cca file (no cca_schema={SCHEMA_VERSION} attribute)")
     if stage is not None and stage not in str(handle.attrs.get("stage", "")).split(","):
         actual = handle.attrs.get("stage")
@@ -176,9 +230,44 @@ def require(handle: h5py.File, path: str, *, ndim: int | None = None) -> h5py.Da
     if path not in handle:
         raise InputError(f"{handle.filename}: missing dataset {path}; the file is incomplete or from another stage")
     dataset = handle[path]
+    if not isinstance(dataset, h5py.Dataset):
+        raise InputError(f"{handle.filename}: {path} is a group, expected a dataset; the file is not a cca file")
     if ndim is not None and dataset.ndim != ndim:
         raise InputError(f"{handle.filename}: {path} has shape {dataset.shape}, expected {ndim} dimensions")
     return dataset
+
+
+def read_finite(handle: h5py.File, path: str, *, ndim: int | None = None, dtype=None) -> np.ndarray:
+    """:func:`require` then read, refusing NaN or Inf (and complex values where ``dtype`` is real)."""
+    dataset = require(handle, path, ndim=ndim)
+    if dataset.dtype.kind not in "biufc":
+        raise InputError(f"{handle.filename}: {path} holds {dataset.dtype} values, expected numbers")
+    if dtype is not None and dataset.dtype.kind == "c" and np.dtype(dtype).kind != "c":
+        raise InputError(f"{handle.filename}: {path} holds complex values, expected real ones")
+    data = np.asarray(dataset, dtype=dtype)
+    if not np.all(np.isfinite(data)):
+        raise InputError(f"{handle.filename}: {path} contains NaN or Inf; the file is damaged — re-run the stage "
+                         "that wrote it")
+    return data
+
+
+def require_attr(obj: h5py.HLObject, name: str, kind: type = float):
+    """Attribute ``name`` of a group or dataset, converted to ``kind``; a one-line InputError if missing or wrong."""
+    where = obj.name if obj.name != "/" else "the file"
+    if name not in obj.attrs:
+        raise InputError(f"{obj.file.filename}: {where} lacks the attribute {name}; the file is incomplete — "
+                         "re-run the stage that wrote it")
+    value = obj.attrs[name]
+    try:
+        if kind is str:
+            return value.decode(errors="replace") if isinstance(value, bytes) else str(value)
+        number = kind(value)
+        if kind is float and not np.isfinite(number):
+            raise ValueError
+        return number
+    except (TypeError, ValueError):
+        raise InputError(f"{obj.file.filename}: {where} attribute {name} is {short(value)}, expected "
+                         f"{'a finite number' if kind is float else 'an integer'}") from None
 
 
 def read_provenance(path: str | Path) -> dict[str, Any]:

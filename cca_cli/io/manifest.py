@@ -21,12 +21,12 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-import yaml
 from pydantic import (BaseModel, ConfigDict, Field, PositiveFloat, PositiveInt, ValidationError, field_validator,
                       model_validator)
 
-from cca_cli.config.messages import accepted_keys, error_message, yaml_error_text
-from cca_cli.errors import ConfigError, InputError
+from cca_cli.config.messages import accepted_keys, error_message
+from cca_cli.config.yaml_text import read_text_file, read_yaml_file
+from cca_cli.errors import ConfigError, InputError, short
 
 __all__ = ["Manifest", "ImageEntry", "CapturePlan", "LoadedManifest", "KINDS", "TABLE_COLUMNS", "load_manifest",
            "read_manifest", "plan_captures", "manifest_files", "read_pupil"]
@@ -279,7 +279,7 @@ def _describe(error: dict, source: str) -> str:
         keys = ", ".join(accepted_keys(Manifest, error["loc"])) or "see the README"
         return f"{source}: {loc}: unknown key; accepted keys here: {keys}"
     value = error.get("input")
-    suffix = f" (got {value!r})" if not isinstance(value, dict) else ""
+    suffix = f" (got {short(value)})" if not isinstance(value, dict) else ""
     return f"{source}: {loc}: {error_message(error)}{suffix}"
 
 
@@ -290,27 +290,22 @@ def _first_error(exc: ValidationError) -> dict:
 
 
 def _read_mapping(path: Path, what: str) -> dict:
-    """A YAML or JSON file that must hold a mapping."""
-    try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise InputError(f"{path}: {what} not found; check the path") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: cannot read {what} ({exc})") from None
+    """A YAML or JSON file that must hold a mapping (read with the safe YAML reader: no aliases bombs, no pipes)."""
     if path.suffix.lower() == ".json":
+        text = read_text_file(path, what=what)
         try:
             data = json.loads(text)
         except json.JSONDecodeError as exc:
             raise ConfigError(f"{path}: line {exc.lineno}: not valid JSON ({exc.msg})") from None
     else:
-        try:
-            data = yaml.safe_load(text)
-        except yaml.YAMLError as exc:
-            raise ConfigError(yaml_error_text(path, exc)) from None
+        data = read_yaml_file(path, what=what)
     if data is None:
         data = {}
     if not isinstance(data, dict):
-        raise ConfigError(f"{path}: the {what} must be a mapping (optics, sensor, images …)")
+        raise ConfigError(f"{path}: not a {what}: the top level must be a mapping (optics, sensor, images …)")
+    if what == "manifest" and data and not set(map(str, data)) & set(Manifest.model_fields):
+        raise ConfigError(f"{path}: not a capture manifest: none of its top-level keys is a manifest key "
+                          f"({', '.join(Manifest.model_fields)})")
     return data
 
 

@@ -7,40 +7,42 @@ Two kinds of transform are offered:
 
 * :func:`fft2c` / :func:`ifft2c`: centred, orthonormal 2-D FFTs over the last
   two axes, batched over any leading axes. Convenient, not for hot loops.
-* :class:`InPlaceFFT2`: raw (unnormalised) 2-D FFTs planned once for one
-  buffer and executed in place. FFTW (pyfftw) when installed, ``scipy.fft``
-  otherwise. Callers fold the normalisation into arrays they multiply anyway.
-  FFTW plans are measured once per shape and machine: the wisdom is kept in
-  ``$CCA_CACHE_DIR`` (default ``~/.cache/cca``). ``$CCA_FFTW_PLANNING`` sets how
-  hard FFTW searches: ``patient`` (default; a second or two per new shape, once,
-  and up to a third faster strided transforms), ``measure`` or ``estimate``.
+* :class:`InPlaceFFT2` and :class:`BandedFFT2`: raw (unnormalised) 2-D FFTs
+  planned once for one buffer and executed in place. FFTW (pyfftw) when
+  installed, ``scipy.fft`` otherwise. Callers fold the normalisation into
+  arrays they multiply anyway. How FFTW plans them (``$CCA_FFTW_PLANNING``,
+  bounded and chosen by how long they run), who owns the plans and the one
+  planner lock are the business of :mod:`cca_cli.optics.fftw_plans`.
+
+``CCA_FFT_BACKEND=scipy`` runs without pyfftw (it is not even imported) and
+``CCA_RAW_FFTW=off`` as where FFTW's library cannot be found (not Linux):
+see :mod:`cca_cli.optics.switches`.
 """
 
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import os
-import threading
-import weakref
+import time
 
 import numpy as np
 import scipy.fft
 
-try:  # pragma: no cover - exercised when pyfftw is installed
-    import pyfftw
-
-    _HAVE_PYFFTW = True
-except ImportError:  # pragma: no cover
-    pyfftw = None
-    _HAVE_PYFFTW = False
+from cca_cli.optics import fftw_plans, switches
+from cca_cli.optics.fftw_plans import HAVE_PYFFTW, PLANNER_LOCK, RawFFTPlans, Spec, pyfftw, raw_fftw_available
+from cca_cli.optics.switches import planning_effort
 
 __all__ = [
     "xp",
+    "HAVE_PYFFTW",
+    "PLANNER_LOCK",
     "backend_name",
     "use_backend",
     "cpu_count",
     "planning_effort",
+    "planning_seconds",
+    "check_settings",
+    "raw_fftw_available",
     "empty",
     "zeros",
     "fft2",
@@ -50,82 +52,23 @@ __all__ = [
     "fourier_resample",
     "InPlaceFFT2",
     "BandedFFT2",
-    "fftw_execute",
+    "RawFFTPlans",
 ]
 
 #: Array module used by the numeric core.
 xp = np
 
-_backend = "pyfftw" if _HAVE_PYFFTW else "scipy"
+_backend = "pyfftw" if HAVE_PYFFTW else "scipy"
 
 
-def _wisdom_path():
-    """Where FFTW plans measured on this machine are kept between runs."""
-    from pathlib import Path
-
-    root = os.environ.get("CCA_CACHE_DIR") or os.path.join(os.path.expanduser("~"), ".cache", "cca")
-    return Path(root) / f"fftw-wisdom-{pyfftw.__version__}.pickle"
+def check_settings() -> None:
+    """Raise :class:`~cca_cli.errors.ConfigError` (one line) if an FFT environment switch has an unknown value."""
+    switches.check()
 
 
-_wisdom_loaded = False
-
-
-def _load_wisdom() -> None:
-    """Import the saved FFTW wisdom once per process (planning then takes milliseconds)."""
-    global _wisdom_loaded
-    if _wisdom_loaded:
-        return
-    _wisdom_loaded = True
-    try:
-        import pickle
-
-        with open(_wisdom_path(), "rb") as handle:
-            pyfftw.import_wisdom(pickle.load(handle))
-    except Exception:  # noqa: BLE001
-        pass  # no or unreadable cache: plans are measured afresh
-
-
-def _save_wisdom() -> None:
-    """Write the process's FFTW wisdom (atomically, so concurrent workers never see half a file)."""
-    try:
-        import pickle
-        import tempfile
-
-        path = _wisdom_path()
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile("wb", dir=path.parent, delete=False, suffix=".tmp") as handle:
-            pickle.dump(pyfftw.export_wisdom(), handle)
-        os.replace(handle.name, path)
-    except OSError:
-        pass  # a read-only home only costs planning time
-
-
-_PLANNING = {"estimate": "FFTW_ESTIMATE", "measure": "FFTW_MEASURE", "patient": "FFTW_PATIENT"}
-
-
-def planning_effort() -> str:
-    """How hard FFTW searches for plans: ``$CCA_FFTW_PLANNING``, default ``"patient"``.
-
-    Raises
-    ------
-    ValueError
-        If the variable names an unknown effort.
-    """
-    effort = os.environ.get("CCA_FFTW_PLANNING", "patient").strip().lower()
-    if effort not in _PLANNING:
-        raise ValueError(f"CCA_FFTW_PLANNING={effort!r} is not one of {', '.join(_PLANNING)}; unset it or pick one")
-    return effort
-
-
-def _plan(array, axes, direction, threads, effort=None):
-    """An FFTW plan searched for once per shape and machine (wisdom kept in the user cache)."""
-    _load_wisdom()
-    before = pyfftw.export_wisdom()
-    plan = pyfftw.FFTW(array, array, axes=axes, direction=direction,
-                       flags=(_PLANNING[effort or planning_effort()], "FFTW_DESTROY_INPUT"), threads=threads)
-    if pyfftw.export_wisdom() != before:
-        _save_wisdom()
-    return plan
+def planning_seconds() -> float:
+    """Seconds this process has spent in timed FFTW planning so far."""
+    return fftw_plans.planning_seconds()
 
 
 def cpu_count() -> int:
@@ -138,6 +81,7 @@ def cpu_count() -> int:
 
 def backend_name() -> str:
     """Name of the FFT backend in use: ``"pyfftw"`` or ``"scipy"``."""
+    check_settings()
     return _backend
 
 
@@ -148,13 +92,13 @@ def use_backend(name: str):
     Raises
     ------
     ValueError
-        If the name is unknown or pyfftw is requested but not installed.
+        If the name is unknown or pyfftw is requested but not available.
     """
     global _backend
     if name not in ("pyfftw", "scipy"):
         raise ValueError(f"unknown FFT backend {name!r}; choose 'pyfftw' or 'scipy'")
-    if name == "pyfftw" and not _HAVE_PYFFTW:
-        raise ValueError("FFT backend 'pyfftw' requested but pyfftw is not installed")
+    if name == "pyfftw" and not HAVE_PYFFTW:
+        raise ValueError("FFT backend 'pyfftw' requested but pyfftw is not installed (or CCA_FFT_BACKEND=scipy)")
     previous, _backend = _backend, name
     try:
         yield
@@ -234,40 +178,55 @@ def fourier_resample(images, size: int, *, workers: int | None = None) -> np.nda
     return out.astype(np.float32)
 
 
+def _checked_buffer(buffer: np.ndarray, name: str) -> None:
+    if not isinstance(buffer, np.ndarray) or buffer.dtype != np.complex64:
+        raise ValueError(f"{name} needs a complex64 buffer, got {getattr(buffer, 'dtype', type(buffer))}")
+    if not buffer.flags.c_contiguous or not buffer.flags.writeable:
+        raise ValueError(f"{name} needs a C-contiguous, writeable buffer")
+
+
 class InPlaceFFT2:
     """Raw 2-D FFTs over the last two axes of one complex64 buffer, planned once.
 
     Parameters
     ----------
-    buffer : ndarray, complex64, (..., m, m)
+    buffer : ndarray, complex64, (..., m, m), C-contiguous
         The array transformed in place. Keep using the same object.
     threads : int, optional
         Threads for one transform (default: all cores).
     effort : str, optional
-        FFTW planning effort (default :func:`planning_effort`); ``"measure"`` suits buffers used a few times.
+        FFTW planning effort (default :func:`planning_effort`).
 
     Notes
     -----
     ``forward`` computes ``Σ x exp(-2πi k n / m)`` and ``inverse`` computes
     ``Σ X exp(+2πi k n / m)``, both without any scaling: one round trip
-    multiplies by ``m * m``. With FFTW, planning overwrites the buffer: fill it
-    after constructing the plan.
+    multiplies by ``m * m``. Planning leaves the buffer untouched.
     """
 
     def __init__(self, buffer: np.ndarray, *, threads: int | None = None, effort: str | None = None):
-        if buffer.dtype != np.complex64:
-            raise ValueError(f"InPlaceFFT2 needs a complex64 buffer, got {buffer.dtype}")
+        check_settings()
+        _checked_buffer(buffer, "InPlaceFFT2")
         self.buffer = buffer
         self.threads = threads or cpu_count()
         self.backend = _backend
+        self._plans = None
         if self.backend == "pyfftw":
-            self._forward = _plan(buffer, (-2, -1), "FFTW_FORWARD", self.threads, effort)
-            self._inverse = _plan(buffer, (-2, -1), "FFTW_BACKWARD", self.threads, effort)
+            specs = [Spec(None, None, (-2, -1), -1), Spec(None, None, (-2, -1), +1)]
+            self._plans = fftw_plans.owned_plans(self, buffer, specs, self.threads, effort)
+
+    def _execute(self, i: int) -> None:
+        plans = self._plans
+        with plans.lock:
+            plans.check_alive()
+            start = time.perf_counter()
+            plans.fftw[i].execute()
+            plans.note_use(time.perf_counter() - start, (i,))
 
     def forward(self) -> np.ndarray:
         """Unnormalised forward FFT of the buffer, in place; returns the buffer."""
         if self.backend == "pyfftw":
-            self._forward.execute()
+            self._execute(0)
         else:
             self.buffer[...] = scipy.fft.fft2(self.buffer, norm="backward", overwrite_x=True, workers=self.threads)
         return self.buffer
@@ -275,104 +234,26 @@ class InPlaceFFT2:
     def inverse(self) -> np.ndarray:
         """Unnormalised inverse FFT of the buffer, in place; returns the buffer."""
         if self.backend == "pyfftw":
-            self._inverse.execute()
+            self._execute(1)
         else:
             self.buffer[...] = scipy.fft.ifft2(self.buffer, norm="forward", overwrite_x=True, workers=self.threads)
         return self.buffer
 
-
-# ----------------------------------------------------------------------------- raw FFTW plans
-class _IODim(ctypes.Structure):
-    _fields_ = [("n", ctypes.c_int), ("is_", ctypes.c_int), ("os", ctypes.c_int)]
-
-
-_FFTW_FLAGS = {"estimate": 1 << 6, "measure": 0, "patient": 1 << 5}
-_FFTW_DESTROY_INPUT = 1
-_raw_library = None
-_raw_lock = threading.Lock()
-
-
-def _fftw_library():
-    """The single-precision FFTW that pyfftw loaded, through ctypes; None where it cannot be found.
-
-    Plans made through it share pyfftw's wisdom, and compiled kernels can execute them
-    without the interpreter (see :data:`fftw_execute`). Found through ``/proc/self/maps``,
-    so only on Linux.
-    """
-    global _raw_library
-    if _raw_library is not None or not _HAVE_PYFFTW:
-        return _raw_library or None
-    _raw_library = False
-    try:
-        with open("/proc/self/maps") as maps:
-            paths = {line.split()[-1] for line in maps if "/libfftw3f" in line}
-    except OSError:
-        return None
-    threaded = [p for p in paths if "_omp" in p or "_threads" in p]
-    paths = [p for p in paths if p not in threaded]
-    if len(paths) != 1 or len(threaded) > 1:
-        return None
-    try:
-        library = ctypes.CDLL(paths[0])
-        # Planning reads a global thread count that pyfftw sets per plan: raw plans set it to 1.
-        library.set_plan_threads = ctypes.CDLL(threaded[0]).fftwf_plan_with_nthreads if threaded else None
-        library.fftwf_plan_guru_dft.restype = ctypes.c_void_p
-        library.fftwf_plan_guru_dft.argtypes = [ctypes.c_int, ctypes.POINTER(_IODim), ctypes.c_int,
-                                                ctypes.POINTER(_IODim), ctypes.c_void_p, ctypes.c_void_p,
-                                                ctypes.c_int, ctypes.c_uint]
-        library.fftwf_execute.argtypes = [ctypes.c_void_p]
-        library.fftwf_execute.restype = None
-        library.fftwf_destroy_plan.argtypes = [ctypes.c_void_p]
-        library.fftwf_destroy_plan.restype = None
-    except (OSError, AttributeError):
-        return None
-    _raw_library = library
-    return library
-
-
-def fftw_execute():
-    """``fftwf_execute`` as a ctypes function (callable from numba-compiled code), or None."""
-    library = _fftw_library()
-    return None if library is None else library.fftwf_execute
-
-
-def _raw_plan(array: np.ndarray, axis: int, row_start: int, row_stop: int, sign: int, effort: str | None) -> int:
-    """A raw FFTW plan, in place, of 1-D transforms of ``array`` (n, m, m) along ``axis``.
-
-    Along the last axis only rows ``[row_start, row_stop)`` are transformed. Returns the plan's address.
-    """
-    library = _fftw_library()
-    count, m = array.shape[0], array.shape[-1]
-    if axis == -1:
-        dims = [_IODim(m, 1, 1)]
-        loops = [_IODim(count, m * m, m * m), _IODim(row_stop - row_start, m, m)]
-        start = array[:, row_start:row_stop].ctypes.data if count else array.ctypes.data
-    else:
-        dims = [_IODim(m, m, m)]
-        loops = [_IODim(count, m * m, m * m), _IODim(m, 1, 1)]
-        start = array.ctypes.data
-    flags = _FFTW_FLAGS[effort or planning_effort()] | _FFTW_DESTROY_INPUT
-    with _raw_lock:
-        if library.set_plan_threads is not None:
-            library.set_plan_threads(1)
-        plan = library.fftwf_plan_guru_dft(1, (_IODim * 1)(*dims), 2, (_IODim * 2)(*loops), start, start, sign,
-                                           flags)
-    if not plan:
-        raise RuntimeError("FFTW could not plan a transform")
-    return int(plan)
-
-
-def _destroy_raw_plans(plans: list[int]) -> None:
-    library = _fftw_library()
-    with _raw_lock:
-        for plan in plans:
-            library.fftwf_destroy_plan(plan)
+    def close(self) -> None:
+        """Destroy the plans now; using the transform afterwards raises RuntimeError."""
+        if self._plans is not None:
+            fftw_plans.release(self._plans)
 
 
 def _planned_counts(capacity: int) -> list[int]:
     """Field counts planned for a buffer of ``capacity`` fields: powers of two below it, and itself."""
     counts = [1 << bit for bit in range(capacity.bit_length()) if (1 << bit) < capacity]
     return counts + [capacity]
+
+
+#: The four transforms of each planned count, in the order they run: inverse rows, inverse columns
+#: (the inverse 2-D FFT), forward columns, forward rows (the forward one).
+_INVERSE_ROWS, _INVERSE_COLUMNS, _FORWARD_COLUMNS, _FORWARD_ROWS = range(4)
 
 
 class BandedFFT2:
@@ -391,7 +272,7 @@ class BandedFFT2:
 
     Parameters
     ----------
-    buffer : ndarray, complex64, (n, m, m)
+    buffer : ndarray, complex64, (n, m, m), C-contiguous
     row_start, row_stop : int
         The band of rows that holds data.
     threads : int, optional
@@ -401,54 +282,50 @@ class BandedFFT2:
 
     Notes
     -----
-    With FFTW, planning overwrites the buffer: fill it after construction.
+    The plans live as long as this object (or a :class:`RawFFTPlans` made from
+    it), or until :meth:`close`. Planning leaves the buffer untouched.
     """
 
     def __init__(self, buffer: np.ndarray, row_start: int, row_stop: int, *, threads: int | None = None,
                  effort: str | None = None):
-        if buffer.dtype != np.complex64 or buffer.ndim != 3:
-            raise ValueError(f"BandedFFT2 needs a complex64 (n, m, m) buffer, got {buffer.dtype} {buffer.shape}")
+        check_settings()
+        _checked_buffer(buffer, "BandedFFT2")
+        if buffer.ndim != 3 or buffer.shape[0] < 1 or buffer.shape[1] != buffer.shape[2]:
+            raise ValueError(f"BandedFFT2 needs an (n, m, m) buffer with n >= 1, got {buffer.shape}")
+        if not 0 <= row_start < row_stop <= buffer.shape[1]:
+            raise ValueError(f"band rows [{row_start}, {row_stop}) must lie within [0, {buffer.shape[1]})")
         self.buffer = buffer
         self.band = buffer[:, row_start:row_stop, :]
+        self.rows = (int(row_start), int(row_stop))
         self.threads = threads or cpu_count()
         self.backend = _backend
-        self._plans = {}
         self._counts = _planned_counts(buffer.shape[0])
+        self._group = {count: g for g, count in enumerate(self._counts)}
+        self._plans = None
+        self._raw_handle = None
         if self.backend == "pyfftw":
+            specs = []
             for count in self._counts:
-                whole, band = buffer[:count], self.band[:count]
-                self._plans[count] = (
-                    _plan(band, (-1,), "FFTW_BACKWARD", self.threads, effort),
-                    _plan(whole, (-2,), "FFTW_BACKWARD", self.threads, effort),
-                    _plan(whole, (-2,), "FFTW_FORWARD", self.threads, effort),
-                    _plan(band, (-1,), "FFTW_FORWARD", self.threads, effort),
-                )
-        #: Raw FFTW plans per planned count, for compiled loops (None where unavailable); see :meth:`raw_plans`.
-        self._raw = None
-        if self.backend == "pyfftw" and self.threads == 1 and _fftw_library() is not None:
-            rows = (row_start, row_stop)
-            self._raw = np.array([[_raw_plan(buffer[:count], -1, *rows, +1, effort),
-                                   _raw_plan(buffer[:count], -2, *rows, +1, effort),
-                                   _raw_plan(buffer[:count], -2, *rows, -1, effort),
-                                   _raw_plan(buffer[:count], -1, *rows, -1, effort)] for count in self._counts],
-                                 dtype=np.int64)
-            weakref.finalize(self, _destroy_raw_plans, [int(p) for p in self._raw.ravel()])
+                specs += [Spec(count, self.rows, (-1,), +1), Spec(count, None, (-2,), +1),
+                          Spec(count, None, (-2,), -1), Spec(count, self.rows, (-1,), -1)]
+            self._plans = fftw_plans.owned_plans(self, buffer, specs, self.threads, effort)
 
-    def raw_plans(self) -> tuple[np.ndarray, np.ndarray] | None:
-        """Plans compiled code can execute with :func:`fftw_execute`, or None.
+    def raw_plans(self) -> RawFFTPlans | None:
+        """Plans compiled code can execute (see :class:`RawFFTPlans`), or None.
 
-        Returns
-        -------
-        counts : ndarray, int64, (n,)
-            The planned field counts, ascending.
-        plans : ndarray, int64, (n, 4)
-            For each count, the addresses of the inverse row and column plans and the forward
-            column and row plans, in the order they run. Available with pyfftw on Linux, for
-            single-threaded buffers.
+        Available with pyfftw on Linux, for single-threaded buffers. The plans
+        live as long as the returned object.
         """
-        if self._raw is None:
+        if self.backend != "pyfftw" or self.threads != 1 or not raw_fftw_available():
             return None
-        return np.array(self._counts, dtype=np.int64), self._raw
+        handle = self._raw_handle
+        plans = self._plans
+        with plans.lock:
+            plans.check_alive()
+            if handle is None or handle.generation != plans.raw_generation or plans.raw is None:
+                plans.make_raw()
+                handle = self._raw_handle = RawFFTPlans(self, plans, self._counts)
+        return handle
 
     def _planned(self, count: int | None) -> int:
         """The smallest planned count that holds ``count`` fields (0 for none)."""
@@ -459,15 +336,23 @@ class BandedFFT2:
             raise ValueError(f"count must be in [0, {n}], got {count}")
         return next((c for c in self._counts if c >= count), n) if count else 0
 
+    def _execute(self, count: int, first: int, second: int) -> None:
+        plans = self._plans
+        base = 4 * self._group[count]
+        with plans.lock:
+            plans.check_alive()
+            start = time.perf_counter()
+            plans.fftw[base + first].execute()
+            plans.fftw[base + second].execute()
+            plans.note_use(time.perf_counter() - start, (base + first, base + second))
+
     def inverse(self, count: int | None = None) -> np.ndarray:
         """Unnormalised inverse 2-D FFT of the first ``count`` fields (default all), zero outside the band; in place."""
         count = self._planned(count)
         if not count:
             return self.buffer
         if self.backend == "pyfftw":
-            rows, columns, _, _ = self._plans[count]
-            rows.execute()
-            columns.execute()
+            self._execute(count, _INVERSE_ROWS, _INVERSE_COLUMNS)
         else:
             band, whole = self.band[:count], self.buffer[:count]
             band[...] = scipy.fft.ifft(band, axis=-1, norm="forward", workers=self.threads)
@@ -480,11 +365,16 @@ class BandedFFT2:
         if not count:
             return self.buffer
         if self.backend == "pyfftw":
-            _, _, columns, rows = self._plans[count]
-            columns.execute()
-            rows.execute()
+            self._execute(count, _FORWARD_COLUMNS, _FORWARD_ROWS)
         else:
             band, whole = self.band[:count], self.buffer[:count]
             whole[...] = scipy.fft.fft(whole, axis=-2, norm="backward", overwrite_x=True, workers=self.threads)
             band[...] = scipy.fft.fft(band, axis=-1, norm="backward", workers=self.threads)
         return self.buffer
+
+    def close(self) -> None:
+        """Destroy the plans now (raw ones included); using them afterwards raises RuntimeError."""
+        if self._plans is not None:
+            fftw_plans.release(self._plans)
+
+

@@ -59,6 +59,10 @@ def chunk_slices(n_items: int, chunk: int) -> list[slice]:
 class Workspace:
     """Scratch space for one thread: a field buffer with its FFTs, planned for in-place use.
 
+    The workspace owns the FFT plans of its buffer (raw FFTW plans included, see
+    :meth:`~cca_cli.optics.fft.BandedFFT2.raw_plans`); they live as long as it does, or
+    until :meth:`close`.
+
     Parameters
     ----------
     chunk : int
@@ -80,13 +84,12 @@ class Workspace:
         self._effort = effort
         #: Pruned transforms for fields confined to the pupil box's rows (None: use full transforms).
         self.box_fft = None if band is None else fft.BandedFFT2(self.fields, *band, threads=threads, effort=effort)
-        # Without a band the full transforms do the work: plan them now, before the buffer holds data.
+        # Without a band the full transforms do the work: plan them now.
         self._fft = None if band is not None else fft.InPlaceFFT2(self.fields, threads=threads, effort=effort)
-        self.fields.fill(0)
 
     @property
     def fft(self) -> fft.InPlaceFFT2:
-        """Full (unpruned) transforms of the buffer; with a band, planned on first use (planning clears the buffer)."""
+        """Full (unpruned) transforms of the buffer; with a band, planned on first use."""
         if self._fft is None:
             self._fft = fft.InPlaceFFT2(self.fields, threads=self._threads, effort=self._effort)
         return self._fft
@@ -107,6 +110,12 @@ class Workspace:
         if self.box_fft is not None:
             return self.box_fft.forward(count)
         return self.fft.forward()
+
+    def close(self) -> None:
+        """Destroy the FFT plans now (they are also destroyed when the workspace is collected)."""
+        for transform in (self.box_fft, self._fft):
+            if transform is not None:
+                transform.close()
 
 
 class ForwardModel:
@@ -175,8 +184,8 @@ class ForwardModel:
                   effort: str | None = None) -> Workspace:
         """A :class:`Workspace` sized for ``chunk`` captures (default: all).
 
-        ``effort`` is the FFTW planning effort (default :func:`~cca_cli.optics.fft.planning_effort`);
-        ``"measure"`` plans quickly for workspaces used only a few times.
+        ``effort`` is the FFTW planning effort (default :func:`~cca_cli.optics.fft.planning_effort`,
+        whose ``auto`` plans a workspace used only a few times in milliseconds).
         """
         start = self.layout.lowres_box_start
         return Workspace(chunk or self.n_images, self.layout.lowres_size, threads=threads,
@@ -240,7 +249,7 @@ class ForwardModel:
     def forward(self, spectrum: np.ndarray, *, chunk: int = 64) -> np.ndarray:
         """All K fields (field layout), complex64 (K, m, m). Allocates; not for hot loops."""
         out = np.empty((self.n_images,) + self.field_shape, np.complex64)
-        ws = self.workspace(min(chunk, self.n_images), effort="measure")
+        ws = self.workspace(min(chunk, self.n_images))
         for sl in chunk_slices(self.n_images, ws.capacity):
             out[sl] = self.forward_into(spectrum, sl, ws)
         return out
@@ -248,7 +257,7 @@ class ForwardModel:
     def adjoint(self, fields: np.ndarray, *, chunk: int = 64) -> np.ndarray:
         """``Σ A_iᴴ ψ_i`` for fields in field layout, complex64 (M, M). Does not modify ``fields``."""
         acc = np.zeros(self.spectrum_shape, np.complex64)
-        ws = self.workspace(min(chunk, self.n_images), effort="measure")
+        ws = self.workspace(min(chunk, self.n_images))
         for sl in chunk_slices(self.n_images, ws.capacity):
             k = sl.stop - sl.start
             ws.fields[:k] = fields[sl]
@@ -258,7 +267,7 @@ class ForwardModel:
     def sensor_intensity(self, spectrum: np.ndarray, *, chunk: int = 64) -> np.ndarray:
         """Noise-free captures in sensor units and centred sensor layout, float32 (K, m, m)."""
         out = np.empty((self.n_images,) + self.field_shape, np.float32)
-        ws = self.workspace(min(chunk, self.n_images), effort="measure")
+        ws = self.workspace(min(chunk, self.n_images))
         scale = 1.0 / self.intensity_scale
         for sl in chunk_slices(self.n_images, ws.capacity):
             fields = self.forward_into(spectrum, sl, ws)

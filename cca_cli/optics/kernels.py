@@ -6,26 +6,41 @@ field buffer, the magnitude projection with its misfit, and the pupil-weighted
 scatter back into the spectrum. The compiled kernels release the GIL, so the
 engines' worker threads run them in parallel on different chunks. They sit beside :mod:`cca_cli.optics.fft` as
 part of the array backend: another backend (e.g. CuPy) supplies its own
-versions of these few functions. Without numba, equivalent numpy code runs.
+versions of these few functions. Without numba, equivalent numpy code runs;
+``CCA_KERNELS=numpy`` selects it (numba is then not imported).
+
+Compiled code does not check its indices, so every public function checks
+shapes, dtypes, layouts and box origins first: a bad call raises ValueError
+and never reaches compiled code.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-try:  # pragma: no cover - exercised when numba is installed
-    import numba
+from cca_cli.optics import fft, switches
 
-    _HAVE_NUMBA = True
-except ImportError:  # pragma: no cover
-    numba = None
-    _HAVE_NUMBA = False
+numba = None
+if switches.read_at_import("CCA_KERNELS", "numba", ("numba", "numpy")) == "numba":
+    try:  # pragma: no cover - exercised when numba is installed
+        import numba
+    except ImportError:  # pragma: no cover
+        numba = None
+_HAVE_NUMBA = numba is not None
 
-__all__ = ["kernels_name", "use_kernels", "warm_up", "place_boxes", "project_magnitudes", "magnitude_step",
-           "can_fuse_lanes", "sequential_lane",
-           "scatter_boxes", "momentum_step", "tikhonov_update"]
+__all__ = ["HAVE_NUMBA", "kernels_name", "use_kernels", "check_settings", "warm_up", "place_boxes",
+           "project_magnitudes", "magnitude_step", "can_fuse_lanes", "sequential_lane", "scatter_boxes",
+           "momentum_step", "tikhonov_update", "rpie_factors", "accumulate_pupil"]
 
+#: Whether numba is installed and enabled (``CCA_KERNELS`` is not ``numpy``).
+HAVE_NUMBA = _HAVE_NUMBA
 _use_numba = _HAVE_NUMBA
+
+
+def check_settings() -> None:
+    """Raise :class:`~cca_cli.errors.ConfigError` (one line) if a backend switch, ``CCA_KERNELS`` included,
+    has an unknown value (see :mod:`cca_cli.optics.switches`)."""
+    switches.check()
 
 
 def kernels_name() -> str:
@@ -40,7 +55,7 @@ class use_kernels:
         if name not in ("numba", "numpy"):
             raise ValueError(f"unknown kernels {name!r}; choose 'numba' or 'numpy'")
         if name == "numba" and not _HAVE_NUMBA:
-            raise ValueError("numba kernels requested but numba is not installed")
+            raise ValueError("numba kernels requested but numba is not installed (or CCA_KERNELS=numpy)")
         self.name = name
 
     def __enter__(self):
@@ -106,8 +121,22 @@ if _HAVE_NUMBA:  # pragma: no branch
     _jit_fast = numba.njit(nogil=True, cache=True, error_model="numpy", fastmath=True)
 
     @_jit
+    def _first_bad_box(origins, start, count, last_y, last_x):  # pragma: no cover - compiled
+        """Index of the first capture in ``start … start + count - 1`` whose box leaves the spectrum, or -1."""
+        for j in range(start, start + count):
+            y0 = origins[j, 0]
+            x0 = origins[j, 1]
+            if y0 < 0 or x0 < 0 or y0 > last_y or x0 > last_x:
+                return j
+        return -1
+
+    @_jit
     def _place_boxes_numba(spectrum, origins, pupils, fields, start):  # pragma: no cover - compiled
+        """Returns -1, or the first capture whose box leaves the spectrum (then nothing is written)."""
         k, m, b = fields.shape[0], fields.shape[1], pupils.shape[1]
+        bad = _first_bad_box(origins, start, k, spectrum.shape[0] - b, spectrum.shape[1] - b)
+        if bad >= 0:
+            return bad
         s = m // 2 - b // 2
         for j in range(k):
             y0 = origins[start + j, 0]
@@ -123,6 +152,7 @@ if _HAVE_NUMBA:  # pragma: no branch
                         fields[j, r, s + c] = spectrum[y0 + r - s, x0 + c] * pupils[start + j, r - s, c]
                     for c in range(s + b, m):
                         fields[j, r, c] = 0
+        return -1
 
     #: Elements per float32 partial sum of the misfit (the partial sums are added in float64).
     _MISFIT_BLOCK = 2048
@@ -198,7 +228,11 @@ if _HAVE_NUMBA:  # pragma: no branch
 
     @_jit
     def _scatter_numba(fields, origins, pupils, accumulator, start):  # pragma: no cover - compiled
+        """Returns -1, or the first capture whose box leaves the spectrum (then nothing is written)."""
         k, m, b = fields.shape[0], fields.shape[1], pupils.shape[1]
+        bad = _first_bad_box(origins, start, k, accumulator.shape[0] - b, accumulator.shape[1] - b)
+        if bad >= 0:
+            return bad
         s = m // 2 - b // 2
         for j in range(k):
             y0 = origins[start + j, 0]
@@ -206,6 +240,7 @@ if _HAVE_NUMBA:  # pragma: no branch
             for r in range(b):
                 for c in range(b):
                     accumulator[y0 + r, x0 + c] += fields[j, s + r, s + c] * pupils[start + j, r, c]
+        return -1
 
     @_jit_fast
     def _momentum_numba(spectrum, anchor, velocity, eta):  # pragma: no cover - compiled
@@ -227,13 +262,88 @@ if _HAVE_NUMBA:  # pragma: no branch
         return change, norm
 
 
+# ----------------------------------------------------------------------------- argument checks
+# These run before every compiled call, so they stay cheap: attribute reads and comparisons only.
+_C64, _F32, _I64 = np.dtype(np.complex64), np.dtype(np.float32), np.dtype(np.int64)
+_ndarray = np.ndarray
+
+
+def _describe(array) -> str:
+    if isinstance(array, _ndarray):
+        return f"{array.dtype} {array.shape}"
+    return type(array).__name__
+
+
+def _check_boxes(function: str, spectrum, origins, pupils, fields, start: int) -> None:
+    """Dtypes and shapes of a box placement or scatter of captures ``start …`` (origins are checked apart)."""
+    if not (isinstance(spectrum, _ndarray) and isinstance(origins, _ndarray) and isinstance(pupils, _ndarray)
+            and isinstance(fields, _ndarray) and spectrum.dtype == _C64 and origins.dtype == _I64 and pupils.dtype == _C64 and fields.dtype == _C64
+            and spectrum.ndim == 2 and origins.ndim == 2 and pupils.ndim == 3 and fields.ndim == 3):
+        raise ValueError(f"{function} needs spectrum complex64 (M, M), origins int64 (K, 2), pupils complex64 "
+                         f"(K, b, b) and fields complex64 (k, m, m); got {_describe(spectrum)}, "
+                         f"{_describe(origins)}, {_describe(pupils)}, {_describe(fields)}")
+    n, b, b2 = pupils.shape
+    k, m, m2 = fields.shape
+    if (origins.shape[0] != n or origins.shape[1] != 2 or b2 != b or m2 != m or b > m or b > spectrum.shape[0]
+            or b > spectrum.shape[1]):
+        raise ValueError(f"{function}: shapes do not fit together: spectrum {spectrum.shape}, origins "
+                         f"{origins.shape}, pupils {pupils.shape}, fields {fields.shape} (need origins (K, 2), "
+                         "pupils (K, b, b), fields (k, m, m) with b <= m and b <= M)")
+    if start < 0 or start + k > n:
+        raise ValueError(f"{function}: captures {start} to {start + k - 1} are not among the {n} captures")
+
+
+def _bad_box(function: str, origins, index: int, spectrum_shape, box: int) -> ValueError:
+    y0, x0 = (int(v) for v in origins[index])
+    return ValueError(f"{function}: the {box}x{box} box of capture {index} at origin ({y0}, {x0}) does not lie "
+                      f"inside the {spectrum_shape[0]}x{spectrum_shape[1]} spectrum")
+
+
+def _check_origins_numpy(function: str, origins, start: int, count: int, spectrum_shape, box: int) -> None:
+    used = origins[start:start + count]
+    if not count:
+        return
+    outside = ((used < 0).any(axis=1) | (used[:, 0] > spectrum_shape[0] - box)
+               | (used[:, 1] > spectrum_shape[1] - box))
+    if outside.any():
+        raise _bad_box(function, origins, start + int(np.argmax(outside)), spectrum_shape, box)
+
+
+def _check_arrays(function: str, arrays: tuple) -> None:
+    """Each ``(name, array, dtype, ndim)`` is an ndarray of that dtype and number of dimensions."""
+    for name, array, dtype, ndim in arrays:
+        if not (isinstance(array, _ndarray) and array.dtype == dtype and array.ndim == ndim):
+            raise ValueError(f"{function}: {name} must be a {ndim}-d {dtype} array, got {_describe(array)}")
+
+
+def _check_alike(function: str, names: tuple[str, ...], arrays: tuple, dtypes: tuple) -> bool:
+    """Every array has its dtype and the first one's shape; returns whether all are C-contiguous."""
+    first = arrays[0]
+    shape = first.shape if isinstance(first, _ndarray) else None
+    contiguous = True
+    for array, dtype in zip(arrays, dtypes):
+        if not (isinstance(array, _ndarray) and array.dtype == dtype and array.shape == shape):
+            expected = ", ".join(f"{name} {dtype}" for name, dtype in zip(names, dtypes))
+            got = ", ".join(f"{name} {_describe(value)}" for name, value in zip(names, arrays))
+            raise ValueError(f"{function} needs arrays of one shape ({expected}); got {got}")
+        contiguous = contiguous and array.flags.c_contiguous
+    return contiguous
+
+
 # ----------------------------------------------------------------------------- public entry points
 _warm = False
 
 
 def warm_up() -> None:
-    """Load (or compile) every kernel once, so no iteration pays for it; cheap after the first call."""
+    """Load (or compile) every kernel once, so no iteration pays for it; cheap after the first call.
+
+    Raises
+    ------
+    ConfigError
+        If a backend switch (``CCA_KERNELS`` …) has an unknown value.
+    """
     global _warm
+    check_settings()
     if _warm or not _use_numba:
         return
     _warm = True
@@ -268,10 +378,19 @@ def place_boxes(spectrum: np.ndarray, origins: np.ndarray, pupils: np.ndarray, f
         Receives captures ``start … start + k - 1``; the box is centred on ``m // 2``.
     start : int
         Index of the first capture.
+
+    Raises
+    ------
+    ValueError
+        If dtypes or shapes do not fit, the captures are out of range or a box leaves the spectrum.
     """
+    _check_boxes("place_boxes", spectrum, origins, pupils, fields, start)
     if _use_numba:
-        _place_boxes_numba(spectrum, origins, pupils, fields, start)
+        bad = _place_boxes_numba(spectrum, origins, pupils, fields, start)
+        if bad >= 0:
+            raise _bad_box("place_boxes", origins, bad, spectrum.shape, pupils.shape[1])
     else:
+        _check_origins_numpy("place_boxes", origins, start, fields.shape[0], spectrum.shape, pupils.shape[1])
         _place_boxes_numpy(spectrum, origins, pupils, fields, start)
 
 
@@ -280,7 +399,13 @@ def _magnitude(fields, amplitudes, weights, eps, keep, magnitude, misfit):
 
     ``magnitude`` and ``misfit`` (or None) are work arrays for the numpy implementation.
     """
-    if _use_numba and fields.flags.c_contiguous:
+    if weights is None:
+        contiguous = _check_alike("the magnitude projection", ("fields", "amplitudes"), (fields, amplitudes),
+                                  (_C64, _F32))
+    else:
+        contiguous = _check_alike("the magnitude projection", ("fields", "amplitudes", "weights"),
+                                  (fields, amplitudes, weights), (_C64, _F32, _F32))
+    if _use_numba and contiguous:
         confidence = amplitudes if weights is None else weights
         return float(_magnitude_numba(fields, amplitudes, confidence, np.float32(eps), np.float32(keep),
                                       weights is not None))
@@ -302,6 +427,11 @@ def project_magnitudes(fields: np.ndarray, amplitudes: np.ndarray, scratch: np.n
         Work arrays for the numpy implementation.
     weights : ndarray, float32, (k, m, m), optional
     eps : float
+
+    Raises
+    ------
+    ValueError
+        If the arrays' dtypes or shapes differ from those above.
     """
     return _magnitude(fields, amplitudes, weights, eps, 1.0, scratch[0], scratch[1])
 
@@ -320,10 +450,19 @@ def scatter_boxes(fields: np.ndarray, origins: np.ndarray, pupils: np.ndarray, a
         Adjoint pupil boxes (conjugate, with scaling folded in).
     accumulator : ndarray, complex64, (M, M)
     start : int
+
+    Raises
+    ------
+    ValueError
+        If dtypes or shapes do not fit, the captures are out of range or a box leaves the spectrum.
     """
+    _check_boxes("scatter_boxes", accumulator, origins, pupils, fields, start)
     if _use_numba:
-        _scatter_numba(fields, origins, pupils, accumulator, start)
+        bad = _scatter_numba(fields, origins, pupils, accumulator, start)
+        if bad >= 0:
+            raise _bad_box("scatter_boxes", origins, bad, accumulator.shape, pupils.shape[1])
     else:
+        _check_origins_numpy("scatter_boxes", origins, start, fields.shape[0], accumulator.shape, pupils.shape[1])
         _scatter_numpy(fields, origins, pupils, accumulator, start)
 
 
@@ -341,8 +480,15 @@ def momentum_step(spectrum: np.ndarray, anchor: np.ndarray, velocity: np.ndarray
     -------
     change, norm : float
         ``‖S_new − S₀‖²`` and ``‖S₀‖²``: the squared change since the previous step and its reference.
+
+    Raises
+    ------
+    ValueError
+        If the three arrays are not complex64 of one shape.
     """
-    if _use_numba and spectrum.flags.c_contiguous and anchor.flags.c_contiguous and velocity.flags.c_contiguous:
+    contiguous = _check_alike("momentum_step", ("spectrum", "anchor", "velocity"), (spectrum, anchor, velocity),
+                              (_C64, _C64, _C64))
+    if _use_numba and contiguous:
         change, norm = _momentum_numba(spectrum, anchor, velocity, np.float32(eta))
         return float(change), float(norm)
     norm = float(np.vdot(anchor.ravel(), anchor.ravel()).real)
@@ -365,8 +511,15 @@ def tikhonov_update(numerator: np.ndarray, inverse_normal: np.ndarray, spectrum:
         ``1 / (Σ |P_i|² + τ)``.
     spectrum : ndarray, complex64, (M, M)
         The previous spectrum (read only).
+
+    Raises
+    ------
+    ValueError
+        If the arrays' dtypes or shapes differ from those above.
     """
-    if _use_numba and numerator.flags.c_contiguous and spectrum.flags.c_contiguous:
+    contiguous = _check_alike("tikhonov_update", ("numerator", "inverse_normal", "spectrum"),
+                              (numerator, inverse_normal, spectrum), (_C64, _F32, _C64))
+    if _use_numba and contiguous:
         change, norm = _tikhonov_numba(numerator, inverse_normal, spectrum)
         return float(change), float(norm)
     numerator *= inverse_normal
@@ -412,6 +565,21 @@ if _HAVE_NUMBA:  # pragma: no branch
     @_jit
     def _lane_numba(execute, counts, plans, batches, spectrum, origins, pupils, factors, fields, amplitudes, weights,
                     weighted, eps):  # pragma: no cover - compiled
+        """Returns the lane's misfit, a status and the largest batch.
+
+        The status is -1, or the first capture whose box leaves the spectrum, or ``-2 - i`` for
+        batch ``i`` outside the captures or larger than the plans; nothing runs unless it is -1.
+        """
+        b = pupils.shape[1]
+        largest = 0
+        for i in range(batches.shape[0]):  # every batch and box is checked before anything runs
+            start, stop = batches[i, 0], batches[i, 1]
+            if start < 0 or stop <= start or stop > origins.shape[0] or stop - start > counts[counts.shape[0] - 1]:
+                return 0.0, -2 - i, 0
+            largest = max(largest, stop - start)
+            bad = _first_bad_box(origins, start, stop - start, spectrum.shape[0] - b, spectrum.shape[1] - b)
+            if bad >= 0:
+                return 0.0, bad, 0
         total = 0.0
         zero = np.float32(0.0)
         for i in range(batches.shape[0]):
@@ -427,28 +595,12 @@ if _HAVE_NUMBA:  # pragma: no branch
             _call_address(execute, plans[j, 2])
             _call_address(execute, plans[j, 3])
             _scatter_numba(fields[:k], origins, factors, spectrum, start)
-        return total
-
-
-_execute = None
-
-
-def _execute_address() -> int:
-    """Address of ``fftwf_execute`` in the loaded FFTW (0 if unavailable)."""
-    global _execute
-    if _execute is None:
-        import ctypes
-
-        from cca_cli.optics import fft
-
-        function = fft.fftw_execute()
-        _execute = 0 if function is None else int(ctypes.cast(function, ctypes.c_void_p).value)
-    return _execute
+        return total, -1, largest
 
 
 def can_fuse_lanes(raw_plans) -> bool:
-    """Whether :func:`sequential_lane` can run with these raw plans (numba kernels and raw FFTW plans)."""
-    return _use_numba and raw_plans is not None and _execute_address() != 0
+    """Whether :func:`sequential_lane` can run with ``raw_plans`` (numba kernels and live raw FFTW plans)."""
+    return _use_numba and isinstance(raw_plans, fft.RawFFTPlans) and not raw_plans.released
 
 
 def sequential_lane(raw_plans, batches: np.ndarray, spectrum: np.ndarray, origins: np.ndarray, pupils: np.ndarray,
@@ -459,15 +611,16 @@ def sequential_lane(raw_plans, batches: np.ndarray, spectrum: np.ndarray, origin
     Each batch does what :meth:`~cca_cli.optics.forward.ForwardModel.forward_into`,
     :func:`magnitude_step`, the forward transform and :func:`scatter_boxes` do in turn, without
     returning to the interpreter in between, so two threads running lanes do not wait for each
-    other. Requires :func:`can_fuse_lanes`.
+    other. Requires :func:`can_fuse_lanes`. Every argument is checked before compiled code runs.
 
     Parameters
     ----------
-    raw_plans : tuple of ndarray
-        ``(counts, plans)`` from :meth:`~cca_cli.optics.fft.BandedFFT2.raw_plans` of the workspace holding ``fields``.
+    raw_plans : RawFFTPlans
+        :meth:`~cca_cli.optics.fft.BandedFFT2.raw_plans` of the workspace holding ``fields``; kept
+        unchanged (and alive) while the lane runs.
     batches : ndarray, int64, (n, 2)
         ``[start, stop)`` of each batch, in order.
-    spectrum : ndarray, complex64, (M, M)
+    spectrum : ndarray, complex64, (M, M), C-contiguous
         Updated in place.
     origins : ndarray, int64, (K, 2)
     pupils : ndarray, complex64, (K, b, b)
@@ -485,11 +638,47 @@ def sequential_lane(raw_plans, batches: np.ndarray, spectrum: np.ndarray, origin
     -------
     float
         The summed squared misfit ``Σ w (|ψ| − A)²`` of the lane.
+
+    Raises
+    ------
+    ValueError
+        If an argument has the wrong dtype, shape or layout, a batch is out of range or larger
+        than the workspace, a box leaves the spectrum, or ``fields`` is not the planned buffer;
+        nothing has run then.
+    RuntimeError
+        If the plans were released.
     """
-    counts, plans = raw_plans
+    if not (_use_numba and isinstance(raw_plans, fft.RawFFTPlans)):
+        raise ValueError("sequential_lane needs numba kernels and raw FFTW plans (see can_fuse_lanes)")
+    if raw_plans.released:
+        raise RuntimeError("sequential_lane: these raw FFTW plans were released; ask the workspace for new ones")
+    if not (isinstance(fields, _ndarray) and fields.dtype == _C64 and fields.ndim == 3):
+        raise ValueError(f"sequential_lane: fields must be a complex64 (c, m, m) array, got {_describe(fields)}")
+    _check_boxes("sequential_lane", spectrum, origins, pupils, fields[:0], 0)
+    n, m = origins.shape[0], fields.shape[1]
     confidence = amplitudes if weights is None else weights
-    return float(_lane_numba(_execute_address(), counts, plans, batches, spectrum, origins, pupils, factors, fields,
-                             amplitudes, confidence, weights is not None, np.float32(eps)))
+    for name, array, dtype, shape in (("spectrum", spectrum, _C64, spectrum.shape), ("origins", origins, _I64, None),
+                                      ("pupils", pupils, _C64, None), ("factors", factors, _C64, pupils.shape),
+                                      ("amplitudes", amplitudes, _F32, (n, m, m)),
+                                      ("weights", confidence, _F32, (n, m, m)), ("batches", batches, _I64, None)):
+        if not (isinstance(array, _ndarray) and array.dtype == dtype and array.flags.c_contiguous
+                and (shape is None or array.shape == shape)):
+            wanted = "" if shape is None else f" {shape}"
+            raise ValueError(f"sequential_lane: {name} must be a C-contiguous {dtype}{wanted} array, "
+                             f"got {_describe(array)}")
+    if batches.ndim != 2 or batches.shape[1] != 2:
+        raise ValueError(f"sequential_lane: batches must be (n, 2) [start, stop) rows, got {batches.shape}")
+    with raw_plans.executing(fields) as held:
+        total, status, held.largest = _lane_numba(held.execute, held.counts, held.plans, batches, spectrum, origins,
+                                                  pupils, factors, fields, amplitudes, confidence,
+                                                  weights is not None, np.float32(eps))
+    if status >= 0:
+        raise _bad_box("sequential_lane", origins, status, spectrum.shape, pupils.shape[1])
+    if status < -1:
+        start, stop = (int(v) for v in batches[-2 - status])
+        raise ValueError(f"sequential_lane: batch {-2 - status} [{start}, {stop}) must lie within the {n} captures "
+                         f"and hold at most {int(raw_plans.counts[-1])} (the workspace's capacity)")
+    return float(total)
 
 
 # ----------------------------------------------------------------------------- calibration support
@@ -588,7 +777,23 @@ def rpie_factors(pupils: np.ndarray, origins: np.ndarray, batches: np.ndarray, *
         Zero work array, left zero.
     out : ndarray, complex64, (K, b, b)
         Receives the factors.
+
+    Raises
+    ------
+    ValueError
+        If an array has the wrong dtype or shape, a batch leaves ``[0, K)`` or a box leaves the
+        spectrum; nothing has run then.
     """
+    _check_arrays("rpie_factors", (("pupils", pupils, _C64, 3), ("origins", origins, _I64, 2),
+                                   ("batches", batches, _I64, 2), ("coverage", coverage, _F32, 2),
+                                   ("out", out, _C64, 3)))
+    n, b = pupils.shape[0], pupils.shape[1]
+    if (pupils.shape[2] != b or origins.shape != (n, 2) or out.shape != pupils.shape or batches.shape[1:] != (2,)):
+        raise ValueError(f"rpie_factors: shapes do not fit together: pupils {pupils.shape}, origins {origins.shape}, "
+                         f"batches {batches.shape}, out {out.shape} (need (K, b, b), (K, 2), (n, 2), (K, b, b))")
+    if batches.size and (batches.min() < 0 or batches.max() > n or (batches[:, 1] < batches[:, 0]).any()):
+        raise ValueError(f"rpie_factors: batches must be [start, stop) rows within the {n} captures")
+    _check_origins_numpy("rpie_factors", origins, 0, n, coverage.shape, b)
     if _use_numba:
         _rpie_factors_numba(pupils, origins, batches, np.float32(alpha), np.float32(tau), np.float32(scale),
                             coverage, out)
@@ -617,7 +822,31 @@ def accumulate_pupil(spectrum: np.ndarray, origins: np.ndarray, discs: np.ndarra
     denominator : ndarray, float64, (P, b, b)
     scale : float
         Converts the raw transform to the orthonormal one (``1/m``).
+
+    Raises
+    ------
+    ValueError
+        If an array has the wrong dtype or shape, a capture, pupil index or box is out of range;
+        nothing has run then.
     """
+    _check_arrays("accumulate_pupil", (("spectrum", spectrum, _C64, 2), ("origins", origins, _I64, 2),
+                                       ("discs", discs, _F32, 3), ("fields", fields, _C64, 3),
+                                       ("index", index, _I64, 1), ("numerator", numerator, np.dtype(np.complex128), 3),
+                                       ("denominator", denominator, np.dtype(np.float64), 3)))
+    n, b = discs.shape[0], discs.shape[1]
+    k, m = fields.shape[0], fields.shape[1]
+    if (discs.shape[2] != b or origins.shape != (n, 2) or index.shape != (n,) or fields.shape[2] != m or b > m
+            or numerator.shape[1:] != (b, b) or denominator.shape != numerator.shape):
+        raise ValueError(f"accumulate_pupil: shapes do not fit together: discs {discs.shape}, origins "
+                         f"{origins.shape}, index {index.shape}, fields {fields.shape}, numerator {numerator.shape}, "
+                         f"denominator {denominator.shape}")
+    start = int(start)
+    if start < 0 or start + k > n:
+        raise ValueError(f"accumulate_pupil: captures {start} to {start + k - 1} are not among the {n} captures")
+    used = index[start:start + k]
+    if k and (used.min() < 0 or used.max() >= numerator.shape[0]):
+        raise ValueError(f"accumulate_pupil: pupil indices must lie in [0, {numerator.shape[0]})")
+    _check_origins_numpy("accumulate_pupil", origins, start, k, spectrum.shape, b)
     if _use_numba:
         _accumulate_pupil_numba(spectrum, origins, discs, fields, start, index, numerator, denominator,
                                 np.float32(scale))

@@ -126,18 +126,22 @@ def usaf_summary(images: dict[str, np.ndarray], chart, *, threshold: float, crit
     return out
 
 
-def region_px(fractions, size: int) -> tuple[int, int, int, int]:
-    """A region given as fractions of the field → a half-open pixel box on a ``size`` grid."""
+def region_px(fractions, size) -> tuple[int, int, int, int]:
+    """A region given as fractions of the field → a half-open pixel box on a grid of ``size`` (``n`` or ``(h, w)``).
+
+    Rows are fractions of the field's height, columns of its width.
+    """
+    rows, cols = (int(size), int(size)) if np.ndim(size) == 0 else (int(v) for v in tuple(size)[-2:])
     y0, y1, x0, x1 = (float(v) for v in fractions)
-    box = tuple(int(round(v * size)) for v in (y0, y1, x0, x1))
-    if not (0 <= box[0] < box[1] <= size and 0 <= box[2] < box[3] <= size):
+    box = (int(round(y0 * rows)), int(round(y1 * rows)), int(round(x0 * cols)), int(round(x1 * cols)))
+    if not (0 <= box[0] < box[1] <= rows and 0 <= box[2] < box[3] <= cols):
         raise ValueError(f"report.speckle_region {list(fractions)} is not a box inside the field (fractions 0…1)")
     return box
 
 
 def speckle_summary(images: dict[str, np.ndarray], fractions) -> dict[str, float]:
     """Speckle contrast σ/μ of every image over the region (fractions of the field)."""
-    return {name: speckle_contrast(image, region_px(fractions, image.shape[-1])) for name, image in images.items()}
+    return {name: speckle_contrast(image, region_px(fractions, image.shape[-2:])) for name, image in images.items()}
 
 
 def baseline_details(specs, geometry: CaptureGeometry) -> dict:

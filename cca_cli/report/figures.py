@@ -1,10 +1,12 @@
 """PNG figures of a reconstruction. The only module that imports matplotlib.
 
 Images are drawn on a pixel-exact layout: every image axes is an integer
-multiple of the image's own pixels wide, so the recovery appears at 1:1 (or
-at an integer magnification, pixels replicated), never resampled into a
-small panel. Panels compared side by side share the field, the size on
-screen and the intensity scale.
+multiple of the image's own pixels wide and high, so the recovery appears at
+1:1 (or at an integer magnification, pixels replicated), never resampled into
+a small panel, and a non-square recovery keeps its aspect ratio. Panels
+compared side by side share the field, the size on screen and the intensity
+scale. Axes are at the object: a field ``width`` wide whose image is
+``H x W`` pixels is ``width · H/W`` high (square pixels).
 """
 
 from __future__ import annotations
@@ -21,6 +23,8 @@ _DPI = 100
 # Layout in screen pixels: left margin (y ticks), gap between panels, panel title, x ticks and label,
 # colour bar gap and width, right margin (colour bar label).
 _LEFT, _GAP, _TITLE, _BOTTOM, _BAR_GAP, _BAR, _RIGHT = 72, 20, 30, 52, 14, 16, 86
+#: Panel titles: font size (pt) and the height each further line adds (screen px).
+_TITLE_PT, _TITLE_LINE = 9, 14
 #: Screen size the recovery is magnified towards when it is small.
 _TARGET_PX = 400
 #: Full-field panels wider than this are drawn smaller (the 1:1 view is recovered_magnitude.png).
@@ -85,44 +89,50 @@ class _Panel:
 
 @dataclass
 class _Row:
-    """A row of equally sized panels with one colour bar."""
+    """A row of equally sized panels, each ``width_px`` x ``height_px`` screen pixels, with one colour bar."""
 
-    size_px: int
+    width_px: int
+    height_px: int
     panels: list[_Panel]
     colorbar: str = ""
     ticks: dict | None = None   # colour-bar ticks: value -> label
 
 
 def _draw(plt, rows: list[_Row], title: str = ""):
-    """A figure whose image axes are exactly ``row.size_px`` screen pixels square.
+    """A figure whose image axes are exactly ``row.width_px`` x ``row.height_px`` screen pixels.
 
     Each image is drawn with nearest-neighbour rendering when it is no larger
-    than its axes, so an axes of ``k·n`` pixels shows an ``n``-pixel image with
-    every pixel replicated ``k`` times.
+    than its axes, so an axes of ``k·w`` x ``k·h`` pixels shows a ``w`` x ``h``
+    image with every pixel replicated ``k`` times. The image fills its axes
+    (the layout, not matplotlib, keeps the aspect ratio).
     """
-    widths = [len(r.panels) * r.size_px + (len(r.panels) - 1) * _GAP for r in rows]
+    widths = [len(r.panels) * r.width_px + (len(r.panels) - 1) * _GAP for r in rows]
+    titles = [[_fit_title(p.title, r.width_px) for p in r.panels] for r in rows]
+    title_px = [_TITLE + _TITLE_LINE * max(t.count("\n") for t in row_titles) for row_titles in titles]
     fig_w = _LEFT + max(widths) + _BAR_GAP + _BAR + _RIGHT
     head = 14 + 18 * (title.count("\n") + 1) if title else 8
-    fig_h = head + sum(_TITLE + r.size_px + _BOTTOM for r in rows)
+    fig_h = head + sum(t + r.height_px + _BOTTOM for t, r in zip(title_px, rows))
     fig = plt.figure(figsize=(fig_w / _DPI, fig_h / _DPI), dpi=_DPI)
     if title:
         fig.suptitle(title, y=1 - 10 / fig_h, va="top", fontsize=11)
     top = head
-    for row, width in zip(rows, widths):
-        top += _TITLE
-        bottom = fig_h - top - row.size_px
+    for row, width, row_titles, row_title_px in zip(rows, widths, titles, title_px):
+        top += row_title_px
+        bottom = fig_h - top - row.height_px
         shown = None
         for i, panel in enumerate(row.panels):
-            left = _LEFT + i * (row.size_px + _GAP)
-            ax = fig.add_axes((left / fig_w, bottom / fig_h, row.size_px / fig_w, row.size_px / fig_h))
+            left = _LEFT + i * (row.width_px + _GAP)
+            ax = fig.add_axes((left / fig_w, bottom / fig_h, row.width_px / fig_w, row.height_px / fig_h))
             image = np.asanyarray(panel.image)   # keeps a mask
-            interpolation = "nearest" if image.shape[-1] <= row.size_px else "antialiased"
+            fits = image.shape[-1] <= row.width_px and image.shape[-2] <= row.height_px
             shown = ax.imshow(image, cmap=panel.cmap, vmin=panel.vmin, vmax=panel.vmax, extent=panel.extent,
-                              interpolation=interpolation)
-            ax.set_title(panel.title, fontsize=9)
+                              interpolation="nearest" if fits else "antialiased", aspect="auto")
+            ax.set_title(row_titles[i], fontsize=_TITLE_PT)
             for x0, y0, w, h in panel.boxes:
                 ax.add_patch(plt.Rectangle((x0, y0), w, h, fill=False, edgecolor="#ffb000", lw=1.2))
             if panel.extent is not None:
+                if i > 0:
+                    _drop_ticks_at_left_edge(ax, row.width_px)
                 ax.set_xlabel(f"x at object ({panel.unit})", fontsize=8)
                 if i == 0:
                     ax.set_ylabel(f"y at object ({panel.unit})", fontsize=8)
@@ -131,14 +141,79 @@ def _draw(plt, rows: list[_Row], title: str = ""):
                 ax.tick_params(labelsize=7)
             else:
                 ax.set_axis_off()
-        cax = fig.add_axes(((_LEFT + width + _BAR_GAP) / fig_w, bottom / fig_h, _BAR / fig_w, row.size_px / fig_h))
+        cax = fig.add_axes(((_LEFT + width + _BAR_GAP) / fig_w, bottom / fig_h, _BAR / fig_w, row.height_px / fig_h))
         bar = fig.colorbar(shown, cax=cax)
-        bar.set_label(row.colorbar, fontsize=8)
+        label = row.colorbar
+        if not row.ticks:
+            label = _scaled_bar(bar, label)
+        bar.set_label(label, fontsize=8)
         bar.ax.tick_params(labelsize=7)
         if row.ticks:
             bar.set_ticks(list(row.ticks), labels=list(row.ticks.values()))
-        top += row.size_px + _BOTTOM
+        top += row.height_px + _BOTTOM
     return fig
+
+
+def _fit_title(title: str, width_px: int) -> str:
+    """``title`` broken onto two lines when it is wider than its panel: after its last top-level comma, else
+    before its first top-level parenthesis (``observed (centre camera),`` / ``40 x 96 px (5x)``)."""
+    from matplotlib.font_manager import FontProperties
+    from matplotlib.textpath import text_to_path
+
+    points, _, _ = text_to_path.get_text_width_height_descent(title, FontProperties(size=_TITLE_PT), ismath=False)
+    if "\n" in title or points * _DPI / 72 <= width_px:
+        return title
+    depth, commas, opens = 0, [], []
+    for i, char in enumerate(title):
+        if char == "(":
+            if depth == 0 and i > 0 and title[i - 1] == " ":
+                opens.append(i - 1)
+            depth += 1
+        elif char == ")":
+            depth -= 1
+        elif char == "," and depth == 0 and title[i + 1:i + 2] == " ":
+            commas.append(i + 1)
+    if commas:
+        return title[:commas[-1]] + "\n" + title[commas[-1] + 1:]
+    if opens:
+        return title[:opens[0]] + "\n" + title[opens[0] + 1:]
+    return title
+
+
+_SUPERSCRIPT = str.maketrans("-0123456789", "⁻⁰¹²³⁴⁵⁶⁷⁸⁹")
+
+
+def _scaled_bar(bar, label: str) -> str:
+    """Colour-bar ticks of large or small values as multiples of a power of ten named in the label.
+
+    ``intensity (counts/s)`` with values up to 3·10⁶ becomes ``intensity (10⁶ counts/s)``
+    with ticks 0…3, instead of six-digit ticks or a detached ``1e6``.
+    """
+    from matplotlib.ticker import FuncFormatter
+
+    top = max(abs(float(bar.norm.vmin)), abs(float(bar.norm.vmax)))
+    if not np.isfinite(top) or top == 0 or 1e-2 <= top < 1e4:
+        return label
+    power = math.floor(math.log10(top))
+    scale = 10.0 ** power
+    bar.formatter = FuncFormatter(lambda value, _: f"{value / scale:.4g}")
+    bar.update_ticks()
+    prefix = f"10{str(power).translate(_SUPERSCRIPT)}"
+    if label.endswith(")") and " (" in label:
+        name, units = label[:-1].split(" (", 1)
+        return f"{name} ({prefix} {units})"
+    return f"{label} (×{prefix})"
+
+
+def _drop_ticks_at_left_edge(ax, width_px: int, clearance_px: float = 12.0) -> None:
+    """Remove x ticks within ``clearance_px`` of a panel's left edge when the panels of its row (which share
+    its axis) also have one that near their right edge: the two labels would read as one across the gap."""
+    lo, hi = sorted(ax.get_xlim())
+    near = clearance_px * (hi - lo) / width_px
+    slack = 1e-6 * (hi - lo)    # a tick on the edge, up to rounding, is drawn
+    ticks = [t for t in ax.get_xticks() if lo - slack <= t <= hi + slack]
+    if any(t >= hi - near for t in ticks):
+        ax.set_xticks([t for t in ticks if t > lo + near])
 
 
 def _display_unit(field_width_m: float) -> tuple[float, str]:
@@ -146,17 +221,31 @@ def _display_unit(field_width_m: float) -> tuple[float, str]:
     return (1e6, "µm") if field_width_m < 2e-3 else (1e3, "mm")
 
 
-def _extent(width: float, region=None) -> tuple[float, float, float, float]:
-    """imshow extent (x0, x1, y1, y0) of the field ``width`` wide, or of ``region`` of it (centred on the axis)."""
+def _extent(width: float, height: float, region=None) -> tuple[float, float, float, float]:
+    """imshow extent (x0, x1, y1, y0) of the field ``width`` x ``height``, or of ``region`` of it (centred on the axis)."""
     y0, y1, x0, x1 = region.fractions if region is not None else (0.0, 1.0, 0.0, 1.0)
-    half = width / 2
-    return (x0 * width - half, x1 * width - half, y1 * width - half, y0 * width - half)
+    return (x0 * width - width / 2, x1 * width - width / 2, y1 * height - height / 2, y0 * height - height / 2)
 
 
-def _region_box(width: float, region) -> tuple[float, float, float, float]:
+def _region_box(width: float, height: float, region) -> tuple[float, float, float, float]:
+    """Outline (x0, y0, width, height) of ``region`` on the field ``width`` x ``height``."""
     y0, y1, x0, x1 = region.fractions
-    half = width / 2
-    return (x0 * width - half, y0 * width - half, (x1 - x0) * width, (y1 - y0) * width)
+    return (x0 * width - width / 2, y0 * height - height / 2, (x1 - x0) * width, (y1 - y0) * height)
+
+
+def _panel_px(shape, k: int, longest: int | None = None) -> tuple[int, int]:
+    """Screen size ``(height, width)`` of an image of ``shape`` magnified ``k`` times, or with its longer side ``longest``."""
+    rows, cols = shape[-2:]
+    if longest is None:
+        return rows * k, cols * k
+    scale = longest / max(rows, cols)
+    return max(1, round(rows * scale)), max(1, round(cols * scale))
+
+
+def _size_text(shape) -> str:
+    """``n px`` for a square image, ``w x h px`` otherwise."""
+    rows, cols = shape[-2:]
+    return f"{cols} px" if rows == cols else f"{cols} x {rows} px"
 
 
 def _limits(*images) -> tuple[float, float]:
@@ -167,15 +256,16 @@ def _limits(*images) -> tuple[float, float]:
     return low, high if high > low else low + 1.0
 
 
-def _single(plt, path: Path, image: np.ndarray, title: str, label: str, *, width: float, unit: str,
+def _single(plt, path: Path, image: np.ndarray, title: str, label: str, *, width: float, height: float, unit: str,
             cmap: str = "gray", region=None, vmin=None, vmax=None, ticks=None) -> Path:
-    """One image at an integer magnification of its own pixels, with mm axes and a colour bar."""
-    k = magnification(image.shape[-1])
-    boxes = [_region_box(width, region)] if region is not None else []
+    """One image at an integer magnification of its own pixels, with length axes and a colour bar."""
+    k = magnification(max(image.shape[-2:]))
+    boxes = [_region_box(width, height, region)] if region is not None else []
     scale = "1:1" if k == 1 else f"{k}x, pixels replicated"
     panel = _Panel(image, f"{image.shape[-1]} x {image.shape[-2]} px ({scale})", cmap=cmap, vmin=vmin, vmax=vmax,
-                   extent=_extent(width), boxes=boxes, unit=unit)
-    fig = _draw(plt, [_Row(image.shape[-1] * k, [panel], label, ticks)], title)
+                   extent=_extent(width, height), boxes=boxes, unit=unit)
+    rows, cols = _panel_px(image.shape, k)
+    fig = _draw(plt, [_Row(cols, rows, [panel], label, ticks)], title)
     return _save(plt, fig, path, tight=False)
 
 
@@ -191,23 +281,26 @@ def _phase(obj: np.ndarray) -> np.ma.MaskedArray:
 def write_figures(directory: Path, *, observed: np.ndarray, recovered_object: np.ndarray, spectrum: np.ndarray,
                   pupil_centres_px: np.ndarray, pupil_radius_px: float, field_width_m: float,
                   residual: np.ndarray, change: np.ndarray, summary: dict, truth: np.ndarray | None = None,
-                  units: str = "irradiance", region=None, grid_indices: np.ndarray | None = None) -> list[Path]:
+                  units: str = "irradiance", region=None, grid_indices: np.ndarray | None = None,
+                  spectrum_field_width_m: float | None = None) -> list[Path]:
     """Write the report's PNGs into ``directory`` and return their paths.
 
     Parameters
     ----------
     directory : Path
-    observed : ndarray, (N, N)
-        Centre capture (intensity, ``units``).
-    recovered_object : ndarray, complex, (M, M)
+    observed : ndarray, (N, N) or (h, w)
+        Centre capture over the recovered field (intensity, ``units``).
+    recovered_object : ndarray, complex, (M, M) or (H, W)
         Recovered field.
-    spectrum : ndarray, complex, (M, M)
-        Recovered spectrum (centred).
+    spectrum : ndarray, complex, (S, S)
+        Recovered spectrum (centred): of the recovered field, or of the
+        larger square grid it was cut from (see ``spectrum_field_width_m``).
     pupil_centres_px : ndarray, (K, 2)
         Aperture footprints' centres [y, x] relative to DC (spectrum px).
     pupil_radius_px : float
     field_width_m : float
-        Object-plane width of the field (m).
+        Object-plane width of the recovered field (m); its height is
+        ``field_width_m · H/W``.
     residual, change : ndarray
         Convergence history.
     summary : dict
@@ -220,6 +313,10 @@ def write_figures(directory: Path, *, observed: np.ndarray, recovered_object: np
         Zoom region (:mod:`cca_cli.report.regions`).
     grid_indices : ndarray, (K, 2), optional
         Grid position of each footprint (the border ones are outlined).
+    spectrum_field_width_m : float, optional
+        Object-plane width of the grid ``spectrum`` is on (m), when the
+        recovered field is a region cut from it (a region and its guard
+        band); the spectrum figure then says so. Default ``field_width_m``.
 
     Returns
     -------
@@ -231,35 +328,41 @@ def write_figures(directory: Path, *, observed: np.ndarray, recovered_object: np
     """
     plt = _plt()
     directory = Path(directory)
-    scale, unit = _display_unit(field_width_m)
-    width = field_width_m * scale
     amplitude = np.abs(recovered_object).astype(np.float32)
-    m = amplitude.shape[-1]
-    pixel_um = field_width_m / m * 1e6
+    rows, cols = amplitude.shape[-2:]
+    field_height_m = field_width_m * rows / cols
+    scale, unit = _display_unit(max(field_width_m, field_height_m))
+    width, height = field_width_m * scale, field_height_m * scale
+    pixel_um = field_width_m / cols * 1e6
     low, high = _limits(observed)
+    field = dict(width=width, height=height, unit=unit, region=region)
     paths = [
         _single(plt, directory / "observed_centre.png", observed, "Observed centre image (one camera)",
-                f"intensity ({units})", width=width, unit=unit, region=region, vmin=low, vmax=high),
+                f"intensity ({units})", vmin=low, vmax=high, **field),
         _single(plt, directory / "recovered_magnitude.png", amplitude,
                 f"Recovered magnitude |O| (SAR {summary['sar']:.2f}, {pixel_um:.3g} µm pixels)",
-                f"|O| ({sqrt_units(units)})", width=width, unit=unit, region=region, vmin=0.0,
-                vmax=float(np.percentile(amplitude, 99.9)) or None),
+                f"|O| ({sqrt_units(units)})", vmin=0.0, vmax=float(np.percentile(amplitude, 99.9)) or None, **field),
         _single(plt, directory / "recovered_phase.png", _phase(recovered_object),
                 f"Recovered phase, relative to its mean\n(black: |O| below {_PHASE_MASK:.0%} of its 99.5th percentile)",
-                "phase (rad)", width=width, unit=unit, cmap=_phase_cmap(plt), region=region, vmin=-np.pi, vmax=np.pi,
-                ticks={-np.pi: "−π", -np.pi / 2: "−π/2", 0.0: "0", np.pi / 2: "π/2", np.pi: "π"}),
+                "phase (rad)", cmap=_phase_cmap(plt), vmin=-np.pi, vmax=np.pi,
+                ticks={-np.pi: "−π", -np.pi / 2: "−π/2", 0.0: "0", np.pi / 2: "π/2", np.pi: "π"}, **field),
     ]
     if truth is not None:
         paths.append(_single(plt, directory / "truth.png", truth, "Ground truth intensity", f"intensity ({units})",
-                             width=width, unit=unit, region=region, vmin=0.0, vmax=_limits(truth)[1]))
+                             vmin=0.0, vmax=_limits(truth)[1], **field))
     images = {"observed (centre camera)": observed, "recovered": amplitude ** 2}
     if truth is not None:
         images = {"truth": truth, **images}
-    paths.append(_side_by_side(plt, directory / "observed_vs_recovered.png", images, width=width, unit=unit,
-                               region=region, grid=m, units=units,
-                               heading="Observed vs recovered intensity, same field and scale"))
-    paths.append(_spectrum(plt, directory / "spectrum.png", spectrum, pupil_centres_px, pupil_radius_px, field_width_m,
-                           grid_indices))
+    paths.append(_side_by_side(plt, directory / "observed_vs_recovered.png", images, shape=(rows, cols), units=units,
+                               heading="Observed vs recovered intensity, same field and scale", **field))
+    title = "Recovered spectrum and aperture footprints"
+    spectrum_width_m = field_width_m if spectrum_field_width_m is None else spectrum_field_width_m
+    if spectrum_field_width_m is not None and not np.isclose(spectrum_field_width_m, field_width_m, rtol=1e-6):
+        title = (f"Recovered spectrum and aperture footprints, of the whole\n{spectrum.shape[-1]} x "
+                 f"{spectrum.shape[-2]} px grid the engine ran on ({_length(spectrum_width_m)} wide):\n"
+                 f"the recovered {_length(field_width_m)} x {_length(field_height_m)} field and its guard band")
+    paths.append(_spectrum(plt, directory / "spectrum.png", spectrum, pupil_centres_px, pupil_radius_px,
+                           spectrum_width_m, grid_indices, title=title))
     if "contrast_observed" in summary:
         paths.append(_contrast(plt, directory / "contrast.png", summary))
     if len(residual):
@@ -272,61 +375,79 @@ def _phase_cmap(plt):
     return plt.get_cmap("hsv").with_extremes(bad="black")
 
 
-def _side_by_side(plt, path: Path, images: dict, *, width: float, unit: str, region, grid: int, units: str,
-                  heading: str) -> Path:
-    """Full field (top row) and the zoom region (bottom row) of every image, on equal axes and one scale."""
-    k = magnification(grid)
-    size = grid * k if grid * k <= _MAX_OVERVIEW_PX else 768
+def _length(value_m: float) -> str:
+    """A length in µm below 2 mm, else in mm, to 3 significant figures."""
+    scale, unit = _display_unit(value_m)
+    return f"{value_m * scale:.3g} {unit}"
+
+
+def _side_by_side(plt, path: Path, images: dict, *, width: float, height: float, unit: str, region,
+                  shape: tuple[int, int], units: str, heading: str) -> Path:
+    """Full field (top row) and the zoom region (bottom row) of every image, on equal axes and one scale.
+
+    ``shape`` is the ``(H, W)`` grid the layout is made for (the recovery's);
+    images on other grids fill the same axes at their own pixels.
+    """
+    k = magnification(max(shape))
+    fits = max(shape) * k <= _MAX_OVERVIEW_PX
+    panel_h, panel_w = _panel_px(shape, k, None if fits else 768)
     low, high = _limits(*images.values())
-    boxes = [_region_box(width, region)] if region is not None else []
-    scale = "1:1" if size == grid else (f"{k}x" if size == grid * k else "shrunk")
+    boxes = [_region_box(width, height, region)] if region is not None else []
+    scale = "1:1" if fits and k == 1 else (f"{k}x" if fits else "shrunk")
 
     def title(name: str, image) -> str:
-        return f"{name}, {image.shape[-1]} px ({scale if image.shape[-1] == grid else 'own pixels'})"
+        return f"{name}, {_size_text(image.shape)} ({scale if image.shape[-2:] == tuple(shape) else 'own pixels'})"
 
-    full = [_Panel(np.asarray(image), title(name, image), vmin=low, vmax=high, extent=_extent(width),
+    full = [_Panel(np.asarray(image), title(name, image), vmin=low, vmax=high, extent=_extent(width, height),
                    boxes=boxes, unit=unit) for name, image in images.items()]
-    rows = [_Row(size, full, f"intensity ({units})")]
+    rows = [_Row(panel_w, panel_h, full, f"intensity ({units})")]
     if region is not None:
         crops = {name: region.crop(np.asarray(image)) for name, image in images.items()}
         low_z, high_z = _limits(*crops.values())
-        side = region.pixels(grid)
-        crop_px = max(side[1] - side[0], side[3] - side[2])
-        zoom = max(1, round(_TARGET_PX / crop_px))
-        panels = [_Panel(crop, f"{name}, zoom", vmin=low_z, vmax=high_z, extent=_extent(width, region), unit=unit)
-                  for name, crop in crops.items()]
-        rows.append(_Row(crop_px * zoom, panels, f"intensity ({units})"))
+        y0, y1, x0, x1 = region.pixels(shape)
+        zoom = max(1, round(_TARGET_PX / max(y1 - y0, x1 - x0)))
+        panels = [_Panel(crop, f"{name}, zoom", vmin=low_z, vmax=high_z, extent=_extent(width, height, region),
+                         unit=unit) for name, crop in crops.items()]
+        rows.append(_Row((x1 - x0) * zoom, (y1 - y0) * zoom, panels, f"intensity ({units})"))
         heading += f"\nbottom: zoom on {region.label}"
     fig = _draw(plt, rows, heading)
     return _save(plt, fig, path, tight=False)
 
 
 def _spectrum(plt, path: Path, spectrum: np.ndarray, centres, radius_px: float, field_width_m: float,
-              grid_indices) -> Path:
-    """log10 |S| in cycles/mm at the object, with the aperture footprints and a colour bar."""
+              grid_indices, *, title: str = "Recovered spectrum and aperture footprints") -> Path:
+    """log10 |S| in cycles/mm at the object, with the aperture footprints and a colour bar.
+
+    ``spectrum`` covers a field ``field_width_m`` wide (and, for an ``h x w``
+    grid, ``h/w`` of that high). ``centres`` are [y, x] offsets from DC in
+    spectrum pixels of each axis; ``radius_px`` is in pixels along x (a
+    spectrum pixel along y is ``w/h`` of them), so the footprints are drawn as
+    the circles they are in cycles/mm.
+    """
     magnitude = np.abs(spectrum)
     peak = float(magnitude.max()) or 1.0
     log_mag = np.log10(np.maximum(magnitude / peak, 1e-12))
     floor = float(np.percentile(log_mag[magnitude > 0], 1)) if np.any(magnitude > 0) else -6.0
-    m = spectrum.shape[-1]
-    per_px = 1.0 / (field_width_m * 1e3)              # spectrum pixel → cycles per mm at the object
-    half = m / 2 * per_px
+    rows, cols = spectrum.shape[-2:]
+    per_px = 1.0 / (field_width_m * 1e3)              # spectrum pixel along x → cycles per mm at the object
+    per_px_y = per_px * cols / rows                   # along y: the field is rows/cols as high
+    half_x, half_y = cols / 2 * per_px, rows / 2 * per_px_y
     fig, ax = plt.subplots(figsize=(7.2, 6.8), dpi=_DPI)
     shown = ax.imshow(log_mag, cmap="magma", vmin=max(floor, -8.0), vmax=0.0, interpolation="nearest",
-                      extent=(-half - per_px / 2, half - per_px / 2, half - per_px / 2, -half - per_px / 2))
+                      extent=(-half_x - per_px / 2, half_x - per_px / 2, half_y - per_px_y / 2, -half_y - per_px_y / 2))
     fig.colorbar(shown, ax=ax, label="log10 |S| / max |S|", shrink=0.85)
     centres = np.asarray(centres, np.float64)
+    centres_mm = centres * np.array([per_px_y, per_px])    # cycles per mm
+    radius = radius_px * per_px
     theta = np.linspace(0, 2 * np.pi, 128)
     centre = int(np.argmin(np.hypot(centres[:, 0], centres[:, 1])))
     outline = _border(centres, grid_indices)
     for i in outline:
-        cy, cx = centres[i]
-        ax.plot((cx + radius_px * np.cos(theta)) * per_px, (cy + radius_px * np.sin(theta)) * per_px,
-                color="#00e5ff", lw=0.9, alpha=0.9)
-    ax.scatter(centres[:, 1] * per_px, centres[:, 0] * per_px, s=4, color="#00e5ff", linewidths=0)
-    cy, cx = centres[centre]
-    ax.plot((cx + radius_px * np.cos(theta)) * per_px, (cy + radius_px * np.sin(theta)) * per_px,
-            color="white", lw=1.8)
+        cy, cx = centres_mm[i]
+        ax.plot(cx + radius * np.cos(theta), cy + radius * np.sin(theta), color="#00e5ff", lw=0.9, alpha=0.9)
+    ax.scatter(centres_mm[:, 1], centres_mm[:, 0], s=4, color="#00e5ff", linewidths=0)
+    cy, cx = centres_mm[centre]
+    ax.plot(cx + radius * np.cos(theta), cy + radius * np.sin(theta), color="white", lw=1.8)
     from matplotlib.lines import Line2D
 
     handles = [Line2D([], [], color="white", lw=1.8,
@@ -336,13 +457,12 @@ def _spectrum(plt, path: Path, spectrum: np.ndarray, centres, radius_px: float, 
                Line2D([], [], color="#00e5ff", marker="o", ms=3, lw=0, label=f"all {len(centres)} aperture centres")]
     ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.11), ncol=2, fontsize=7,
               facecolor="#303030", labelcolor="white", framealpha=1.0)
-    reach = (float(np.max(np.abs(centres))) + radius_px) * 1.08 * per_px
-    lim = min(reach, half)
-    ax.set_xlim(-lim, lim)
-    ax.set_ylim(lim, -lim)
+    reach = (float(np.max(np.abs(centres_mm))) + radius) * 1.08
+    ax.set_xlim(-min(reach, half_x), min(reach, half_x))
+    ax.set_ylim(min(reach, half_y), -min(reach, half_y))
     ax.set_xlabel("spatial frequency at object, x (cycles/mm)")
     ax.set_ylabel("spatial frequency at object, y (cycles/mm)")
-    ax.set_title("Recovered spectrum and aperture footprints", fontsize=10)
+    ax.set_title(title, fontsize=10)
     return _save(plt, fig, path)
 
 
@@ -430,22 +550,28 @@ def write_comparison_figures(directory: Path, images: dict, summary: dict, *, fi
         if isinstance(reading, dict) and reading.get("group") is not None:
             extra += f" (USAF G{reading['group']} E{reading['element']})"
         titled[name.replace("_", " ") + extra] = np.asarray(images[name], np.float32)
-    scale, unit = _display_unit(field_width_m or 1e-3)
-    width = (field_width_m or 1e-3) * scale
-    grid = next(iter(titled.values())).shape[-1]
-    size = grid * max(1, 420 // grid) if grid <= 420 else 420   # whole pixels, or shrunk when the grid is large
+    shape = next(iter(titled.values())).shape[-2:]
+    width_m = field_width_m or 1e-3
+    height_m = width_m * shape[0] / shape[1]
+    scale, unit = _display_unit(max(width_m, height_m))
+    width, height = width_m * scale, height_m * scale
+    longest = max(shape)   # whole pixels, or shrunk when the grid is large
+    panel_h, panel_w = _panel_px(shape, max(1, 420 // longest)) if longest <= 420 else _panel_px(shape, 1, 420)
     low, high = _limits(*titled.values())
-    boxes = [_region_box(width, region)] if region is not None else []
-    rows = [_Row(size, [_Panel(image, name, vmin=low, vmax=high, extent=_extent(width), boxes=boxes, unit=unit)
-                        for name, image in titled.items()], f"intensity ({units})")]
+    boxes = [_region_box(width, height, region)] if region is not None else []
+    rows = [_Row(panel_w, panel_h, [_Panel(image, name, vmin=low, vmax=high, extent=_extent(width, height),
+                                           boxes=boxes, unit=unit) for name, image in titled.items()],
+                 f"intensity ({units})")]
     if region is not None:
         crops = {name: region.crop(image) for name, image in titled.items()}
         low_z, high_z = _limits(*crops.values())
-        crop_px = max(c.shape[-1] for c in crops.values())
-        zoom = max(1, round(300 / crop_px))
-        rows.append(_Row(crop_px * zoom, [_Panel(crop, f"{name.split(' (')[0]}: zoom", vmin=low_z, vmax=high_z,
-                                                 extent=_extent(width, region), unit=unit)
-                                          for name, crop in crops.items()], f"intensity ({units})"))
+        crop_h = max(c.shape[-2] for c in crops.values())
+        crop_w = max(c.shape[-1] for c in crops.values())
+        zoom = max(1, round(300 / max(crop_h, crop_w)))
+        rows.append(_Row(crop_w * zoom, crop_h * zoom,
+                         [_Panel(crop, f"{name.split(' (')[0]}: zoom", vmin=low_z, vmax=high_z,
+                                 extent=_extent(width, height, region), unit=unit) for name, crop in crops.items()],
+                         f"intensity ({units})"))
     title = "Recovery vs single lenses, same field and scale" + (f"; zoom: {region.label}" if region else "")
     paths.append(_save(plt, _draw(plt, rows, title), directory / "comparison.png", tight=False))
 

@@ -1,8 +1,11 @@
 """Where the report zooms in: the finest features of a chart, or the most detailed part of a real scene.
 
-A :class:`Region` is a square given as fractions of the field, so the same
-region can be cut from images on different grids (truth, observed centre
-image, recovery).
+A :class:`Region` is given as fractions of the field along each axis (``y``
+of its height, ``x`` of its width), so the same region can be cut from images
+on different grids (truth, observed centre image, recovery), square or not.
+The regions chosen here are square in pixels (and so at the object): on an
+``H x W`` field a region ``s`` pixels on a side spans ``s/H`` of the height
+and ``s/W`` of the width.
 """
 
 from __future__ import annotations
@@ -17,16 +20,27 @@ __all__ = ["Region", "bar_region", "usaf_region", "detail_region"]
 
 #: A zoom region wider than this share of the field is cut down to the finest group alone.
 _MAX_SHARE = 0.3
+#: Detail is scored relative to the local brightness, which is floored at this share of the 99th percentile.
+_BRIGHTNESS_FLOOR = 0.1
+
+
+def _shape(size) -> tuple[int, int]:
+    """``(h, w)`` of a grid given as its side ``n`` (square) or as ``(h, w)``."""
+    if np.ndim(size) == 0:
+        return int(size), int(size)
+    h, w = (int(v) for v in tuple(size)[-2:])
+    return h, w
 
 
 @dataclass(frozen=True)
 class Region:
-    """A square part of the field.
+    """A rectangular part of the field.
 
     Attributes
     ----------
     fractions : tuple of float
-        ``(y0, y1, x0, x1)`` as fractions of the field (0…1, half-open).
+        ``(y0, y1, x0, x1)``: rows as fractions of the field's height, columns
+        as fractions of its width (0…1, half-open).
     label : str
         What the region shows (for figure titles).
     """
@@ -34,18 +48,25 @@ class Region:
     fractions: tuple[float, float, float, float]
     label: str
 
-    def pixels(self, size: int) -> tuple[int, int, int, int]:
-        """The region as a half-open pixel box ``(y0, y1, x0, x1)`` on a ``size`` x ``size`` grid."""
+    def pixels(self, size) -> tuple[int, int, int, int]:
+        """The region as a half-open pixel box ``(y0, y1, x0, x1)`` on a grid of ``size`` (``n`` or ``(h, w)``).
+
+        Examples
+        --------
+        >>> Region((0.25, 0.75, 0.5, 0.75), "r").pixels((80, 160))
+        (20, 60, 80, 120)
+        """
+        rows, cols = _shape(size)
         y0, y1, x0, x1 = self.fractions
-        height = min(max(1, int(round((y1 - y0) * size))), size)
-        width = min(max(1, int(round((x1 - x0) * size))), size)
-        top = min(max(int(round(y0 * size)), 0), size - height)
-        left = min(max(int(round(x0 * size)), 0), size - width)
+        height = min(max(1, int(round((y1 - y0) * rows))), rows)
+        width = min(max(1, int(round((x1 - x0) * cols))), cols)
+        top = min(max(int(round(y0 * rows)), 0), rows - height)
+        left = min(max(int(round(x0 * cols)), 0), cols - width)
         return top, top + height, left, left + width
 
     def crop(self, image: np.ndarray) -> np.ndarray:
-        """The region of a square image (on any grid)."""
-        y0, y1, x0, x1 = self.pixels(image.shape[-1])
+        """The region of an image (on any grid, square or not)."""
+        y0, y1, x0, x1 = self.pixels(image.shape[-2:])
         return image[..., y0:y1, x0:x1]
 
     def to_dict(self) -> dict:
@@ -53,15 +74,16 @@ class Region:
         return {"fractions": [round(float(v), 5) for v in self.fractions], "label": self.label}
 
 
-def _square(box, size: int, pad: float, minimum: float) -> tuple[float, float, float, float]:
-    """A padded pixel box made square and kept inside the grid, as fractions."""
+def _square(box, size, pad: float, minimum: float) -> tuple[float, float, float, float]:
+    """A padded pixel box made square (in pixels) and kept inside a grid of ``size``, as fractions per axis."""
+    rows, cols = _shape(size)
     y0, y1, x0, x1 = (float(v) for v in box)
     side = max(y1 - y0, x1 - x0) + 2 * pad
-    side = min(max(side, minimum), size)
+    side = min(max(side, minimum), rows, cols)
     cy, cx = (y0 + y1) / 2, (x0 + x1) / 2
-    top = min(max(cy - side / 2, 0.0), size - side)
-    left = min(max(cx - side / 2, 0.0), size - side)
-    return (top / size, (top + side) / size, left / size, (left + side) / size)
+    top = min(max(cy - side / 2, 0.0), rows - side)
+    left = min(max(cx - side / 2, 0.0), cols - side)
+    return (top / rows, (top + side) / rows, left / cols, (left + side) / cols)
 
 
 def _union(boxes) -> tuple[int, int, int, int]:
@@ -140,38 +162,53 @@ def usaf_region(chart, reading: dict | None) -> Region | None:
 def detail_region(intensity: np.ndarray, cutoff_px: float, *, share: float = 0.25) -> Region:
     """The square where the recovery holds the most detail beyond one camera's reach.
 
-    The intensity is high-pass filtered at ``cutoff_px`` (spectrum pixels of its
-    own grid: what a single camera cannot record) and the window of side
-    ``share`` of the field with the most filtered energy is chosen, away from
-    the field's border (where recoveries carry edge artefacts).
+    The intensity is high-pass filtered at ``cutoff_px`` (what a single camera
+    cannot record), and of the square windows whose side is ``share`` of the
+    field's longer side (at most its shorter side: a narrow strip is zoomed
+    across its whole height) the one holding the most filtered energy
+    relative to its brightness is chosen, kept a sixteenth of the field off
+    its border where it can be (recoveries carry edge artefacts there). The
+    energy is divided by the window's mean intensity (floored at a tenth of
+    the field's 99th percentile): a recovery's amplitude error puts intensity
+    noise whose energy grows with the brightness on large bright areas, while
+    structure's energy grows with its square, so fine structure wins over
+    bright noise.
 
     Parameters
     ----------
-    intensity : ndarray, float, (M, M)
+    intensity : ndarray, float, (H, W)
     cutoff_px : float
-        Radius of the single camera's intensity band in spectrum pixels.
+        Radius of the single camera's intensity band in cycles per field
+        width (spectrum pixels along x; along y a spectrum pixel is ``W/H``
+        of them).
     share : float
-        Window side as a share of the field.
+        Window side as a share of the field's longer side.
 
     Returns
     -------
     Region
+        Square in pixels.
     """
     from scipy import ndimage
 
     image = np.asarray(intensity, np.float32)
-    m = image.shape[-1]
+    rows, cols = image.shape[-2:]
     spectrum = fft.fft2c(image - image.mean())
-    ky, kx = np.indices((m, m)) - m // 2
-    spectrum[np.hypot(ky, kx) < cutoff_px] = 0
+    fy = (np.arange(rows)[:, None] - rows // 2) * (cols / rows)   # cycles per field width on both axes
+    fx = np.arange(cols)[None, :] - cols // 2
+    spectrum[np.hypot(fy, fx) < cutoff_px] = 0
     energy = np.abs(fft.ifft2c(spectrum)) ** 2
-    side = max(8, int(round(share * m)))
-    score = ndimage.uniform_filter(energy.astype(np.float64), size=side, mode="constant")
-    margin = max(side // 2, m // 8)
-    if m - 2 * margin < 1:
-        margin = 0
+    side = min(max(8, int(round(share * max(rows, cols)))), rows, cols)
+    mean = ndimage.uniform_filter(image.astype(np.float64), size=side, mode="constant")
+    floor = _BRIGHTNESS_FLOOR * abs(float(np.percentile(image, 99))) or 1.0
+    score = ndimage.uniform_filter(energy.astype(np.float64), size=side, mode="constant") / (np.abs(mean) + floor)
     inner = np.full_like(score, -np.inf)
-    inner[margin:m - margin, margin:m - margin] = score[margin:m - margin, margin:m - margin]
+    margins = []   # of the window's centre from the border
+    for n in (rows, cols):
+        margin = side // 2 + n // 16
+        margins.append(margin if n - 2 * margin >= 1 else (side // 2 if n - 2 * (side // 2) >= 1 else 0))
+    (my, mx) = margins
+    inner[my:rows - my, mx:cols - mx] = score[my:rows - my, mx:cols - mx]
     cy, cx = np.unravel_index(int(np.argmax(inner)), inner.shape)
     box = (cy - side // 2, cy - side // 2 + side, cx - side // 2, cx - side // 2 + side)
-    return Region(_square(box, m, pad=0, minimum=side), "most detail beyond the single-camera band")
+    return Region(_square(box, (rows, cols), pad=0, minimum=side), "most detail beyond the single-camera band")

@@ -23,8 +23,8 @@ class ReportInputs:
     """Arrays a report is computed from (all intensities in irradiance units)."""
 
     geometry: CaptureGeometry
-    observed: np.ndarray          # (N, N) centre capture
-    recovered: np.ndarray         # (M, M) recovered intensity
+    observed: np.ndarray          # (N, N) centre capture, or (h, w) over a recovered region
+    recovered: np.ndarray         # (M, M) recovered intensity, or (H, W) of a region of the M x M grid
     truth: np.ndarray | None      # (Mt, Mt) truth intensity
     bars: tuple[BarGroup, ...]    # layout on the truth grid
     engine: str
@@ -77,8 +77,10 @@ def summarize(inputs: ReportInputs, *, threshold: float = 0.2) -> dict:
     Keys include ``sar``, ``grid``, ``overlap``, ``n_images``, ``engine``,
     ``iterations``, ``seconds``, ``mtf20_observed_px``, ``mtf20_recovered_px``,
     ``resolution_gain``, ``rmse_observed``, ``rmse_recovered``,
-    ``spot_size_sensor_m``, ``spot_size_object_m`` and the contrast per bar
-    width of both images.
+    ``spot_size_sensor_m``, ``spot_size_object_m``, ``recovered_shape_px``
+    and ``recovered_field_m`` (``[height, width]`` of the recovered image in
+    pixels and at the object: a region of the recovery grid may be neither
+    the whole grid nor square) and the contrast per bar width of both images.
 
     Notes
     -----
@@ -93,6 +95,10 @@ def summarize(inputs: ReportInputs, *, threshold: float = 0.2) -> dict:
     out.update({"engine": inputs.engine, "iterations": int(inputs.iterations),
                 "seconds": round(float(inputs.seconds), 3)})
     out.update({key: value for key, value in derived.items() if key not in out})
+    rows, cols = inputs.recovered.shape[-2:]
+    pixel = grid_pixel_m(g.field_width_m, inputs.hires_size)
+    out["recovered_shape_px"] = [int(rows), int(cols)]
+    out["recovered_field_m"] = [rows * pixel, cols * pixel]
     out["mtf_threshold"] = threshold
     if inputs.truth is None:
         out.update(sharpness_summary(inputs))

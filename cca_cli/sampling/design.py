@@ -10,9 +10,10 @@ and the memory it needs.
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 
-from cca_cli.sampling.grid import band_layout, square_scan
+from cca_cli.sampling.grid import band_sizes
 from cca_cli.sampling.overlap import grid_for_sar, step_m, synthetic_aperture_ratio
 from cca_cli.units import (
     FourierScale,
@@ -23,7 +24,8 @@ from cca_cli.units import (
     spot_size_m,
 )
 
-__all__ = ["MIN_OVERLAP", "SUGGESTED_OVERLAP", "ArrayPlan", "plan_array", "iteration_seconds"]
+__all__ = ["MIN_OVERLAP", "SUGGESTED_OVERLAP", "ArrayPlan", "plan_array", "iteration_seconds",
+           "reconstruction_memory_bytes"]
 
 #: Overlap below which the paper found recovery to fail (Holloway et al. 2016, Sec. 5).
 MIN_OVERLAP = 0.5
@@ -151,13 +153,14 @@ def iteration_seconds(plan: ArrayPlan, fft_seconds: float) -> float:
     return plan.fft_count_per_iteration * fft_seconds * _ELEMENTWISE_FACTOR
 
 
-def _memory_bytes(k: int, capture_px: int, lowres: int, hires: int, box: int) -> int:
+def reconstruction_memory_bytes(k: float, capture_px: float, lowres: float, hires: float, box: float) -> float:
+    """Estimated peak memory (bytes) of reconstructing ``k`` captures of ``capture_px``² on the given grids."""
     captures = k * capture_px * capture_px * 4
     amplitudes = k * lowres * lowres * 4
     pupils = 2 * k * box * box * 8
     spectra = 6 * hires * hires * 8            # spectrum, accumulator, normal diagonal, previous, object, intensity
     workspace = 2 * 16 * lowres * lowres * 8     # two threads' chunk buffers
-    return int(captures + amplitudes + pupils + spectra + workspace)
+    return captures + amplitudes + pupils + spectra + workspace
 
 
 def plan_array(*, wavelength_m: float, focal_length_m: float, aperture_diameter_m: float, pixel_pitch_m: float,
@@ -196,13 +199,15 @@ def plan_array(*, wavelength_m: float, focal_length_m: float, aperture_diameter_
         raise ValueError("give exactly one target: a feature size, a SAR, or a lens aperture to beat")
     kind = given[0]
     value = float(targets[kind])
-    if not value > 0:
-        raise ValueError(f"the {kind} target must be positive, got {value}")
+    if not (value > 0 and math.isfinite(value)):
+        raise ValueError(f"the {kind} target must be a positive number, got {value}")
     for name, v in (("wavelength_m", wavelength_m), ("focal_length_m", focal_length_m),
                     ("aperture_diameter_m", aperture_diameter_m), ("pixel_pitch_m", pixel_pitch_m),
-                    ("distance_m", distance_m)):
-        if not v > 0:
-            raise ValueError(f"{name} must be positive, got {v}")
+                    ("distance_m", distance_m), ("field_width_m", field_width_m)):
+        if v is not None and not (v > 0 and math.isfinite(v)):
+            raise ValueError(f"{name} must be a positive number, got {v}")
+    if sensor_px is not None and not sensor_px >= 1:
+        raise ValueError(f"sensor_px must be at least 1, got {sensor_px}")
     d = aperture_diameter_m
     spot_lens = spot_size_m(wavelength_m, distance_m, d)
     warnings = []
@@ -237,8 +242,8 @@ def plan_array(*, wavelength_m: float, focal_length_m: float, aperture_diameter_
 
     scale = FourierScale.fraunhofer(wavelength_m, distance_m, field)
     radius = scale.pupil_radius_px(d)
-    scan = square_scan(grid, step)
-    layout = band_layout(scale.to_pixels(scan.centres_yx_m), radius, sensor_size=max(capture_px, 2))
+    reach = float(scale.to_pixels((grid - 1) / 2.0 * step))  # the outermost aperture centre (no arrays: grids may be huge)
+    layout = band_sizes(reach, radius, sensor_size=max(capture_px, 2))
     k = grid * grid
     return ArrayPlan(
         wavelength_m=wavelength_m, focal_length_m=focal_length_m, aperture_diameter_m=d,
@@ -251,7 +256,8 @@ def plan_array(*, wavelength_m: float, focal_length_m: float, aperture_diameter_
         output_px=layout.hires_size, lowres_px=layout.lowres_size,
         output_pixel_m=grid_pixel_m(field, layout.hires_size),
         capture_bytes=k * capture_px * capture_px * 4,
-        memory_bytes=_memory_bytes(k, capture_px, layout.lowres_size, layout.hires_size, layout.box_size),
+        memory_bytes=int(reconstruction_memory_bytes(k, capture_px, layout.lowres_size, layout.hires_size,
+                                                     layout.box_size)),
         fft_count_per_iteration=_FFTS_PER_CAPTURE * k, warnings=tuple(warnings),
     )
 

@@ -11,14 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["ScanGrid", "square_scan", "BandLayout", "band_layout", "smallest_fft_size"]
-
-
-def _is_7_smooth(n: int) -> bool:
-    for p in (2, 3, 5, 7):
-        while n % p == 0:
-            n //= p
-    return n == 1
+__all__ = ["ScanGrid", "square_scan", "BandLayout", "BandSizes", "band_sizes", "band_layout", "smallest_fft_size"]
 
 
 def smallest_fft_size(n: int) -> int:
@@ -26,13 +19,29 @@ def smallest_fft_size(n: int) -> int:
 
     Even sizes keep the zero frequency of a centred spectrum at ``size // 2``
     with a real ±1 modulation in the other domain, which the forward model
-    relies on; 7-smooth sizes are fast for FFTW and pocketfft alike.
+    relies on; 7-smooth sizes are fast for FFTW and pocketfft alike. Sizes
+    beyond 2**62 (far beyond any memory) are only rounded up to even.
     """
     n = max(2, int(n))
     n += n % 2
-    while not _is_7_smooth(n):
-        n += 2
-    return n
+    if n > 1 << 62:
+        return n
+    best = None
+    p7 = 1
+    while p7 < 2 * n:
+        p5 = p7
+        while p5 < 2 * n:
+            p3 = p5
+            while p3 < 2 * n:
+                two = 2
+                while p3 * two < n:
+                    two *= 2
+                if best is None or p3 * two < best:
+                    best = p3 * two
+                p3 *= 3
+            p5 *= 5
+        p7 *= 7
+    return best
 
 
 @dataclass(frozen=True)
@@ -124,6 +133,68 @@ class BandLayout:
         return float(np.max(np.abs(self.centres_px)) + self.pupil_radius_px)
 
 
+@dataclass(frozen=True)
+class BandSizes:
+    """The grid sizes of a band layout, without the per-capture positions.
+
+    Attributes
+    ----------
+    hires_size, lowres_size, box_size : int
+        M, m and b of :class:`BandLayout`.
+    """
+
+    hires_size: int
+    lowres_size: int
+    box_size: int
+
+
+def band_sizes(reach_px: float, pupil_radius_px: float, *, sensor_size: int | None = None,
+               hires_size: int | None = None, lowres_size: int | None = None) -> BandSizes:
+    """The grids :func:`band_layout` chooses, from the largest pupil offset alone (no arrays).
+
+    Parameters
+    ----------
+    reach_px : float
+        Largest ``|y|`` or ``|x|`` of any pupil centre (spectrum pixels; rounded to the nearest pixel).
+    pupil_radius_px : float
+        Pupil radius R in spectrum pixels.
+    sensor_size, hires_size, lowres_size : int, optional
+        As in :func:`band_layout`.
+
+    Raises
+    ------
+    ValueError
+        A non-positive radius, an odd or too small per-capture grid, or a forced M too small for the band.
+    """
+    radius = float(pupil_radius_px)
+    if not radius > 0 or not math.isfinite(radius):
+        raise ValueError(f"pupil radius must be a positive number, got {radius}")
+    box = 2 * math.ceil(radius) + 4
+
+    # The anti-aliased pupil edge reaches R + 1/2 (optics.pupil.circular_pupils), its intensity band 2R + 1.
+    needed_lowres = smallest_fft_size(2 * math.floor(2 * radius + 1) + 1)
+    if lowres_size is None:
+        lowres_size = needed_lowres
+        if sensor_size is not None and sensor_size < lowres_size:
+            lowres_size = int(sensor_size)
+    if lowres_size % 2:
+        raise ValueError(f"the per-capture grid must be even, got {lowres_size}")
+    if lowres_size < box:
+        raise ValueError(
+            f"a {lowres_size}-pixel capture grid cannot hold a pupil of radius {radius:.1f} px "
+            f"(needs ≥ {box}); the sensor samples the field too coarsely for this aperture"
+        )
+    reach = int(np.rint(reach_px)) + box // 2 + 1
+    needed_hires = smallest_fft_size(2 * reach)
+    if hires_size is None:
+        hires_size = max(needed_hires, smallest_fft_size(sensor_size or 0), lowres_size)
+    elif hires_size < needed_hires:
+        raise ValueError(
+            f"high-resolution grid {hires_size} is too small for the synthetic band (needs ≥ {needed_hires})"
+        )
+    return BandSizes(hires_size=int(hires_size), lowres_size=int(lowres_size), box_size=box)
+
+
 def band_layout(
     centres_px,
     pupil_radius_px: float,
@@ -159,34 +230,10 @@ def band_layout(
     aliasing; the smallest even 7-smooth size is used.
     """
     centres = np.asarray(centres_px, dtype=np.float64).reshape(-1, 2)
-    radius = float(pupil_radius_px)
-    if not radius > 0:
-        raise ValueError(f"pupil radius must be positive, got {radius}")
-    box = 2 * math.ceil(radius) + 4
-
-    # The anti-aliased pupil edge reaches R + 1/2 (optics.pupil.circular_pupils), its intensity band 2R + 1.
-    needed_lowres = smallest_fft_size(2 * math.floor(2 * radius + 1) + 1)
-    if lowres_size is None:
-        lowres_size = needed_lowres
-        if sensor_size is not None and sensor_size < lowres_size:
-            lowres_size = int(sensor_size)
-    if lowres_size % 2:
-        raise ValueError(f"the per-capture grid must be even, got {lowres_size}")
-    if lowres_size < box:
-        raise ValueError(
-            f"a {lowres_size}-pixel capture grid cannot hold a pupil of radius {radius:.1f} px "
-            f"(needs ≥ {box}); the sensor samples the field too coarsely for this aperture"
-        )
-
     rounded = np.rint(centres).astype(np.int64)
-    reach = int(np.max(np.abs(rounded))) + box // 2 + 1
-    needed_hires = smallest_fft_size(2 * reach)
-    if hires_size is None:
-        hires_size = max(needed_hires, smallest_fft_size(sensor_size or 0), lowres_size)
-    elif hires_size < needed_hires:
-        raise ValueError(
-            f"high-resolution grid {hires_size} is too small for the synthetic band (needs ≥ {needed_hires})"
-        )
+    sizes = band_sizes(float(np.max(np.abs(rounded))), pupil_radius_px, sensor_size=sensor_size,
+                       hires_size=hires_size, lowres_size=lowres_size)
+    radius, box, hires_size, lowres_size = float(pupil_radius_px), sizes.box_size, sizes.hires_size, sizes.lowres_size
     origins = rounded + hires_size // 2 - box // 2
     box_centres = centres - origins + hires_size // 2
     return BandLayout(

@@ -18,9 +18,10 @@ from cca_cli.engines.momentum import Calibration
 from cca_cli.engines.presets import preset
 from cca_cli.engines.problem import PhaseRetrievalProblem
 from cca_cli.engines.registry import get_engine
-from cca_cli.errors import ConfigError, InputError
+from cca_cli.errors import CcaError, ConfigError, InputError
 from cca_cli.io.geometry import read_geometry, write_geometry
-from cca_cli.io.h5 import Provenance, atomic_h5, check_output, open_input, require, write_dataset
+from cca_cli.io.h5 import Provenance, atomic_h5, check_output, open_input, write_dataset
+from cca_cli.io.measurements import read_intensity, read_weight
 from cca_cli.io.schema import spec_for
 from cca_cli.optics import fft
 from cca_cli.optics.forward import ForwardModel
@@ -93,22 +94,17 @@ def read_captures(path: Path) -> Captures:
 
 def read_measurements(handle, path: Path) -> Captures:
     """/measurements, /geometry and /truth of an open captures file, checked except for the image count."""
-    dataset = require(handle, "/measurements/intensity", ndim=3)
-    intensity = np.asarray(dataset, dtype=np.float32)
-    units = dataset.attrs.get("units")
+    intensity = read_intensity(handle, path)
+    units = handle["/measurements/intensity"].attrs.get("units")
     units = units.decode() if isinstance(units, bytes) else units
     units = None if units in (None, "", spec_for("/measurements/intensity").units) else str(units)
     geometry = read_geometry(handle)
-    weight = np.asarray(handle["/measurements/weight"], np.float32) if "/measurements/weight" in handle else None
+    weight = read_weight(handle, path, intensity.shape)
     truth = {name: np.asarray(handle["truth"][name]) for name in handle["truth"]} if "truth" in handle else {}
     k, h, w = intensity.shape
+    # Recorded frames say "open"; a file without the attribute is a window on a larger scene unless square.
     boundary = handle["/measurements/intensity"].attrs.get("boundary", "periodic" if h == w else "open")
     pupil = np.asarray(handle["/calibration/initial_pupil"]) if "/calibration/initial_pupil" in handle else None
-    if not np.all(np.isfinite(intensity)):
-        bad = int(np.argmax(~np.isfinite(intensity).reshape(k, -1).all(axis=1)))
-        raise InputError(f"{path}: image {bad} of /measurements/intensity contains NaN or Inf; fix or mask it")
-    if weight is not None and weight.shape != intensity.shape:
-        raise InputError(f"{path}: /measurements/weight has shape {weight.shape}, expected {intensity.shape}")
     return Captures(path=path, intensity=intensity, weight=weight, geometry=geometry, truth=truth, units=units,
                     boundary=boundary.decode() if isinstance(boundary, bytes) else str(boundary), initial_pupil=pupil)
 
@@ -123,10 +119,12 @@ def embed_region(captures: Captures, section: ReconstructSection) -> tuple[Captu
     """
     k, h, w = captures.intensity.shape
     padding = section.padding
-    if padding.mode == "off" or (captures.boundary != "open" and h == w):
+    if padding.mode == "off" or captures.boundary != "open":
         if h != w:
-            raise InputError(f"{captures.path}: /measurements/intensity images are {w}x{h} px; with "
-                             "reconstruct.padding.mode off they must be square (register.crop_xywh)")
+            why = ("with reconstruct.padding.mode off" if captures.boundary == "open"
+                   else "simulated (periodic) captures")
+            raise InputError(f"{captures.path}: /measurements/intensity images are {w}x{h} px; {why} must be square "
+                             "(register.crop_xywh)")
         return captures, None
     region = plan_embedding((h, w), captures.geometry.pupil_radius_px, guard_px=padding.guard_px,
                             apodize_px=padding.apodize_px)
@@ -258,6 +256,9 @@ def drive_engine(engine, options, layout: BandLayout, name: str, *, progress: Pr
 
     start = time.perf_counter()
     spectrum, history = run_engine(engine, on_iteration=report)
+    if not np.all(np.isfinite(spectrum)):
+        raise CcaError(f"reconstruct: the recovery diverged (NaN or Inf after {history.iterations} iterations), so "
+                       "nothing was written; raise reconstruct.tau or choose other reconstruct.options")
     return Recovery(spectrum=spectrum, layout=layout, history=history, engine=name,
                     options=asdict(options), seconds=time.perf_counter() - start,
                     stopped_by=stop_reason(history, options, engine))

@@ -9,7 +9,9 @@ import numpy as np
 
 from cca_cli.config.model import ReportSection
 from cca_cli.io.geometry import read_geometry
-from cca_cli.io.h5 import Provenance, atomic_path, check_output, open_input, require
+from cca_cli.errors import InputError
+from cca_cli.io.h5 import Provenance, open_input, read_finite, require, require_attr
+from cca_cli.io.outputs import atomic_path, check_output, write_marker
 from cca_cli.report.summary import ReportInputs, summarize
 from cca_cli.stages.progress import ProgressEvent, ProgressFn, silent
 from cca_cli.stages.scene import table_to_bars
@@ -23,19 +25,23 @@ REPORT_JSON = "report.json"
 def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: Provenance, force: bool = False,
         progress: ProgressFn = silent) -> dict:
     """Compute the report of ``recon_path`` and write it (atomically) as directory ``output``."""
-    check_output(output, force=force)
+    check_output(output, force=force, kind="folder", inputs=[recon_path])
     with open_input(recon_path, stage="reconstruct") as handle:
         geometry = read_geometry(handle)
-        spectrum = np.asarray(require(handle, "/recon/spectrum", ndim=2))
-        obj = np.asarray(require(handle, "/recon/object", ndim=2))
-        recovered = np.asarray(require(handle, "/recon/intensity", ndim=2))
-        observed = np.asarray(require(handle, "/observed/centre", ndim=2))
-        residual = np.asarray(handle["/history/residual"])
-        change = np.asarray(handle["/history/change"])
-        truth_obj = np.asarray(handle["/truth/object"]) if "/truth/object" in handle else None
-        bars = table_to_bars(np.asarray(handle["/truth/bars"])) if "/truth/bars" in handle else ()
-        usaf_table = np.asarray(handle["/truth/usaf"]) if "/truth/usaf" in handle else None
-        attrs = dict(handle["recon"].attrs)
+        spectrum = read_finite(handle, "/recon/spectrum", ndim=2)
+        obj = read_finite(handle, "/recon/object", ndim=2)
+        recovered = read_finite(handle, "/recon/intensity", ndim=2, dtype=np.float32)
+        observed = read_finite(handle, "/observed/centre", ndim=2, dtype=np.float32)
+        residual = np.asarray(require(handle, "/history/residual", ndim=1))
+        change = np.asarray(require(handle, "/history/change", ndim=1))
+        truth_obj = read_finite(handle, "/truth/object", ndim=2) if "/truth/object" in handle else None
+        bars = table_to_bars(_table(handle, "/truth/bars", 8)) if "/truth/bars" in handle else ()
+        usaf_table = _table(handle, "/truth/usaf", 11) if "/truth/usaf" in handle else None
+        recon = require(handle, "/recon/spectrum").parent
+        attrs = dict(recon.attrs)
+        attrs.update(engine=require_attr(recon, "engine", str), iterations=require_attr(recon, "iterations", int),
+                     seconds=require_attr(recon, "seconds", float), hires_size=require_attr(recon, "hires_size", int),
+                     lowres_size=require_attr(recon, "lowres_size", int))
         units = _text(handle["/observed/centre"].attrs.get("units", "")) or "irradiance"
         multiplex = None
         if "multiplex" in handle:
@@ -46,6 +52,10 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
 
         capture_summary = read_capture_summary(handle)
         calibration = _read_calibration(handle, geometry)
+    # The spectrum and the truth are square grids; a recovered region (/recon/region_px) may be a rectangle.
+    for name, image in (("/recon/spectrum", spectrum), ("/truth/object", truth_obj)):
+        if image is not None and image.shape[0] != image.shape[1]:
+            raise InputError(f"{recon_path}: {name} has shape {image.shape}, expected a square image")
     truth = None if truth_obj is None else (np.abs(truth_obj) ** 2).astype(np.float32)
     inputs = ReportInputs(geometry=geometry, observed=observed, recovered=recovered, truth=truth, bars=bars,
                           engine=str(attrs.get("engine")), iterations=int(attrs.get("iterations", 0)),
@@ -65,19 +75,22 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
         summary.update(stats)
     comparison = _comparison(summary, section, geometry, truth_obj, truth, observed, recovered, bars, usaf_table,
                              recovered_object=obj)
-    region = _zoom_region(summary, bars, truth, usaf_table, recovered, geometry)
+    region = _zoom_region(summary, bars, truth, usaf_table, recovered, geometry, int(attrs.get("hires_size")))
     if region is not None:
         summary["zoom_region"] = region.to_dict()
     progress(ProgressEvent("report", "metrics", 1, 2))
-    with atomic_path(output, force=True) as tmp:
+    with atomic_path(output, force=True, kind="folder", inputs=[recon_path]) as tmp:
         tmp.mkdir(parents=True)
         if section.figures:
             from cca_cli.report.figures import write_figures
 
+            # A region cut from the recovery grid (/recon/region_px) is that share of the grid's field wide;
+            # the spectrum (and the pupils' pixels) belong to the whole grid.
             figures = write_figures(tmp, observed=observed, recovered_object=obj, spectrum=spectrum,
                                     pupil_centres_px=geometry.spectrum_centres_yx_px,
                                     pupil_radius_px=geometry.pupil_radius_px,
                                     field_width_m=geometry.field_width_m * obj.shape[-1] / int(attrs.get("hires_size")),
+                                    spectrum_field_width_m=geometry.field_width_m,
                                     residual=residual, change=change, summary=summary, truth=truth, units=units,
                                     region=region, grid_indices=geometry.grid_indices)
             if comparison:
@@ -97,6 +110,7 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
         document = dict(summary)
         document["provenance"] = {k: (v if isinstance(v, str) else str(v)) for k, v in provenance.items()}
         (tmp / REPORT_JSON).write_text(json.dumps(document, indent=2))
+        write_marker(tmp, "report")
     progress(ProgressEvent("report", "figures", 2, 2))
     return summary
 
@@ -185,7 +199,7 @@ def _stopping(attrs: dict, change: np.ndarray) -> dict:
     return out
 
 
-def _zoom_region(summary: dict, bars, truth, usaf_table, recovered, geometry):
+def _zoom_region(summary: dict, bars, truth, usaf_table, recovered, geometry, hires_size: int):
     """Where the figures zoom: the finest resolved chart features, else the recovery's most detailed part."""
     from cca_cli.report import regions
 
@@ -195,9 +209,19 @@ def _zoom_region(summary: dict, bars, truth, usaf_table, recovered, geometry):
         return regions.usaf_region(table_to_usaf(usaf_table), (summary.get("usaf") or {}).get("recovered"))
     if bars and truth is not None:
         return regions.bar_region(bars, summary.get("mtf20_recovered_px"), truth.shape[-1])
-    grid = recovered.shape[-1]
-    cutoff = min(2.0 * geometry.pupil_radius_px, grid / 2.0)
+    width = recovered.shape[-1]
+    # The pupil radius is in spectrum px of the whole recovery grid; a region cut from it holds
+    # proportionally fewer cycles per its own width.
+    cutoff = min(2.0 * geometry.pupil_radius_px * width / hires_size, width / 2.0)
     return regions.detail_region(recovered, cutoff)
+
+
+def _table(handle, path: str, columns: int) -> np.ndarray:
+    """A layout table of the truth: (rows, ``columns``) finite numbers."""
+    table = read_finite(handle, path, ndim=2)
+    if table.shape[1] != columns:
+        raise InputError(f"{handle.filename}: {path} has shape {table.shape}, expected (rows, {columns})")
+    return table
 
 
 def _comparison(summary: dict, section: ReportSection, geometry, truth_obj, truth, observed, recovered, bars,

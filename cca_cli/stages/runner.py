@@ -1,13 +1,17 @@
 """Run the configured stages in order, skipping those whose output is up to date.
 
-A stage's output is up to date when it exists and records the same hash of
-the config sections the stage reads and the same SHA-256 of its input files.
-Outputs appear atomically, so an interrupted run resumes at the first stage
-without a complete, matching output.
+A stage's output is up to date when it exists, is complete (a report folder
+still holds every file it lists) and records the same hash of the config
+sections the stage reads and the same SHA-256 of its input files. Outputs
+appear atomically, so an interrupted run resumes at the first stage without a
+complete, matching output. One run at a time writes in a folder (a lock file);
+temporaries that killed runs left are removed, and an output cca did not write
+is never replaced.
 """
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import time
@@ -18,8 +22,10 @@ import yaml
 from pydantic import BaseModel
 
 from cca_cli.config.model import RunConfig
-from cca_cli.errors import OutputExistsError
+from cca_cli.errors import OutputError, OutputExistsError
 from cca_cli.io.h5 import Provenance, file_sha256, read_provenance
+from cca_cli.io.lock import folder_lock
+from cca_cli.io.outputs import check_folder, folder_complete, foreign_part, remove_stale_temporaries
 from cca_cli.stages import hdr as hdr_stage
 from cca_cli.stages import ingest as ingest_stage
 from cca_cli.stages import reconstruct as reconstruct_stage
@@ -28,7 +34,8 @@ from cca_cli.stages import report as report_stage
 from cca_cli.stages import simulate as simulate_stage
 from cca_cli.stages.progress import ProgressFn, silent
 
-__all__ = ["StagePlan", "StageOutcome", "plan_stages", "config_hash", "section_yaml", "stage_provenance", "pick_sections", "is_up_to_date", "run_pipeline", "default_out_dir"]
+__all__ = ["StagePlan", "StageOutcome", "plan_stages", "config_hash", "section_yaml", "stage_provenance",
+           "pick_sections", "is_up_to_date", "run_pipeline", "prepare_folder", "default_out_dir"]
 
 OUTPUTS = {"simulate": "captures.h5", "ingest": "raw.h5", "hdr": "hdr.h5", "register": "registered.h5",
            "reconstruct": "recon.h5", "report": "report"}
@@ -121,19 +128,43 @@ def _recorded_provenance(output: Path) -> dict:
 
 
 def is_up_to_date(plan: StagePlan, digest: str) -> bool:
-    """Whether ``plan.output`` exists with the same config hash and input hashes."""
+    """Whether ``plan.output`` exists, complete, with the same config hash and input hashes."""
+    return _state(plan, digest) == "current"
+
+
+@functools.lru_cache(maxsize=64)
+def _cached_sha256(path: str, size: int, mtime_ns: int) -> str:
+    return file_sha256(path)
+
+
+def _sha256(path: Path) -> str:
+    """SHA-256 of a file, computed once per version of it (the run checks each input twice)."""
+    stat = Path(path).stat()
+    return _cached_sha256(str(Path(path).resolve()), stat.st_size, stat.st_mtime_ns)
+
+
+def _state(plan: StagePlan, digest: str) -> str:
+    """``current``; ``incomplete`` (cca's, same config and inputs, files missing); ``other`` (another config or
+    inputs); ``foreign`` (not written by cca, or unreadable)."""
+    if foreign_part(plan.output) is not None:
+        return "foreign"
     recorded = _recorded_provenance(plan.output)
     if recorded.get("config_hash") != digest:
-        return False
+        return "other"
     try:
         inputs = json.loads(recorded.get("inputs", "[]"))
-        return [i["sha256"] for i in inputs] == [file_sha256(p) for p in plan.inputs]
+        same_inputs = [i["sha256"] for i in inputs] == [_sha256(p) for p in plan.inputs]
     except (OSError, ValueError, KeyError, TypeError):
-        return False
+        same_inputs = False
+    if not same_inputs:
+        return "other"
+    if plan.output.is_dir() and not folder_complete(plan.output):
+        return "incomplete"
+    return "current"
 
 
 def run_pipeline(config: RunConfig, out_dir: Path, *, force: bool = False, progress: ProgressFn = silent,
-                 on_stage=None) -> list[StageOutcome]:
+                 on_stage=None, source: str | Path | None = None) -> list[StageOutcome]:
     """Run the configured stages; skip up-to-date ones unless ``force``.
 
     Parameters
@@ -147,38 +178,108 @@ def run_pipeline(config: RunConfig, out_dir: Path, *, force: bool = False, progr
         Receives :class:`~cca_cli.stages.progress.ProgressEvent` objects.
     on_stage : callable, optional
         Called with ``(plan, "start" | "skipped")`` before each stage.
+    source : str or Path, optional
+        The config file, named in messages about the run's size.
 
     Raises
     ------
     OutputExistsError
         If an output exists but was made from another config or inputs and ``force`` is not set.
+    OutputError
+        If an output exists that cca did not write (even with ``force``), or the folder cannot be written.
+    ResourceError
+        If a stage needs more memory or disk than the machine has (checked before it starts).
+    RunLockedError
+        If another run is writing in ``out_dir``.
     """
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    check_folder(out_dir)
+    plans = plan_stages(config, out_dir)
+    _check_before_running(config, plans, force=force, source=source)
+    prepare_folder(out_dir)
+    with folder_lock(out_dir):
+        remove_stale_temporaries(out_dir)
+        return _run_stages(config, plans, force=force, progress=progress, on_stage=on_stage, source=source)
+
+
+def _check_before_running(config: RunConfig, plans: list[StagePlan], *, force: bool, source) -> None:
+    """Refuse, before anything runs or is created, what would stop the run later: an output cca did not write,
+    one made from another config (without ``force``), a simulation the machine cannot hold."""
+    from cca_cli.stages.footprint import check_footprint, simulate_footprint
+
+    simulate = None
+    rewritten: set[Path] = set()
+    for plan in plans:  # the same decisions as _run_stages, without running anything
+        exists = plan.output.exists() or plan.output.is_symlink()
+        state = _state(plan, config_hash(pick_sections(config, plan.sections))) if exists else None
+        if state == "foreign":
+            _refuse_existing(plan, state)
+        if exists and not force and not rewritten.intersection(plan.inputs):
+            if state == "other":
+                _refuse_existing(plan, state)
+            if state == "current":
+                continue
+        rewritten.add(plan.output)
+        if plan.name == "simulate":
+            simulate = plan
+    if simulate is not None:
+        check_footprint(simulate_footprint(config), simulate.output, source=source)
+
+
+def prepare_folder(directory: Path) -> None:
+    """Create a run folder, or refuse one that is a file or cannot be written (one line)."""
+    check_folder(directory)
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"{directory}: cannot create the folder ({exc.strerror}); choose another one") from None
+
+
+def _refuse_existing(plan: StagePlan, state: str) -> None:
+    if state == "foreign":
+        raise OutputError(
+            f"{plan.output}: exists but cca did not write it (or cannot read it: a damaged file), so it is never "
+            "replaced, not even with --force; move it away, or choose another output folder")
+    raise OutputExistsError(f"{plan.output}: exists but was made from another config or inputs; "
+                            "use --force to recompute it, or choose another output folder")
+
+
+def _run_stages(config: RunConfig, plans: list[StagePlan], *, force: bool, progress: ProgressFn, on_stage,
+                source) -> list[StageOutcome]:
+    from cca_cli.stages.footprint import check_footprint, reconstruct_footprint, report_footprint, simulate_footprint
+
     outcomes = []
     rewritten: set[Path] = set()
-    for plan in plan_stages(config, out_dir):
+    for plan in plans:
         sections = pick_sections(config, plan.sections)
         digest = config_hash(sections)
-        # An output made from an input this run just rewrote is stale by construction: recompute it.
-        if not force and plan.output.exists() and not rewritten.intersection(plan.inputs):
-            if not is_up_to_date(plan, digest):
-                raise OutputExistsError(
-                    f"{plan.output}: exists but was made from another config or inputs; "
-                    "use --force to recompute it, or choose another run.out_dir")
-            if on_stage:
-                on_stage(plan, "skipped")
-            outcomes.append(StageOutcome(plan.name, "skipped", plan.output, 0.0))
-            continue
+        if plan.output.exists() or plan.output.is_symlink():
+            state = _state(plan, digest)
+            if state == "foreign":
+                _refuse_existing(plan, state)
+            # An output made from an input this run just rewrote is stale by construction: recompute it.
+            if not force and not rewritten.intersection(plan.inputs):
+                if state == "other":
+                    _refuse_existing(plan, state)
+                if state == "current":
+                    if on_stage:
+                        on_stage(plan, "skipped")
+                    outcomes.append(StageOutcome(plan.name, "skipped", plan.output, 0.0))
+                    continue
         if on_stage:
             on_stage(plan, "start")
         start = time.perf_counter()
         provenance = stage_provenance(plan.name, sections, plan.inputs)
         if plan.name == "simulate":
+            check_footprint(simulate_footprint(config), plan.output, source=source)
             args = (config,)
         elif plan.name == "ingest":
             args = (plan.inputs[0],)
         else:  # the input file and the stage's one section
+            if plan.name == "reconstruct":
+                check_footprint(reconstruct_footprint(plan.inputs[0]), plan.output, source=plan.inputs[0])
+            elif plan.name == "report":
+                check_footprint(report_footprint(plan.inputs[0]), plan.output, source=plan.inputs[0])
             args = (plan.inputs[0], getattr(config, plan.sections[0]))
         result = RUNS[plan.name](*args, plan.output, provenance=provenance, force=True, progress=progress)
         outcomes.append(StageOutcome(plan.name, "ran", plan.output, time.perf_counter() - start, result))

@@ -98,10 +98,17 @@ def record_all(band: np.ndarray, size: int, noise: NoiseSection, rng: np.random.
                progress: ProgressFn = silent, step: int = 16) -> np.ndarray:
     """:func:`record` in blocks of ``step`` images, reporting ``simulate/captures`` progress after each."""
     k = band.shape[0]
+    if noise.model == "poisson" and float(band.max(initial=0.0)) * noise.photons_per_unit < 1:
+        raise ConfigError(f"noise.photons_per_unit: the brightest pixel would collect "
+                          f"{float(band.max(initial=0.0)) * noise.photons_per_unit:.2g} photo-electrons, so the images "
+                          "would hold noise only; raise noise.photons_per_unit")
     intensity = np.empty((k, size, size), np.float32)
     for start in range(0, k, step):
         intensity[start:start + step] = record(band[start:start + step], size, noise, rng)
         progress(ProgressEvent("simulate", "captures", min(start + step, k), k))
+    if not intensity.any():
+        raise ConfigError("simulate: every simulated image is zero (a black scene, or too few photons: "
+                          "noise.photons_per_unit); nothing could be recovered from it")
     return intensity
 
 
@@ -118,7 +125,8 @@ def write_captures(path: Path, simulation: Simulation, provenance: Provenance, *
 
         geometry = replace(geometry, pixel_pitch_m=simulation.pixel_pitch_m)
     with atomic_h5(path, provenance, force=force) as handle:
-        write_dataset(handle, "/measurements/intensity", simulation.intensity, layout="centred sensor")
+        write_dataset(handle, "/measurements/intensity", simulation.intensity, layout="centred sensor",
+                      boundary="periodic")
         write_geometry(handle, geometry)
         write_dataset(handle, "/truth/object", simulation.scene.field)
         if simulation.scene.bars:

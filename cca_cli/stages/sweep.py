@@ -22,9 +22,11 @@ import io
 import itertools
 import json
 import math
+import os
 import re
 import time
 import traceback
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator
@@ -37,6 +39,7 @@ from cca_cli.config.messages import accepted_keys
 from cca_cli.config.model import RunConfig, SweepSection
 from cca_cli.errors import CcaError, ConfigError
 from cca_cli.io.h5 import Provenance, atomic_h5, atomic_path, remove_temporaries, write_dataset
+from cca_cli.io.outputs import starts_with
 
 __all__ = [
     "PAPER_STUDIES",
@@ -51,6 +54,9 @@ __all__ = [
     "run_point",
     "cached_result",
     "open_client",
+    "check_scheduler",
+    "check_workers",
+    "scheduler_timeout",
     "run_sweep",
     "table_columns",
     "TABLE_COLUMNS",
@@ -61,6 +67,9 @@ __all__ = [
 ]
 
 POINT_JSON = "point.json"
+#: How a point.json and a sweep.csv that cca wrote begin (so that --force and re-runs recognise them).
+POINT_JSON_START = '{\n  "config_digest"'
+CSV_START = "point_id,index,status,"
 
 #: Report metrics copied into the sweep table.
 METRICS = ("sar", "grid_n", "n_images", "iterations", "recon_seconds", "mtf20_observed_px", "mtf20_recovered_px",
@@ -268,18 +277,17 @@ def expand_points(base: RunConfig, spec: SweepSection, sweep_dir: Path, *, sourc
 
 
 def point_cost(point: SweepPoint) -> PointCost | None:
-    """Captures and grid sizes of a point, from its geometry alone (nothing is simulated)."""
+    """Captures and grid sizes of a point, from its numbers alone (nothing is simulated or allocated)."""
     if point.config is None:
         return None
-    from cca_cli.sampling.grid import band_layout
-    from cca_cli.stages.simulate import simulation_geometry
+    from cca_cli.stages.footprint import simulation_sizes
 
     try:
-        geometry, sensor = simulation_geometry(point.config)
-        layout = band_layout(geometry.spectrum_centres_yx_px, geometry.pupil_radius_px, sensor_size=sensor)
-    except (CcaError, ValueError):
+        sizes = simulation_sizes(point.config)
+        return PointCost(int(sizes.images), int(sizes.lowres_px), int(sizes.hires_px),
+                         point.config.reconstruct.iterations)
+    except (CcaError, ValueError, OverflowError):
         return None
-    return PointCost(geometry.n_images, layout.lowres_size, layout.hires_size, point.config.reconstruct.iterations)
 
 
 def _one_line(exc: BaseException) -> str:
@@ -334,7 +342,7 @@ def run_point(config_data: dict, out_dir: str, *, force: bool = False) -> dict[s
         result = {"status": "ok", "error": "", "wall_s": round(time.perf_counter() - start, 3),
                   "stages": {o.name: o.status for o in outcomes}, "worker": _worker_name(), **_metrics(summary)}
         record = {"config_digest": config_digest(config), "result": result}
-        with atomic_path(directory / POINT_JSON, force=True) as tmp:
+        with atomic_path(directory / POINT_JSON, force=True, owned=starts_with(POINT_JSON_START)) as tmp:
             tmp.write_text(json.dumps(record, indent=2))
         return result
     except Exception as exc:  # a failed point is recorded, the others go on
@@ -386,10 +394,13 @@ def open_client(*, workers: int | None = None, scheduler: str | None = None) -> 
     from distributed import Client, LocalCluster
 
     if scheduler:
+        timeout = scheduler_timeout()
+        check_scheduler(scheduler, timeout)
         try:
-            client = Client(scheduler, timeout="20s")
-        except OSError as exc:
-            raise ConfigError(f"--scheduler {scheduler}: cannot connect ({exc}); check the address") from None
+            client = Client(scheduler, timeout=f"{timeout}s")
+        except (OSError, ValueError, TypeError) as exc:
+            raise ConfigError(f"--scheduler {scheduler}: cannot connect ({_one_line(exc)}); check the address") \
+                from None
         try:
             yield client
         finally:
@@ -397,19 +408,97 @@ def open_client(*, workers: int | None = None, scheduler: str | None = None) -> 
         return
     from cca_cli.optics.fft import cpu_count
 
+    check_workers(workers)
     n = workers or cpu_count()
-    if n < 1:
-        raise ConfigError(f"--workers {n}: give at least 1 worker")
     for name in ("distributed", "distributed.nanny", "distributed.scheduler", "distributed.worker"):
         logging.getLogger(name).setLevel(logging.ERROR)
-    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
-                           silence_logs=logging.ERROR)
-    client = Client(cluster)
     try:
-        yield client
+        with warnings.catch_warnings():  # another cluster on this machine holds the usual HTTP port: no matter
+            warnings.filterwarnings("ignore", message="Port .* is already in use", category=UserWarning)
+            cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
+                                   silence_logs=logging.ERROR)
+    except BaseException:  # Ctrl-C while the workers start: stop them now, not in distributed's exit hook
+        _close_unstarted_clusters()
+        raise
+    try:
+        client = Client(cluster)
+        try:
+            yield client
+        finally:
+            client.close()
     finally:
-        client.close()
-        cluster.close()
+        with contextlib.suppress(Exception):
+            cluster.close()
+
+
+def _close_unstarted_clusters() -> None:
+    """Close clusters whose start was interrupted (their own exit hook would fail with a traceback)."""
+    from distributed.deploy.spec import SpecCluster
+
+    for cluster in list(SpecCluster._instances):
+        with contextlib.suppress(BaseException):
+            cluster.close(timeout=5)
+        SpecCluster._instances.discard(cluster)
+
+
+def check_workers(workers: int | None) -> None:
+    """Refuse a worker count below 1, or far above the cores this machine has (each worker is a process)."""
+    from cca_cli.optics.fft import cpu_count
+
+    if workers is None:
+        return
+    if workers < 1:
+        raise ConfigError(f"--workers {workers}: give at least 1 worker process (or leave it out: one per core)")
+    most = 8 * cpu_count()
+    if workers > most:
+        raise ConfigError(f"--workers {workers}: this machine has {cpu_count()} cores; start at most {most} worker "
+                          "processes (or use --scheduler for a cluster)")
+
+
+def scheduler_timeout() -> float:
+    """Seconds to wait for a Dask scheduler to answer: ``CCA_SCHEDULER_TIMEOUT`` or 20."""
+    text = os.environ.get("CCA_SCHEDULER_TIMEOUT", "20")
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not 0 < value < 3600:
+        raise ConfigError(f"CCA_SCHEDULER_TIMEOUT={text!r}: give seconds, e.g. 20")
+    return value
+
+
+def check_scheduler(address: str, timeout: float) -> None:
+    """Refuse an address that is not a Dask scheduler answering within ``timeout`` seconds (one line).
+
+    A bare TCP connection is not enough: a dashboard or any other server
+    accepts it and then never answers the scheduler's handshake, where
+    ``distributed.Client`` would wait without end.
+    """
+    import asyncio
+
+    from distributed.comm import connect
+
+    async def identity() -> object:
+        comm = await connect(address, timeout=timeout)
+        try:
+            await comm.write({"op": "identity", "reply": True})
+            return await comm.read()
+        finally:
+            await comm.close()
+
+    try:
+        reply = asyncio.run(asyncio.wait_for(identity(), timeout))
+    except (asyncio.TimeoutError, TimeoutError):
+        raise ConfigError(f"--scheduler {address}: no Dask scheduler answered within {timeout:g} s "
+                          "(CCA_SCHEDULER_TIMEOUT); check the address and port (8786 by default, not the dashboard's)") \
+            from None
+    except (OSError, ValueError, TypeError, EOFError) as exc:
+        raise ConfigError(f"--scheduler {address}: cannot connect ({_one_line(exc)}); give tcp://host:port of a Dask "
+                          "scheduler") from None
+    except Exception as exc:  # a server that speaks another protocol garbles the handshake
+        raise ConfigError(f"--scheduler {address}: not a Dask scheduler ({_one_line(exc)})") from None
+    if not (isinstance(reply, dict) and reply.get("type") == "Scheduler"):
+        raise ConfigError(f"--scheduler {address}: the server there is not a Dask scheduler")
 
 
 def _row(point: SweepPoint, result: dict[str, Any], status: str | None = None) -> dict[str, Any]:
@@ -554,7 +643,7 @@ def write_table(rows: list[dict[str, Any]], sweep_dir: Path, *, spec: SweepSecti
     for row in rows:
         writer.writerow(["" if row.get(c) is None else row.get(c) for c in columns])
     csv_path, h5_path = sweep_dir / "sweep.csv", sweep_dir / "sweep.h5"
-    with atomic_path(csv_path, force=True) as tmp:
+    with atomic_path(csv_path, force=True, owned=starts_with(CSV_START)) as tmp:
         tmp.write_text(buffer.getvalue())
     spec_yaml = yaml.safe_dump(spec.model_dump(mode="json"), sort_keys=False)
     provenance = Provenance.make("sweep", dump_config(base.model_copy(update={"sweep": None})) + "sweep:\n"

@@ -143,7 +143,13 @@ def test_existing_output_without_force_is_refused_and_kept(runner, small_config,
     assert recon.read_bytes() == b"precious"
     result = runner.invoke(app, ["reconstruct", str(captures), "-o", str(recon), "--iterations", "2", "-q",
                                  "--force"])
-    assert result.exit_code == 0, result.output
+    assert "recon.h5" in _error_line(result) and result.exit_code == 4  # --force never replaces what cca did not write
+    assert recon.read_bytes() == b"precious"
+    recon.unlink()
+    for iterations in ("3", "2"):  # a file cca wrote is replaced with --force
+        result = runner.invoke(app, ["reconstruct", str(captures), "-o", str(recon), "--iterations", iterations, "-q",
+                                     "--force"])
+        assert result.exit_code == 0, result.output
     with h5py.File(recon, "r") as handle:
         assert handle["recon"].attrs["iterations"] == 2
 

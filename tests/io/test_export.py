@@ -90,13 +90,18 @@ def test_npy_and_arrays_and_results(recon, tmp_path):
 
 
 def test_existing_output_is_refused_and_kept_unless_forced(recon, tmp_path):
-    target = tmp_path / "out.tif"
-    target.write_bytes(b"mine")
-    result = runner.invoke(app, ["export", str(recon), "-o", str(target)])
-    assert result.exit_code == 4 and "already exists" in result.output and "--force" in result.output
-    assert target.read_bytes() == b"mine"
-    assert runner.invoke(app, ["export", str(recon), "-o", str(target), "--force"]).exit_code == 0
-    assert read_exported(target).values.shape == (64, 64)
+    foreign = tmp_path / "out.tif"
+    foreign.write_bytes(b"mine")
+    for extra in ([], ["--force"]):  # a file cca did not write is never replaced
+        result = runner.invoke(app, ["export", str(recon), "-o", str(foreign), *extra])
+        assert result.exit_code == 4 and ("already exists" in result.output or "cca did not write it" in result.output)
+        assert foreign.read_bytes() == b"mine"
+    ours = tmp_path / "ours.tif"
+    assert runner.invoke(app, ["export", str(recon), "-o", str(ours)]).exit_code == 0
+    refused = runner.invoke(app, ["export", str(recon), "-o", str(ours), "--quantity", "phase"])
+    assert refused.exit_code == 4 and "--force" in refused.output
+    assert runner.invoke(app, ["export", str(recon), "-o", str(ours), "--quantity", "phase", "--force"]).exit_code == 0
+    assert read_exported(ours).values.shape == (64, 64) and read_exported(ours).quantity == "phase"
 
 
 @pytest.mark.parametrize("args, code, needle", [

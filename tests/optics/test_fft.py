@@ -3,10 +3,11 @@
 import numpy as np
 import pytest
 
+from cca_cli.errors import ConfigError
 from cca_cli.optics import fft
 
 RNG = np.random.default_rng(3)
-BACKENDS = ["scipy", "pyfftw"]
+BACKENDS = ["scipy", pytest.param("pyfftw", marks=pytest.mark.skipif(not fft.HAVE_PYFFTW, reason="pyfftw disabled"))]
 
 
 def _random_complex(shape):
@@ -69,7 +70,7 @@ def test_in_place_fft_is_unnormalised_and_matches_numpy(backend):
     with fft.use_backend(backend):
         buffer = fft.zeros((2, 16, 16))
         data = _random_complex((2, 16, 16))
-        plan = fft.InPlaceFFT2(buffer, threads=1)  # FFTW_MEASURE planning may scribble on the buffer
+        plan = fft.InPlaceFFT2(buffer, threads=1)
         buffer[...] = data
         assert plan.backend == backend
         out = plan.forward()
@@ -99,7 +100,7 @@ def test_use_backend_restores_and_rejects_unknown_names():
 def test_banded_fft_of_the_first_count_fields_matches_numpy(backend, count):
     with fft.use_backend(backend):
         buffer = fft.zeros((6, 16, 16))
-        plan = fft.BandedFFT2(buffer, 4, 12, threads=1)  # planning may scribble on the buffer
+        plan = fft.BandedFFT2(buffer, 4, 12, threads=1)
         data = np.zeros((6, 16, 16), np.complex64)
         data[:, 4:12, 3:13] = _random_complex((6, 8, 10))
         buffer[...] = data
@@ -121,27 +122,67 @@ def test_planning_effort_comes_from_the_environment(monkeypatch):
     monkeypatch.setenv("CCA_FFTW_PLANNING", "Estimate")
     assert fft.planning_effort() == "estimate"
     monkeypatch.delenv("CCA_FFTW_PLANNING")
-    assert fft.planning_effort() == "patient"
+    assert fft.planning_effort() == "auto"
     monkeypatch.setenv("CCA_FFTW_PLANNING", "hard")
-    with pytest.raises(ValueError, match="CCA_FFTW_PLANNING='hard'.*estimate, measure, patient"):
+    with pytest.raises(ConfigError, match="CCA_FFTW_PLANNING='hard' is not one of auto, estimate, measure, patient"):
         fft.planning_effort()
+    with pytest.raises(ConfigError, match="CCA_FFTW_PLANNING"):
+        fft.BandedFFT2(fft.zeros((2, 8, 8)), 2, 6, threads=1)
+
+
+def _raw_or_skip(plan):
+    raw = plan.raw_plans()
+    if raw is None:
+        pytest.skip("raw FFTW plans need pyfftw's FFTW library on Linux")
+    return raw
 
 
 def test_raw_plans_compute_the_same_transforms_as_the_buffer_methods():
     plan = fft.BandedFFT2(fft.zeros((3, 16, 16)), 4, 12, threads=1)
-    raw = plan.raw_plans()
-    if raw is None:
-        pytest.skip("raw FFTW plans need pyfftw's FFTW library on Linux")
-    execute = fft.fftw_execute()
-    counts, handles = raw
-    assert counts.tolist() == [1, 2, 3] and handles.shape == (3, 4)
+    raw = _raw_or_skip(plan)
+    assert raw.counts.tolist() == [1, 2, 3] and raw.buffer is plan.buffer
     data = np.zeros((3, 16, 16), np.complex64)
     data[:, 4:12, 3:13] = _random_complex((3, 8, 10))
     plan.buffer[...] = data
-    execute(int(handles[1, 0]))
-    execute(int(handles[1, 1]))
+    raw.execute(2, 0)
+    raw.execute(2, 1)
     np.testing.assert_allclose(plan.buffer[:2], np.fft.ifft2(data[:2]) * 256, atol=1e-3)
     np.testing.assert_array_equal(plan.buffer[2], data[2])
-    execute(int(handles[1, 2]))
-    execute(int(handles[1, 3]))
+    raw.execute(2, 2)
+    raw.execute(2, 3)
     np.testing.assert_allclose(plan.buffer[:2, 4:12], data[:2, 4:12] * 256, atol=1e-2)
+    with pytest.raises(ValueError, match="no plan for count 5"):
+        raw.execute(5, 0)
+
+
+def test_raw_plans_refuse_another_buffer():
+    plan = fft.BandedFFT2(fft.zeros((4, 8, 8)), 2, 6, threads=1)
+    raw = _raw_or_skip(plan)
+    with pytest.raises(ValueError, match="buffer these FFTW plans were made for"):
+        with raw.executing(fft.zeros((4, 8, 8))):
+            pass
+    with raw.executing(plan.buffer) as held:
+        assert held.plans.shape == (3, 4) and held.counts.tolist() == [1, 2, 4]
+
+
+def test_closed_transforms_raise_instead_of_running():
+    for backend in ("scipy", "pyfftw") if fft.HAVE_PYFFTW else ("scipy",):
+        with fft.use_backend(backend):
+            banded = fft.BandedFFT2(fft.zeros((2, 8, 8)), 2, 6, threads=1)
+            full = fft.InPlaceFFT2(fft.zeros((2, 8, 8)), threads=1)
+        banded.close()
+        full.close()
+        if backend == "pyfftw":
+            with pytest.raises(RuntimeError, match="released"):
+                banded.inverse(1)
+            with pytest.raises(RuntimeError, match="released"):
+                full.forward()
+
+
+def test_transforms_refuse_buffers_they_cannot_plan():
+    with pytest.raises(ValueError, match="C-contiguous"):
+        fft.InPlaceFFT2(fft.zeros((4, 8, 8))[:, :, ::2])
+    with pytest.raises(ValueError, match="band rows"):
+        fft.BandedFFT2(fft.zeros((2, 8, 8)), 6, 2)
+    with pytest.raises(ValueError, match="unknown FFTW planning effort"):
+        fft.BandedFFT2(fft.zeros((2, 8, 8)), 2, 6, effort="exhaustive")

@@ -11,6 +11,7 @@ from cca_cli.optics.pupil import circular_pupils, zernike_phase
 from cca_cli.sampling.grid import band_layout, square_scan
 
 RNG = np.random.default_rng(11)
+needs_pyfftw = pytest.mark.skipif(not fft.HAVE_PYFFTW, reason="pyfftw not installed or CCA_FFT_BACKEND=scipy")
 
 
 def _model(radius=5.3, grid=3, overlap=0.61, *, sensor_size=None, phase=False):
@@ -30,7 +31,7 @@ def _dot(a, b):
     return np.vdot(a.astype(np.complex128).ravel(), b.astype(np.complex128).ravel())
 
 
-@pytest.mark.parametrize("backend", ["scipy", "pyfftw"])
+@pytest.mark.parametrize("backend", ["scipy", pytest.param("pyfftw", marks=needs_pyfftw)])
 @pytest.mark.parametrize(("radius", "grid", "phase"), [(5.3, 3, False), (3.7, 5, True)])
 def test_adjoint_dot_product(backend, radius, grid, phase):
     with fft.use_backend(backend):
@@ -74,6 +75,7 @@ def test_forward_is_independent_of_the_chunk_size(chunk):
     np.testing.assert_allclose(model.forward(x, chunk=chunk), model.forward(x, chunk=9), atol=1e-5)
 
 
+@needs_pyfftw
 def test_pyfftw_and_scipy_give_the_same_forward_result():
     model = _model(5.3, 3)
     x = _random_complex(model.spectrum_shape)

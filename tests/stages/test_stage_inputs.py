@@ -5,6 +5,7 @@ import shutil
 import h5py
 import numpy as np
 import pytest
+from pydantic import ValidationError
 
 from cca_cli.config.load import apply_overrides
 from cca_cli.config.model import ReconstructSection, ReportSection
@@ -100,10 +101,15 @@ def test_read_captures_pads_non_square_and_rejects_mismatched_images(captures_fi
         reconstruct_stage.read_captures(_edited_copy(captures_file, tmp_path, no_geometry))
 
 
-def test_bad_engine_options_are_config_errors():
-    section = ReconstructSection(options={"chunk": "many"})
-    with pytest.raises(ConfigError, match="reconstruct.options"):
-        reconstruct_stage.engine_options(section)
+def test_bad_engine_options_are_refused_when_the_config_is_read(tiny_run_config):
+    with pytest.raises(ValidationError, match="chunk"):
+        ReconstructSection(options={"chunk": "many"})
+    with pytest.raises(ConfigError, match="reconstruct.options: chunk"):
+        apply_overrides(tiny_run_config, {"reconstruct.options": {"chunk": "many"}})
+    unchecked = ReconstructSection.model_construct(engine="altmin", tau=1e-3, iterations=5, tol=0.0,
+                                                   options={"chunk": 0})
+    with pytest.raises(ConfigError, match="reconstruct.options"):  # the stage checks again what it is given
+        reconstruct_stage.engine_options(unchecked)
 
 
 def test_report_stage_refuses_a_captures_file(captures_file, tmp_path):

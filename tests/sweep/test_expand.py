@@ -98,3 +98,23 @@ def test_dry_run_lists_points_and_runs_nothing(tmp_path):
     assert not (tmp_path / "s").exists()
     bad = CliRunner().invoke(app, ["sweep", "grid", str(config), "--set", "array.nope=1", "--dry-run"])
     assert bad.exit_code == 2 and "array.nope" in bad.output
+
+
+def test_a_dask_scheduler_is_recognised_and_other_servers_are_refused_in_bounded_time(client):
+    import http.server
+    import threading
+    import time
+
+    from cca_cli.errors import ConfigError
+    from cca_cli.stages.sweep import check_scheduler
+
+    check_scheduler(client.scheduler.address, 10)
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), http.server.BaseHTTPRequestHandler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        start = time.perf_counter()
+        with pytest.raises(ConfigError, match="--scheduler"):
+            check_scheduler(f"tcp://127.0.0.1:{server.server_address[1]}", 1)
+        assert time.perf_counter() - start < 5
+    finally:
+        server.shutdown()

@@ -1,0 +1,15 @@
+"""The `cca` console script: the command line, with Ctrl-C during start-up answered in one line too."""
+
+from __future__ import annotations
+
+import sys
+
+
+def main() -> None:
+    """Import the command line (numpy, h5py, numba … take a moment) and run it."""
+    try:
+        from cca_cli.commands.app import app
+    except KeyboardInterrupt:
+        sys.stderr.write("interrupted: nothing was done\n")
+        sys.exit(130)
+    app()

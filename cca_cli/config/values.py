@@ -1,0 +1,95 @@
+"""How config values are read: numbers stay numbers, booleans stay booleans.
+
+pydantic's lax mode reads ``true`` as the integer 1 and the string ``"no"`` as
+False. A config means what it says instead:
+
+- a boolean key takes only ``true`` or ``false`` (YAML's unquoted ``yes``/``no``
+  are booleans already); a string, a number or null is refused;
+- a number key refuses ``true``/``false``;
+- an integer key accepts an integral number written in any form (``10``,
+  ``10.0``, ``1e1``, ``"1e1"``) and refuses a fractional one (``12.7``);
+- number strings such as ``550e-9`` (strings to PyYAML) are read as numbers;
+- non-finite numbers (``.inf``, ``.nan``) are refused by the models
+  (``allow_inf_nan=False``).
+
+:func:`read_value` applies these rules to one value given its annotation, and
+walks into lists, tuples and unions.
+"""
+
+from __future__ import annotations
+
+import math
+import types
+import typing
+from pathlib import Path
+from typing import Any, Literal, Union
+
+__all__ = ["read_value"]
+
+
+def _flat(annotation) -> list:
+    """The alternatives of a union (or the annotation itself), with ``Annotated`` metadata stripped."""
+    origin = typing.get_origin(annotation)
+    if origin is typing.Annotated:
+        return _flat(typing.get_args(annotation)[0])
+    if origin in (Union, types.UnionType):
+        out = []
+        for arg in typing.get_args(annotation):
+            out += _flat(arg)
+        return out
+    return [annotation]
+
+
+def _accepts(options: list, kind: type) -> bool:
+    for option in options:
+        if option is Any or option is kind:
+            return True
+        if typing.get_origin(option) is Literal and any(type(v) is kind for v in typing.get_args(option)):
+            return True
+    return False
+
+
+def _integral(text: str):
+    try:
+        number = float(text)
+    except ValueError:
+        return text
+    return int(number) if math.isfinite(number) and number == int(number) else text
+
+
+def read_value(annotation, value):
+    """``value`` checked against ``annotation`` by the rules of this module (possibly converted).
+
+    Raises
+    ------
+    ValueError
+        A boolean where a number or text is wanted, or anything but a boolean where one is wanted.
+    """
+    options = _flat(annotation)
+    if any(option is Any for option in options) or value is None:
+        return value
+    if isinstance(value, bool):
+        if _accepts(options, bool):
+            return value
+        if _accepts(options, int) or _accepts(options, float):
+            raise ValueError(f"expected a number, got {str(value).lower()}")
+        if _accepts(options, str) or Path in options:
+            raise ValueError(f"expected text, got {str(value).lower()}")
+        return value
+    if options and all(option is bool for option in options if option is not type(None)):
+        raise ValueError(f"expected true or false, got {value!r}")
+    if isinstance(value, str) and _accepts(options, int) and not _accepts(options, float) \
+            and not _accepts(options, str):
+        return _integral(value)
+    if isinstance(value, (list, tuple)):
+        for option in options:
+            origin = typing.get_origin(option)
+            args = typing.get_args(option)
+            if origin is list and args:
+                return [read_value(args[0], v) for v in value]
+            if origin is tuple and args:
+                if len(args) == 2 and args[1] is Ellipsis:
+                    return [read_value(args[0], v) for v in value]
+                if len(args) == len(value):
+                    return [read_value(a, v) for a, v in zip(args, value)]
+    return value

@@ -1,0 +1,287 @@
+"""Memory and disk a stage will need, estimated before anything is allocated.
+
+The estimates follow the arrays each stage holds at its peak, from the grid
+sizes alone (:func:`~cca_cli.sampling.grid.band_sizes`, the same choice the
+stages make, and :func:`~cca_cli.sampling.design.reconstruction_memory_bytes`,
+the figure `cca design` prints). :func:`check_footprint` refuses a stage the
+machine cannot hold, naming the estimate and the keys to change, and logs a
+warning before a stage that will write more than :data:`LARGE_WRITE_BYTES`.
+
+``CCA_MEMORY_LIMIT`` (bytes, or with a K/M/G/T suffix) replaces the memory
+available for the check: the free memory (``psutil``) by default.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from cca_cli.config.model import RunConfig
+from cca_cli.errors import ConfigError, InputError, ResourceError
+from cca_cli.sampling.design import reconstruction_memory_bytes
+from cca_cli.sampling.grid import band_sizes
+from cca_cli.sampling.overlap import grid_for_sar
+from cca_cli.units import FourierScale, object_pixel_pitch_m
+
+__all__ = ["LARGE_WRITE_BYTES", "Footprint", "SimulationSizes", "simulation_sizes", "simulate_footprint",
+           "reconstruct_footprint", "report_footprint",
+           "memory_available", "check_footprint", "size_text"]
+
+#: Writes above this size are announced before the stage starts.
+LARGE_WRITE_BYTES = 2e9
+_COMPLEX, _FLOAT = 8, 4
+_BATCH = 16  # images recorded (resampled, noised) together by simulate
+_REPORT_FILES_BYTES = 2e7  # report.json and a dozen PNG figures
+_PER_CAPTURE = 2048  # positions, pupil boxes and bookkeeping per capture (measured: about 1.5 kB)
+
+log = logging.getLogger("cca")
+
+
+@dataclass(frozen=True)
+class Footprint:
+    """What one stage needs.
+
+    Attributes
+    ----------
+    stage : str
+    memory_bytes, disk_bytes : float
+        Peak memory and size of what it writes (floats: may exceed any integer type).
+    detail : str
+        The sizes behind the numbers (``441 images of 512² px, object 1024² px``).
+    fix : str
+        What to change to make it smaller.
+    """
+
+    stage: str
+    memory_bytes: float
+    disk_bytes: float
+    detail: str
+    fix: str
+
+
+def size_text(n: float) -> str:
+    """Bytes as ``10.7 GB`` (decimal units)."""
+    if not math.isfinite(n):
+        return "more than any machine has"
+    for unit in ("B", "kB", "MB", "GB", "TB", "PB"):
+        if abs(n) < 1000 or unit == "PB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.3g} {unit}"
+        n /= 1000
+    return f"{n:.3g} PB"
+
+
+def _fft_size(n: float) -> float:
+    """The 7-smooth size the stages would choose, or ``n`` itself when it is far beyond any memory."""
+    from cca_cli.sampling.grid import smallest_fft_size
+
+    return float(smallest_fft_size(int(n))) if n < 1e12 else float(n)
+
+
+def _grids(reach_px: float, radius: float, sensor: float) -> tuple[float, float, float]:
+    """(m, M, box) for a band reaching ``reach_px`` with pupils of ``radius`` on a ``sensor``-pixel image."""
+    if not (math.isfinite(radius) and math.isfinite(reach_px) and math.isfinite(sensor)):
+        return math.inf, math.inf, math.inf
+    if sensor < 1e9 and reach_px < 1e9:
+        try:
+            sizes = band_sizes(reach_px, radius, sensor_size=int(sensor))
+            return float(sizes.lowres_size), float(sizes.hires_size), float(sizes.box_size)
+        except ValueError:
+            pass  # too coarse a sensor: the stage itself reports it
+    box = 2 * math.ceil(radius) + 4
+    lowres = min(_fft_size(4 * radius + 1), sensor)
+    hires = max(_fft_size(2 * (reach_px + box / 2 + 1)), _fft_size(sensor), lowres)
+    return lowres, hires, box
+
+
+@dataclass(frozen=True)
+class SimulationSizes:
+    """The sizes a simulation works with, from the config's numbers alone (floats: they may be huge).
+
+    Attributes
+    ----------
+    images : float
+        Images stored (K, or P·T multiplexed).
+    fields : float
+        Fields computed (virtual captures when multiplexed).
+    stored_px, lowres_px, hires_px, box_px : float
+        Side of the stored images, of the per-capture grid m, of the object grid M and of a pupil box.
+    fix : str
+        The keys that make it smaller.
+    """
+
+    images: float
+    fields: float
+    stored_px: float
+    lowres_px: float
+    hires_px: float
+    box_px: float
+    fix: str
+
+
+def simulation_sizes(config: RunConfig) -> SimulationSizes:
+    """The sizes of simulating ``config`` (the same choices as the simulate stage, without arrays).
+
+    Raises
+    ------
+    ConfigError
+        If the optics leave too few sensor pixels (the message the stage would give).
+    """
+    optics, scene = config.optics, config.scene
+    object_pixel = object_pixel_pitch_m(optics.pixel_pitch_m, optics.focal_length_m, optics.distance_m)
+    sensor = scene.field_width_m / object_pixel if object_pixel > 0 else math.inf
+    if not sensor >= 8:
+        raise ConfigError(f"optics/scene: the field of view spans only {sensor:.3g} sensor pixels; widen the scene "
+                          "or use smaller pixels")
+    sensor = float(round(sensor)) if sensor < 1e15 else sensor  # as units.sensor_pixels_across, without overflow
+    scale = FourierScale.fraunhofer(optics.wavelength_m, optics.distance_m, sensor * object_pixel)
+    metres_per_px = scale.metres_per_pixel
+    radius = scale.pupil_radius_px(optics.aperture_diameter_m)
+    if config.multiplex is not None:
+        mux = config.multiplex
+        cameras = float(mux.camera_grid[0]) * mux.camera_grid[1]
+        patterns = len(mux.pattern_list) if mux.pattern_list is not None else mux.patterns
+        per_pattern = max(len(p) for p in mux.pattern_list) if mux.pattern_list is not None else mux.n_mux
+        images, fields = cameras * patterns, cameras * patterns * per_pattern
+        pitch = optics.aperture_diameter_m if mux.camera_pitch_m == "abutting" else mux.camera_pitch_m
+        reach = (max(mux.camera_grid) - 1) / 2 * pitch / metres_per_px + (max(mux.source_grid) - 1) * radius
+        fix = "lower multiplex.camera_grid, multiplex.patterns or scene.size_px"
+    else:
+        array = config.array
+        grid = array.grid if array.grid is not None else grid_for_sar(array.sar, array.overlap)
+        images = fields = float(grid) * float(grid)
+        reach = (grid - 1) / 2 * (1 - array.overlap) * optics.aperture_diameter_m / metres_per_px
+        fix = f"lower array.{'grid' if array.grid is not None else 'sar'} or scene.size_px"
+    lowres, hires, box = _grids(reach, radius, sensor)
+    if config.multiplex is not None and math.isfinite(hires):
+        hires = float(scene.size_px * math.ceil(hires / scene.size_px))
+    stored = sensor if config.simulate.store == "sensor" else lowres
+    if config.simulate.store == "sensor":
+        fix += ", or use simulate.store: band"
+    return SimulationSizes(images, fields, stored, lowres, hires, box, fix)
+
+
+def simulate_footprint(config: RunConfig) -> Footprint:
+    """Memory and disk of ``cca simulate`` for ``config``, from its numbers alone."""
+    sizes = simulation_sizes(config)
+    chart = float(config.scene.size_px) * config.scene.size_px
+    m, big, stored = sizes.lowres_px, sizes.hires_px, sizes.stored_px
+    memory = (6 * chart * _COMPLEX + 6 * big * big * _COMPLEX + sizes.fields * m * m * _FLOAT
+              + sizes.fields * (2 * sizes.box_px * sizes.box_px * _COMPLEX + _PER_CAPTURE)
+              + 2 * _BATCH * m * m * _COMPLEX + sizes.images * stored * stored * _FLOAT
+              + 4 * _BATCH * stored * stored * _COMPLEX)
+    disk = sizes.images * stored * stored * _FLOAT + big * big * _COMPLEX
+    detail = (f"{sizes.images:.4g} images of {stored:.4g}² px, scene {config.scene.size_px:.4g}² px, "
+              f"object {big:.4g}² px")
+    return Footprint("simulate", memory, disk, detail, sizes.fix)
+
+
+def _shape(handle, name: str) -> tuple[int, ...]:
+    if name not in handle or not hasattr(handle[name], "shape"):
+        raise InputError(f"{handle.filename}: missing dataset {name}; the file is incomplete or from another stage")
+    return tuple(int(n) for n in handle[name].shape)
+
+
+def reconstruct_footprint(captures_path: Path) -> Footprint:
+    """Memory and disk of ``cca reconstruct`` on a captures file (shapes and geometry only are read)."""
+    from cca_cli.io.geometry import read_geometry
+    from cca_cli.io.h5 import open_input
+
+    with open_input(captures_path) as handle:
+        shape = _shape(handle, "/measurements/intensity")
+        weighted = "/measurements/weight" in handle
+        geometry = read_geometry(handle)
+        truth = _shape(handle, "/truth/object") if "/truth/object" in handle else (0, 0)
+    if len(shape) != 3:
+        raise InputError(f"{captures_path}: /measurements/intensity has shape {shape}, expected 3 dimensions")
+    k, n = float(shape[0]), float(shape[-1])
+    centres = geometry.spectrum_centres_yx_px
+    reach = float(np.max(np.abs(np.rint(centres)))) if centres.size else 0.0
+    lowres, hires, box = _grids(reach, geometry.pupil_radius_px, n)
+    memory = (reconstruction_memory_bytes(k, n, lowres, hires, box) + (k * n * n * _FLOAT if weighted else 0)
+              + k * n * n * _FLOAT + k * _PER_CAPTURE)  # the images as read, besides the engine's own copy
+    disk = hires * hires * (2 * _COMPLEX + _FLOAT) + n * n * _FLOAT + float(truth[0]) * truth[1] * _COMPLEX
+    return Footprint("reconstruct", memory, disk, f"{k:.4g} images of {n:.4g}² px, object {hires:.4g}² px",
+                     "reconstruct fewer or smaller images (crop them, or simulate with simulate.store: band)")
+
+
+def report_footprint(recon_path: Path) -> Footprint:
+    """Memory of ``cca report`` on a recon file (its grids, baselines and figures)."""
+    from cca_cli.io.h5 import open_input
+
+    with open_input(recon_path, stage="reconstruct") as handle:
+        sizes = [_shape(handle, "/recon/object")]
+        if "/truth/object" in handle:
+            sizes.append(_shape(handle, "/truth/object"))
+    pixels = max(float(np.prod(s, dtype=np.float64)) for s in sizes)
+    return Footprint("report", 24 * pixels * _COMPLEX, _REPORT_FILES_BYTES, f"object {pixels:.4g} px",
+                     "report a smaller reconstruction")
+
+
+def _about(n: float) -> str:
+    return f"about {size_text(n)}" if math.isfinite(n) else size_text(n)
+
+
+def memory_available() -> float:
+    """Bytes of memory a stage may plan to use: ``CCA_MEMORY_LIMIT`` or the free memory now."""
+    limit = os.environ.get("CCA_MEMORY_LIMIT", "").strip()
+    if limit:
+        scale = {"K": 1e3, "M": 1e6, "G": 1e9, "T": 1e12}.get(limit[-1].upper(), 1.0)
+        try:
+            return float(limit[:-1] if scale != 1.0 else limit) * scale
+        except ValueError:
+            raise ConfigError(f"CCA_MEMORY_LIMIT={limit!r}: give bytes, e.g. 8G or 512M") from None
+    try:
+        import psutil
+
+        return float(psutil.virtual_memory().available)
+    except ImportError:  # pragma: no cover - psutil comes with dask.distributed
+        pages = os.sysconf("SC_AVPHYS_PAGES") if hasattr(os, "sysconf") else 0
+        return float(pages * os.sysconf("SC_PAGE_SIZE")) if pages else math.inf
+
+
+def _free_disk(path: Path) -> float:
+    here = Path(path).absolute()
+    while not here.exists() and here != here.parent:
+        here = here.parent
+    try:
+        return float(shutil.disk_usage(here).free)
+    except OSError:
+        return math.inf
+
+
+def check_footprint(footprint: Footprint, output: Path, *, source: str | Path | None = None) -> None:
+    """Refuse a stage that needs more memory or disk than there is; announce a large write.
+
+    Parameters
+    ----------
+    footprint : Footprint
+    output : Path
+        Where the stage writes (its disk is checked).
+    source : str or Path, optional
+        The config or input file the sizes come from, named in the message.
+
+    Raises
+    ------
+    ResourceError
+        One line with the estimate, what is available and what to change.
+    """
+    where = f"{source}: " if source else ""
+    available = memory_available()
+    if not footprint.memory_bytes <= available:
+        raise ResourceError(
+            f"{where}{footprint.stage} needs {_about(footprint.memory_bytes)} of memory "
+            f"({footprint.detail}) but {size_text(available)} is available; {footprint.fix}")
+    free = _free_disk(output)
+    if not footprint.disk_bytes <= free:
+        raise ResourceError(
+            f"{output}: {footprint.stage} will write {_about(footprint.disk_bytes)} ({footprint.detail}) "
+            f"but the disk has {size_text(free)} free; free some space, write elsewhere or {footprint.fix}")
+    if footprint.disk_bytes > LARGE_WRITE_BYTES:
+        log.warning("%s will write about %s to %s (%s)", footprint.stage, size_text(footprint.disk_bytes), output,
+                    footprint.detail)

@@ -1,0 +1,240 @@
+"""Faults in real processes: kill -9 in every stage, two runs into one folder, a full disk, Ctrl-C.
+
+Each test runs `cca` in a subprocess (cca_with_hooks.py pauses a write at a chosen output so the
+process can be killed while its temporary file exists) and then checks that the next run resumes,
+that no temporary file is left, and that nothing that existed was damaged.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import resource
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+from micro import micro_config
+
+HOOKS = Path(__file__).with_name("cca_with_hooks.py")
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _start(args, cwd: Path, **env) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, str(HOOKS), *map(str, args)], cwd=cwd, env={**os.environ, **env},
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _run(args, cwd: Path, timeout: float = 120, **env) -> subprocess.CompletedProcess:
+    proc = _start(args, cwd, **env)
+    out, err = proc.communicate(timeout=timeout)
+    return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
+
+
+def _one_line(result) -> str:
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, result.stderr
+    assert "Traceback" not in result.stderr
+    return lines[0]
+
+
+def _kill_when_written(proc: subprocess.Popen, folder: Path, name: str, timeout: float = 120) -> None:
+    """SIGKILL ``proc`` once its temporary copy of ``name`` exists in ``folder``."""
+    temporary = folder / f".{name}.tmp-{proc.pid}"
+    deadline = time.monotonic() + timeout
+    while not temporary.exists():
+        assert proc.poll() is None, f"cca ended before writing {name}: {proc.communicate()}"
+        assert time.monotonic() < deadline, f"no {temporary} after {timeout} s"
+        time.sleep(0.01)
+    proc.kill()
+    proc.communicate()
+    assert proc.returncode == -signal.SIGKILL
+    assert temporary.exists()  # what a killed run leaves behind
+
+
+def _temporaries(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.rglob("*") if ".tmp-" in p.name or ".old-" in p.name)
+
+
+def _sha(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _statuses(stdout: str) -> dict[str, str]:
+    out = {}
+    for line in stdout.splitlines():
+        parts = line.split()
+        if len(parts) >= 3 and parts[1] in ("ran", "skipped"):
+            out[parts[0]] = parts[1]
+    return out
+
+
+def _write_config(path: Path, **sections) -> Path:
+    data = micro_config()
+    for name, values in sections.items():
+        data[name] = {**data.get(name, {}), **values}
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def test_kill_in_each_stage_then_the_run_resumes(tmp_path):
+    config = _write_config(tmp_path / "cfg.yaml")
+    out = tmp_path / "out"
+    done = []
+    for stage, name in (("simulate", "captures.h5"), ("reconstruct", "recon.h5"), ("report", "report")):
+        proc = _start(["run", config, "--out-dir", out, "-q"], tmp_path, CCA_TEST_PAUSE_BEFORE_RENAME=name)
+        _kill_when_written(proc, out, name)
+        assert not (out / name).exists()
+        for earlier in done:  # what earlier runs completed is still there, untouched
+            assert (out / earlier).exists()
+        done.append(name)
+    result = _run(["run", config, "--out-dir", out, "-q"], tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert _statuses(result.stdout) == {"simulate": "skipped", "reconstruct": "skipped", "report": "ran"}
+    assert _temporaries(out) == []
+    assert not (out / ".cca-run.lock").exists()
+    report = json.loads((out / "report" / "report.json").read_text())
+    assert json.loads(report["provenance"]["inputs"])[0]["sha256"] == _sha(out / "recon.h5")
+
+
+def test_kill_in_the_lab_stages_then_the_run_resumes(tmp_path):
+    config = yaml.safe_load((REPO / "configs" / "sample_capture.yaml").read_text())
+    config["ingest"]["manifest"] = str(REPO / "data_samples" / "sample_capture" / "manifest.yaml")
+    config["reconstruct"]["iterations"] = 3
+    config["report"]["figures"] = False
+    config["run"].pop("out_dir")
+    path = tmp_path / "lab.yaml"
+    path.write_text(yaml.safe_dump(config))
+    out = tmp_path / "out"
+    for name in ("raw.h5", "hdr.h5", "registered.h5"):
+        proc = _start(["run", path, "--out-dir", out, "-q"], tmp_path, CCA_TEST_PAUSE_BEFORE_RENAME=name)
+        _kill_when_written(proc, out, name)
+    result = _run(["run", path, "--out-dir", out, "-q"], tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert _statuses(result.stdout) == {"ingest": "skipped", "hdr": "skipped", "register": "ran",
+                                        "reconstruct": "ran", "report": "ran"}
+    assert _temporaries(out) == []
+
+
+def test_a_second_run_into_a_busy_folder_is_refused_and_a_dead_runs_lock_is_taken_over(tmp_path):
+    first = _write_config(tmp_path / "a.yaml")
+    second = _write_config(tmp_path / "b.yaml", noise={"seed": 2})
+    out = tmp_path / "out"
+    proc = _start(["run", first, "--out-dir", out, "-q"], tmp_path, CCA_TEST_PAUSE_BEFORE_RENAME="captures.h5")
+    try:
+        deadline = time.monotonic() + 120
+        while not (out / f".captures.h5.tmp-{proc.pid}").exists():
+            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+            time.sleep(0.01)
+        busy = _run(["run", second, "--out-dir", out, "-q"], tmp_path, timeout=60)
+        line = _one_line(busy)
+        assert busy.returncode == 6 and "out" in line and f"pid {proc.pid}" in line
+        assert sorted(p.name for p in out.iterdir()) == sorted([".cca-run.lock", f".captures.h5.tmp-{proc.pid}"])
+    finally:
+        proc.kill()
+        proc.communicate()
+    result = _run(["run", second, "--out-dir", out, "-q"], tmp_path)  # the dead run's lock and temporary go
+    assert result.returncode == 0, result.stderr
+    assert _temporaries(out) == [] and not (out / ".cca-run.lock").exists()
+    with open(out / "captures.h5", "rb") as handle:
+        assert handle.read(8) == b"\x89HDF\r\n\x1a\n"
+    recon = json.loads(__import__("h5py").File(out / "recon.h5", "r").attrs["inputs"])
+    assert recon[0]["sha256"] == _sha(out / "captures.h5")
+
+
+def _unshare_works() -> bool:
+    if shutil.which("unshare") is None:
+        return False
+    probe = subprocess.run(["unshare", "--user", "--map-root-user", "--mount", "sh", "-c",
+                            "mount -t tmpfs -o size=64k tmpfs /tmp && echo ok"], capture_output=True, text=True)
+    return probe.stdout.strip() == "ok"
+
+
+@pytest.mark.skipif(not _unshare_works(), reason="needs user namespaces to mount a small tmpfs")
+def test_a_full_disk_keeps_the_old_file_and_leaves_no_temporary(tmp_path, library):
+    config = _write_config(tmp_path / "big.yaml", simulate={"store": "sensor"})  # about 200 kB: more than is free
+    shutil.copy(library.captures, tmp_path / "old.h5")
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    script = (f"mount -t tmpfs -o size=120k tmpfs {disk} && cp old.h5 {disk}/c.h5 && "
+              f"CCA_TEST_NO_DISK_CHECK=1 {sys.executable} {HOOKS} simulate big.yaml -o {disk}/c.h5 --force -q; "
+              f"echo exit=$? >&2; ls -a {disk} >&2; sha256sum {disk}/c.h5 >&2")
+    result = subprocess.run(["unshare", "--user", "--map-root-user", "--mount", "sh", "-c", script], cwd=tmp_path,
+                            capture_output=True, text=True, timeout=120)
+    lines = result.stderr.splitlines()
+    error = [line for line in lines if line.startswith("error:")]
+    assert len(error) == 1 and "c.h5" in error[0] and "no space left" in error[0], result.stderr
+    assert "Traceback" not in result.stderr and "exit=5" in lines, result.stderr
+    listing = lines[lines.index("exit=5") + 1:-1]
+    assert sorted(listing) == [".", "..", "c.h5"], listing  # no temporary left
+    assert lines[-1].split()[0] == _sha(tmp_path / "old.h5")  # the old file is intact
+
+
+def test_an_output_folder_without_write_permission_is_refused_before_computing(tmp_path):
+    config = _write_config(tmp_path / "cfg.yaml")
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    mark = tmp_path / "simulating"
+    command = f"{sys.executable} {HOOKS} simulate cfg.yaml -o locked/sub/c.h5 -q"
+    if os.geteuid() != 0:
+        locked.chmod(0o555)
+        args = ["sh", "-c", command]
+    elif _unshare_works():  # root writes anywhere, except on a read-only mount
+        args = ["unshare", "--user", "--map-root-user", "--mount", "sh", "-c",
+                f"mount --bind {locked} {locked} && mount -o remount,ro,bind {locked} && {command}"]
+    else:
+        pytest.skip("root without user namespaces: no folder it cannot write")
+    result = subprocess.run(args, cwd=tmp_path, capture_output=True, text=True, timeout=120,
+                            env={**os.environ, "CCA_TEST_MARK_SIMULATING": str(mark)})
+    line = _one_line(result)
+    assert result.returncode == 4 and "locked" in line and "cannot write" in line, line
+    assert not mark.exists()  # refused before the simulation started
+    locked.chmod(0o755)
+    assert list(locked.iterdir()) == []
+
+
+def test_a_write_past_the_file_size_limit_keeps_the_old_file(tmp_path, library):
+    shutil.copy(library.captures, tmp_path / "c.h5")
+    config = _write_config(tmp_path / "cfg.yaml")
+    first = _run(["reconstruct", "c.h5", "-o", "r.h5", "-c", config, "-q"], tmp_path)
+    assert first.returncode == 0, first.stderr
+    before = _sha(tmp_path / "r.h5")
+
+    def limit():  # writes beyond 20 kB fail with EFBIG, as on a full disk
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (20_000, 20_000))
+
+    proc = subprocess.run([sys.executable, str(HOOKS), "reconstruct", "c.h5", "-o", "r.h5", "-c", str(config),
+                           "--force", "-q"], cwd=tmp_path, preexec_fn=limit, capture_output=True, text=True,
+                          timeout=120)
+    line = _one_line(proc)
+    assert proc.returncode == 5 and "r.h5" in line and "previous version is kept" in line
+    assert _sha(tmp_path / "r.h5") == before
+    assert _temporaries(tmp_path) == []
+
+
+def test_ctrl_c_during_a_reconstruction_stops_at_once_and_writes_nothing(tmp_path, library):
+    shutil.copy(library.captures, tmp_path / "c.h5")
+    shutil.copy(library.recon, tmp_path / "r.h5")
+    before = _sha(tmp_path / "r.h5")
+    mark = tmp_path / "iterating"
+    proc = _start(["reconstruct", "c.h5", "-o", "r.h5", "--force", "--iterations", "100000000", "--tol", "0", "-q"],
+                  tmp_path, CCA_TEST_MARK_ITERATING=str(mark))
+    deadline = time.monotonic() + 120
+    while not mark.exists():
+        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+        time.sleep(0.01)
+    time.sleep(0.5)
+    proc.send_signal(signal.SIGINT)
+    start = time.monotonic()
+    out, err = proc.communicate(timeout=60)
+    assert time.monotonic() - start < 3, "Ctrl-C took more than 3 s to stop the reconstruction"
+    assert proc.returncode == 130, err
+    assert _one_line(subprocess.CompletedProcess(proc.args, proc.returncode, out, err)).startswith("interrupted:")
+    assert _sha(tmp_path / "r.h5") == before and _temporaries(tmp_path) == []

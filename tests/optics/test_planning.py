@@ -1,0 +1,162 @@
+"""FFTW planning: bounded, chosen by how long the transforms run, reused from the cache, interruptible."""
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from cca_cli.commands.app import app
+from cca_cli.optics import fft, fftw_plans
+
+pytestmark = pytest.mark.skipif(not fft.HAVE_PYFFTW, reason="FFTW planning needs pyfftw")
+RNG = np.random.default_rng(5)
+
+
+@pytest.fixture
+def cold_cache(tmp_path, monkeypatch):
+    """FFTW as on a fresh machine: no wisdom in memory, an empty cache directory."""
+    import pyfftw
+
+    monkeypatch.setenv("CCA_CACHE_DIR", str(tmp_path))
+    monkeypatch.setenv("CCA_FFTW_PLANNING", "auto")
+    monkeypatch.setattr(fftw_plans, "_wisdom_loaded", False)
+    monkeypatch.setattr(fftw_plans, "_step_cost", dict(fftw_plans._step_cost))
+    monkeypatch.setattr(fftw_plans, "_budgets", {})
+    with fft.PLANNER_LOCK:
+        pyfftw.forget_wisdom()
+    return tmp_path
+
+
+def _band_data(shape, rows):
+    data = np.zeros(shape, np.complex64)
+    data[:, rows[0]:rows[1]] = RNG.standard_normal((shape[0], rows[1] - rows[0], shape[2]))
+    return data
+
+
+def test_auto_planning_times_nothing_up_front_then_improves_the_plans_in_use(cold_cache, monkeypatch):
+    monkeypatch.setattr(fftw_plans, "UPGRADE_SHARE", 50.0)  # improve eagerly: the mechanism is tested here, not the budget
+    before = fft.planning_seconds()
+    transform = fft.BandedFFT2(fft.zeros((2, 16, 16)), 4, 12, threads=1)
+    plans = transform._plans
+    assert fft.planning_seconds() == before and set(plans.level) == {"estimate"}
+    data = _band_data((2, 16, 16), (4, 12))
+    for _ in range(3000):  # the data survive every planning step taken between the calls
+        transform.buffer[...] = data
+        transform.inverse(2)
+        np.testing.assert_allclose(transform.buffer, np.fft.ifft2(data) * 256, atol=1e-3)
+        transform.forward(2)
+        np.testing.assert_allclose(transform.buffer[:, 4:12], data[:, 4:12] * 256, atol=1e-2)
+        if set(plans.level[4:]) == {"patient"}:
+            break
+    assert plans.level[4:] == ["patient"] * 4  # the count-2 transforms that ran
+    assert plans.level[:4] == ["estimate"] * 4  # the count-1 transforms never ran
+    assert fft.planning_seconds() > before
+    assert (cold_cache / fftw_plans._wisdom_path().name).is_file()
+    # Another transform of the same shape starts from what was found, without timing anything.
+    spent = fft.planning_seconds()
+    again = fft.BandedFFT2(fft.zeros((2, 16, 16)), 4, 12, threads=1)
+    assert again._plans.level[4:] == ["patient"] * 4 and fft.planning_seconds() == spent
+
+
+def test_auto_planning_spends_at_most_its_share_of_the_run(cold_cache, monkeypatch):
+    monkeypatch.setattr(fftw_plans, "SHAPE_SECONDS", 0.2)  # reach the long-run share within the test
+    transform = fft.BandedFFT2(fft.zeros((16, 48, 48)), 12, 36, threads=1)
+    transform.buffer[...] = _band_data((16, 48, 48), (12, 36))
+    start = time.perf_counter()
+    while time.perf_counter() - start < 1.0:
+        transform.inverse(16)
+        transform.forward(16)
+    budget = transform._plans.budget
+    assert budget.busy > 0.2
+    # A step is cut off at what the budget allows, or at twice its expected cost.
+    assert budget.allowance() >= -2 * max(fftw_plans._step_cost.values()) - 0.05
+
+
+def test_the_budget_lets_a_step_through_only_when_it_fits(monkeypatch):
+    budget = fftw_plans._Budget()
+    budget.busy, budget.spent = 4.0, 0.5
+    assert budget.allows(0.5)  # 1.0 s in all is a quarter of 4 s
+    assert not budget.allows(0.6) and budget.next_check == pytest.approx(1.1 / fftw_plans.UPGRADE_SHARE)
+    budget.busy, budget.spent = 100.0, 2.9  # past SHAPE_SECONDS the long-run share applies
+    assert not budget.allows(7.2) and budget.next_check == pytest.approx(10.1 / fftw_plans.LONG_RUN_SHARE)
+    assert budget.allows(7.0)
+
+
+def test_short_runs_plan_next_to_nothing(cold_cache):
+    transform = fft.InPlaceFFT2(fft.zeros((4, 40, 40)), threads=1)
+    for _ in range(5):
+        transform.forward()
+        transform.inverse()
+    assert transform._plans.budget.spent == 0.0 and set(transform._plans.level) == {"estimate"}
+
+
+CACHE_CHILD = textwrap.dedent('''
+    import time
+    from cca_cli.optics import fft
+    start = time.perf_counter()
+    transform = fft.BandedFFT2(fft.zeros((4, 20, 20)), 5, 15, threads=1)
+    print(sorted(set(transform._plans.level)), round(fft.planning_seconds(), 3), round(time.perf_counter() - start, 3))
+''')
+
+
+def test_a_new_process_reuses_the_plans_saved_in_the_cache(tmp_path):
+    env = dict(os.environ, CCA_CACHE_DIR=str(tmp_path))
+    first = subprocess.run([sys.executable, "-c", CACHE_CHILD], env=dict(env, CCA_FFTW_PLANNING="measure"),
+                           capture_output=True, text=True, timeout=120)
+    assert first.returncode == 0, first.stderr
+    assert first.stdout.startswith("['measure']")
+    second = subprocess.run([sys.executable, "-c", CACHE_CHILD], env=dict(env, CCA_FFTW_PLANNING="auto"),
+                            capture_output=True, text=True, timeout=120)
+    assert second.returncode == 0, second.stderr
+    levels, timed, _ = second.stdout.rsplit(" ", 2)
+    assert levels == "['measure']" and float(timed) == 0.0
+
+
+INTERRUPT_CHILD = textwrap.dedent('''
+    import numpy as np
+    from cca_cli.optics import fft, fftw_plans
+    fftw_plans.UPGRADE_SHARE = fftw_plans.LONG_RUN_SHARE = 1e6  # plan continuously: every call may take a planning step
+    transform = fft.BandedFFT2(fft.zeros((64, 96, 96)), 24, 72, threads=1)
+    transform.buffer[...] = 1
+    print("planning", flush=True)
+    while True:
+        for count in (1, 2, 4, 8, 16, 32, 64):
+            transform.inverse(count)
+            transform.forward(count)
+''')
+
+
+def test_ctrl_c_during_planning_is_answered_within_one_planning_step(tmp_path):
+    env = dict(os.environ, CCA_CACHE_DIR=str(tmp_path), CCA_FFTW_PLANNING="auto")
+    child = subprocess.Popen([sys.executable, "-c", INTERRUPT_CHILD], env=env, stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True)
+    try:
+        assert child.stdout.readline().strip() == "planning"
+        time.sleep(1.0)
+        assert child.poll() is None
+        sent = time.perf_counter()
+        child.send_signal(signal.SIGINT)
+        _, stderr = child.communicate(timeout=60)
+        answered = time.perf_counter() - sent
+    finally:
+        if child.poll() is None:
+            child.kill()
+    assert "KeyboardInterrupt" in stderr
+    assert answered < fftw_plans.STEP_SECONDS + 1.5, answered
+
+
+def test_an_unknown_planning_effort_is_one_line_naming_the_variable(tmp_path, write_config, monkeypatch):
+    monkeypatch.setenv("CCA_FFTW_PLANNING", "bogus")
+    captures = tmp_path / "captures.h5"
+    result = CliRunner().invoke(app, ["simulate", str(write_config()), "-o", str(captures), "--quiet"])
+    assert result.exit_code == 2
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert lines == ["error: environment variable CCA_FFTW_PLANNING='bogus' is not one of auto, estimate, "
+                     "measure, patient; unset it or pick one"]
+    assert not captures.exists()

@@ -1,0 +1,84 @@
+"""Memory and disk estimates made before a stage allocates anything."""
+
+import logging
+import math
+import time
+
+import numpy as np
+import pytest
+
+from cca_cli.config.load import apply_overrides
+from cca_cli.errors import ConfigError, ResourceError
+from cca_cli.io.h5 import Provenance
+from cca_cli.sampling.design import plan_array
+from cca_cli.sampling.grid import band_layout, band_sizes
+from cca_cli.stages import simulate as simulate_stage
+from cca_cli.stages.footprint import (Footprint, check_footprint, reconstruct_footprint, simulate_footprint,
+                                      simulation_sizes)
+
+
+def test_band_sizes_are_the_layouts_sizes():
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        radius = float(rng.uniform(0.8, 40))
+        centres = rng.uniform(-300, 300, size=(int(rng.integers(1, 30)), 2))
+        sensor = int(rng.integers(8, 600))
+        try:
+            layout = band_layout(centres, radius, sensor_size=sensor)
+        except ValueError:
+            with pytest.raises(ValueError):
+                band_sizes(float(np.max(np.abs(np.rint(centres)))), radius, sensor_size=sensor)
+            continue
+        sizes = band_sizes(float(np.max(np.abs(np.rint(centres)))), radius, sensor_size=sensor)
+        assert (sizes.hires_size, sizes.lowres_size, sizes.box_size) == (layout.hires_size, layout.lowres_size,
+                                                                         layout.box_size)
+
+
+def test_estimated_sizes_and_disk_match_a_real_simulation(tiny_run_config, tmp_path):
+    for overrides in ({}, {"simulate.store": "band"}, {"array.grid": None, "array.sar": 2.9}):
+        config = apply_overrides(tiny_run_config, overrides)
+        sizes = simulation_sizes(config)
+        sim = simulate_stage.run(config, tmp_path / "c.h5", provenance=Provenance.make("simulate", "", "x"),
+                                 force=True)
+        assert sizes.images == sim.intensity.shape[0] and sizes.stored_px == sim.intensity.shape[-1]
+        assert (sizes.lowres_px, sizes.hires_px) == (sim.layout.lowres_size, sim.layout.hires_size)
+        written = (tmp_path / "c.h5").stat().st_size
+        assert 0.8 * written < simulate_footprint(config).disk_bytes < 1.2 * written
+        estimate = reconstruct_footprint(tmp_path / "c.h5")
+        assert estimate.memory_bytes > sim.intensity.nbytes
+
+
+def test_huge_configs_are_estimated_without_allocating(tiny_run_config):
+    start = time.perf_counter()
+    for overrides in ({"array.grid": None, "array.sar": 1e6}, {"scene.size_px": 10 ** 6},
+                      {"optics.pixel_pitch_m": 1e-300}, {"scene.field_width_m": 1e5}):
+        footprint = simulate_footprint(apply_overrides(tiny_run_config, overrides))
+        assert footprint.memory_bytes > 1e12
+    assert time.perf_counter() - start < 2
+    with pytest.raises(ConfigError, match="sensor pixels"):
+        simulate_footprint(apply_overrides(tiny_run_config, {"optics.pixel_pitch_m": 1.0}))
+
+
+def test_a_run_that_does_not_fit_is_refused_and_a_large_write_is_announced(tmp_path, monkeypatch, caplog):
+    big = Footprint("simulate", memory_bytes=5e9, disk_bytes=3e9, detail="many images", fix="lower array.grid")
+    monkeypatch.setenv("CCA_MEMORY_LIMIT", "4G")
+    with pytest.raises(ResourceError, match="about 5 GB of memory .*4 GB is available; lower array.grid"):
+        check_footprint(big, tmp_path / "c.h5", source="cfg.yaml")
+    monkeypatch.setenv("CCA_MEMORY_LIMIT", "64G")
+    with caplog.at_level(logging.WARNING, logger="cca"):
+        check_footprint(big, tmp_path / "c.h5")
+    assert "will write about 3 GB" in caplog.text
+    monkeypatch.setenv("CCA_MEMORY_LIMIT", "lots")
+    with pytest.raises(ConfigError, match="CCA_MEMORY_LIMIT"):
+        check_footprint(big, tmp_path / "c.h5")
+
+
+def test_design_plans_any_target_instantly():
+    start = time.perf_counter()
+    plan = plan_array(wavelength_m=550e-9, focal_length_m=0.8, aperture_diameter_m=0.018, pixel_pitch_m=2e-6,
+                      distance_m=50, sar=1e9)
+    assert time.perf_counter() - start < 1
+    assert plan.grid > 10 ** 9 and plan.n_images == plan.grid ** 2 and plan.memory_bytes > 1e24
+    with pytest.raises(ValueError, match="positive number"):
+        plan_array(wavelength_m=math.inf, focal_length_m=0.8, aperture_diameter_m=0.018, pixel_pitch_m=2e-6,
+                   distance_m=50, sar=3)
