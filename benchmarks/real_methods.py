@@ -59,12 +59,17 @@ def _worker(python: str, args: list[str], timeout: float, log: Path) -> None:
 def cca_integer_model(data: Prepared, hires: int):
     """cca's forward model on the data's geometry with whole-pixel pupil centres, on an M = ``hires`` grid."""
     from cca_cli.io.geometry import read_geometry
+    from cca_cli.optics.forward import ForwardModel
+    from cca_cli.optics.pupil import circular_pupils
     from cca_cli.stages.reconstruct import build_model
 
     with h5py.File(data.raw_h5, "r") as handle:
         geometry = read_geometry(handle)
     geometry = replace(geometry, spectrum_centres_yx_px=np.rint(geometry.spectrum_centres_yx_px))
-    return build_model(geometry, data.intensity.shape[-1], hires_size=hires)
+    layout = build_model(geometry, data.intensity.shape[-1], hires_size=hires).layout
+    # The peers get a binary disc: compare operators with the same pupil (cca's own has an anti-aliased edge).
+    return ForwardModel(layout, circular_pupils(layout.box_size, layout.box_centres, layout.pupil_radius_px,
+                                                edge_px=0))
 
 
 def relative_error(candidate: np.ndarray, reference: np.ndarray) -> tuple[float, float]:
@@ -193,7 +198,7 @@ def read_cca_recovery(recon: Path, data: Prepared) -> tuple[Recovery, dict]:
     else:
         # no calibration saved: cca's fixed disc at each capture's (fractional) pupil centre, as its model draws it
         layout = band_layout(centres, data.radius, sensor_size=n, hires_size=m)
-        pupils = circle_pupils(n, layout.centres_px - windows, data.radius)
+        pupils = circle_pupils(n, layout.centres_px - windows, data.radius, edge_px=1.0)
         index = np.arange(len(centres))
         facts["pupil_source"] = "disc of radius R at the nominal (fractional) centres"
     rec = Recovery(spectrum, pupils, index, windows, brightness=cal.get("brightness"), centres_yx_px=centres)

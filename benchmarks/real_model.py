@@ -36,13 +36,20 @@ def ifft2c(x: np.ndarray) -> np.ndarray:
     return np.fft.fftshift(np.fft.ifft2(np.fft.ifftshift(x, axes=(-2, -1)), norm="ortho"), axes=(-2, -1))
 
 
-def circle_pupils(n: int, offsets_yx, radius_px: float) -> np.ndarray:
-    """Binary discs ``|k − c| ≤ R`` on n × n grids, centre ``n // 2 + offset`` (fractional offsets allowed)."""
+def circle_pupils(n: int, offsets_yx, radius_px: float, edge_px: float = 0.0) -> np.ndarray:
+    """Discs of radius R on n × n grids, centre ``n // 2 + offset`` (fractional offsets allowed).
+
+    ``edge_px = 0`` gives binary discs ``|k − c| ≤ R`` (the peers' pupil); ``edge_px = 1`` the
+    anti-aliased edge cca's fixed pupil has (:func:`cca_cli.optics.pupil.circular_pupils`).
+    """
     off = np.asarray(offsets_yx, np.float64).reshape(-1, 2)
     grid = np.arange(n, dtype=np.float64) - n // 2
     dy = grid[None, :, None] - off[:, 0, None, None]
     dx = grid[None, None, :] - off[:, 1, None, None]
-    return (dy * dy + dx * dx <= radius_px * radius_px).astype(np.complex64)
+    distance = np.sqrt(dy * dy + dx * dx)
+    if edge_px <= 0:
+        return (distance <= radius_px).astype(np.complex64)
+    return np.clip((radius_px + edge_px / 2 - distance) / edge_px, 0.0, 1.0).astype(np.complex64)
 
 
 def embed_centred(boxes: np.ndarray, n: int) -> np.ndarray:

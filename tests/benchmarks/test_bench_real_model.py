@@ -27,7 +27,7 @@ def test_common_model_matches_cca_with_fractional_centres():
     spectrum = (rng.standard_normal((m, m)) + 1j * rng.standard_normal((m, m))).astype(np.complex64)
     reference, layout = _cca_intensity(centres, radius, n, m, spectrum)
     windows = np.rint(centres).astype(int)
-    rec = real_model.Recovery(spectrum, real_model.circle_pupils(n, layout.centres_px - windows, radius),
+    rec = real_model.Recovery(spectrum, real_model.circle_pupils(n, layout.centres_px - windows, radius, edge_px=1.0),
                               np.arange(len(centres)), windows)
     mine = np.abs(real_model.predicted_fields(rec)) ** 2
     scale = (m / n) ** 2  # cca returns sensor irradiance: |ψ|² / (M/m)²
