@@ -76,14 +76,19 @@ def reconstruct_cli(
 def report_cli(
     recon: Annotated[Path, typer.Argument(help="recon.h5 from reconstruct.", show_default=False)],
     output: Annotated[Path, typer.Option("--output", "-o", help="Report directory.")] = Path("report"),
-    threshold: Annotated[float, typer.Option(help="Contrast threshold of the resolution limit.")] = 0.2,
-    figures: Annotated[bool, typer.Option("--figures/--no-figures", help="Write the PNG figures.")] = True,
+    config: Annotated[Optional[Path], typer.Option("--config", "-c", help="Take the report section from this YAML "
+                                                   "(bar_elements, baselines, …).")] = None,
+    threshold: Annotated[Optional[float], typer.Option(help="Contrast threshold of the resolution limit "
+                                                       "[default: 0.2].")] = None,
+    figures: Annotated[Optional[bool], typer.Option("--figures/--no-figures", help="Write the PNG figures "
+                                                    "[default: figures].")] = None,
     force: Force = False,
 ) -> None:
     """Metrics (report.json) and figures (PNG) of RECON → a report directory."""
-    section = section_from_options(ReportSection, names={"mtf_threshold": "--threshold"}, mtf_threshold=threshold,
-                                   figures=figures)
+    base = load_config(config).report if config else None
+    section = section_from_options(ReportSection, base, names={"mtf_threshold": "--threshold"},
+                                   mtf_threshold=threshold, figures=figures)
     summary = run_stage("report", report_stage.run, recon, section, output=output, sections={"report": section},
-                        inputs=[recon], force=force, quiet=True, kind="folder",
+                        inputs=[recon], force=force, quiet=True, kind="folder", protect=[config] if config else [],
                         footprint=lambda: report_footprint(recon))
     console.print(summary_table(summary, title=f"cca report → {output}"))

@@ -211,6 +211,24 @@ class BaselineSpec(Section):
         return f"lens_{self.aperture_diameter_m * 1e3:g}mm_{self.illumination}"
 
 
+class BarElementSpec(Section):
+    """One element of a recorded USAF-1951 target, boxed in the captured frames."""
+
+    element: str = Field(..., pattern=r"^[Gg]-?\d+[Ee][1-6]$", description="Element name, e.g. G9E1 (group 9, element 1).")
+    profile: Literal["row", "col"] = Field(
+        ..., description="Direction of the profile across the bars: row (bars run along columns) or col.")
+    box_px: list[float] = Field(
+        ..., min_length=4, max_length=4,
+        description="[y0, y1, x0, x1] around the element's three bars, in pixels of the captured frames.")
+
+    @field_validator("box_px")
+    @classmethod
+    def _ordered(cls, box):
+        if not (box[0] < box[1] and box[2] < box[3]):
+            raise ValueError(f"box_px must be [y0, y1, x0, x1] with y0 < y1 and x0 < x1, got {box}")
+        return box
+
+
 class ReportSection(Section):
     """Metrics and figures."""
 
@@ -221,6 +239,10 @@ class ReportSection(Section):
     speckle_region: list[float] | None = Field(
         None, min_length=4, max_length=4,
         description="Uniform object region [y0, y1, x0, x1] as fractions of the field (0…1) for speckle contrast.")
+    bar_elements: list[BarElementSpec] = Field(
+        default_factory=list,
+        description="Elements of a recorded USAF-1951 target to read (three-bar contrast on the recovered and the "
+                    "observed amplitude).")
 
 
 class SweepSection(Section):

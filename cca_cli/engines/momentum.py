@@ -134,7 +134,7 @@ class MomentumOptions:
         Start the quadratic modes from the neighbour-shift estimate
         (:func:`~cca_cli.engines.calibration.estimate_quadratic_aberration`)
         unless the captures come with a known aberration.
-    position_refinement : str
+    position_refinement : str or bool
         ``"none"``, ``"global"`` (a few parameters of the whole LED array or
         stage), ``"per_image"`` (each capture's own offset) or ``"both"``
         (global, then per image).
@@ -168,7 +168,7 @@ class MomentumOptions:
     pupil_start: int = 1
     pupil_step: float = 1.0
     pupil_estimate: bool = True
-    position_refinement: str = "none"
+    position_refinement: str | bool = "none"
     brightness: bool = False
     calibration_start: int = 3
     calibration_every: int = 2

@@ -499,12 +499,14 @@ def read_manifest(path: str | Path) -> LoadedManifest:
         table = _resolve(base, manifest.images_csv)
         entries, table_notes = _table_entries(table, manifest, source)
         notes += table_notes
-        manifest = manifest.model_copy(update={"images": [ImageEntry.model_validate(e) for e in entries],
-                                               "images_csv": table})
+        # A table's file names are relative to the table itself (it usually sits beside the images).
+        images = [ImageEntry.model_validate(e) for e in entries]
+        images = [e.model_copy(update={"path": _resolve(table.parent, e.path)}) for e in images]
+        manifest = manifest.model_copy(update={"images": images, "images_csv": table})
         files.append(table)
     elif manifest.columns is not None:
         raise ConfigError(f"{source}: columns maps the columns of an image table; give images_csv or remove columns")
-    if manifest.images is not None:
+    if manifest.images_csv is None and manifest.images is not None:
         manifest = manifest.model_copy(update={"images": [e.model_copy(update={"path": _resolve(base, e.path)})
                                                           for e in manifest.images]})
     if manifest.source is not None:

@@ -192,14 +192,16 @@ def _step_m(g: CaptureGeometry) -> float | None:
 def sharpness_summary(inputs: ReportInputs) -> dict:
     """No-reference sharpness of the observed centre image and the recovery (real captures).
 
-    Both intensities are compared on the recovery's grid. ``rms_frequency_*_lp_per_mm``
-    is the RMS spatial frequency of the intensity spectrum
-    (:func:`cca_cli.metrics.sharpness.rms_frequency`); ``energy_beyond_cutoff_*`` is the share
-    of spectral power beyond what the single camera can record — its coherent intensity cutoff
-    ``2R`` or the sensor's Nyquist frequency, whichever is lower
-    (:func:`cca_cli.metrics.sharpness.spectral_energy_beyond`).
+    Both intensities are compared on the recovery's grid. ``spectral_reach_*_lp_per_mm`` is the
+    frequency within which 99% of the intensity spectrum's power lies
+    (:func:`cca_cli.metrics.sharpness.spectral_reach`) and ``sharpness_gain`` their ratio
+    (recovered / observed); ``rms_frequency_*_lp_per_mm`` is the RMS frequency of the same spectrum
+    (:func:`cca_cli.metrics.sharpness.rms_frequency`, dominated by the low and middle frequencies);
+    ``energy_beyond_cutoff_*`` is the share of spectral power beyond what the single camera can
+    record — its coherent intensity cutoff ``2R`` or the sensor's Nyquist frequency, whichever is
+    lower (:func:`cca_cli.metrics.sharpness.spectral_energy_beyond`).
     """
-    from cca_cli.metrics.sharpness import rms_frequency, spectral_energy_beyond
+    from cca_cli.metrics.sharpness import rms_frequency, spectral_energy_beyond, spectral_reach
 
     observed = on_grid(inputs.observed, inputs.recovered.shape[-2:])
     pixel_mm = grid_pixel_m(inputs.geometry.field_width_m, inputs.hires_size) * 1e3
@@ -208,10 +210,15 @@ def sharpness_summary(inputs: ReportInputs) -> dict:
     cutoff = min(2.0 * inputs.geometry.pupil_radius_px * share, inputs.observed.shape[-1] / 2.0)
     f_obs = rms_frequency(observed, pixel_mm)
     f_rec = rms_frequency(inputs.recovered, pixel_mm)
+    reach_obs = spectral_reach(observed, pixel_mm)
+    reach_rec = spectral_reach(inputs.recovered, pixel_mm)
     return {
+        "spectral_reach_observed_lp_per_mm": round(reach_obs, 3),
+        "spectral_reach_recovered_lp_per_mm": round(reach_rec, 3),
+        "sharpness_gain": round(reach_rec / reach_obs, 3) if reach_obs > 0 else None,
         "rms_frequency_observed_lp_per_mm": round(f_obs, 3),
         "rms_frequency_recovered_lp_per_mm": round(f_rec, 3),
-        "sharpness_gain": round(f_rec / f_obs, 3) if f_obs > 0 else None,
+        "rms_frequency_gain": round(f_rec / f_obs, 3) if f_obs > 0 else None,
         "single_camera_cutoff_px": round(cutoff, 3),
         "energy_beyond_cutoff_observed": round(spectral_energy_beyond(observed, cutoff), 5),
         "energy_beyond_cutoff_recovered": round(spectral_energy_beyond(inputs.recovered, cutoff), 5),

@@ -37,6 +37,7 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
         truth_obj = read_finite(handle, "/truth/object", ndim=2) if "/truth/object" in handle else None
         bars = table_to_bars(_table(handle, "/truth/bars", 8)) if "/truth/bars" in handle else ()
         usaf_table = _table(handle, "/truth/usaf", 11) if "/truth/usaf" in handle else None
+        region_px = _region_px(handle)
         recon = require(handle, "/recon/spectrum").parent
         attrs = dict(recon.attrs)
         attrs.update(engine=require_attr(recon, "engine", str), iterations=require_attr(recon, "iterations", int),
@@ -73,6 +74,14 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
 
         stats, coverage, band = coverage_summary(multiplex, int(attrs.get("hires_size")))
         summary.update(stats)
+    if section.bar_elements:
+        from cca_cli.report.bar_reading import finest_resolved
+
+        summary["bar_contrast"] = _bar_reading(section, geometry, observed, obj, int(attrs.get("hires_size")),
+                                               region_px)
+        for image in ("observed", "recovered"):  # resolved: contrast ≥ the resolution threshold (MTF20: 0.2)
+            summary[f"bar_finest_resolved_{image}"] = finest_resolved(summary["bar_contrast"], image,
+                                                                      section.mtf_threshold)
     comparison = _comparison(summary, section, geometry, truth_obj, truth, observed, recovered, bars, usaf_table,
                              recovered_object=obj)
     region = _zoom_region(summary, bars, truth, usaf_table, recovered, geometry, int(attrs.get("hires_size")))
@@ -113,6 +122,30 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
         write_marker(tmp, "report")
     progress(ProgressEvent("report", "figures", 2, 2))
     return summary
+
+
+def _region_px(handle) -> tuple[tuple[int, ...], tuple[int, ...], int] | None:
+    """/recon/region_px: the recovered box on the recovery grid, the frames' box on the sensor grid, its size."""
+    if "/recon/region_px" not in handle:
+        return None
+    dataset = handle["/recon/region_px"]
+    return (tuple(int(v) for v in dataset[0]), tuple(int(v) for v in dataset[1]),
+            int(dataset.attrs.get("sensor_grid_px", 0)))
+
+
+def _bar_reading(section: ReportSection, geometry, observed, recovered_object, hires_size: int, region_px) -> dict:
+    """``report.bar_elements`` read on the recovered and the observed amplitude (boxes in frame pixels)."""
+    from cca_cli.report.bar_reading import FrameToRecovery, read_elements
+
+    if region_px is None or not region_px[2]:
+        sensor, offset, origin = observed.shape[-1], (0, 0), (0, 0)
+    else:
+        (oy, ox, _, _), (sy, sx, _, _), sensor = region_px
+        origin, offset = (oy, ox), (sy, sx)
+    to_recovery = FrameToRecovery(sensor, hires_size, offset_yx=offset, origin_yx=origin)
+    frame_pixel_m = geometry.field_width_m / sensor
+    elements = [spec.model_dump() for spec in section.bar_elements]
+    return read_elements(recovered_object, observed, elements, frame_pixel_m, to_recovery)
 
 
 def _read_calibration(handle, geometry) -> dict | None:

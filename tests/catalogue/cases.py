@@ -83,7 +83,7 @@ config_case("surface-seed-negative", "traceback",
 # --- silent wrong results named by the issue -----------------------------------------------------------------------
 config_case("position-refinement-string-no", "silent",
             {"reconstruct.engine": "momentum", "reconstruct.options": {"position_refinement": "no"}},
-            ["position_refinement", "true or false"])
+            ["position_refinement", "none, global, per_image, both"])
 config_case("tau-inf", "silent", {"reconstruct.tau": float("inf")}, ["reconstruct.tau"])
 config_case("seed-true", "silent", {"noise.seed": True}, ["noise.seed"])
 config_case("stages-empty", "silent", {"run.stages": []}, ["run.stages"], argv=RUN)

@@ -119,7 +119,7 @@ def test_api_files_describe_every_dataset(tmp_path):
 
     geometry = cca.camera_scan(wavelength_m=550e-9, focal_length_m=0.8, aperture_diameter_m=45e-3,
                                pixel_pitch_m=2e-6, distance_m=50, field_width_m=8e-3, grid=3, overlap=0.61)
-    images = cca.simulate(np.ones((64, 64)), geometry, snr_db=None)
+    images = cca.simulate(np.random.default_rng(0).random((64, 64)), geometry, snr_db=None)
     captures = cca.save(cca.CaptureSet(images, geometry), tmp_path / "captures.h5")
     result = cca.reconstruct(cca.load(captures), iterations=2)
     recon = cca.save(result, tmp_path / "recon.h5")
