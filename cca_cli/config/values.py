@@ -78,6 +78,9 @@ def read_value(annotation, value):
         return value
     if options and all(option is bool for option in options if option is not type(None)):
         raise ValueError(f"expected true or false, got {value!r}")
+    if (isinstance(value, (int, float)) and not (_accepts(options, int) or _accepts(options, float))
+            and _accepts(options, str) and _accepts(options, bool)):
+        raise ValueError(f"expected text or true/false, got {value!r}")
     if isinstance(value, str) and _accepts(options, int) and not _accepts(options, float) \
             and not _accepts(options, str):
         return _integral(value)
