@@ -180,11 +180,17 @@ def evaluate_images(results: dict, data: Prepared) -> dict:
         scale = res["residual"]["plain"]["scale"]
         # in units of √(measured intensity): |ψ| = |object|·|P|·M/n for centred orthonormal transforms;
         # a recovered pupil's mean amplitude over the disc is moved into the object for display
-        yy, xx = np.mgrid[:n, :n] - n // 2
-        disc = np.hypot(yy, xx) <= data.radius
+        window = rec.n  # the frames' size, or the padded grid's for a recovery with a guard band
+        radius = data.radius * window / n
+        yy, xx = np.mgrid[:window, :window] - window // 2
+        disc = np.hypot(yy, xx) <= radius
         gain = float(np.mean(np.abs(np.asarray(rec.pupils))[:, disc]))
-        objects[name] = (resample(np.asarray(rec.spectrum, np.complex128), grid) * scale * gain
-                         * (rec.spectrum.shape[-1] / n))
+        factor = grid // n
+        obj = resample(np.asarray(rec.spectrum, np.complex128), factor * window)
+        if rec.crop_yxhw is not None:  # the frames' part of the padded field, sampled as the others
+            y0, x0, _, _ = rec.crop_yxhw
+            obj = obj[factor * y0:factor * y0 + grid, factor * x0:factor * x0 + grid]
+        objects[name] = obj * scale * gain * (rec.spectrum.shape[-1] / window)
     ref_name = reference_method(results)
     reference = objects[ref_name] if ref_name else centre
     images = {"centre image": centre}

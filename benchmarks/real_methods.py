@@ -172,15 +172,26 @@ def read_cca_recovery(recon: Path, data: Prepared) -> tuple[Recovery, dict]:
     """recon.h5 → common representation (with /calibration when present) and its run facts."""
     from cca_cli.sampling.grid import band_layout
 
+    from cca_cli.io.geometry import read_geometry
+    from cca_cli.optics.pupil import circular_pupils as circular_pupils_cca
+
     n = data.intensity.shape[-1]
+    radius = data.radius
+    crop = None
     with h5py.File(recon, "r") as handle:
+        if "/recon/region_px" in handle:  # recorded frames recovered on a padded grid (guard band)
+            region = handle["/recon/region_px"]
+            oy, ox, h, w = (int(v) for v in region[1])
+            n = int(region.attrs["sensor_grid_px"])
+            radius = read_geometry(handle).pupil_radius_px
+            crop = (oy, ox, h, w)
         spectrum = np.asarray(handle["/recon/spectrum"])
         attrs = dict(handle["recon"].attrs)
         history = {name: np.asarray(handle[f"/history/{name}"]) for name in ("residual", "seconds")
                    if f"/history/{name}" in handle}
         centres = np.asarray(handle["/geometry/spectrum_centres_yx_px"], np.float64)
         cal = {name: np.asarray(handle[f"/calibration/{name}"]) for name in
-               ("pupil", "pupil_index", "spectrum_centres_yx_px", "brightness")
+               ("pupil", "pupil_map", "pupil_index", "spectrum_centres_yx_px", "brightness")
                if f"/calibration/{name}" in handle}
     m = spectrum.shape[-1]
     facts = {"engine": str(attrs.get("engine")), "iterations": int(attrs.get("iterations", 0)),
@@ -190,18 +201,29 @@ def read_cca_recovery(recon: Path, data: Prepared) -> tuple[Recovery, dict]:
     if "spectrum_centres_yx_px" in cal:
         centres = np.asarray(cal["spectrum_centres_yx_px"], np.float64)
     windows = np.rint(centres).astype(np.int64)
-    if "pupil" in cal:
+    if "pupil_map" in cal:
+        # cca's model exactly: each capture's NA disc at its own fractional box centre × its pupil's map
+        maps = np.asarray(cal["pupil_map"], np.complex64)
+        b = maps.shape[-1]
+        index = np.asarray(cal.get("pupil_index", np.zeros(len(centres), np.int32)), np.int64)
+        discs = circular_pupils_cca(b, centres - windows + b // 2, radius)
+        pupils = embed_centred(discs * maps[index], n)
+        index = np.arange(len(centres))
+        facts["pupil_source"] = "/calibration/pupil_map × each capture's disc"
+    elif "pupil" in cal:
         # the engine's pupil(s) on its pupil-box grid, centred at each capture's box centre (the rounded centre)
         pupils = embed_centred(np.asarray(cal["pupil"], np.complex64), n)
         index = np.asarray(cal.get("pupil_index", np.zeros(len(centres), np.int32)), np.int64)
         facts["pupil_source"] = "/calibration/pupil"
     else:
         # no calibration saved: cca's fixed disc at each capture's (fractional) pupil centre, as its model draws it
-        layout = band_layout(centres, data.radius, sensor_size=n, hires_size=m)
-        pupils = circle_pupils(n, layout.centres_px - windows, data.radius, edge_px=1.0)
+        layout = band_layout(centres, radius, sensor_size=n, hires_size=m)
+        pupils = circle_pupils(n, layout.centres_px - windows, radius, edge_px=1.0)
         index = np.arange(len(centres))
         facts["pupil_source"] = "disc of radius R at the nominal (fractional) centres"
-    rec = Recovery(spectrum, pupils, index, windows, brightness=cal.get("brightness"), centres_yx_px=centres)
+    rec = Recovery(spectrum, pupils, index, windows, brightness=cal.get("brightness"), centres_yx_px=centres,
+                   crop_yxhw=crop)
+    facts["padded_grid_px"] = None if crop is None else n
     return rec, facts
 
 

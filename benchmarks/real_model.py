@@ -77,6 +77,7 @@ class Recovery:
     brightness: np.ndarray | None = None
     centres_yx_px: np.ndarray | None = None   # refined fractional centres, for the record
     notes: dict = field(default_factory=dict)
+    crop_yxhw: tuple | None = None   # frames recovered on a padded grid: where they sit on its windows
 
     @property
     def n(self) -> int:
@@ -103,6 +104,8 @@ class Recovery:
 def predicted_fields(rec: Recovery, *, brightness: bool = False, chunk: int = 64) -> np.ndarray:
     """Every capture's modelled field on its n × n window (complex64, (K, n, n)).
 
+    A recovery made on a padded grid (``crop_yxhw``) returns the frames' part of each window.
+
     With ``brightness`` the fields are multiplied by ``√brightness_k``.
     """
     spectrum = np.asarray(rec.spectrum, np.complex128)
@@ -125,4 +128,7 @@ def predicted_fields(rec: Recovery, *, brightness: bool = False, chunk: int = 64
         out[start:start + len(idx)] = ifft2c(crops * pupils[index[list(idx)]])
     if brightness and rec.brightness is not None:
         out *= np.sqrt(np.asarray(rec.brightness, np.float64))[:, None, None].astype(np.float32)
+    if rec.crop_yxhw is not None:
+        y0, x0, h, w = rec.crop_yxhw
+        out = np.ascontiguousarray(out[:, y0:y0 + h, x0:x0 + w])
     return out

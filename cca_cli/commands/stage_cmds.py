@@ -52,7 +52,7 @@ def reconstruct_cli(
     captures: Annotated[Path, typer.Argument(help="captures.h5 (from simulate, hdr or register).", show_default=False)],
     output: Annotated[Path, typer.Option("--output", "-o", help="recon file to write.")] = Path("recon.h5"),
     config: Annotated[Optional[Path], typer.Option("--config", "-c", help="Take the reconstruct section from this YAML.")] = None,
-    engine: Annotated[Optional[str], typer.Option(help="Engine name (altmin, …).")] = None,
+    engine: Annotated[Optional[str], typer.Option(help="Engine: auto (by the data), altmin or momentum.")] = None,
     tau: Annotated[Optional[float], typer.Option(help="Tikhonov weight τ.")] = None,
     iterations: Annotated[Optional[int], typer.Option(help="Maximum iterations.")] = None,
     tol: Annotated[Optional[float], typer.Option(help="Relative-change stopping tolerance.")] = None,

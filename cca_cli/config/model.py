@@ -136,12 +136,18 @@ class SimulateSection(Section):
 class PaddingSection(Section):
     """How recorded frames (windows on a larger scene) are placed on the recovery's square, periodic grid."""
 
-    mode: Literal["auto", "off"] = Field(
+    mode: Literal["auto", "off"] | bool = Field(
         "auto", description="auto: pad recorded or non-square images with a weight-0 guard band and crop the "
-                            "recovery back; off: use square images as they are (periodic).")
+                            "recovery back; off: use square images as they are (periodic). YAML's bare off/on "
+                            "(false/true) are read as off/auto.")
+
+    @field_validator("mode")
+    @classmethod
+    def _bare_yaml_word(cls, mode):
+        return mode if isinstance(mode, str) else ("auto" if mode else "off")
     guard_px: int | None = Field(None, ge=0, description="Guard band (sensor px); default 4 coherent resolution cells.")
     apodize_px: int | None = Field(None, ge=0, description="Weight taper inside the region edge (sensor px); "
-                                                           "default one resolution cell.")
+                                                           "default 0 (none).")
 
 
 class ReconstructSection(Section):

@@ -87,7 +87,10 @@ def fit_report(problem: PhaseRetrievalProblem, spectrum: np.ndarray, calibration
                              lowres_size=nominal.lowres_size)
         model = ForwardModel(layout, calibration.pupils)
         brightness = np.asarray(calibration.brightness, np.float64)
-    statistics = capture_statistics(model, spectrum, problem.amplitudes, problem.weights)
+    # Every recorded pixel counts alike (a guard band or a saturated pixel, weight 0, does not): the engines'
+    # confidence weights taper region edges, which would leave the misfit there out of the figure.
+    recorded = None if problem.weights is None else (problem.weights > 0).astype(np.float32)
+    statistics = capture_statistics(model, spectrum, problem.amplitudes, recorded)
     bright = bright_field(problem)
     masks = [np.ones_like(bright), bright, ~bright]
     per_image, (every, light, dark) = _split(statistics, brightness, masks)

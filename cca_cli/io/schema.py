@@ -54,12 +54,16 @@ DATASETS: tuple[DatasetSpec, ...] = (
     DatasetSpec("/recon/intensity", "float32", "(M, M)", "irradiance", "Recovered intensity |object|²."),
     DatasetSpec("/recon/residual_per_image", "float64", "(K,)", "1",
                 "Relative amplitude misfit ‖s·√b_k |ψ_k| − √I_k‖ / ‖√I_k‖ of each capture under the final model "
-                "(calibrated pupils, positions and brightness b_k; s one global scale). Root attributes of /recon: "
+                "(calibrated pupils, positions and brightness b_k; s one global scale), over every recorded pixel "
+                "alike (weight > 0; the guard band and saturated pixels are left out). Root attributes of /recon: "
                 "residual_all, residual_bright_field, residual_dark_field (the same over each set of captures) and "
                 "residual_*_without_brightness."),
     DatasetSpec("/calibration/pupil", "complex64", "(P, b, b)", "1",
                 "Recovered pupil of each camera (one for a scanned camera or an LED array) on the spectrum grid "
-                "(pixel 1/field_width_m), centred at (b − 1)/2 + the mean fractional pupil centre: NA disc × aberration."),
+                "(pixel 1/field_width_m): NA disc (centred on box pixel b//2) × aberration."),
+    DatasetSpec("/calibration/pupil_map", "complex64", "(P, b, b)", "1",
+                "The recovered aberration map of each pupil on the pupil box, without the NA disc: the model's pupil "
+                "of capture k is its NA disc at its own (fractional) box centre times pupil_map[pupil_index[k]]."),
     DatasetSpec("/calibration/pupil_index", "int32", "(K,)", "1", "Pupil (camera) each capture uses."),
     DatasetSpec("/calibration/zernike_waves", "float64", "(P, n_modes)", "waves",
                 "Zernike phase coefficients of each pupil (RMS-normalised, Noll modes listed in "

@@ -680,10 +680,11 @@ def _pupil_figure(plt, path: Path, calibration: dict) -> Path:
     shown = pupils[:6]
     b = pupils.shape[-1]
     radius = float(calibration["radius_px"])
-    grid = (np.arange(b) - (b - 1) / 2) / radius
+    centre = b // 2  # where /calibration/pupil's disc is centred
+    grid = (np.arange(b) - centre) / radius
     inside = (grid[:, None] ** 2 + grid[None, :] ** 2) <= 1.0
-    extent = ((-0.5 - (b - 1) / 2) / radius, ((b - 1) / 2 + 0.5) / radius,
-              ((b - 1) / 2 + 0.5) / radius, (-0.5 - (b - 1) / 2) / radius)
+    extent = ((-0.5 - centre) / radius, (b - 1 - centre + 0.5) / radius,
+              (b - 1 - centre + 0.5) / radius, (-0.5 - centre) / radius)
     fig, axes = plt.subplots(len(shown), 2, figsize=(8.4, 3.6 * len(shown)), squeeze=False)
     for row, pupil in enumerate(shown):
         reference = np.sum(pupil[inside])

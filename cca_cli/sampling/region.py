@@ -13,9 +13,13 @@ The region is therefore placed in the middle of a larger square grid:
   instead of two edges of the data;
 * the band is filled with the region mirrored at its edges, fading to the
   region's mean (only the starting guess sees these values);
-* the weights inside the region rise smoothly (sin²) over an
-  **apodization** width from the edge, so the outermost pixels, whose
-  light partly comes from outside, pull less on the recovery.
+* optionally, the weights inside the region rise smoothly (sin²) over an
+  **apodization** width from the edge, so the outermost pixels pull less on
+  the recovery. It is off by default: the guard band already lets the
+  model explain the light the edge pixels get from outside, and on the real
+  LED-array sets a one-cell taper left the edge pixels unfitted (data
+  residual over every recorded pixel 0.120 against 0.103 on the USAF tile,
+  0.075 against 0.074 on the blood smear).
 
 After the recovery the region is cut back out (:meth:`RegionEmbedding.hires_box`).
 A coherent resolution cell is ``c = w / (2 R)`` pixels for a region ``w``
@@ -149,7 +153,7 @@ def plan_embedding(shape, pupil_radius_px: float, *, guard_px: int | None = None
         Guard band (px); default ``max(8, ceil(4 c))`` with ``c`` the
         coherent resolution cell (:func:`resolution_cell_px`).
     apodize_px : int, optional
-        Weight taper width (px); default ``ceil(c)``.
+        Weight taper width (px); default 0 (no taper).
 
     Returns
     -------
@@ -161,7 +165,7 @@ def plan_embedding(shape, pupil_radius_px: float, *, guard_px: int | None = None
         raise ValueError(f"region shape {shape!r} must be positive")
     cell = resolution_cell_px(w, pupil_radius_px)
     guard = max(MIN_GUARD_PX, math.ceil(GUARD_CELLS * cell)) if guard_px is None else int(guard_px)
-    apodize = math.ceil(cell) if apodize_px is None else int(apodize_px)
+    apodize = 0 if apodize_px is None else int(apodize_px)
     if guard < 0 or apodize < 0:
         raise ValueError("guard_px and apodize_px must be >= 0")
     if 2 * apodize > min(h, w):

@@ -325,11 +325,15 @@ def write_fit(handle, fit: FitReport) -> None:
 
 
 def calibrated_pupils(calibration: Calibration, radius_px: float) -> np.ndarray | None:
-    """Each recovered pupil on its box, NA disc included (centred at the box centre), complex64 (P, b, b)."""
+    """Each recovered pupil on its box with its NA disc, complex64 (P, b, b).
+
+    The disc is centred on box pixel ``b // 2``, where the box centre of a capture whose pupil
+    centre falls on a whole spectrum pixel lies (:func:`~cca_cli.sampling.grid.band_layout`).
+    """
     if calibration.pupil is None:
         return None
     b = calibration.pupils.shape[-1]
-    disc = circular_pupils(b, np.full((1, 2), (b - 1) / 2.0), radius_px)[0]
+    disc = circular_pupils(b, np.full((1, 2), float(b // 2)), radius_px)[0]
     return (disc[None] * calibration.pupil.maps).astype(np.complex64)
 
 
@@ -339,6 +343,7 @@ def write_calibration(handle, calibration: Calibration, geometry: CaptureGeometr
     if calibration.pupil is not None:
         estimate = calibration.pupil
         write_dataset(handle, "/calibration/pupil", calibrated_pupils(calibration, geometry.pupil_radius_px))
+        write_dataset(handle, "/calibration/pupil_map", estimate.maps.astype(np.complex64))
         write_dataset(handle, "/calibration/zernike_waves", estimate.coefficients)
         write_dataset(handle, "/calibration/zernike_modes", np.asarray(estimate.modes, np.int32))
         group.attrs["pupil_model"] = estimate.model

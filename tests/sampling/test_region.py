@@ -19,7 +19,8 @@ from cca_cli.stages.simulate import simulate
 
 
 def test_plan_and_embed():
-    region = plan_embedding((30, 50), pupil_radius_px=5.0)  # cell 5 px: guard 20, apodize 5
+    assert plan_embedding((30, 50), pupil_radius_px=5.0).apodize_px == 0  # no taper by default
+    region = plan_embedding((30, 50), pupil_radius_px=5.0, apodize_px=5)  # cell 5 px: guard 20
     assert region.guard_px == 20 and region.apodize_px == 5
     assert region.size >= 50 + 40 and region.size % 2 == 0
     images = np.random.default_rng(0).uniform(1, 2, (2, 30, 50)).astype(np.float32)
