@@ -94,7 +94,6 @@ STAGE_ORCHESTRATORS = {
 #: Stage modules every stage may import: shared infrastructure, not a stage.
 STAGE_INFRASTRUCTURE = {
     "progress",    # the progress events of every stage (re-exported from cca_cli.progress)
-    "footprint",   # memory and disk estimates before a stage allocates
 }
 
 
@@ -161,7 +160,7 @@ def test_the_layer_checks_catch_what_they_forbid(tmp_path, monkeypatch):
     (package / "stages").mkdir(parents=True)
     (package / "optics").mkdir()
     borrowing = package / "stages" / "simulate.py"
-    borrowing.write_text("from .progress import silent\nfrom . import footprint\n\n"
+    borrowing.write_text("from .progress import silent\nfrom . import simulate\n\n"
                          "def f():\n    from cca_cli.stages import reconstruct\n    import h5py\n")
     clean = package / "stages" / "report.py"
     clean.write_text("from cca_cli.stages.progress import silent\nfrom cca_cli.io.h5 import open_input\n")

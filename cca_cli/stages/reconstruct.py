@@ -27,7 +27,7 @@ from cca_cli.sampling.geometry import CaptureGeometry
 from cca_cli.sampling.grid import BandLayout, band_layout, smallest_fft_size
 from cca_cli.sampling.region import RegionEmbedding, plan_embedding
 from cca_cli.stages.progress import ProgressFn, silent
-from cca_cli.workflows.recovery import Recovery, drive_engine, engine_options, resolve_engine, stop_reason
+from cca_cli.workflows.recovery import Recovery, drive_engine, engine_options, resolve_engine
 
 __all__ = ["SECTIONS", "Captures", "Recovery", "read_captures", "read_measurements", "build_model", "reconstruct",
            "embed_region", "run"]
