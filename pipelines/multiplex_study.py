@@ -30,7 +30,7 @@ import numpy as np
 
 from cca_cli.config.load import apply_overrides, load_config
 from cca_cli.io.multiplex import read_multiplex
-from cca_cli.stages.multiplex import coverage_summary
+from cca_cli.workflows.multiplex import coverage_summary
 from cca_cli.stages.runner import run_pipeline
 
 COLUMNS = ("n_mux", "T", "images", "virtual_captures", "coverage_zero_fraction", "coverage_single_fraction",

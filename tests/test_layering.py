@@ -1,6 +1,7 @@
 """Import rules between layers, checked on the source (ast), so they hold without running anything."""
 
 import ast
+import sys
 from pathlib import Path
 
 import pytest
@@ -69,6 +70,111 @@ def test_only_the_figures_module_imports_matplotlib():
 def test_only_registration_imports_opencv():
     paths = [p for p in PACKAGE.rglob("*.py") if "registration" not in p.relative_to(PACKAGE).parts[:1]]
     assert _violations(paths, ("cv2",)) == []
+
+
+#: Each package (or top-level module) and its layer: a module may import its own layer and those below, never above.
+#: commands → stages → workflows → {io, config, report} → {engines, registration, hdr, metrics}
+#: → {optics, sampling, targets} → {units, errors, progress}.
+LAYERS = {
+    "units.py": 0, "errors.py": 0, "progress.py": 0,
+    "optics": 1, "sampling": 1, "targets": 1,
+    "engines": 2, "registration": 2, "hdr": 2, "metrics": 2,
+    "io": 3, "config": 3, "report": 3,
+    "workflows": 4,
+    "stages": 5,
+    "commands": 6, "api.py": 6,
+    "__main__.py": 7, "__init__.py": 7,
+}
+
+#: Stage modules that run other stages (orchestration): they may import any stage.
+STAGE_ORCHESTRATORS = {
+    "runner.py",   # runs the stages of a pipeline in order
+    "sweep.py",    # runs whole pipelines per sweep point and reads their reports
+}
+#: Stage modules every stage may import: shared infrastructure, not a stage.
+STAGE_INFRASTRUCTURE = {
+    "progress",    # the progress events of every stage (re-exported from cca_cli.progress)
+}
+
+
+def _entry(path: Path) -> str:
+    return path.relative_to(PACKAGE).parts[0]
+
+
+def _layer_of_import(name: str) -> int | None:
+    parts = name.split(".")
+    if parts[0] != "cca_cli" or len(parts) < 2:
+        return None
+    return LAYERS.get(parts[1], LAYERS.get(parts[1] + ".py"))
+
+
+def _upward_imports(paths) -> list[str]:
+    found = []
+    for path in paths:
+        own = LAYERS[_entry(path)]
+        for name in sorted(_imports(path)):
+            layer = _layer_of_import(name)
+            if layer is not None and layer > own:
+                found.append(f"{path.relative_to(PACKAGE.parent)} (layer {own}) imports {name} (layer {layer})")
+    return found
+
+
+def _stage_to_stage_imports(paths) -> list[str]:
+    found = []
+    for path in paths:
+        if path.name in STAGE_ORCHESTRATORS:
+            continue
+        for name in sorted(_imports(path)):
+            parts = name.split(".")
+            if parts[:2] != ["cca_cli", "stages"] or len(parts) < 3:
+                continue
+            if parts[2] not in STAGE_INFRASTRUCTURE and parts[2] != path.stem:
+                found.append(f"{path.relative_to(PACKAGE.parent)} imports {name}")
+    return found
+
+
+def test_every_package_has_a_layer():
+    entries = {p.name for p in PACKAGE.iterdir() if (p.is_dir() and (p / "__init__.py").exists()) or p.suffix == ".py"}
+    assert entries == set(LAYERS)
+
+
+def test_no_module_imports_a_higher_layer():
+    assert _upward_imports(sorted(PACKAGE.rglob("*.py"))) == []
+
+
+def test_no_stage_imports_another_stage():
+    stages = sorted((PACKAGE / "stages").glob("*.py"))
+    assert _stage_to_stage_imports(stages) == []
+    for name in STAGE_ORCHESTRATORS | {f"{n}.py" for n in STAGE_INFRASTRUCTURE}:
+        assert (PACKAGE / "stages" / name).is_file(), name
+
+
+def test_only_io_imports_h5py():
+    paths = [p for p in PACKAGE.rglob("*.py") if _entry(p) != "io"]
+    assert _violations(paths, ("h5py",)) == []
+
+
+def test_the_layer_checks_catch_what_they_forbid(tmp_path, monkeypatch):
+    package = tmp_path / "cca_cli"
+    monkeypatch.setattr(sys.modules[__name__], "PACKAGE", package)
+    (package / "stages").mkdir(parents=True)
+    (package / "optics").mkdir()
+    borrowing = package / "stages" / "simulate.py"
+    borrowing.write_text("from .progress import silent\nfrom . import simulate\n\n"
+                         "def f():\n    from cca_cli.stages import reconstruct\n    import h5py\n")
+    clean = package / "stages" / "report.py"
+    clean.write_text("from cca_cli.stages.progress import silent\nfrom cca_cli.io.h5 import open_input\n")
+    orchestrator = package / "stages" / "runner.py"
+    orchestrator.write_text("from cca_cli.stages import simulate as simulate_stage\n")
+    upward = package / "optics" / "fft.py"
+    upward.write_text("def f():\n    from ..workflows import scenes\n")
+
+    assert _stage_to_stage_imports([borrowing, clean, orchestrator]) == [
+        "cca_cli/stages/simulate.py imports cca_cli.stages.reconstruct"]
+    assert _violations([borrowing, clean], ("h5py",)) == ["cca_cli/stages/simulate.py imports h5py"]
+    assert _upward_imports([borrowing, clean, orchestrator, upward]) == [
+        "cca_cli/optics/fft.py (layer 1) imports cca_cli.workflows (layer 4)",
+        "cca_cli/optics/fft.py (layer 1) imports cca_cli.workflows.scenes (layer 4)"]
 
 
 def test_the_checker_sees_relative_and_function_local_imports(tmp_path):

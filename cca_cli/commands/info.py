@@ -5,12 +5,12 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated
 
-import h5py
 import numpy as np
 import typer
 
 from cca_cli.commands.console import console, handle_errors, length_text
 from cca_cli.errors import InputError
+from cca_cli.io.browse import is_group, open_hdf5, visit_datasets
 from cca_cli.io.h5 import check_input_file
 
 __all__ = ["info_cli", "derived_lines"]
@@ -52,7 +52,7 @@ def derived_lines(derived: dict) -> list[str]:
     return lines
 
 
-def _derived(handle: h5py.File) -> dict | None:
+def _derived(handle) -> dict | None:
     """Derived quantities of a file with /geometry (None without one, or when it is malformed)."""
     if "geometry" not in handle:
         return None
@@ -80,12 +80,7 @@ def _derived(handle: h5py.File) -> dict | None:
 def info_cli(path: Annotated[Path, typer.Argument(help="An HDF5 file written by cca.", show_default=False)]) -> None:
     """List the datasets of PATH with dtype, shape, units and meaning, its provenance and derived quantities."""
     check_input_file(path)
-    if not h5py.is_hdf5(path):
-        raise InputError(f"{path}: not an HDF5 file")
-    try:
-        handle = h5py.File(path, "r")
-    except OSError as exc:
-        raise InputError(f"{path}: cannot open HDF5 file ({exc}); it may be truncated") from None
+    handle = open_hdf5(path)
     out = lambda text="": console.print(text, markup=False, highlight=False, soft_wrap=True)  # noqa: E731
     try:
         with handle:
@@ -104,23 +99,22 @@ def _attrs(obj) -> dict[str, str]:
     return out
 
 
-def _describe(handle: h5py.File, path: Path, out) -> None:
+def _describe(handle, path: Path, out) -> None:
     attrs = {k: _text(v) for k, v in _attrs(handle).items()}
     out(f"{path}: stage {attrs.get('stage', '?')}, cca {attrs.get('cca_version', '?')}, "
         f"schema {attrs.get('cca_schema', '?')}, created {attrs.get('created_utc', '?')}")
     out()
 
     def visit(name, obj):
-        if isinstance(obj, h5py.Dataset):
-            dataset_attrs = _attrs(obj)
-            units = _text(dataset_attrs.get("units", ""))
-            out(f"  /{name}  {obj.dtype}  {obj.shape}  [{units}]")
-            if "description" in dataset_attrs:
-                out(f"      {_text(dataset_attrs['description'])}")
+        dataset_attrs = _attrs(obj)
+        units = _text(dataset_attrs.get("units", ""))
+        out(f"  /{name}  {obj.dtype}  {obj.shape}  [{units}]")
+        if "description" in dataset_attrs:
+            out(f"      {_text(dataset_attrs['description'])}")
 
-    handle.visititems(visit)
+    visit_datasets(handle, visit)
     for group in ("geometry", "recon"):
-        if group in handle and isinstance(handle[group], h5py.Group):
+        if group in handle and is_group(handle[group]):
             items = [f"{k}={v:.6g}" if isinstance(v, float) else f"{k}={_text(v)}"
                      for k, v in _attrs(handle[group]).items() if k != "units"]
             out()

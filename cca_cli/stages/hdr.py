@@ -22,7 +22,7 @@ from cca_cli.hdr.merge import NoiseModel, estimate_noise, merge_exposures
 from cca_cli.io.geometry import read_geometry, write_geometry
 from cca_cli.io.h5 import Provenance, atomic_h5, check_output, open_input, require, write_dataset
 from cca_cli.io.records import carry_capture_records
-from cca_cli.stages.ingest import BOUNDARY_OPEN, read_labels, read_sensor, write_labels
+from cca_cli.io.captures import BOUNDARY_OPEN, read_labels, read_sensor, write_labels
 from cca_cli.stages.progress import ProgressEvent, ProgressFn, silent
 
 __all__ = ["SECTIONS", "HdrOutcome", "run"]

@@ -19,17 +19,17 @@ import logging
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-import h5py
 import numpy as np
 
 from cca_cli.errors import InputError
-from cca_cli.hdr.calibration import (DarkModel, dark_model, electrons_per_count_from_flats, gain_map,
+from cca_cli.hdr.calibration import (dark_model, electrons_per_count_from_flats, gain_map,
                                      read_noise_from_darks)
+from cca_cli.io.captures import BOUNDARY_OPEN, SensorCalibration, read_labels, read_sensor, write_labels
 from cca_cli.io.geometry import write_geometry
-from cca_cli.io.h5 import Provenance, atomic_h5, check_output, describe, write_dataset
+from cca_cli.io.h5 import Provenance, atomic_h5, check_output, write_dataset
 from cca_cli.io.images import read_stored
 from cca_cli.io.manifest import CapturePlan, plan_captures, read_manifest, read_pupil
-from cca_cli.io.records import read_sensor_records, write_sensor_records
+from cca_cli.io.records import write_sensor_records
 from cca_cli.io.sensor import Decoding, FrameValues, SensorRule, decide_decoding, frame_values
 from cca_cli.sampling.capture import led_array_geometry, stage_scan_geometry
 from cca_cli.sampling.geometry import CaptureGeometry
@@ -40,51 +40,7 @@ __all__ = ["SECTIONS", "Ingested", "SensorCalibration", "ingest", "write_raw", "
 
 SECTIONS = ("ingest",)
 
-#: /measurements attribute ``boundary`` of recorded images: a window on a larger scene (not periodic).
-BOUNDARY_OPEN = "open"
-
 _log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class SensorCalibration:
-    """What the dark and flat frames (or the manifest) say about the sensor."""
-
-    white_level: float | None          # clipping level of the decoded values (counts); None: float data
-    black_level: float                 # scalar black level used where there are no dark frames (counts)
-    darks: DarkModel | None = None
-    gain: np.ndarray | None = None     # (H, W) relative gain, mean 1
-    read_noise: float | None = None    # counts RMS
-    electrons_per_count: float | None = None
-    noise_source: str = ""
-
-    def black_at(self, exposure_s: float) -> tuple[np.ndarray | float, str | None]:
-        """Black level (per pixel with dark frames, else the scalar) at an exposure, and a note."""
-        if self.darks is None:
-            return self.black_level, None
-        return self.darks.at(exposure_s)
-
-    def saturation_at(self, exposure_s: float) -> np.ndarray | float | None:
-        """Clipping level of a linearised frame at an exposure: ``(white − black) / gain`` (None: float data)."""
-        if self.white_level is None:
-            return None
-        black, _ = self.black_at(exposure_s)
-        level = np.float32(self.white_level) - np.asarray(black, np.float32)
-        return level if self.gain is None else level / self.gain
-
-
-def read_sensor(handle) -> SensorCalibration | None:
-    """The sensor calibration stored by :func:`write_raw` (None when the file has none)."""
-    records = read_sensor_records(handle)
-    if records is None:
-        return None
-    darks = None
-    if records["black_maps"] is not None:
-        darks = DarkModel(exposure_s=records["dark_exposure_s"], black=records["black_maps"])
-    return SensorCalibration(white_level=records["white_level"], black_level=records["black_level"], darks=darks,
-                             gain=records["gain_map"], read_noise=records["read_noise"],
-                             electrons_per_count=records["electrons_per_count"],
-                             noise_source=records["noise_source"])
 
 
 @dataclass(frozen=True)
@@ -320,18 +276,6 @@ def ingest(manifest_path: Path, *, progress: ProgressFn = silent) -> Ingested:
     return Ingested(plan=plan, frames=frames, exposure_s=plan.exposure_s, saturation_level=saturation,
                     geometry=geometry, sensor=calibration, board_views=boards, initial_pupil=pupil,
                     notes=unique_notes)
-
-
-def write_labels(handle: h5py.File, labels: list[str]) -> None:
-    """Store one readable name per position as /capture/labels."""
-    describe(handle.create_dataset("/capture/labels", data=np.array(labels, dtype=h5py.string_dtype())))
-
-
-def read_labels(handle: h5py.File, count: int) -> list[str]:
-    """/capture/labels, or ``view k`` names when absent."""
-    if "/capture/labels" in handle:
-        return handle["/capture/labels"].asstr()[()].tolist()
-    return [f"view {k}" for k in range(count)]
 
 
 def _write_sensor(handle, calibration: SensorCalibration) -> None:

@@ -1,26 +1,5 @@
-"""How stages report progress without knowing about terminals."""
+"""The stages' progress events (defined in :mod:`cca_cli.progress`, shared with the libraries the stages drive)."""
 
-from __future__ import annotations
-
-from dataclasses import dataclass, field
-from typing import Any, Callable
+from cca_cli.progress import ProgressEvent, ProgressFn, silent
 
 __all__ = ["ProgressEvent", "ProgressFn", "silent"]
-
-
-@dataclass(frozen=True)
-class ProgressEvent:
-    """A stage's progress: ``done`` of ``total`` steps of ``task``, with extra numbers in ``info``."""
-
-    stage: str
-    task: str
-    done: int
-    total: int
-    info: dict[str, Any] = field(default_factory=dict)
-
-
-ProgressFn = Callable[[ProgressEvent], None]
-
-
-def silent(event: ProgressEvent) -> None:
-    """A progress callback that ignores everything."""

@@ -3,26 +3,22 @@
 from __future__ import annotations
 
 import json
-import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from cca_cli.config.model import ReconstructSection
-from cca_cli.engines.base import History, IterationRecord, run_engine
 from cca_cli.engines.calibration import defocus_zernike
 from cca_cli.engines.fit import FitReport, fit_report
 from cca_cli.engines.illumination import LedArrayModel
 from cca_cli.engines.momentum import Calibration
-from cca_cli.engines.presets import preset
 from cca_cli.engines.problem import PhaseRetrievalProblem
 from cca_cli.engines.registry import get_engine
-from cca_cli.errors import CcaError, ConfigError, InputError
-from cca_cli.io.geometry import read_geometry, write_geometry
+from cca_cli.errors import InputError
+from cca_cli.io.captures import Captures, read_measurements
+from cca_cli.io.geometry import write_geometry
 from cca_cli.io.h5 import Provenance, atomic_h5, check_output, open_input, write_dataset
-from cca_cli.io.measurements import read_intensity, read_weight
-from cca_cli.io.schema import spec_for
 from cca_cli.optics import fft
 from cca_cli.optics.forward import ForwardModel
 from cca_cli.optics.pupil import circular_pupils
@@ -30,56 +26,13 @@ from cca_cli.sampling.capture import with_field_width
 from cca_cli.sampling.geometry import CaptureGeometry
 from cca_cli.sampling.grid import BandLayout, band_layout, smallest_fft_size
 from cca_cli.sampling.region import RegionEmbedding, plan_embedding
-from cca_cli.stages.progress import ProgressEvent, ProgressFn, silent
+from cca_cli.stages.progress import ProgressFn, silent
+from cca_cli.workflows.recovery import Recovery, drive_engine, engine_options, resolve_engine
 
 __all__ = ["SECTIONS", "Captures", "Recovery", "read_captures", "read_measurements", "build_model", "reconstruct",
            "embed_region", "run"]
 
 SECTIONS = ("reconstruct",)
-
-
-@dataclass(frozen=True)
-class Captures:
-    """Measurements and geometry read from a captures file."""
-
-    path: Path
-    intensity: np.ndarray
-    weight: np.ndarray | None
-    geometry: CaptureGeometry
-    truth: dict
-    units: str | None = None   # units of /measurements/intensity when they are not the schema's (counts/s)
-    boundary: str = "periodic"                 # "open": a window on a larger scene (recorded frames)
-    initial_pupil: np.ndarray | None = None    # (P, P) complex64 on the NA disc, from the manifest
-
-
-@dataclass(frozen=True)
-class Recovery:
-    """Result of a reconstruction.
-
-    ``calibration`` is what a calibrating engine found (pupils, positions,
-    brightness), ``fit`` the residuals of the final model; both None for engines
-    without them (multiplexed captures).
-    """
-
-    spectrum: np.ndarray
-    layout: BandLayout
-    history: History
-    engine: str
-    options: dict
-    seconds: float
-    stopped_by: str = "tol"   # "tol": the change fell below tol; "plateau": the misfit stopped falling; "cap"
-    calibration: Calibration | None = None
-    fit: FitReport | None = None
-
-
-def stop_reason(history: History, options, engine=None) -> str:
-    """Why a run ended: ``"tol"`` (the last change fell below ``options.tol``), ``"plateau"`` (the engine's
-    misfit stopped falling) or ``"cap"`` (the iteration cap ended it first)."""
-    if history.records and history.records[-1].change < options.tol:
-        return "tol"
-    if engine is not None and getattr(engine, "on_plateau", lambda: False)():
-        return "plateau"
-    return "cap" if history.iterations >= options.max_iterations else "tol"
 
 
 def read_captures(path: Path) -> Captures:
@@ -90,23 +43,6 @@ def read_captures(path: Path) -> Captures:
     if k != captures.geometry.n_images:
         raise InputError(f"{path}: {k} images but /geometry describes {captures.geometry.n_images} positions")
     return captures
-
-
-def read_measurements(handle, path: Path) -> Captures:
-    """/measurements, /geometry and /truth of an open captures file, checked except for the image count."""
-    intensity = read_intensity(handle, path)
-    units = handle["/measurements/intensity"].attrs.get("units")
-    units = units.decode() if isinstance(units, bytes) else units
-    units = None if units in (None, "", spec_for("/measurements/intensity").units) else str(units)
-    geometry = read_geometry(handle)
-    weight = read_weight(handle, path, intensity.shape)
-    truth = {name: np.asarray(handle["truth"][name]) for name in handle["truth"]} if "truth" in handle else {}
-    k, h, w = intensity.shape
-    # Recorded frames say "open"; a file without the attribute is a window on a larger scene unless square.
-    boundary = handle["/measurements/intensity"].attrs.get("boundary", "periodic" if h == w else "open")
-    pupil = np.asarray(handle["/calibration/initial_pupil"]) if "/calibration/initial_pupil" in handle else None
-    return Captures(path=path, intensity=intensity, weight=weight, geometry=geometry, truth=truth, units=units,
-                    boundary=boundary.decode() if isinstance(boundary, bytes) else str(boundary), initial_pupil=pupil)
 
 
 def embed_region(captures: Captures, section: ReconstructSection) -> tuple[Captures, RegionEmbedding | None]:
@@ -151,35 +87,6 @@ def build_model(geometry: CaptureGeometry, sensor_pixels: int, *, hires_size: in
 def data_kind(captures: Captures) -> str:
     """``simulation`` (a ground truth is known), else the geometry's kind (``led_array``, ``camera_scan``)."""
     return "simulation" if captures.truth else captures.geometry.kind
-
-
-def resolve_engine(section: ReconstructSection, kind: str) -> tuple[str, dict]:
-    """Engine name and its keyword options (``tau``, ``max_iterations``, ``tol`` included).
-
-    ``engine: auto`` takes the preset for the kind of data
-    (:func:`cca_cli.engines.presets.preset`); what the section sets explicitly
-    (``tau``, ``iterations``, ``tol``, ``options``) overrides the preset.
-    """
-    section_values = {"tau": section.tau, "max_iterations": section.iterations, "tol": section.tol}
-    if section.engine != "auto":
-        return section.engine, {**section_values, **section.options}
-    name, options = preset(kind)
-    given = section.model_fields_set
-    for key, field in (("tau", "tau"), ("max_iterations", "iterations"), ("tol", "tol")):
-        if field in given or key not in options:
-            options[key] = section_values[key]
-    options.update(section.options)
-    return name, options
-
-
-def engine_options(section: ReconstructSection, kind: str = "simulation"):
-    """The engine's options object from the reconstruct section (``engine: auto`` resolved for ``kind``)."""
-    name, keywords = resolve_engine(section, kind)
-    entry = get_engine(name)
-    try:
-        return entry.options(**keywords)
-    except (TypeError, ValueError) as exc:
-        raise ConfigError(f"reconstruct.options: {exc}") from None
 
 
 def problem_calibration(geometry: CaptureGeometry, layout: BandLayout, initial_pupil=None) -> dict:
@@ -241,27 +148,6 @@ def recover(captures: Captures, engine: str, options, *, progress: ProgressFn = 
     recovery = drive_engine(runner, options, model.layout, engine, progress=progress, on_iteration=on_iteration)
     calibration = runner.calibration() if hasattr(runner, "calibration") else None
     return replace(recovery, calibration=calibration, fit=fit_report(problem, recovery.spectrum, calibration))
-
-
-def drive_engine(engine, options, layout: BandLayout, name: str, *, progress: ProgressFn = silent,
-                 on_iteration=None) -> Recovery:
-    """Run ``engine`` to completion, reporting every iteration as a progress event (and to ``on_iteration``)."""
-    total = options.max_iterations
-
-    def report(record: IterationRecord) -> None:
-        progress(ProgressEvent("reconstruct", "iterations", record.iteration, total,
-                               {"residual": record.residual, "change": record.change}))
-        if on_iteration is not None:
-            on_iteration(record)
-
-    start = time.perf_counter()
-    spectrum, history = run_engine(engine, on_iteration=report)
-    if not np.all(np.isfinite(spectrum)):
-        raise CcaError(f"reconstruct: the recovery diverged (NaN or Inf after {history.iterations} iterations), so "
-                       "nothing was written; raise reconstruct.tau or choose other reconstruct.options")
-    return Recovery(spectrum=spectrum, layout=layout, history=history, engine=name,
-                    options=asdict(options), seconds=time.perf_counter() - start,
-                    stopped_by=stop_reason(history, options, engine))
 
 
 def write_recon(path: Path, captures: Captures, recovery: Recovery, provenance: Provenance, *, force: bool = False,
@@ -365,14 +251,15 @@ def run(captures_path: Path, section: ReconstructSection, output: Path, *, prove
         force: bool = False, progress: ProgressFn = silent) -> Recovery:
     """Read captures, reconstruct, write ``output``."""
     check_output(output, force=force)
-    from cca_cli.stages import multiplex
+    from cca_cli.workflows import multiplex
 
     if multiplex.is_multiplexed_file(captures_path):
         return multiplex.run_reconstruct(captures_path, section, output, provenance=provenance, force=force,
+                                         write_recon=write_recon,
                                          progress=progress)
     captures, region = embed_region(read_captures(captures_path), section)
     recovery = reconstruct(captures, section, progress=progress)
-    from cca_cli.stages.capture_info import capture_extras
+    from cca_cli.io.capture_info import capture_extras
 
     write_recon(output, captures, recovery, provenance, force=force, extra=capture_extras(captures_path),
                 region=region)

@@ -16,19 +16,18 @@ import logging
 from dataclasses import dataclass
 from pathlib import Path
 
-import h5py
 import numpy as np
 
 from cca_cli.config.model import RegisterSection
 from cca_cli.errors import CheckerboardNotFound, ConfigError, InputError
 from cca_cli.io.geometry import read_geometry, write_geometry
-from cca_cli.io.h5 import Provenance, atomic_h5, check_output, describe, open_input, require, write_dataset
+from cca_cli.io.h5 import Provenance, atomic_h5, check_output, open_input, require, write_dataset
 from cca_cli.registration.accuracy import object_error
 from cca_cli.registration.checkerboard import find_checkerboard
 from cca_cli.registration.homography import crop, estimate_homography, warp_views
 from cca_cli.sampling.capture import object_pixel_m, with_field_width
 from cca_cli.io.records import carry_capture_records
-from cca_cli.stages.ingest import BOUNDARY_OPEN, read_labels, write_labels
+from cca_cli.io.captures import BOUNDARY_OPEN, read_labels, write_labels, write_strings
 from cca_cli.stages.progress import ProgressEvent, ProgressFn, silent
 
 __all__ = ["SECTIONS", "Registration", "register_views", "run"]
@@ -166,7 +165,7 @@ def run(captures_path: Path, section: RegisterSection | None, output: Path, *, p
             write_dataset(handle, "/registration/board_hull_fraction", reg.hull_fraction)
             write_dataset(handle, "/registration/kept_index", reg.kept)
             write_dataset(handle, "/registration/corners", reg.corners.astype(np.float32))
-            describe(handle.create_dataset("/registration/dropped", data=np.array(reg.dropped, dtype=h5py.string_dtype())))
+            write_strings(handle, "/registration/dropped", reg.dropped)
             handle["registration"].attrs["crop_xywh"] = np.asarray(rect, np.int32)
             handle["registration"].attrs["object_xywh"] = np.asarray(section.object_xywh or rect, np.int32)
             handle["registration"].attrs["reference_index"] = int(geometry.centre_index)

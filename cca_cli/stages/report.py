@@ -14,7 +14,7 @@ from cca_cli.io.h5 import Provenance, open_input, read_finite, require, require_
 from cca_cli.io.outputs import atomic_path, check_output, write_marker
 from cca_cli.report.summary import ReportInputs, summarize
 from cca_cli.stages.progress import ProgressEvent, ProgressFn, silent
-from cca_cli.stages.scene import table_to_bars
+from cca_cli.workflows.scenes import table_to_bars
 
 __all__ = ["SECTIONS", "REPORT_JSON", "run"]
 
@@ -49,7 +49,7 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
             from cca_cli.io.multiplex import read_multiplex
 
             multiplex = read_multiplex(handle)
-        from cca_cli.stages.capture_info import read_capture_summary
+        from cca_cli.io.capture_info import read_capture_summary
 
         capture_summary = read_capture_summary(handle)
         calibration = _read_calibration(handle, geometry)
@@ -70,7 +70,7 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
         summary.update(calibration_summary(calibration, geometry))
     coverage = None
     if multiplex is not None:
-        from cca_cli.stages.multiplex import coverage_summary
+        from cca_cli.workflows.multiplex import coverage_summary
 
         stats, coverage, band = coverage_summary(multiplex, int(attrs.get("hires_size")))
         summary.update(stats)
@@ -237,7 +237,7 @@ def _zoom_region(summary: dict, bars, truth, usaf_table, recovered, geometry, hi
     from cca_cli.report import regions
 
     if usaf_table is not None and len(usaf_table):
-        from cca_cli.stages.scene import table_to_usaf
+        from cca_cli.workflows.scenes import table_to_usaf
 
         return regions.usaf_region(table_to_usaf(usaf_table), (summary.get("usaf") or {}).get("recovered"))
     if bars and truth is not None:
@@ -265,7 +265,7 @@ def _comparison(summary: dict, section: ReportSection, geometry, truth_obj, trut
     from cca_cli.errors import ConfigError
     from cca_cli.report import comparison as cmp
     from cca_cli.report.summary import on_grid
-    from cca_cli.stages.scene import table_to_usaf
+    from cca_cli.workflows.scenes import table_to_usaf
 
     size = truth.shape[-1]
     images = {"observed": on_grid(observed, size), "recovered": on_grid(recovered, size)}

@@ -7,19 +7,18 @@ from pathlib import Path
 
 import numpy as np
 
-from cca_cli.config.model import NoiseSection, RunConfig
+from cca_cli.config.model import RunConfig
 from cca_cli.errors import ConfigError
-from cca_cli.io.geometry import write_geometry
-from cca_cli.io.h5 import Provenance, atomic_h5, check_output, write_dataset
+from cca_cli.io.h5 import Provenance, check_output
 from cca_cli.optics import fft
 from cca_cli.optics.forward import ForwardModel
-from cca_cli.optics.noise import add_gaussian_noise, add_shot_and_read_noise
 from cca_cli.optics.pupil import circular_pupils
 from cca_cli.sampling.geometry import CaptureGeometry, camera_scan_geometry
 from cca_cli.sampling.grid import BandLayout, band_layout
 from cca_cli.sampling.overlap import grid_for_sar
-from cca_cli.stages.progress import ProgressEvent, ProgressFn, silent
-from cca_cli.stages.scene import Scene, bars_to_table, build_scene, usaf_to_table
+from cca_cli.stages.progress import ProgressFn, silent
+from cca_cli.workflows.recording import record, record_all, stored_grid, write_captures
+from cca_cli.workflows.scenes import Scene, build_scene
 
 __all__ = ["SECTIONS", "Simulation", "simulate", "stored_grid", "record", "record_all", "write_captures", "run"]
 
@@ -77,73 +76,12 @@ def simulate(config: RunConfig, *, progress: ProgressFn = silent) -> Simulation:
     return Simulation(geometry=geometry, layout=layout, scene=scene, intensity=intensity, pixel_pitch_m=pitch)
 
 
-def stored_grid(config: RunConfig, sensor_pixels: int, lowres_size: int) -> tuple[int, float]:
-    """Side and pixel pitch (m) of the stored images: the sensor grid, or the band grid (``simulate.store``)."""
-    size = sensor_pixels if config.simulate.store == "sensor" else lowres_size
-    return size, config.optics.pixel_pitch_m * sensor_pixels / size
-
-
-def record(band: np.ndarray, size: int, noise: NoiseSection, rng: np.random.Generator) -> np.ndarray:
-    """Band-grid images (K, m, m) → float32 images (K, size, size) with ``noise`` added."""
-    block = fft.fourier_resample(band, size)
-    if noise.model == "gaussian":
-        return add_gaussian_noise(block, noise.snr_db, rng)
-    if noise.model == "poisson":
-        return add_shot_and_read_noise(block, photons_per_unit=noise.photons_per_unit,
-                                       read_noise_e=noise.read_noise_e, rng=rng)
-    return block
-
-
-def record_all(band: np.ndarray, size: int, noise: NoiseSection, rng: np.random.Generator, *,
-               progress: ProgressFn = silent, step: int = 16) -> np.ndarray:
-    """:func:`record` in blocks of ``step`` images, reporting ``simulate/captures`` progress after each."""
-    k = band.shape[0]
-    if noise.model == "poisson" and float(band.max(initial=0.0)) * noise.photons_per_unit < 1:
-        raise ConfigError(f"noise.photons_per_unit: the brightest pixel would collect "
-                          f"{float(band.max(initial=0.0)) * noise.photons_per_unit:.2g} photo-electrons, so the images "
-                          "would hold noise only; raise noise.photons_per_unit")
-    intensity = np.empty((k, size, size), np.float32)
-    for start in range(0, k, step):
-        intensity[start:start + step] = record(band[start:start + step], size, noise, rng)
-        progress(ProgressEvent("simulate", "captures", min(start + step, k), k))
-    if not intensity.any():
-        raise ConfigError("simulate: every simulated image is zero (a black scene, or too few photons: "
-                          "noise.photons_per_unit); nothing could be recovered from it")
-    return intensity
-
-
-def write_captures(path: Path, simulation: Simulation, provenance: Provenance, *, force: bool = False,
-                   extra=None) -> None:
-    """Write ``captures.h5`` atomically.
-
-    ``simulation`` may also be a multiplexed simulation (same fields);
-    ``extra(handle)`` writes further groups (multiplexed runs add /multiplex).
-    """
-    geometry = simulation.geometry
-    if simulation.pixel_pitch_m != geometry.pixel_pitch_m:
-        from dataclasses import replace
-
-        geometry = replace(geometry, pixel_pitch_m=simulation.pixel_pitch_m)
-    with atomic_h5(path, provenance, force=force) as handle:
-        write_dataset(handle, "/measurements/intensity", simulation.intensity, layout="centred sensor",
-                      boundary="periodic")
-        write_geometry(handle, geometry)
-        write_dataset(handle, "/truth/object", simulation.scene.field)
-        if simulation.scene.bars:
-            write_dataset(handle, "/truth/bars", bars_to_table(simulation.scene.bars))
-        if simulation.scene.usaf:
-            write_dataset(handle, "/truth/usaf", usaf_to_table(simulation.scene.usaf, simulation.scene.usaf_size))
-        if extra is not None:
-            extra(handle)
-        handle.attrs["simulation_grid"] = simulation.layout.hires_size
-
-
 def run(config: RunConfig, output: Path, *, provenance: Provenance, force: bool = False,
         progress: ProgressFn = silent) -> Simulation:
     """Simulate and write ``output`` (multiplexed captures when the config has a ``multiplex`` section)."""
     check_output(output, force=force)
     if config.multiplex is not None:
-        from cca_cli.stages import multiplex
+        from cca_cli.workflows import multiplex
 
         return multiplex.run_simulate(config, output, provenance=provenance, force=force, progress=progress)
     simulation = simulate(config, progress=progress)

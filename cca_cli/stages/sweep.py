@@ -40,6 +40,7 @@ from cca_cli.config.model import RunConfig, SweepSection
 from cca_cli.errors import CcaError, ConfigError
 from cca_cli.io.h5 import Provenance, atomic_h5, atomic_path, remove_temporaries, write_dataset
 from cca_cli.io.outputs import starts_with
+from cca_cli.io.sweep_table import read_table
 
 __all__ = [
     "PAPER_STUDIES",
@@ -670,32 +671,6 @@ def write_table(rows: list[dict[str, Any]], sweep_dir: Path, *, spec: SweepSecti
         handle.attrs["study"] = spec.study
         handle.attrs["columns"] = json.dumps([c.removeprefix("param:") for c in columns])
     return csv_path, h5_path
-
-
-def read_table(path: Path) -> list[dict[str, Any]]:
-    """Rows of a ``sweep.h5`` table (parameter columns keep their dotted names; missing numbers are None)."""
-    import h5py
-
-    with h5py.File(path, "r") as handle:
-        columns = json.loads(handle.attrs["columns"])
-        data = {}
-        for c in columns:
-            dataset = handle["table"][c]
-            missing = dataset.attrs.get("missing_value")
-            values = dataset[()]
-            data[c] = [_cell(v, missing) for v in values]
-    n = len(next(iter(data.values()))) if data else 0
-    return [{c: data[c][i] for c in columns} for i in range(n)]
-
-
-def _cell(value, missing):
-    if isinstance(value, bytes):
-        return value.decode()
-    if isinstance(value, np.integer):
-        return None if missing is not None and int(value) == int(missing) else int(value)
-    if isinstance(value, np.floating):
-        return None if np.isnan(value) else float(value)
-    return value
 
 
 def default_axes(spec: SweepSection, points: list[SweepPoint]) -> tuple[str, str | None]:

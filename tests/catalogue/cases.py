@@ -785,12 +785,12 @@ def _enospc_on_text(monkeypatch, folder: Path) -> None:
 
 
 def _interrupt_reconstruction(monkeypatch, folder: Path) -> None:
-    from cca_cli.stages import reconstruct
+    from cca_cli.workflows import recovery
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(reconstruct, "run_engine", interrupted)
+    monkeypatch.setattr(recovery, "run_engine", interrupted)
 
 
 case("disk-full-simulate-keeps-old", "faults", ["simulate", "cfg.yaml", "-o", "c.h5", "--force", "-q"],
@@ -807,15 +807,15 @@ case("interrupt-reconstruct", "faults", ["reconstruct", "c.h5", "-o", "r.h5", "-
 
 # --- more careless use ---------------------------------------------------------------------------------------------
 def _diverging_engine(monkeypatch, folder: Path) -> None:
-    from cca_cli.stages import reconstruct
+    from cca_cli.workflows import recovery
 
-    run_engine = reconstruct.run_engine
+    run_engine = recovery.run_engine
 
     def diverged(engine, *, on_iteration=None):
         spectrum, history = run_engine(engine, on_iteration=on_iteration)
         return spectrum * np.nan, history
 
-    monkeypatch.setattr(reconstruct, "run_engine", diverged)
+    monkeypatch.setattr(recovery, "run_engine", diverged)
 
 
 case("simulate-no-photons", "silent", SIM,

@@ -31,9 +31,9 @@ def install() -> None:
         outputs._replace = paused
     mark = os.environ.get("CCA_TEST_MARK_ITERATING")
     if mark:
-        from cca_cli.stages import reconstruct
+        from cca_cli.workflows import recovery
 
-        run_engine = reconstruct.run_engine
+        run_engine = recovery.run_engine
 
         def marked(engine, *, on_iteration=None):
             def report(record):
@@ -43,7 +43,7 @@ def install() -> None:
                     on_iteration(record)
             return run_engine(engine, on_iteration=report)
 
-        reconstruct.run_engine = marked
+        recovery.run_engine = marked
     simulating = os.environ.get("CCA_TEST_MARK_SIMULATING")
     if simulating:
         from cca_cli.stages import simulate

@@ -13,7 +13,7 @@ from cca_cli.metrics import contrast_table, mtf_limit, speckle_contrast
 from cca_cli.optics.baselines import circ_otf, circ_pupil, coherent_image, incoherent_otf
 from cca_cli.sampling.design import plan_array
 from cca_cli.sampling.overlap import synthetic_aperture_ratio
-from cca_cli.stages.scene import build_scene, surface_phase, table_to_usaf, usaf_to_table
+from cca_cli.workflows.scenes import build_scene, surface_phase, table_to_usaf, usaf_to_table
 from cca_cli.targets import resolution_chart
 from cca_cli.units import spot_size_m
 

@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 from cca_cli.commands.app import app
 from cca_cli.config.load import parse_config
 from cca_cli.errors import ConfigError
-from cca_cli.stages.multiplex import multiplex_geometry
+from cca_cli.workflows.multiplex import multiplex_geometry
 from cca_cli.units import FourierScale
 
 #: 128-px chart 16 mm wide at 50 m, 25 mm apertures (pupil radius 7.3 spectrum px), 3 x 3 abutting cameras,
@@ -107,7 +107,7 @@ def test_multiplexed_run_reports_coverage_and_beats_the_centre_image(tmp_path):
 
 
 def test_single_pattern_single_source_leaves_holes():
-    from cca_cli.stages.multiplex import coverage_summary
+    from cca_cli.workflows.multiplex import coverage_summary
 
     one, _, _ = multiplex_geometry(parse_config(_config(n_mux=1, patterns=1)))
     many, _, _ = multiplex_geometry(parse_config(_config(n_mux=5, patterns=3)))
@@ -118,7 +118,7 @@ def test_single_pattern_single_source_leaves_holes():
 
 
 def test_multiplexed_simulation_of_a_usaf_chart_stores_its_elements(tmp_path):
-    from cca_cli.stages.multiplex import run_simulate
+    from cca_cli.workflows.multiplex import run_simulate
 
     data = _config(n_mux=1, patterns=1)
     data["scene"] = {"kind": "usaf", "size_px": 128, "field_width_m": 16e-3, "usaf_groups": [0, 1]}

@@ -14,7 +14,7 @@ from cca_cli.io.h5 import Provenance
 from cca_cli.stages import reconstruct as reconstruct_stage
 from cca_cli.stages import report as report_stage
 from cca_cli.stages import simulate as simulate_stage
-from cca_cli.stages.scene import bars_to_table, build_scene, table_to_bars
+from cca_cli.workflows.scenes import bars_to_table, build_scene, table_to_bars
 
 
 def test_chart_scene_on_a_finer_grid_keeps_values_and_scales_boxes(tiny_run_config):

@@ -1,4 +1,4 @@
-"""Multiplexed-illumination branches of the simulate, reconstruct and report stages.
+"""Multiplexed-illumination branches of the simulate, reconstruct and report stages (called by each).
 
 Used when a config has a ``multiplex`` section (simulate) or a captures file
 has a ``/multiplex`` group (reconstruct, report). Files keep the single-source
@@ -19,6 +19,7 @@ import numpy as np
 from cca_cli.config.model import ReconstructSection, RunConfig
 from cca_cli.engines.multiplex import MULTIPLEX_ENGINES, MultiplexedProblem
 from cca_cli.errors import ConfigError, InputError
+from cca_cli.io.captures import Captures, read_measurements
 from cca_cli.io.h5 import Provenance, check_output, open_input, write_dataset
 from cca_cli.io.multiplex import read_multiplex, write_multiplex
 from cca_cli.optics import fft
@@ -26,11 +27,10 @@ from cca_cli.optics.multiplex import (MultiplexGeometry, MultiplexedForwardModel
                                       random_patterns, rect_lattice)
 from cca_cli.sampling.geometry import CaptureGeometry, camera_scan_geometry
 from cca_cli.sampling.grid import BandLayout
-from cca_cli.stages.progress import ProgressFn, silent
-from cca_cli.stages.reconstruct import (Captures, Recovery, drive_engine, engine_options, read_measurements,
-                                        resolve_engine, write_recon)
-from cca_cli.stages.scene import Scene, build_scene
-from cca_cli.stages.simulate import record, record_all, stored_grid, write_captures
+from cca_cli.progress import ProgressFn, silent
+from cca_cli.workflows.recording import record, record_all, stored_grid, write_captures
+from cca_cli.workflows.recovery import Recovery, drive_engine, engine_options, resolve_engine
+from cca_cli.workflows.scenes import Scene, build_scene
 from cca_cli.units import FourierScale
 
 __all__ = ["MultiplexSimulation", "MultiplexedCaptures", "multiplex_geometry", "simulate_multiplexed",
@@ -226,8 +226,13 @@ def reconstruct_multiplexed(data: MultiplexedCaptures, section: ReconstructSecti
 
 
 def run_reconstruct(captures_path: Path, section: ReconstructSection, output: Path, *, provenance: Provenance,
-                    force: bool = False, progress: ProgressFn = silent) -> Recovery:
-    """Read multiplexed captures, reconstruct, write ``output`` (with /multiplex and the reference)."""
+                    write_recon, force: bool = False, progress: ProgressFn = silent) -> Recovery:
+    """Read multiplexed captures, reconstruct, write ``output`` (with /multiplex and the reference).
+
+    ``write_recon`` is the reconstruct stage's writer of ``recon.h5``
+    (:func:`cca_cli.stages.reconstruct.write_recon`), called with the
+    reference as ``observed`` and an ``extra`` that adds /multiplex.
+    """
     check_output(output, force=force)
     data = read_multiplexed_captures(captures_path)
     recovery = reconstruct_multiplexed(data, section, progress=progress)
