@@ -62,7 +62,7 @@ def _spectrum(path: Path) -> np.ndarray:
 
 def test_kill_9_mid_run_then_the_rerun_resumes_from_the_checkpoint_and_matches_an_uninterrupted_run(tiny, tmp_path):
     captures, section = tiny
-    iterations = 2000
+    iterations = 1000
     args = [sys.executable, "-m", "cca_cli", "reconstruct", str(captures), "-o", str(tmp_path / "recon.h5"),
             "--engine", "altmin", "--iterations", str(iterations), "--tol", "0", "--checkpoint-every", "5", "--quiet"]
     env = {**os.environ, "COLUMNS": "250"}
