@@ -345,9 +345,13 @@ def recover(captures: Captures, engine: str, options, *, progress: ProgressFn = 
                                                        **problem_calibration(captures.geometry, model.layout,
                                                                              captures.initial_pupil))
     start = None
-    if init is not None:
-        start = (initial_spectrum_from(init, model.layout, captures.geometry.field_width_m)
-                 if isinstance(init, (str, Path)) else np.asarray(init, np.complex64))
+    if isinstance(init, (str, Path)):
+        start = initial_spectrum_from(init, model.layout, captures.geometry.field_width_m)
+    elif init is not None:
+        start = np.asarray(init, np.complex64)
+        if start.shape != model.spectrum_shape:
+            raise ValueError(f"init: the spectrum is {start.shape}, this reconstruction's grid "
+                             f"{model.spectrum_shape}; start from a result of the same captures")
     entry = get_engine(engine)
     runner = entry.engine(problem, options, spectrum=start)
     history = None

@@ -96,9 +96,12 @@ def test_kill_9_mid_run_then_the_rerun_resumes_from_the_checkpoint_and_matches_a
     assert np.linalg.norm(got - want) <= 1e-4 * np.linalg.norm(want)
 
 
-def test_momentum_resumes_with_its_velocity_and_ends_as_well_as_an_uninterrupted_run(tiny, tmp_path, caplog):
+@pytest.mark.parametrize("options", [{}, {"pupil_recovery": "shared", "pupil_model": "full", "brightness": True,
+                                      "position_refinement": "per_image"}], ids=["plain", "calibrating"])
+def test_momentum_resumes_with_its_velocity_and_ends_as_well_as_an_uninterrupted_run(tiny, tmp_path, caplog, options):
     captures, section = tiny
-    section = section.model_copy(update={"engine": "momentum", "iterations": 40, "tol": 0.0, "checkpoint_every": 3})
+    section = section.model_copy(update={"engine": "momentum", "iterations": 40, "tol": 0.0, "checkpoint_every": 3,
+                                         "options": options})
     _interrupted(captures, section, tmp_path / "recon.h5")
     with caplog.at_level(logging.WARNING, logger="cca"):
         resumed = _run(captures, section, tmp_path / "recon.h5")
@@ -160,3 +163,18 @@ def test_init_from_a_recon_of_another_grid_is_one_line_naming_the_file(tiny, tmp
     lines = [line for line in result.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and "other.h5" in lines[0] and "32x32" in lines[0], result.stderr
     assert not (tmp_path / "recon.h5").exists()
+
+
+def test_the_python_api_starts_from_an_earlier_result():
+    from cca_cli.api import camera_scan, reconstruct, resolution_chart, simulate
+
+    g = camera_scan(wavelength_m=550e-9, focal_length_m=0.8, aperture_diameter_m=45e-3, pixel_pitch_m=2e-6,
+                    distance_m=50.0, field_width_m=12e-3, grid=3, overlap=0.61)
+    chart = resolution_chart(96, widths=(6, 4, 3))
+    images = simulate(chart.image, g, snr_db=40)
+    earlier = reconstruct(images, g, engine="altmin", iterations=30, tol=0)
+    cold = reconstruct(images, g, engine="altmin", iterations=2, tol=0)
+    warm = reconstruct(images, g, engine="altmin", iterations=2, tol=0, init=earlier)
+    assert warm.history["residual"][0] < 0.5 * cold.history["residual"][0]
+    with pytest.raises(ValueError, match="init"):
+        reconstruct(images, g, engine="altmin", iterations=2, init=np.zeros((8, 8), np.complex64))
