@@ -178,3 +178,28 @@ def test_the_python_api_starts_from_an_earlier_result():
     assert warm.history["residual"][0] < 0.5 * cold.history["residual"][0]
     with pytest.raises(ValueError, match="init"):
         reconstruct(images, g, engine="altmin", iterations=2, init=np.zeros((8, 8), np.complex64))
+
+
+def test_cca_run_resumes_an_interrupted_reconstruction_from_its_checkpoint(tiny_run_config, tmp_path, caplog):
+    from cca_cli.config.load import apply_overrides
+    from cca_cli.stages.runner import run_pipeline
+
+    config = apply_overrides(tiny_run_config, {"run.stages": ["simulate", "reconstruct"],
+                                               "reconstruct.iterations": 60, "reconstruct.checkpoint_every": 2})
+    out = tmp_path / "out"
+    checkpoint = out / "recon.h5.checkpoint"
+
+    def progress(event):
+        if event.stage == "reconstruct" and checkpoint.exists():
+            raise _Stop
+
+    with pytest.raises(_Stop):
+        run_pipeline(config, out, progress=progress)
+    assert checkpoint.is_file() and not (out / "recon.h5").exists()
+    with caplog.at_level(logging.WARNING, logger="cca"):
+        outcomes = run_pipeline(config, out)
+    assert {o.name: o.status for o in outcomes} == {"simulate": "skipped", "reconstruct": "ran"}
+    assert "resuming from iteration" in caplog.text
+    with h5py.File(out / "recon.h5", "r") as handle:
+        assert handle["/history/residual"].shape == (60,)
+    assert not checkpoint.exists()
