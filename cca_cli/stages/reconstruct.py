@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cca_cli import __version__
 from cca_cli.config.model import ReconstructSection
 from cca_cli.engines.base import History, IterationRecord, run_engine
 from cca_cli.engines.calibration import defocus_zernike
@@ -20,13 +21,12 @@ from cca_cli.engines.momentum import Calibration
 from cca_cli.engines.presets import preset
 from cca_cli.engines.problem import PhaseRetrievalProblem
 from cca_cli.engines.registry import get_engine
-from cca_cli import __version__
 from cca_cli.errors import CcaError, ConfigError, InputError
 from cca_cli.io.checkpoint import checkpoint_path, read_checkpoint, read_spectrum, remove_checkpoint, write_checkpoint
 from cca_cli.io.geometry import read_geometry, write_geometry
 from cca_cli.io.h5 import Provenance, atomic_h5, check_output, file_sha256, open_input, write_dataset
-from cca_cli.io.outputs import is_cca_hdf5
 from cca_cli.io.measurements import read_intensity, read_weight
+from cca_cli.io.outputs import is_cca_hdf5
 from cca_cli.io.schema import spec_for
 from cca_cli.optics import fft
 from cca_cli.optics.forward import ForwardModel
@@ -501,7 +501,12 @@ def write_calibration(handle, calibration: Calibration, geometry: CaptureGeometr
 
 def run(captures_path: Path, section: ReconstructSection, output: Path, *, provenance: Provenance,
         force: bool = False, progress: ProgressFn = silent) -> Recovery:
-    """Read captures, reconstruct, write ``output``."""
+    """Read captures, reconstruct, write ``output``.
+
+    The reconstruction saves its state to ``<output>.checkpoint`` every ``section.checkpoint_every``
+    iterations and, run again with the same captures and section, continues from it; the checkpoint is
+    removed once ``output`` is written.
+    """
     check_output(output, force=force)
     from cca_cli.stages import multiplex
 
