@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import copy
 import logging
 import os
 import signal
@@ -15,7 +14,6 @@ import h5py
 import numpy as np
 import pytest
 
-from cca_cli.config.load import parse_config
 from cca_cli.stages import reconstruct as reconstruct_stage
 from cca_cli.stages import simulate as simulate_stage
 from cca_cli.stages.runner import pick_sections, stage_provenance
@@ -26,11 +24,9 @@ class _Stop(Exception):
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
+def tiny(tiny_run_config, tmp_path_factory):
     """The tiny config's captures (read only) and its reconstruct section."""
-    from conftest import TINY_CONFIG
-
-    config = parse_config(copy.deepcopy(TINY_CONFIG), source="tiny")
+    config = tiny_run_config
     captures = tmp_path_factory.mktemp("captures") / "captures.h5"
     simulate_stage.run(config, captures, provenance=stage_provenance("simulate", pick_sections(config, ("simulate",))))
     return captures, config.reconstruct
