@@ -476,7 +476,7 @@ class Reconstruction:
 
 
 def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine: str = "auto", weight=None,
-                callback: Callable | None = None, **options) -> Reconstruction:
+                callback: Callable | None = None, init=None, **options) -> Reconstruction:
     """Recover the high-resolution object from captured intensities.
 
     Parameters
@@ -498,6 +498,9 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
     callback : callable, optional
         Called after every iteration with its record (``iteration``,
         ``residual``, ``change``, ``seconds``).
+    init : path, Reconstruction or array_like (M, M), optional
+        Start from this spectrum (a recon.h5, an earlier result, or the array)
+        instead of the upsampled centre capture; it must be on the same grid.
     **options
         The engine's options: ``tau``, ``iterations`` (alias of
         ``max_iterations``), ``tol`` and the engine's own (see
@@ -567,7 +570,9 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
         geometry = with_field_width(geometry, geometry.field_width_m * region.size / observed.shape[-1])
     captures = Captures(path=Path("<arrays>"), intensity=images, weight=weights, geometry=geometry, truth=dict(truth),
                         units=units)
-    recovery = recover(captures, engine, engine_options, on_iteration=callback)
+    if isinstance(init, Reconstruction):
+        init = init.spectrum
+    recovery = recover(captures, engine, engine_options, on_iteration=callback, init=init)
     calibration = recovery.calibration
     from dataclasses import asdict
 

@@ -56,14 +56,22 @@ def reconstruct_cli(
     tau: Annotated[Optional[float], typer.Option(help="Tikhonov weight τ.")] = None,
     iterations: Annotated[Optional[int], typer.Option(help="Maximum iterations.")] = None,
     tol: Annotated[Optional[float], typer.Option(help="Relative-change stopping tolerance.")] = None,
+    init: Annotated[Optional[Path], typer.Option(help="Start from the spectrum of this recon.h5 (same grid).")] = None,
+    checkpoint_every: Annotated[Optional[int], typer.Option(help="Iterations between checkpoints "
+                                                            "(<output>.checkpoint; 0: none) [default: 50].")] = None,
     force: Force = False,
     quiet: Quiet = False,
 ) -> None:
-    """Recover the high-resolution object from CAPTURES → recon.h5."""
+    """Recover the high-resolution object from CAPTURES → recon.h5.
+
+    An interrupted run resumes from its checkpoint when run again with the same captures and options.
+    """
     base = load_config(config).reconstruct if config else None
-    section = section_from_options(ReconstructSection, base, engine=engine, tau=tau, iterations=iterations, tol=tol)
+    section = section_from_options(ReconstructSection, base, engine=engine, tau=tau, iterations=iterations, tol=tol,
+                                   init=init, checkpoint_every=checkpoint_every)
+    inputs = [captures] + ([section.init] if section.init is not None else [])
     recovery = run_stage("reconstruct", reconstruct_stage.run, captures, section, output=output,
-                         sections={"reconstruct": section}, inputs=[captures], force=force, quiet=quiet,
+                         sections={"reconstruct": section}, inputs=inputs, force=force, quiet=quiet,
                          protect=[config] if config else [], footprint=lambda: reconstruct_footprint(captures))
     console.print(f"{output}: {recovery.engine}, {recovery.history.iterations} iterations in {recovery.seconds:.1f} s, "
                   f"{recovery.layout.hires_size}² output")

@@ -86,10 +86,13 @@ def load_config(path: str | Path | None = None) -> RunConfig:
 
 
 def _resolve_relative_paths(config: RunConfig, base: Path) -> RunConfig:
-    """Paths that name input files (ingest.manifest) are relative to the config file's directory."""
+    """Paths that name input files (ingest.manifest, reconstruct.init) are relative to the config file's directory."""
     if config.ingest is not None and not config.ingest.manifest.is_absolute():
         ingest = config.ingest.model_copy(update={"manifest": base / config.ingest.manifest})
         config = config.model_copy(update={"ingest": ingest})
+    init = config.reconstruct.init
+    if init is not None and not init.is_absolute():
+        config = config.model_copy(update={"reconstruct": config.reconstruct.model_copy(update={"init": base / init})})
     return config
 
 

@@ -160,6 +160,11 @@ class ReconstructSection(Section):
     tol: float = Field(1e-5, ge=0.0, description="Stop when the relative spectrum change is below this.")
     options: dict[str, Any] = Field(default_factory=dict, description="Engine-specific options.")
     padding: PaddingSection = Field(PaddingSection(), description="Guard band for recorded / non-square frames.")
+    checkpoint_every: NonNegativeInt = Field(
+        50, description="Write <output>.checkpoint every this many iterations (at most 5% of the run time goes into "
+                        "it), so an interrupted run resumes from it; 0: never.")
+    init: Path | None = Field(None, description="Start from the /recon/spectrum of this recon.h5 (same grid) "
+                                                "instead of the upsampled centre capture.")
 
     # Field validators (not a model validator) so that errors point at reconstruct.engine / .options.
     @field_validator("engine")

@@ -120,6 +120,16 @@ class AlternatingMinimization(IterativeEngine):
         """Current spectrum estimate (complex64, M x M)."""
         return self._spectrum
 
+    def state(self) -> dict:
+        """The spectrum, the iteration count and the last change: all an iteration depends on."""
+        return {"spectrum": self._spectrum, "iteration": self._iteration, "change": self._change}
+
+    def restore(self, state: dict) -> None:
+        """Continue from :meth:`state`."""
+        self._spectrum[...] = state["spectrum"]
+        self._iteration = int(state["iteration"])
+        self._change = float(state["change"])
+
     def close(self) -> None:
         """Stop worker threads."""
         self._pass.close()

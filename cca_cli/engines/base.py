@@ -91,9 +91,20 @@ class IterativeEngine(ABC):
     def close(self) -> None:
         """Release worker threads or buffers (optional)."""
 
+    def state(self) -> dict:
+        """What the engine needs to continue where it is: arrays (``spectrum`` included) and scalars by name.
 
-def run_engine(engine: IterativeEngine, *, on_iteration: Callable[[IterationRecord], None] | None = None
-               ) -> tuple[np.ndarray, History]:
+        :meth:`restore` on an engine built for the same problem and options takes it back.
+        """
+        raise NotImplementedError(f"engine {self.name!r} cannot be checkpointed")
+
+    def restore(self, state: dict) -> None:
+        """Continue from a :meth:`state` taken earlier (same problem and options)."""
+        raise NotImplementedError(f"engine {self.name!r} cannot be checkpointed")
+
+
+def run_engine(engine: IterativeEngine, *, on_iteration: Callable[[IterationRecord], None] | None = None,
+               history: History | None = None) -> tuple[np.ndarray, History]:
     """Iterate ``engine`` until it is done.
 
     Parameters
@@ -101,14 +112,18 @@ def run_engine(engine: IterativeEngine, *, on_iteration: Callable[[IterationReco
     engine : IterativeEngine
     on_iteration : callable, optional
         Called with an :class:`IterationRecord` after every iteration (progress bars, logging).
+    history : History, optional
+        The records of the iterations already run (an engine restored from a
+        checkpoint): numbering and wall time continue from them, and new records
+        are appended to it.
 
     Returns
     -------
     spectrum : ndarray, complex64, (M, M)
     history : History
     """
-    history = History()
-    start = time.perf_counter()
+    history = History() if history is None else history
+    start = time.perf_counter() - (history.records[-1].seconds if history.records else 0.0)
     try:
         while not engine.done():
             residual, change = engine.update()

@@ -639,6 +639,42 @@ class SequentialMomentum(IterativeEngine):
             position_model=None if self._position_model is None else self._position_model.kind,
             position_parameters=position_parameters)
 
+    def state(self) -> dict:
+        """Spectrum, momentum and calibration state (problem order), and the pass counters.
+
+        Not kept: the pupil recovery's record of its last step (after a restore the
+        next pass cannot undo that step if it fits worse; the step size is kept).
+        """
+        out = {"spectrum": self._spectrum, "velocity": self._velocity, "anchor": self._anchor,
+               "misfits": np.asarray(self._misfits, np.float64), "brightness": self._brightness,
+               "offsets": self._offsets, "iteration": self._iteration, "change": self._change,
+               "previous_misfit": self._previous_misfit}
+        if self._parameters is not None:
+            out["parameters"] = np.asarray(self._parameters, np.float64)
+        if self._recovery is not None:
+            out.update(pupil_maps=self._recovery.maps, pupil_coefficients=self._recovery.coefficients,
+                       pupil_step=self._recovery._step)
+        return out
+
+    def restore(self, state: dict) -> None:
+        """Continue from :meth:`state`; the layout, visiting order and pupils are rebuilt from it."""
+        for name in ("spectrum", "velocity", "anchor"):
+            getattr(self, f"_{name}")[...] = state[name]
+        self._misfits = [float(v) for v in state["misfits"]]
+        self._brightness = np.array(state["brightness"], np.float64)
+        self._offsets = np.array(state["offsets"], np.float64)
+        self._iteration = int(state["iteration"])
+        self._change = float(state["change"])
+        self._previous_misfit = float(state["previous_misfit"])
+        if self._parameters is not None and "parameters" in state:
+            self._parameters = np.array(state["parameters"], np.float64)
+        if self._recovery is not None and "pupil_maps" in state:
+            self._recovery.maps = np.array(state["pupil_maps"], np.complex64)
+            self._recovery.coefficients = np.array(state["pupil_coefficients"], np.float64)
+            self._recovery._step = float(state["pupil_step"])
+            self._recovery._previous = None
+        self._arrange()
+
     def close(self) -> None:
         """Stop worker threads."""
         if self._pool is not None:

@@ -89,6 +89,27 @@ DATASETS: tuple[DatasetSpec, ...] = (
                 "Relative data misfit ‖w(|ψ| − √I)‖ / ‖w √I‖ per iteration."),
     DatasetSpec("/history/change", "float64", "(iterations,)", "1", "Relative spectrum change per iteration."),
     DatasetSpec("/history/seconds", "float64", "(iterations,)", "s", "Wall time at the end of each iteration."),
+    DatasetSpec("/checkpoint/spectrum", "complex64", "(M, M)", "√irradiance · px",
+                "<output>.checkpoint only (written by reconstruct every reconstruct.checkpoint_every iterations, "
+                "removed once the output is written): the spectrum so far. Attributes of /checkpoint: fingerprint "
+                "(SHA-256 of the captures, the reconstruct section and the cca version; another one is never "
+                "resumed), iteration, change and the engine's other scalars; /history holds the iterations run."),
+    DatasetSpec("/checkpoint/velocity", "complex64", "(M, M)", "√irradiance · px",
+                "Checkpoint of the momentum engine: its momentum (velocity) term."),
+    DatasetSpec("/checkpoint/anchor", "complex64", "(M, M)", "√irradiance · px",
+                "Checkpoint of the momentum engine: the spectrum after its last momentum step."),
+    DatasetSpec("/checkpoint/misfits", "float64", "(iterations,)", "irradiance · px²",
+                "Checkpoint of the momentum engine: squared data misfit of every pass (plateau test)."),
+    DatasetSpec("/checkpoint/brightness", "float64", "(K,)", "1",
+                "Checkpoint of the momentum engine: brightness of each capture (problem order)."),
+    DatasetSpec("/checkpoint/offsets", "float64", "(K, 2)", "spectrum px",
+                "Checkpoint of the momentum engine: per-capture position offsets [y, x] (problem order)."),
+    DatasetSpec("/checkpoint/parameters", "float64", "(G,)", "model units",
+                "Checkpoint of the momentum engine: parameters of the global position model."),
+    DatasetSpec("/checkpoint/pupil_maps", "complex64", "(P, b, b)", "1",
+                "Checkpoint of the momentum engine: recovered pupil maps (pupil recovery)."),
+    DatasetSpec("/checkpoint/pupil_coefficients", "float64", "(P, Z)", "waves",
+                "Checkpoint of the momentum engine: recovered Zernike coefficients (pupil recovery)."),
     DatasetSpec("/multiplex/camera_centres_px", "float64", "(P, 2)", "spectrum px",
                 "Multiplexed runs: camera aperture centre [y, x] relative to DC. With /multiplex present, "
                 "/measurements/intensity holds G = P·T images (pattern-major, then camera) and /geometry "

@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
-from dataclasses import replace
+import logging
+import time
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
+from cca_cli import __version__
 from cca_cli.config.model import ReconstructSection
+from cca_cli.engines.base import History, IterationRecord
 from cca_cli.engines.calibration import defocus_zernike
 from cca_cli.engines.fit import FitReport, fit_report
 from cca_cli.engines.illumination import LedArrayModel
@@ -17,8 +22,10 @@ from cca_cli.engines.problem import PhaseRetrievalProblem
 from cca_cli.engines.registry import get_engine
 from cca_cli.errors import InputError
 from cca_cli.io.captures import Captures, read_measurements
+from cca_cli.io.checkpoint import checkpoint_path, read_checkpoint, read_spectrum, remove_checkpoint, write_checkpoint
 from cca_cli.io.geometry import write_geometry
-from cca_cli.io.h5 import Provenance, atomic_h5, check_output, open_input, write_dataset
+from cca_cli.io.h5 import Provenance, atomic_h5, check_output, file_sha256, open_input, write_dataset
+from cca_cli.io.outputs import is_cca_hdf5
 from cca_cli.optics import fft
 from cca_cli.optics.forward import ForwardModel
 from cca_cli.optics.pupil import circular_pupils
@@ -29,10 +36,102 @@ from cca_cli.sampling.region import RegionEmbedding, plan_embedding
 from cca_cli.stages.progress import ProgressFn, silent
 from cca_cli.workflows.recovery import Recovery, drive_engine, engine_options, resolve_engine
 
-__all__ = ["SECTIONS", "Captures", "Recovery", "read_captures", "read_measurements", "build_model", "reconstruct",
-           "embed_region", "run"]
+__all__ = ["SECTIONS", "Captures", "Recovery", "Checkpointing", "read_captures", "read_measurements", "build_model",
+           "reconstruct", "embed_region", "run"]
 
 SECTIONS = ("reconstruct",)
+#: Share of the run time checkpoints may take: one is skipped until the time since the last is this many writes.
+_CHECKPOINT_SPACING = 20
+_log = logging.getLogger("cca")
+
+
+@dataclass
+class Checkpointing:
+    """Where and how often a reconstruction saves its state, and what inputs and options it belongs to.
+
+    A checkpoint is written after every ``every`` iterations, but never so often that writing takes more
+    than 1/20 of the run time; one whose ``fingerprint`` differs (other captures, options, engine or
+    starting spectrum) is ignored with a note and replaced. A file at ``path`` that cca did not write is
+    neither read nor replaced.
+    """
+
+    path: Path
+    fingerprint: str
+    every: int
+    provenance: Provenance
+    _usable: bool = field(default=True, repr=False)
+    _last: float = field(default=0.0, repr=False)
+    _cost: float = field(default=0.0, repr=False)
+    _since: int = field(default=0, repr=False)
+
+    def load(self):
+        """The matching checkpoint's state and history, or None (with a note when one is ignored)."""
+        if not (self.path.exists() or self.path.is_symlink()):
+            return None
+        if not self.path.is_file() or not is_cca_hdf5(self.path):
+            _log.warning("%s is not a checkpoint cca wrote: it is left alone, and this run writes no checkpoints",
+                         self.path)
+            self._usable = False
+            return None
+        checkpoint = read_checkpoint(self.path)
+        if checkpoint is None or checkpoint.fingerprint != self.fingerprint:
+            _log.warning("%s belongs to other captures or reconstruct options: starting afresh (it will be "
+                         "replaced)", self.path)
+            return None
+        return checkpoint
+
+    def start(self) -> None:
+        """Start counting iterations and time towards the next checkpoint."""
+        self._last, self._since = time.perf_counter(), 0
+
+    def after_iteration(self, engine, history: History) -> None:
+        """Write a checkpoint when one is due."""
+        self._since += 1
+        if not self._usable or self.every <= 0 or self._since < self.every or engine.done():
+            return
+        now = time.perf_counter()
+        if now - self._last < _CHECKPOINT_SPACING * self._cost:
+            return
+        columns = {name: history.array(name) for name in ("residual", "change", "seconds")}
+        write_checkpoint(self.path, self.provenance, self.fingerprint, engine.state(), columns)
+        self._last = time.perf_counter()
+        self._cost, self._since = self._last - now, 0
+
+    def remove(self) -> None:
+        """Remove the checkpoint (once the output is written)."""
+        if self._usable:
+            remove_checkpoint(self.path)
+
+
+def checkpoint_fingerprint(section: ReconstructSection, provenance: Provenance, captures_path: Path) -> str:
+    """SHA-256 of what a reconstruction's result depends on: the captures' bytes, the section (without
+    ``checkpoint_every``), the starting spectrum's file (size and time) and the cca version."""
+    try:
+        inputs = [item["sha256"] for item in json.loads(provenance.get("inputs", "[]"))]
+    except (ValueError, KeyError, TypeError):
+        inputs = []
+    init = None
+    if section.init is not None and Path(section.init).is_file():
+        stat = Path(section.init).stat()
+        init = [str(section.init), stat.st_size, stat.st_mtime_ns]
+    data = {"inputs": inputs or [file_sha256(captures_path)], "init": init, "version": __version__,
+            "section": section.model_dump(mode="json", exclude={"checkpoint_every"})}
+    return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
+
+
+def initial_spectrum_from(path: Path, layout: BandLayout, field_width_m: float) -> np.ndarray:
+    """/recon/spectrum of the recon.h5 at ``path``, checked against this reconstruction's grid."""
+    spectrum, attrs = read_spectrum(Path(path))
+    m = layout.hires_size
+    if spectrum.shape != (m, m):
+        raise InputError(f"{path}: /recon/spectrum is {spectrum.shape[0]}x{spectrum.shape[1]} but this "
+                         f"reconstruction's grid is {m}x{m}; reconstruct.init needs a recon.h5 of the same captures "
+                         "and padding")
+    pitch = attrs.get("pixel_pitch_object_m")
+    if pitch is not None and not np.isclose(float(pitch), field_width_m / m, rtol=1e-6):
+        raise InputError(f"{path}: its object pixels are {float(pitch):.6g} m but this reconstruction's are "
+                         f"{field_width_m / m:.6g} m; reconstruct.init needs a recon.h5 of the same geometry")
+    return spectrum
 
 
 def read_captures(path: Path) -> Captures:
@@ -102,15 +201,21 @@ def problem_calibration(geometry: CaptureGeometry, layout: BandLayout, initial_p
     return out
 
 
-def reconstruct(captures: Captures, section: ReconstructSection, *, progress: ProgressFn = silent) -> Recovery:
-    """Run the configured engine on ``captures`` (``engine: auto`` resolved for the kind of data)."""
+def reconstruct(captures: Captures, section: ReconstructSection, *, progress: ProgressFn = silent,
+                checkpoint: Checkpointing | None = None) -> Recovery:
+    """Run the configured engine on ``captures`` (``engine: auto`` resolved for the kind of data).
+
+    ``section.init`` names a recon.h5 whose spectrum the engine starts from; with
+    ``checkpoint`` the run continues from a matching checkpoint and writes new ones.
+    """
     kind = data_kind(captures)
     name, _ = resolve_engine(section, kind)
-    return recover(captures, name, engine_options(section, kind), progress=progress)
+    return recover(captures, name, engine_options(section, kind), progress=progress, init=section.init,
+                   checkpoint=checkpoint)
 
 
 def recover(captures: Captures, engine: str, options, *, progress: ProgressFn = silent,
-            on_iteration=None) -> Recovery:
+            on_iteration=None, init=None, checkpoint: Checkpointing | None = None) -> Recovery:
     """Phase retrieval of ``captures`` with a named engine and its options object.
 
     Builds the forward model on the smallest grids the band allows (wider when
@@ -129,6 +234,10 @@ def recover(captures: Captures, engine: str, options, *, progress: ProgressFn = 
         Receives a progress event per iteration.
     on_iteration : callable, optional
         Also called with each :class:`~cca_cli.engines.base.IterationRecord`.
+    init : path or ndarray, optional
+        A recon.h5 (or a complex64 (M, M) spectrum) to start from instead of the upsampled centre capture.
+    checkpoint : Checkpointing, optional
+        Continue from its checkpoint when one matches; write new ones as the run goes.
 
     Returns
     -------
@@ -144,8 +253,30 @@ def recover(captures: Captures, engine: str, options, *, progress: ProgressFn = 
     problem = PhaseRetrievalProblem.from_sensor_images(model, captures.intensity, captures.weight,
                                                        **problem_calibration(captures.geometry, model.layout,
                                                                              captures.initial_pupil))
-    runner = get_engine(engine).engine(problem, options)
-    recovery = drive_engine(runner, options, model.layout, engine, progress=progress, on_iteration=on_iteration)
+    start = None
+    if isinstance(init, (str, Path)):
+        start = initial_spectrum_from(init, model.layout, captures.geometry.field_width_m)
+    elif init is not None:
+        start = np.asarray(init, np.complex64)
+        if start.shape != model.spectrum_shape:
+            raise ValueError(f"init: the spectrum is {start.shape}, this reconstruction's grid "
+                             f"{model.spectrum_shape}; start from a result of the same captures")
+    entry = get_engine(engine)
+    runner = entry.engine(problem, options, spectrum=start)
+    history = None
+    saved = checkpoint.load() if checkpoint is not None else None
+    if saved is not None:
+        try:
+            runner.restore(saved.state)
+            history = History([IterationRecord(i + 1, *values) for i, values in
+                               enumerate(zip(*(saved.history[n].tolist() for n in ("residual", "change", "seconds"))))])
+            _log.warning("resuming from iteration %d (checkpoint %s)", history.iterations, checkpoint.path)
+        except (KeyError, ValueError, TypeError, NotImplementedError) as exc:
+            _log.warning("%s cannot be resumed (%s): starting afresh", checkpoint.path, exc)
+            runner.close()
+            runner, history = entry.engine(problem, options, spectrum=start), None
+    recovery = drive_engine(runner, options, model.layout, engine, progress=progress, on_iteration=on_iteration,
+                            history=history, checkpoint=checkpoint)
     calibration = runner.calibration() if hasattr(runner, "calibration") else None
     return replace(recovery, calibration=calibration, fit=fit_report(problem, recovery.spectrum, calibration))
 
@@ -249,7 +380,12 @@ def write_calibration(handle, calibration: Calibration, geometry: CaptureGeometr
 
 def run(captures_path: Path, section: ReconstructSection, output: Path, *, provenance: Provenance,
         force: bool = False, progress: ProgressFn = silent) -> Recovery:
-    """Read captures, reconstruct, write ``output``."""
+    """Read captures, reconstruct, write ``output``.
+
+    The reconstruction saves its state to ``<output>.checkpoint`` every ``section.checkpoint_every``
+    iterations and, run again with the same captures and section, continues from it; the checkpoint is
+    removed once ``output`` is written.
+    """
     check_output(output, force=force)
     from cca_cli.workflows import multiplex
 
@@ -258,9 +394,12 @@ def run(captures_path: Path, section: ReconstructSection, output: Path, *, prove
                                          write_recon=write_recon,
                                          progress=progress)
     captures, region = embed_region(read_captures(captures_path), section)
-    recovery = reconstruct(captures, section, progress=progress)
+    checkpoint = Checkpointing(checkpoint_path(output), checkpoint_fingerprint(section, provenance, captures_path),
+                               section.checkpoint_every, provenance)
+    recovery = reconstruct(captures, section, progress=progress, checkpoint=checkpoint)
     from cca_cli.io.capture_info import capture_extras
 
     write_recon(output, captures, recovery, provenance, force=force, extra=capture_extras(captures_path),
                 region=region)
+    checkpoint.remove()
     return recovery

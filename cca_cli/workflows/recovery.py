@@ -80,18 +80,28 @@ def engine_options(section: ReconstructSection, kind: str = "simulation"):
 
 
 def drive_engine(engine, options, layout: BandLayout, name: str, *, progress: ProgressFn = silent,
-                 on_iteration=None) -> Recovery:
-    """Run ``engine`` to completion, reporting every iteration as a progress event (and to ``on_iteration``)."""
+                 on_iteration=None, history: History | None = None, checkpoint=None) -> Recovery:
+    """Run ``engine`` to completion, reporting every iteration as a progress event (and to ``on_iteration``).
+
+    ``history`` holds the iterations a restored engine already ran; ``checkpoint`` (an object with
+    ``start()`` and ``after_iteration(engine, history)``, e.g. the reconstruct stage's
+    ``Checkpointing``) saves the state as it goes.
+    """
     total = options.max_iterations
+    history = History() if history is None else history
 
     def report(record: IterationRecord) -> None:
         progress(ProgressEvent("reconstruct", "iterations", record.iteration, total,
                                {"residual": record.residual, "change": record.change}))
         if on_iteration is not None:
             on_iteration(record)
+        if checkpoint is not None:
+            checkpoint.after_iteration(engine, history)
 
     start = time.perf_counter()
-    spectrum, history = run_engine(engine, on_iteration=report)
+    if checkpoint is not None:
+        checkpoint.start()
+    spectrum, history = run_engine(engine, on_iteration=report, history=history)
     if not np.all(np.isfinite(spectrum)):
         raise CcaError(f"reconstruct: the recovery diverged (NaN or Inf after {history.iterations} iterations), so "
                        "nothing was written; raise reconstruct.tau or choose other reconstruct.options")

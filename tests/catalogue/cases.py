@@ -811,8 +811,8 @@ def _diverging_engine(monkeypatch, folder: Path) -> None:
 
     run_engine = recovery.run_engine
 
-    def diverged(engine, *, on_iteration=None):
-        spectrum, history = run_engine(engine, on_iteration=on_iteration)
+    def diverged(engine, *, on_iteration=None, **kwargs):
+        spectrum, history = run_engine(engine, on_iteration=on_iteration, **kwargs)
         return spectrum * np.nan, history
 
     monkeypatch.setattr(recovery, "run_engine", diverged)

@@ -35,13 +35,13 @@ def install() -> None:
 
         run_engine = recovery.run_engine
 
-        def marked(engine, *, on_iteration=None):
+        def marked(engine, *, on_iteration=None, **kwargs):
             def report(record):
                 if record.iteration == 1:
                     open(mark, "w").close()
                 if on_iteration is not None:
                     on_iteration(record)
-            return run_engine(engine, on_iteration=report)
+            return run_engine(engine, on_iteration=report, **kwargs)
 
         recovery.run_engine = marked
     simulating = os.environ.get("CCA_TEST_MARK_SIMULATING")

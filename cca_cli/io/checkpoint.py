@@ -1,0 +1,92 @@
+"""Reconstruction checkpoints, and the spectrum of an earlier recon.h5 to start from.
+
+A checkpoint ``<output>.checkpoint`` is a cca HDF5 file written beside the
+output (temporary file + rename, so a kill leaves the previous one whole). It
+holds the engine's state under /checkpoint (arrays as datasets, scalars as
+attributes), the history so far under /history, and the fingerprint of the
+inputs and options it belongs to (attribute ``fingerprint`` of /checkpoint).
+"""
+
+from __future__ import annotations
+
+import contextlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from cca_cli.errors import InputError
+from cca_cli.io.h5 import Provenance, atomic_h5, open_input, write_dataset
+from cca_cli.io.outputs import is_cca_hdf5
+
+__all__ = ["Checkpoint", "checkpoint_path", "write_checkpoint", "read_checkpoint", "remove_checkpoint",
+           "read_spectrum"]
+
+_HISTORY = ("residual", "change", "seconds")
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    """What a checkpoint file holds."""
+
+    fingerprint: str
+    state: dict
+    history: dict[str, np.ndarray]
+
+
+def checkpoint_path(output: str | Path) -> Path:
+    """``<output>.checkpoint`` beside ``output``."""
+    output = Path(output)
+    return output.with_name(output.name + ".checkpoint")
+
+
+def write_checkpoint(path: Path, provenance: Provenance, fingerprint: str, state: dict,
+                     history: dict[str, np.ndarray]) -> None:
+    """Replace the checkpoint at ``path`` atomically (only a file cca wrote is ever replaced)."""
+    with atomic_h5(path, provenance, force=True) as handle:
+        group = handle.create_group("checkpoint")
+        group.attrs["fingerprint"] = fingerprint
+        for name, value in state.items():
+            if isinstance(value, np.ndarray):
+                write_dataset(handle, f"/checkpoint/{name}", value)
+            else:
+                group.attrs[name] = value
+        for name in _HISTORY:
+            write_dataset(handle, f"/history/{name}", np.asarray(history[name], np.float64))
+
+
+def read_checkpoint(path: Path) -> Checkpoint | None:
+    """The checkpoint at ``path``; None when there is none, or it is not a readable checkpoint cca wrote."""
+    if not path.is_file() or not is_cca_hdf5(path):
+        return None
+    try:
+        with h5py.File(path, "r") as handle:
+            group = handle["checkpoint"]
+            state = {name: np.asarray(group[name]) for name in group}
+            state.update({name: value for name, value in group.attrs.items() if name != "fingerprint"})
+            fingerprint = group.attrs["fingerprint"]
+            history = {name: np.asarray(handle[f"/history/{name}"], np.float64) for name in _HISTORY}
+    except (OSError, KeyError, ValueError):
+        return None
+    fingerprint = fingerprint.decode() if isinstance(fingerprint, bytes) else str(fingerprint)
+    return Checkpoint(fingerprint, state, history)
+
+
+def remove_checkpoint(path: Path) -> None:
+    """Remove the checkpoint at ``path`` if cca wrote it (anything else there is left alone)."""
+    if path.is_file() and is_cca_hdf5(path):
+        with contextlib.suppress(FileNotFoundError):
+            path.unlink()
+
+
+def read_spectrum(path: Path) -> tuple[np.ndarray, dict]:
+    """/recon/spectrum of a recon.h5 and the attributes of /recon (a one-line InputError otherwise)."""
+    with open_input(path) as handle:
+        if "/recon/spectrum" not in handle:
+            raise InputError(f"{path}: has no /recon/spectrum; give a recon.h5 written by cca reconstruct")
+        spectrum = np.asarray(handle["/recon/spectrum"])
+        attrs = dict(handle["recon"].attrs)
+    if spectrum.ndim != 2 or not np.iscomplexobj(spectrum) or not np.all(np.isfinite(spectrum)):
+        raise InputError(f"{path}: /recon/spectrum is not a finite complex (M, M) array")
+    return spectrum.astype(np.complex64), attrs
