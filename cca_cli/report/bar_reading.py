@@ -16,7 +16,7 @@ import numpy as np
 
 from cca_cli.metrics.bars import three_bar_profile_contrast, usaf_period_m
 
-__all__ = ["FrameToRecovery", "read_elements", "finest_resolved"]
+__all__ = ["FrameToRecovery", "read_elements", "finest_resolved", "offset_to_observed"]
 
 
 class FrameToRecovery:
@@ -45,7 +45,8 @@ class FrameToRecovery:
 
 
 def read_elements(recovered_object: np.ndarray, observed: np.ndarray, elements, frame_pixel_m: float,
-                  to_recovery: FrameToRecovery, *, samples_per_period: float = 8.0) -> dict:
+                  to_recovery: FrameToRecovery, *, samples_per_period: float = 8.0,
+                  offset_yx: tuple[float, float] = (0.0, 0.0)) -> dict:
     """Michelson contrast of each element on the recovered and the observed amplitude.
 
     Both amplitudes are Fourier-interpolated so that the finest element's period spans at
@@ -67,6 +68,9 @@ def read_elements(recovered_object: np.ndarray, observed: np.ndarray, elements, 
         Frame pixel → recovered pixel.
     samples_per_period : float
         Pixels per bar period the reading aims for.
+    offset_yx : tuple of float
+        Shift of the recovered image against the frames (recovered pixels,
+        :func:`offset_to_observed`); the boxes on the recovery are moved by it.
 
     Returns
     -------
@@ -89,10 +93,11 @@ def read_elements(recovered_object: np.ndarray, observed: np.ndarray, elements, 
     for spec, (group, element), period in zip(elements, names, periods):
         axis = 0 if spec["profile"] == "row" else 1
         y0, y1, x0, x1 = to_recovery.box(spec["box_px"])
-        box = (_finer(y0, small[0], factor), _finer(y1, small[0], factor),
-               _finer(x0, small[1], factor), _finer(x1, small[1], factor))
         reading = {"lp_per_mm": round(2.0 ** (group + (element - 1) / 6.0), 1), "period_px": round(period, 3)}
         for name, image in (("observed", observed_amplitude), ("recovered", recovered_amplitude)):
+            dy, dx = offset_yx if name == "recovered" else (0.0, 0.0)
+            box = (_finer(y0 + dy, small[0], factor), _finer(y1 + dy, small[0], factor),
+                   _finer(x0 + dx, small[1], factor), _finer(x1 + dx, small[1], factor))
             try:
                 value = three_bar_profile_contrast(image, box, period * factor, axis)
             except ValueError:  # the box leaves the recovered region
@@ -115,6 +120,50 @@ def finest_resolved(readings: dict, image: str = "recovered", threshold: float =
         elements[name] = (reading["lp_per_mm"], resolved)
     resolved = [(lp, name) for name, (lp, ok) in elements.items() if ok]
     return max(resolved)[1] if resolved else None
+
+
+def offset_to_observed(recovered: np.ndarray, observed: np.ndarray, cutoff_px: float) -> tuple[float, float]:
+    """Where the observed image's content sits in the recovered image, ``(dy, dx)`` recovered pixels.
+
+    A recovered pupil may carry a linear phase whose counterpart is a shift of the object (the
+    two are interchangeable in the data); boxes drawn on the captured frames then miss the bars
+    on the recovery by that shift. Both intensities are compared below ``cutoff_px`` (spectrum
+    pixels of the recovered grid: what the observed image holds) by phase correlation, refined
+    to a fraction of a pixel with a parabola through the peak.
+
+    Parameters
+    ----------
+    recovered, observed : ndarray, float, (H, W)
+        The recovered intensity and the observed one on the same grid.
+    cutoff_px : float
+        Radius of the comparison band (spectrum pixels).
+
+    Returns
+    -------
+    tuple of float
+        Add to observed (frame-based) positions to land on the recovered image.
+    """
+    h, w = recovered.shape[-2:]
+    fy = np.fft.fftfreq(h)[:, None] * h
+    fx = np.fft.fftfreq(w)[None, :] * w
+    band = np.hypot(fy, fx) <= cutoff_px
+    a = np.fft.fft2(recovered - recovered.mean()) * band
+    b = np.fft.fft2(observed - observed.mean()) * band
+    cross = a * np.conj(b)
+    surface = np.fft.ifft2(cross / np.maximum(np.abs(cross), 1e-30 * np.abs(cross).max())).real
+    peak = np.unravel_index(int(np.argmax(surface)), surface.shape)
+    offset = []
+    for axis, size in ((0, h), (1, w)):
+        index = list(peak)
+        values = []
+        for step in (-1, 0, 1):
+            index[axis] = (peak[axis] + step) % size
+            values.append(surface[tuple(index)])
+        left, centre, right = values
+        curvature = left - 2 * centre + right
+        fraction = 0.5 * (left - right) / curvature if curvature < 0 else 0.0
+        offset.append(float((peak[axis] + size // 2) % size - size // 2 + fraction))
+    return offset[0], offset[1]
 
 
 def _finer(position: float, size: int, factor: int) -> float:

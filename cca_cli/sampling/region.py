@@ -18,8 +18,8 @@ The region is therefore placed in the middle of a larger square grid:
   the recovery. It is off by default: the guard band already lets the
   model explain the light the edge pixels get from outside, and on the real
   LED-array sets a one-cell taper left the edge pixels unfitted (data
-  residual over every recorded pixel 0.120 against 0.103 on the USAF tile,
-  0.075 against 0.074 on the blood smear).
+  residual over every recorded pixel 0.117 against 0.101 on the USAF tile,
+  0.067 against 0.066 on the blood smear).
 
 After the recovery the region is cut back out (:meth:`RegionEmbedding.hires_box`).
 A coherent resolution cell is ``c = w / (2 R)`` pixels for a region ``w``

@@ -77,8 +77,9 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
     if section.bar_elements:
         from cca_cli.report.bar_reading import finest_resolved
 
-        summary["bar_contrast"] = _bar_reading(section, geometry, observed, obj, int(attrs.get("hires_size")),
-                                               region_px)
+        summary["bar_contrast"], offset = _bar_reading(section, geometry, observed, obj,
+                                                       int(attrs.get("hires_size")), region_px)
+        summary["bar_offset_px"] = [round(v, 3) for v in offset]
         for image in ("observed", "recovered"):  # resolved: contrast ≥ the resolution threshold (MTF20: 0.2)
             summary[f"bar_finest_resolved_{image}"] = finest_resolved(summary["bar_contrast"], image,
                                                                       section.mtf_threshold)
@@ -145,7 +146,14 @@ def _bar_reading(section: ReportSection, geometry, observed, recovered_object, h
     to_recovery = FrameToRecovery(sensor, hires_size, offset_yx=offset, origin_yx=origin)
     frame_pixel_m = geometry.field_width_m / sensor
     elements = [spec.model_dump() for spec in section.bar_elements]
-    return read_elements(recovered_object, observed, elements, frame_pixel_m, to_recovery)
+    from cca_cli.report.bar_reading import offset_to_observed
+    from cca_cli.report.summary import on_grid
+
+    recovered = np.abs(recovered_object) ** 2
+    # The recovered region covers the frames' field: compare below 80% of the frames' Nyquist frequency.
+    offset = offset_to_observed(recovered, on_grid(observed, recovered.shape[-2:]), 0.4 * min(observed.shape[-2:]))
+    readings = read_elements(recovered_object, observed, elements, frame_pixel_m, to_recovery, offset_yx=offset)
+    return readings, offset
 
 
 def _read_calibration(handle, geometry) -> dict | None:

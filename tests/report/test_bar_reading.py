@@ -52,3 +52,16 @@ def test_bar_elements_are_checked_when_the_config_is_read():
                       ({"element": "G8E2", "profile": "row", "box_px": [5, 1, 2, 6]}, "y0 < y1")):
         with pytest.raises(ValidationError, match=says):
             ReportSection(bar_elements=[bad])
+
+
+def test_offset_to_observed_finds_a_sub_pixel_shift_of_the_recovery():
+    from cca_cli.report.bar_reading import offset_to_observed
+
+    rng = np.random.default_rng(2)
+    n = 64
+    ky, kx = np.meshgrid(np.fft.fftfreq(n) * n, np.fft.fftfreq(n) * n, indexing="ij")
+    spectrum = np.fft.fft2(rng.standard_normal((n, n))) * (np.hypot(ky, kx) < 12)
+    observed = np.fft.ifft2(spectrum).real
+    shifted = np.fft.ifft2(spectrum * np.exp(-2j * np.pi * (1.3 * ky - 2.6 * kx) / n)).real  # moved by (1.3, -2.6)
+    dy, dx = offset_to_observed(shifted, observed, 10.0)
+    assert dy == pytest.approx(1.3, abs=0.15) and dx == pytest.approx(-2.6, abs=0.15)
