@@ -91,7 +91,7 @@ def handle_errors(func):
 
 @contextlib.contextmanager
 def progress_reporter(enabled: bool = True) -> Iterator:
-    """A progress callback drawing one rich bar per (stage, task)."""
+    """A progress callback drawing one rich bar per (stage, task); a transient task's bar goes once it is complete."""
     columns = (TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                TextColumn("{task.fields[info]}"))
     with Progress(*columns, console=err_console, disable=not enabled, transient=False) as bars:
@@ -103,11 +103,14 @@ def progress_reporter(enabled: bool = True) -> Iterator:
                 tasks[key] = bars.add_task(f"{event.stage}: {event.task}", total=event.total, info="")
             info = "  ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in event.info.items())
             bars.update(tasks[key], completed=event.done, total=event.total, info=info)
+            if event.transient and event.done >= event.total:
+                bars.remove_task(tasks.pop(key))
 
         yield report
+        shown = {task.id: task for task in bars.tasks}
         for task_id in tasks.values():
-            task = bars.tasks[task_id]
-            if task.completed < (task.total or 0):
+            task = shown.get(task_id)
+            if task is not None and task.completed < (task.total or 0):
                 bars.update(task_id, total=task.completed)
 
 

@@ -11,7 +11,8 @@ from pydantic import BaseModel, ValidationError
 from cca_cli.config.messages import error_message
 from cca_cli.errors import ConfigError, short
 
-__all__ = ["ConfigArg", "OptionalConfigArg", "Force", "Output", "Quiet", "section_from_options"]
+__all__ = ["ConfigArg", "OptionalConfigArg", "Force", "Output", "Quiet", "Workers", "Scheduler", "cluster_options",
+           "section_from_options"]
 
 SectionT = TypeVar("SectionT", bound=BaseModel)
 
@@ -22,6 +23,33 @@ OptionalConfigArg = Annotated[Optional[Path], typer.Argument(
 Force = Annotated[bool, typer.Option("--force", "-f", help="Overwrite existing outputs (and recompute).")]
 Output = Annotated[Path, typer.Option("--output", "-o", help="Output path.", dir_okay=True, show_default=False)]
 Quiet = Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")]
+Workers = Annotated[Optional[int], typer.Option("--workers", "-w", help="Local Dask worker processes (default: one "
+                                                                        "per core).")]
+Scheduler = Annotated[Optional[str], typer.Option("--scheduler", help="Address of an existing Dask scheduler, e.g. "
+                                                                      "tcp://host:8786.")]
+
+
+def cluster_options(workers: int | None, scheduler: str | None, *, used: bool):
+    """Context in which tiled reconstructions run on ``--workers`` / ``--scheduler`` (checked first).
+
+    ``used`` says whether anything will run on Dask (a config with ``reconstruct.tiles``); when not,
+    the options are only noted as unused.
+    """
+    import contextlib
+
+    from cca_cli.workflows.cluster import check_scheduler, check_workers, scheduler_timeout, use_cluster
+
+    check_workers(workers)
+    if not used:
+        if workers is not None or scheduler:
+            import logging
+
+            logging.getLogger("cca").warning("--workers/--scheduler apply to tiled reconstructions "
+                                             "(reconstruct.tiles); this run has none, so they are unused")
+        return contextlib.nullcontext()
+    if scheduler:
+        check_scheduler(scheduler, scheduler_timeout())
+    return use_cluster(workers, scheduler)
 
 
 def section_from_options(model: type[SectionT], base: BaseModel | None = None, *, names: dict[str, str] | None = None,

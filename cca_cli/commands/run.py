@@ -9,7 +9,7 @@ import typer
 
 from cca_cli.commands.console import (console, err_console, handle_errors, print_note, progress_reporter,
                                      recovery_stop_note, stop_note, summary_table)
-from cca_cli.commands.options import Force, OptionalConfigArg, Quiet
+from cca_cli.commands.options import Force, OptionalConfigArg, Quiet, Scheduler, Workers, cluster_options
 from cca_cli.config.load import load_config
 from cca_cli.stages.runner import default_out_dir, run_pipeline
 
@@ -18,10 +18,15 @@ from cca_cli.stages.runner import default_out_dir, run_pipeline
 def run_cli(
     config: OptionalConfigArg = None,
     out_dir: Annotated[Optional[Path], typer.Option("--out-dir", help="Override run.out_dir.")] = None,
+    workers: Workers = None,
+    scheduler: Scheduler = None,
     force: Force = False,
     quiet: Quiet = False,
 ) -> None:
-    """Run the pipeline of CONFIG (default: the paper's headline simulation) into ./cca-runs/."""
+    """Run the pipeline of CONFIG (default: the paper's headline simulation) into ./cca-runs/.
+
+    --workers / --scheduler say where a tiled reconstruction (reconstruct.tiles) runs its tiles.
+    """
     cfg = load_config(config)
     directory = out_dir or cfg.run.out_dir or default_out_dir(config)
 
@@ -30,7 +35,8 @@ def run_cli(
             err_console.print(f"{plan.name}: {plan.output} is up to date, skipped", style="dim", highlight=False,
                               soft_wrap=True)
 
-    with progress_reporter(not quiet) as progress:
+    tiled = cfg.reconstruct is not None and cfg.reconstruct.tiles is not None
+    with cluster_options(workers, scheduler, used=tiled), progress_reporter(not quiet) as progress:
         outcomes = run_pipeline(cfg, Path(directory), force=force, progress=progress, on_stage=on_stage,
                                 source=config if config is not None else "the built-in default")
     report = next((o for o in outcomes if o.name == "report"), None)

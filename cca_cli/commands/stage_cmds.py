@@ -9,7 +9,7 @@ import typer
 
 from cca_cli.commands.console import console, handle_errors, print_note, recovery_stop_note, summary_table
 from cca_cli.commands.info import derived_lines
-from cca_cli.commands.options import ConfigArg, Force, Quiet, section_from_options
+from cca_cli.commands.options import ConfigArg, Force, Quiet, Scheduler, Workers, cluster_options, section_from_options
 from cca_cli.commands.stage_run import run_stage
 from cca_cli.config.load import load_config
 from cca_cli.config.model import ReconstructSection, ReportSection
@@ -59,22 +59,29 @@ def reconstruct_cli(
     init: Annotated[Optional[Path], typer.Option(help="Start from the spectrum of this recon.h5 (same grid).")] = None,
     checkpoint_every: Annotated[Optional[int], typer.Option(help="Iterations between checkpoints "
                                                             "(<output>.checkpoint; 0: none) [default: 50].")] = None,
+    workers: Workers = None,
+    scheduler: Scheduler = None,
     force: Force = False,
     quiet: Quiet = False,
 ) -> None:
     """Recover the high-resolution object from CAPTURES → recon.h5.
 
-    An interrupted run resumes from its checkpoint when run again with the same captures and options.
+    An interrupted run resumes from its checkpoint when run again with the same captures and options. With
+    reconstruct.tiles (from --config) the frame is recovered in tiles on Dask: --workers local processes, or
+    the workers of --scheduler; a run started again redoes only the unfinished tiles.
     """
     base = load_config(config).reconstruct if config else None
     section = section_from_options(ReconstructSection, base, engine=engine, tau=tau, iterations=iterations, tol=tol,
                                    init=init, checkpoint_every=checkpoint_every)
     inputs = [captures] + ([section.init] if section.init is not None else [])
-    recovery = run_stage("reconstruct", reconstruct_stage.run, captures, section, output=output,
-                         sections={"reconstruct": section}, inputs=inputs, force=force, quiet=quiet,
-                         protect=[config] if config else [], footprint=lambda: reconstruct_footprint(captures))
-    console.print(f"{output}: {recovery.engine}, {recovery.history.iterations} iterations in {recovery.seconds:.1f} s, "
-                  f"{recovery.layout.hires_size}² output")
+    with cluster_options(workers, scheduler, used=section.tiles is not None):
+        recovery = run_stage("reconstruct", reconstruct_stage.run, captures, section, output=output,
+                             sections={"reconstruct": section}, inputs=inputs, force=force, quiet=quiet,
+                             protect=[config] if config else [],
+                             footprint=lambda: reconstruct_footprint(captures, section))
+    tiles = f"{len(recovery.results)} tiles, " if hasattr(recovery, "results") else ""
+    console.print(f"{output}: {recovery.engine}, {tiles}{recovery.history.iterations} iterations in "
+                  f"{recovery.seconds:.1f} s, {recovery.hires_size}² output")
     note = recovery_stop_note(recovery)
     if note:
         print_note(note)

@@ -11,7 +11,7 @@ from rich.table import Table
 from rich.text import Text
 
 from cca_cli.commands.console import console, err_console, handle_errors, styled
-from cca_cli.commands.options import ConfigArg, Force, Quiet
+from cca_cli.commands.options import ConfigArg, Force, Quiet, Scheduler, Workers
 from cca_cli.errors import ConfigError
 from cca_cli.io.lock import folder_lock
 from cca_cli.io.outputs import check_folder
@@ -24,8 +24,6 @@ sweep_app = typer.Typer(
     no_args_is_help=True,
 )
 
-Workers = Annotated[Optional[int], typer.Option("--workers", "-w", help="Local Dask worker processes (default: one per core).")]
-Scheduler = Annotated[Optional[str], typer.Option("--scheduler", help="Address of an existing Dask scheduler, e.g. tcp://host:8786.")]
 DryRun = Annotated[bool, typer.Option("--dry-run", help="List the points and their cost; run nothing.")]
 OutDir = Annotated[Optional[Path], typer.Option("--out-dir", help="Sweep directory (default: run.out_dir or ./cca-runs/<config>-<study>).")]
 Sets = Annotated[Optional[list[str]], typer.Option(

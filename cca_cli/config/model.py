@@ -23,6 +23,7 @@ __all__ = [
     "NoiseSection",
     "SimulateSection",
     "PaddingSection",
+    "TilesSection",
     "ReconstructSection",
     "ReportSection",
     "BaselineSpec",
@@ -150,6 +151,24 @@ class PaddingSection(Section):
                                                            "default 0 (none).")
 
 
+class TilesSection(Section):
+    """Overlapping tiles of the frame, each recovered with its own pupil (and LED angles), then blended."""
+
+    size_px: PositiveInt = Field(..., ge=32, description="Tile side in frame (sensor) pixels.")
+    overlap_px: NonNegativeInt = Field(
+        ..., description="Least overlap between neighbouring tiles (px), below half the tile; the blend runs "
+                         "across the middle half of each overlap.")
+    pupil: Literal["per_tile", "global"] = Field(
+        "per_tile", description="per_tile: every tile recovers its own pupil, starting from a finished neighbour's; "
+                                "global: the centre tile's recovered pupil is held fixed on every other tile.")
+
+    @model_validator(mode="after")
+    def _overlap_below_half(self):
+        if 2 * self.overlap_px >= self.size_px:
+            raise ValueError(f"overlap_px {self.overlap_px} must be below half of size_px {self.size_px}")
+        return self
+
+
 class ReconstructSection(Section):
     """Phase retrieval."""
 
@@ -165,6 +184,9 @@ class ReconstructSection(Section):
                         "it), so an interrupted run resumes from it; 0: never.")
     init: Path | None = Field(None, description="Start from the /recon/spectrum of this recon.h5 (same grid) "
                                                 "instead of the upsampled centre capture.")
+    tiles: TilesSection | None = Field(
+        None, description="Recover the frame in overlapping tiles on Dask (a local cluster, or --scheduler), each "
+                          "with its own pupil; none: the whole frame at once.")
 
     # Field validators (not a model validator) so that errors point at reconstruct.engine / .options.
     @field_validator("engine")

@@ -33,6 +33,8 @@ def write_geometry(handle: h5py.File, geometry: CaptureGeometry) -> None:
         write_dataset(group, "camera_index", np.asarray(geometry.camera_index, np.int32))
     if np.isfinite(geometry.defocus_m):
         group.attrs["defocus_m"] = float(geometry.defocus_m)
+    if np.isfinite(geometry.led_distance_m):
+        group.attrs["led_distance_m"] = float(geometry.led_distance_m)
 
 
 def read_geometry(handle: h5py.File) -> CaptureGeometry:
@@ -73,6 +75,10 @@ def read_geometry(handle: h5py.File) -> CaptureGeometry:
         if arr.shape != (k, 2):
             raise InputError(f"{handle.filename}: /geometry/{name} has shape {arr.shape}, expected ({k}, 2)")
     values["defocus_m"] = float(group.attrs.get("defocus_m", float("nan")))
+    values["led_distance_m"] = float(group.attrs.get("led_distance_m", float("nan")))
+    if not (np.isnan(values["led_distance_m"]) or values["led_distance_m"] > 0):
+        raise InputError(f"{handle.filename}: /geometry attribute led_distance_m is {values['led_distance_m']}, "
+                         "expected a positive distance (m)")
     if "camera_index" in group:
         cameras = np.asarray(group["camera_index"])
         if cameras.shape != (k,) or cameras.dtype.kind not in "iu" or (k and cameras.min() < 0):

@@ -76,6 +76,10 @@ class IlluminationSpec(_KnownPupil):
     numerical_aperture: float = Field(..., gt=0, lt=1)
     pixel_pitch_object_m: PositiveFloat
     sign: Literal[-1, 1] = Field(-1, description="Pupil at sign·sinθ·W/λ (−1: Zheng's reference convention).")
+    led_distance_m: PositiveFloat | None = Field(
+        None, allow_inf_nan=False, description="Distance of the LED plane from the sample (m), stored as /geometry "
+                                               "led_distance_m: tiled reconstructions then light each tile from its "
+                                               "own angles.")
 
 
 class BayerSpec(_Strict):

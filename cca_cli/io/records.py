@@ -55,13 +55,14 @@ def read_sensor_records(handle: h5py.File) -> dict | None:
 def carry_capture_records(source: h5py.File, target: h5py.File, *, keep=None) -> None:
     """Copy the records later stages need from one capture file to the next.
 
-    The known defocus (/geometry attribute ``defocus_m``; write /geometry
+    The known defocus and LED distance (/geometry attributes ``defocus_m``, ``led_distance_m``; write /geometry
     first), the initial pupil (/calibration), the board pattern and board
     views (/registration/board*, only the views ``keep`` when given) and the
     sensor calibration (/sensor).
     """
-    if "geometry" in source and "defocus_m" in source["geometry"].attrs and "geometry" in target:
-        target["geometry"].attrs["defocus_m"] = source["geometry"].attrs["defocus_m"]
+    for name in ("defocus_m", "led_distance_m"):
+        if "geometry" in source and name in source["geometry"].attrs and "geometry" in target:
+            target["geometry"].attrs[name] = source["geometry"].attrs[name]
     for name in ("/calibration/initial_pupil", "/sensor"):
         if name in source and name not in target:
             parent = target.require_group(str(Path(name).parent))

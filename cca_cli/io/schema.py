@@ -143,6 +143,24 @@ DATASETS: tuple[DatasetSpec, ...] = (
     DatasetSpec("/sensor/dark_exposure_s", "float64", "(D,)", "s", "Exposure time of each dark level."),
     DatasetSpec("/sensor/gain_map", "float32", "(H, W)", "1",
                 "Relative pixel gain from the flat frames (mean 1); the frames are divided by it."),
+    DatasetSpec('/tiles/box_px', 'int32', '(T, 4)', 'frame px',
+                'Tiled reconstructions (reconstruct.tiles): the box [y0, x0, height, width] of each tile in the frame, tiles row by row. Attributes of /tiles: size_px, overlap_px, rows, cols, upsampling (blend-grid samples per frame pixel), ran (tiles recovered by the run that wrote the file; the others were finished by an earlier, stopped run) and pupil (per_tile or global).'),
+    DatasetSpec('/tiles/grid_index', 'int32', '(T, 2)', '1',
+                'Row and column of each tile in the tile grid.'),
+    DatasetSpec('/tiles/residual', 'float64', '(T, 3)', '1',
+                "Amplitude residual of each tile's final model over all, bright-field and dark-field captures (one global scale per tile)."),
+    DatasetSpec('/tiles/iterations', 'int32', '(T,)', '1',
+                "Iterations each tile's recovery ran."),
+    DatasetSpec('/tiles/seconds', 'float64', '(T,)', 's',
+                "Time each tile's recovery took on its worker."),
+    DatasetSpec('/tiles/shift_px', 'float64', '(T, 2)', 'blend-grid px',
+                'Shift applied to register each tile to its centre capture (tiles whose full pupil map may carry a tilt; 0 otherwise).'),
+    DatasetSpec('/tiles/pupil', 'complex64', '(T, P, b, b)', '1',
+                'Recovered pupil(s) of each tile on its pupil box, NA disc included.'),
+    DatasetSpec('/tiles/zernike_waves', 'float64', '(T, P, modes)', 'waves RMS',
+                "Zernike coefficients of each tile's pupil phase (its start was a finished neighbour's; with pupil: global the centre tile's, held fixed)."),
+    DatasetSpec('/tiles/zernike_modes', 'int32', '(modes, 2)', '1',
+                'Radial order n and azimuthal frequency m of each Zernike mode of /tiles/zernike_waves.'),
     DatasetSpec("/calibration/initial_pupil", "complex64", "(P, P)", "1",
                 "Initial pupil from the manifest (optics.pupil / illumination.pupil): the objective's NA disc "
                 "inscribed in the P x P array, for the engines. A known defocus is the /geometry attribute defocus_m."),
@@ -195,6 +213,7 @@ GEOMETRY_ATTRS = {
     "synthetic_aperture_ratio": "1",
     "centre_index": "1",
     "defocus_m": "m (optional: known distance of the object from focus)",
+    "led_distance_m": "m (optional, LED arrays: distance of the LED plane from the sample)",
 }
 
 

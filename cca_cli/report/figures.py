@@ -787,3 +787,51 @@ def _residual_figure(plt, path: Path, calibration: dict) -> Path:
     ax.set_title(title, fontsize=10)
     ax.legend(fontsize=8)
     return _save(plt, fig, path)
+
+
+def write_tile_figure(path: Path, tiles: dict, *, field_width_m: float, frame_shape) -> Path:
+    """Maps across the field of each tile's pupil aberration (first three Zernike modes) and residual.
+
+    Parameters
+    ----------
+    path : Path
+    tiles : dict
+        ``box_px`` (T, 4) tile boxes in frame pixels, ``residual`` (T,), and optionally
+        ``zernike_waves`` (T, n_modes) of the first pupil and ``zernike_names``.
+    field_width_m : float
+        Object-plane width of the frame's columns.
+    frame_shape : tuple of int
+        ``(H, W)`` of the frame.
+    """
+    plt = _plt()
+    boxes = np.asarray(tiles["box_px"], np.float64)
+    centres = boxes[:, :2] + (boxes[:, 2:] - 1) / 2.0
+    ys, xs = sorted(set(centres[:, 0])), sorted(set(centres[:, 1]))
+    pixel = field_width_m / frame_shape[1]
+    scale, unit = _display_unit(field_width_m)
+    maps = []
+    names = list(tiles.get("zernike_names") or [])[:3]
+    waves = tiles.get("zernike_waves")
+    for j, name in enumerate(names):
+        maps.append((f"{name} (waves RMS)", waves[:, j], "RdBu_r", True))
+    maps.append(("amplitude residual, all captures", np.asarray(tiles["residual"], np.float64), "viridis", False))
+    fig, axes = plt.subplots(1, len(maps), figsize=(3.9 * len(maps), 3.6), squeeze=False)
+    half_y = (ys[1] - ys[0]) / 2 if len(ys) > 1 else frame_shape[0] / 2
+    half_x = (xs[1] - xs[0]) / 2 if len(xs) > 1 else frame_shape[1] / 2
+    extent = ((xs[0] - half_x) * pixel * scale, (xs[-1] + half_x) * pixel * scale,
+              (ys[-1] + half_y) * pixel * scale, (ys[0] - half_y) * pixel * scale)
+    for ax, (title, values, cmap, symmetric) in zip(axes[0], maps):
+        grid = np.full((len(ys), len(xs)), np.nan)
+        for (cy, cx), value in zip(centres, values):
+            grid[ys.index(cy), xs.index(cx)] = value
+        finite = np.isfinite(grid)
+        limit = max(float(np.max(np.abs(grid[finite]))), 1e-3) if symmetric and finite.any() else None
+        image = ax.imshow(grid, cmap=cmap, extent=extent, interpolation="nearest",
+                          vmin=-limit if limit else None, vmax=limit)
+        ax.set_title(title, fontsize=10)
+        ax.set_xlabel(f"x ({unit})", fontsize=8)
+        ax.set_ylabel(f"y ({unit})", fontsize=8)
+        ax.tick_params(labelsize=7)
+        fig.colorbar(image, ax=ax, fraction=0.046, pad=0.04)
+    fig.suptitle(f"{len(boxes)} tiles of {int(boxes[0, 2])} px: the pupil and the fit across the field", fontsize=11)
+    return _save(plt, fig, path)

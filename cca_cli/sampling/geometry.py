@@ -43,6 +43,8 @@ class CaptureGeometry:
         Camera of each capture in a camera array (None: one camera, moved or fixed).
     defocus_m : float
         Known distance of the object from focus (LED arrays, m; nan when unknown).
+    led_distance_m : float
+        Distance of the LED plane from the sample (LED arrays, m; nan when unknown).
     """
 
     wavelength_m: float
@@ -60,6 +62,7 @@ class CaptureGeometry:
     numerical_aperture: float = float("nan")
     camera_index: np.ndarray | None = None
     defocus_m: float = float("nan")
+    led_distance_m: float = float("nan")
 
     @property
     def n_images(self) -> int:

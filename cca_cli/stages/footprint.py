@@ -187,8 +187,12 @@ def _shape(handle, name: str) -> tuple[int, ...]:
     return tuple(int(n) for n in handle[name].shape)
 
 
-def reconstruct_footprint(captures_path: Path) -> Footprint:
-    """Memory and disk of ``cca reconstruct`` on a captures file (shapes and geometry only are read)."""
+def reconstruct_footprint(captures_path: Path, section=None) -> Footprint:
+    """Memory and disk of ``cca reconstruct`` on a captures file (shapes and geometry only are read).
+
+    With ``section.tiles`` the memory is that of the client (the blended frame, its square grid and
+    spectrum, one tile's result) plus one tile's recovery per local worker process.
+    """
     from cca_cli.io.geometry import read_geometry
     from cca_cli.io.h5 import open_input
 
@@ -199,6 +203,8 @@ def reconstruct_footprint(captures_path: Path) -> Footprint:
         truth = _shape(handle, "/truth/object") if "/truth/object" in handle else (0, 0)
     if len(shape) != 3:
         raise InputError(f"{captures_path}: /measurements/intensity has shape {shape}, expected 3 dimensions")
+    if section is not None and getattr(section, "tiles", None) is not None:
+        return _tiled_footprint(captures_path, section, shape, geometry, truth)
     k, n = float(shape[0]), float(shape[-1])
     centres = geometry.spectrum_centres_yx_px
     reach = float(np.max(np.abs(np.rint(centres)))) if centres.size else 0.0
@@ -208,6 +214,33 @@ def reconstruct_footprint(captures_path: Path) -> Footprint:
     disk = hires * hires * (2 * _COMPLEX + _FLOAT) + n * n * _FLOAT + float(truth[0]) * truth[1] * _COMPLEX
     return Footprint("reconstruct", memory, disk, f"{k:.4g} images of {n:.4g}² px, object {hires:.4g}² px",
                      "reconstruct fewer or smaller images (crop them, or simulate with simulate.store: band)")
+
+
+def _tiled_footprint(captures_path: Path, section, shape, geometry, truth) -> Footprint:
+    """Client and per-worker memory, and disk (output plus the tile files), of a tiled reconstruction."""
+    from cca_cli.workflows.cluster import cluster_settings
+    from cca_cli.optics.fft import cpu_count
+
+    k, h, w = (float(v) for v in shape)
+    size = float(section.tiles.size_px)
+    scale = size / w
+    reach = float(np.max(np.abs(np.rint(geometry.spectrum_centres_yx_px)))) * scale if geometry.n_images else 0.0
+    radius = geometry.pupil_radius_px * scale
+    padded = _fft_size(size + 2 * max(8.0, math.ceil(2.0 * size / max(radius, 1e-9))))
+    lowres, hires, box = _grids(reach * padded / size, radius * padded / size, padded)
+    per_tile = reconstruction_memory_bytes(k, padded, lowres, hires, box) + 2 * k * padded * padded * _FLOAT
+    q = max(1.0, math.ceil(hires / padded))
+    side = max(h, w)
+    frame_object = q * q * h * w * _COMPLEX
+    client = 3 * frame_object + 2 * (q * side) ** 2 * _COMPLEX + h * w * _FLOAT
+    settings = cluster_settings()
+    local_workers = 0 if settings.scheduler else (settings.workers or cpu_count())
+    memory = client + local_workers * per_tile
+    disk = 2 * frame_object + (q * side) ** 2 * _COMPLEX + 2 * frame_object + float(truth[0]) * truth[1] * _COMPLEX
+    return Footprint("reconstruct", memory, disk,
+                     f"{k:.4g} images of {w:.4g} x {h:.4g} px in tiles of {size:.4g}² px ({local_workers} local "
+                     f"workers, {size_text(per_tile)} each), object {q * w:.4g} x {q * h:.4g} px",
+                     "use fewer local workers (--workers) or smaller tiles (reconstruct.tiles.size_px)")
 
 
 def report_footprint(recon_path: Path) -> Footprint:

@@ -300,6 +300,9 @@ def write_raw(path: Path, data: Ingested, provenance: Provenance, *, force: bool
         write_geometry(handle, data.geometry)
         if manifest.known_pupil.defocus_m is not None:
             handle["geometry"].attrs["defocus_m"] = float(manifest.known_pupil.defocus_m)
+        led_distance = getattr(manifest.known_pupil, "led_distance_m", None)
+        if led_distance is not None:
+            handle["geometry"].attrs["led_distance_m"] = float(led_distance)
         if data.initial_pupil is not None:
             write_dataset(handle, "/calibration/initial_pupil", data.initial_pupil)
         if data.sensor is not None:

@@ -6,38 +6,34 @@ import hashlib
 import json
 import logging
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from cca_cli import __version__
 from cca_cli.config.model import ReconstructSection
-from cca_cli.engines.base import History, IterationRecord
-from cca_cli.engines.calibration import defocus_zernike
-from cca_cli.engines.fit import FitReport, fit_report
-from cca_cli.engines.illumination import LedArrayModel
+from cca_cli.engines.base import History
+from cca_cli.engines.fit import FitReport
 from cca_cli.engines.momentum import Calibration
-from cca_cli.engines.problem import PhaseRetrievalProblem
-from cca_cli.engines.registry import get_engine
 from cca_cli.errors import InputError
 from cca_cli.io.captures import Captures, read_measurements
-from cca_cli.io.checkpoint import checkpoint_path, read_checkpoint, read_spectrum, remove_checkpoint, write_checkpoint
+from cca_cli.io.checkpoint import checkpoint_path, read_checkpoint, remove_checkpoint, write_checkpoint
 from cca_cli.io.geometry import write_geometry
 from cca_cli.io.h5 import Provenance, atomic_h5, check_output, file_sha256, open_input, write_dataset
 from cca_cli.io.outputs import is_cca_hdf5
 from cca_cli.optics import fft
-from cca_cli.optics.forward import ForwardModel
-from cca_cli.optics.pupil import circular_pupils
-from cca_cli.sampling.capture import with_field_width
 from cca_cli.sampling.geometry import CaptureGeometry
-from cca_cli.sampling.grid import BandLayout, band_layout, smallest_fft_size
-from cca_cli.sampling.region import RegionEmbedding, plan_embedding
+from cca_cli.sampling.region import RegionEmbedding
 from cca_cli.stages.progress import ProgressFn, silent
-from cca_cli.workflows.recovery import Recovery, drive_engine, engine_options, resolve_engine
+from cca_cli.workflows.recovery import (Recovery, build_model, calibrated_pupils, data_kind, embed_region,
+                                        engine_options, initial_spectrum_from, problem_calibration, recover,
+                                        resolve_engine)
 
+# recover, build_model, embed_region … live in cca_cli.workflows.recovery; they are re-exported here.
 __all__ = ["SECTIONS", "Captures", "Recovery", "Checkpointing", "read_captures", "read_measurements", "build_model",
-           "reconstruct", "embed_region", "run"]
+           "reconstruct", "recover", "embed_region", "data_kind", "problem_calibration", "initial_spectrum_from",
+           "engine_options", "write_recon", "calibrated_pupils", "run"]
 
 SECTIONS = ("reconstruct",)
 #: Share of the run time checkpoints may take: one is skipped until the time since the last is this many writes.
@@ -119,21 +115,6 @@ def checkpoint_fingerprint(section: ReconstructSection, provenance: Provenance, 
     return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
 
 
-def initial_spectrum_from(path: Path, layout: BandLayout, field_width_m: float) -> np.ndarray:
-    """/recon/spectrum of the recon.h5 at ``path``, checked against this reconstruction's grid."""
-    spectrum, attrs = read_spectrum(Path(path))
-    m = layout.hires_size
-    if spectrum.shape != (m, m):
-        raise InputError(f"{path}: /recon/spectrum is {spectrum.shape[0]}x{spectrum.shape[1]} but this "
-                         f"reconstruction's grid is {m}x{m}; reconstruct.init needs a recon.h5 of the same captures "
-                         "and padding")
-    pitch = attrs.get("pixel_pitch_object_m")
-    if pitch is not None and not np.isclose(float(pitch), field_width_m / m, rtol=1e-6):
-        raise InputError(f"{path}: its object pixels are {float(pitch):.6g} m but this reconstruction's are "
-                         f"{field_width_m / m:.6g} m; reconstruct.init needs a recon.h5 of the same geometry")
-    return spectrum
-
-
 def read_captures(path: Path) -> Captures:
     """Read /measurements, /geometry and (if present) /truth, checking shapes and values."""
     with open_input(path) as handle:
@@ -142,63 +123,6 @@ def read_captures(path: Path) -> Captures:
     if k != captures.geometry.n_images:
         raise InputError(f"{path}: {k} images but /geometry describes {captures.geometry.n_images} positions")
     return captures
-
-
-def embed_region(captures: Captures, section: ReconstructSection) -> tuple[Captures, RegionEmbedding | None]:
-    """Place recorded (open-boundary) or non-square images in the middle of a square grid with a guard band.
-
-    Returns the captures on the square grid (geometry widened to it, weights
-    0 in the guard band) and the embedding, or the captures unchanged and
-    None for periodic square images or ``padding.mode: off``.
-    See :mod:`cca_cli.sampling.region`.
-    """
-    k, h, w = captures.intensity.shape
-    padding = section.padding
-    if padding.mode == "off" or captures.boundary != "open":
-        if h != w:
-            why = ("with reconstruct.padding.mode off" if captures.boundary == "open"
-                   else "simulated (periodic) captures")
-            raise InputError(f"{captures.path}: /measurements/intensity images are {w}x{h} px; {why} must be square "
-                             "(register.crop_xywh)")
-        return captures, None
-    region = plan_embedding((h, w), captures.geometry.pupil_radius_px, guard_px=padding.guard_px,
-                            apodize_px=padding.apodize_px)
-    images, weights = region.embed(captures.intensity, captures.weight)
-    geometry = with_field_width(captures.geometry, captures.geometry.field_width_m * region.size / w)
-    return replace(captures, intensity=images, weight=weights, geometry=geometry), region
-
-
-def build_model(geometry: CaptureGeometry, sensor_pixels: int, *, hires_size: int | None = None,
-                margin_px: int = 0) -> ForwardModel:
-    """The forward model of a capture set on the smallest grids its band allows.
-
-    ``margin_px`` widens the high-resolution grid so that pupils may move that
-    far outwards (position calibration).
-    """
-    layout = band_layout(geometry.spectrum_centres_yx_px, geometry.pupil_radius_px,
-                         sensor_size=sensor_pixels, hires_size=hires_size)
-    if margin_px > 0 and hires_size is None:
-        layout = band_layout(geometry.spectrum_centres_yx_px, geometry.pupil_radius_px, sensor_size=sensor_pixels,
-                             hires_size=smallest_fft_size(layout.hires_size + 2 * margin_px))
-    return ForwardModel(layout, circular_pupils(layout.box_size, layout.box_centres, layout.pupil_radius_px))
-
-
-def data_kind(captures: Captures) -> str:
-    """``simulation`` (a ground truth is known), else the geometry's kind (``led_array``, ``camera_scan``)."""
-    return "simulation" if captures.truth else captures.geometry.kind
-
-
-def problem_calibration(geometry: CaptureGeometry, layout: BandLayout, initial_pupil=None) -> dict:
-    """What the captures tell a calibrating engine: cameras, how positions may move, a known pupil or defocus."""
-    out = {} if initial_pupil is None else {"initial_pupil": np.asarray(initial_pupil, np.complex64)}
-    if geometry.camera_index is not None:
-        out["pupil_index"] = np.asarray(geometry.camera_index, np.int64)
-    if geometry.kind == "led_array":
-        out["position_model"] = LedArrayModel(layout.centres_px, geometry.field_width_m / geometry.wavelength_m)
-    if np.isfinite(geometry.defocus_m) and geometry.defocus_m != 0 and geometry.kind == "led_array":
-        out["aberration"] = defocus_zernike(geometry.defocus_m, wavelength_m=geometry.wavelength_m,
-                                            numerical_aperture=geometry.numerical_aperture)
-    return out
 
 
 def reconstruct(captures: Captures, section: ReconstructSection, *, progress: ProgressFn = silent,
@@ -212,73 +136,6 @@ def reconstruct(captures: Captures, section: ReconstructSection, *, progress: Pr
     name, _ = resolve_engine(section, kind)
     return recover(captures, name, engine_options(section, kind), progress=progress, init=section.init,
                    checkpoint=checkpoint)
-
-
-def recover(captures: Captures, engine: str, options, *, progress: ProgressFn = silent,
-            on_iteration=None, init=None, checkpoint: Checkpointing | None = None) -> Recovery:
-    """Phase retrieval of ``captures`` with a named engine and its options object.
-
-    Builds the forward model on the smallest grids the band allows (wider when
-    positions are calibrated), tells the engine what the geometry knows (cameras,
-    how positions may move, a known defocus), runs it, and evaluates the final
-    model's residuals.
-
-    Parameters
-    ----------
-    captures : Captures
-    engine : str
-        Registered engine name.
-    options
-        The engine's options object.
-    progress : callable, optional
-        Receives a progress event per iteration.
-    on_iteration : callable, optional
-        Also called with each :class:`~cca_cli.engines.base.IterationRecord`.
-    init : path or ndarray, optional
-        A recon.h5 (or a complex64 (M, M) spectrum) to start from instead of the upsampled centre capture.
-    checkpoint : Checkpointing, optional
-        Continue from its checkpoint when one matches; write new ones as the run goes.
-
-    Returns
-    -------
-    Recovery
-    """
-    margin = 0
-    if getattr(options, "position_refinement", "none") != "none":
-        margin = int(np.ceil(captures.geometry.pupil_radius_px / 8)) + 2
-    try:
-        model = build_model(captures.geometry, captures.intensity.shape[-1], margin_px=margin)
-    except ValueError as exc:
-        raise InputError(f"{captures.path}: {exc}") from None
-    problem = PhaseRetrievalProblem.from_sensor_images(model, captures.intensity, captures.weight,
-                                                       **problem_calibration(captures.geometry, model.layout,
-                                                                             captures.initial_pupil))
-    start = None
-    if isinstance(init, (str, Path)):
-        start = initial_spectrum_from(init, model.layout, captures.geometry.field_width_m)
-    elif init is not None:
-        start = np.asarray(init, np.complex64)
-        if start.shape != model.spectrum_shape:
-            raise ValueError(f"init: the spectrum is {start.shape}, this reconstruction's grid "
-                             f"{model.spectrum_shape}; start from a result of the same captures")
-    entry = get_engine(engine)
-    runner = entry.engine(problem, options, spectrum=start)
-    history = None
-    saved = checkpoint.load() if checkpoint is not None else None
-    if saved is not None:
-        try:
-            runner.restore(saved.state)
-            history = History([IterationRecord(i + 1, *values) for i, values in
-                               enumerate(zip(*(saved.history[n].tolist() for n in ("residual", "change", "seconds"))))])
-            _log.warning("resuming from iteration %d (checkpoint %s)", history.iterations, checkpoint.path)
-        except (KeyError, ValueError, TypeError, NotImplementedError) as exc:
-            _log.warning("%s cannot be resumed (%s): starting afresh", checkpoint.path, exc)
-            runner.close()
-            runner, history = entry.engine(problem, options, spectrum=start), None
-    recovery = drive_engine(runner, options, model.layout, engine, progress=progress, on_iteration=on_iteration,
-                            history=history, checkpoint=checkpoint)
-    calibration = runner.calibration() if hasattr(runner, "calibration") else None
-    return replace(recovery, calibration=calibration, fit=fit_report(problem, recovery.spectrum, calibration))
 
 
 def write_recon(path: Path, captures: Captures, recovery: Recovery, provenance: Provenance, *, force: bool = False,
@@ -341,19 +198,6 @@ def write_fit(handle, fit: FitReport) -> None:
         recon.attrs[f"residual_{name}_without_brightness"] = getattr(fit, f"{name}_without_brightness")
 
 
-def calibrated_pupils(calibration: Calibration, radius_px: float) -> np.ndarray | None:
-    """Each recovered pupil on its box with its NA disc, complex64 (P, b, b).
-
-    The disc is centred on box pixel ``b // 2``, where the box centre of a capture whose pupil
-    centre falls on a whole spectrum pixel lies (:func:`~cca_cli.sampling.grid.band_layout`).
-    """
-    if calibration.pupil is None:
-        return None
-    b = calibration.pupils.shape[-1]
-    disc = circular_pupils(b, np.full((1, 2), float(b // 2)), radius_px)[0]
-    return (disc[None] * calibration.pupil.maps).astype(np.complex64)
-
-
 def write_calibration(handle, calibration: Calibration, geometry: CaptureGeometry) -> None:
     """Pupils, refined positions and brightness under /calibration, SI next to pixels."""
     group = handle.require_group("calibration")
@@ -384,11 +228,16 @@ def run(captures_path: Path, section: ReconstructSection, output: Path, *, prove
 
     The reconstruction saves its state to ``<output>.checkpoint`` every ``section.checkpoint_every``
     iterations and, run again with the same captures and section, continues from it; the checkpoint is
-    removed once ``output`` is written.
+    removed once ``output`` is written. With ``section.tiles`` the frame is recovered in tiles on Dask
+    (:func:`run_tiled`).
     """
     check_output(output, force=force)
     from cca_cli.workflows import multiplex
 
+    if section.tiles is not None:
+        if multiplex.is_multiplexed_file(captures_path):
+            raise InputError(f"{captures_path}: multiplexed captures are recovered whole; leave out reconstruct.tiles")
+        return run_tiled(captures_path, section, output, provenance=provenance, force=force, progress=progress)
     if multiplex.is_multiplexed_file(captures_path):
         return multiplex.run_reconstruct(captures_path, section, output, provenance=provenance, force=force,
                                          write_recon=write_recon,
@@ -403,3 +252,33 @@ def run(captures_path: Path, section: ReconstructSection, output: Path, *, prove
                 region=region)
     checkpoint.remove()
     return recovery
+
+
+def run_tiled(captures_path: Path, section: ReconstructSection, output: Path, *, provenance: Provenance,
+              force: bool = False, progress: ProgressFn = silent, client=None):
+    """Recover ``captures_path`` in tiles on Dask and write the blended result to ``output``.
+
+    Finished tiles are kept in ``<output>.tiles/`` until ``output`` is written, so a run that was
+    stopped and is started again with the same captures and section recovers only the tiles that
+    were not finished (:mod:`cca_cli.workflows.tiled`).
+
+    Returns
+    -------
+    TiledRecovery
+    """
+    from cca_cli.io.tiles import remove_tile_folder
+    from cca_cli.workflows.tiled import reconstruct_tiled, run_fingerprint
+
+    try:
+        inputs = [item["sha256"] for item in json.loads(provenance.get("inputs", "[]"))]
+    except (ValueError, KeyError, TypeError):
+        inputs = []
+    fingerprint = run_fingerprint(section, inputs, captures_path)
+    tiled = reconstruct_tiled(captures_path, section, output, run_fingerprint=fingerprint, provenance=provenance,
+                              client=client, progress=progress)
+    from cca_cli.io.capture_info import capture_extras
+    from cca_cli.io.tiled_recon import write_tiled_recon
+
+    write_tiled_recon(output, tiled, provenance, force=force, extra=capture_extras(captures_path))
+    remove_tile_folder(output)
+    return tiled

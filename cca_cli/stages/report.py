@@ -53,6 +53,7 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
 
         capture_summary = read_capture_summary(handle)
         calibration = _read_calibration(handle, geometry)
+        tiles = _read_tiles(handle)
     # The spectrum and the truth are square grids; a recovered region (/recon/region_px) may be a rectangle.
     for name, image in (("/recon/spectrum", spectrum), ("/truth/object", truth_obj)):
         if image is not None and image.shape[0] != image.shape[1]:
@@ -68,6 +69,8 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
     summary.update(capture_summary)
     if calibration is not None:
         summary.update(calibration_summary(calibration, geometry))
+    if tiles is not None:
+        summary["tiles"] = tiles_summary(tiles)
     coverage = None
     if multiplex is not None:
         from cca_cli.workflows.multiplex import coverage_summary
@@ -112,6 +115,13 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
                 from cca_cli.report.figures import write_calibration_figures
 
                 figures += write_calibration_figures(tmp, calibration)
+            if tiles is not None:
+                from cca_cli.report.figures import write_tile_figure
+
+                frame_shape = tuple(region_px[1][2:]) if region_px is not None else observed.shape[-2:]
+                figures.append(write_tile_figure(tmp / "tiles.png", tiles, frame_shape=frame_shape,
+                                                 field_width_m=geometry.field_width_m * frame_shape[1]
+                                                 / (region_px[2] if region_px is not None else frame_shape[1])))
             if coverage is not None:
                 from cca_cli.report.figures import write_coverage_figure
 
@@ -189,6 +199,41 @@ def _read_calibration(handle, geometry) -> dict | None:
     if group is not None and "position_model" in group.attrs:
         out["position_model"] = _text(group.attrs["position_model"])
         out["position_parameters"] = json.loads(_text(group.attrs["position_parameters"]))
+    return out
+
+
+def _read_tiles(handle) -> dict | None:
+    """/tiles of a tiled reconstruction: boxes, residuals and (first pupil's) Zernike coefficients per tile."""
+    if "/tiles/box_px" not in handle:
+        return None
+    group = handle["tiles"]
+    out = {"box_px": np.asarray(group["box_px"]), "residual": np.asarray(group["residual"])[:, 0],
+           "iterations": np.asarray(group["iterations"]), "seconds": np.asarray(group["seconds"]),
+           "attrs": {k: (v.item() if hasattr(v, "item") else _text(v)) for k, v in group.attrs.items()}}
+    if "zernike_waves" in group:
+        from cca_cli.engines.calibration import zernike_name
+
+        out["zernike_waves"] = np.asarray(group["zernike_waves"])[:, 0, :]
+        out["zernike_names"] = [zernike_name(*(int(v) for v in mode)) for mode in np.asarray(group["zernike_modes"])]
+    return out
+
+
+def tiles_summary(tiles: dict) -> dict:
+    """report.json entry of a tiled reconstruction: the tile grid, the residuals and the aberration's range."""
+    attrs = tiles["attrs"]
+    residual = tiles["residual"][np.isfinite(tiles["residual"])]
+    out = {"count": int(len(tiles["box_px"])), "grid": [int(attrs.get("rows", 0)), int(attrs.get("cols", 0))],
+           "size_px": int(attrs.get("size_px", 0)), "overlap_px": int(attrs.get("overlap_px", 0)),
+           "pupil": str(attrs.get("pupil", "")),
+           "iterations_median": float(np.median(tiles["iterations"])),
+           "seconds_per_tile_median": round(float(np.median(tiles["seconds"])), 3)}
+    if residual.size:
+        out["residual_all_median_max"] = [round(float(np.median(residual)), 5), round(float(residual.max()), 5)]
+    if "zernike_waves" in tiles:
+        waves = tiles["zernike_waves"]
+        out["zernike_waves_min_median_max"] = {
+            name: [round(float(v), 4) for v in (waves[:, j].min(), np.median(waves[:, j]), waves[:, j].max())]
+            for j, name in enumerate(tiles["zernike_names"][:6])}
     return out
 
 

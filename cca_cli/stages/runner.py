@@ -277,7 +277,8 @@ def _run_stages(config: RunConfig, plans: list[StagePlan], *, force: bool, progr
             args = (plan.inputs[0],)
         else:  # the input file and the stage's one section
             if plan.name == "reconstruct":
-                check_footprint(reconstruct_footprint(plan.inputs[0]), plan.output, source=plan.inputs[0])
+                check_footprint(reconstruct_footprint(plan.inputs[0], config.reconstruct), plan.output,
+                                source=plan.inputs[0])
             elif plan.name == "report":
                 check_footprint(report_footprint(plan.inputs[0]), plan.output, source=plan.inputs[0])
             args = (plan.inputs[0], getattr(config, plan.sections[0]))

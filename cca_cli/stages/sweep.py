@@ -15,21 +15,18 @@ stages). Every file appears atomically, the sweep table included.
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import hashlib
 import io
 import itertools
 import json
 import math
-import os
 import re
 import time
 import traceback
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Callable
 
 import numpy as np
 import yaml
@@ -41,6 +38,7 @@ from cca_cli.errors import CcaError, ConfigError
 from cca_cli.io.h5 import Provenance, atomic_h5, atomic_path, remove_temporaries, write_dataset
 from cca_cli.io.outputs import starts_with
 from cca_cli.io.sweep_table import read_table
+from cca_cli.workflows.cluster import check_scheduler, check_workers, open_client, scheduler_timeout
 
 __all__ = [
     "PAPER_STUDIES",
@@ -377,129 +375,6 @@ def cached_result(point: SweepPoint) -> dict[str, Any] | None:
         return None
     result = dict(record.get("result", {}))
     return result if result.get("status") == "ok" else None
-
-
-@contextlib.contextmanager
-def open_client(*, workers: int | None = None, scheduler: str | None = None) -> Iterator[Any]:
-    """A ``dask.distributed.Client``: a LocalCluster of ``workers`` single-threaded processes, or ``scheduler``.
-
-    Parameters
-    ----------
-    workers : int, optional
-        Worker processes of the local cluster; default one per core.
-    scheduler : str, optional
-        Address of an existing scheduler (``tcp://host:8786``); ``workers`` is then ignored.
-    """
-    import logging
-
-    from distributed import Client, LocalCluster
-
-    if scheduler:
-        timeout = scheduler_timeout()
-        check_scheduler(scheduler, timeout)
-        try:
-            client = Client(scheduler, timeout=f"{timeout}s")
-        except (OSError, ValueError, TypeError) as exc:
-            raise ConfigError(f"--scheduler {scheduler}: cannot connect ({_one_line(exc)}); check the address") \
-                from None
-        try:
-            yield client
-        finally:
-            client.close()
-        return
-    from cca_cli.optics.fft import cpu_count
-
-    check_workers(workers)
-    n = workers or cpu_count()
-    for name in ("distributed", "distributed.nanny", "distributed.scheduler", "distributed.worker"):
-        logging.getLogger(name).setLevel(logging.ERROR)
-    try:
-        with warnings.catch_warnings():  # another cluster on this machine holds the usual HTTP port: no matter
-            warnings.filterwarnings("ignore", message="Port .* is already in use", category=UserWarning)
-            cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
-                                   silence_logs=logging.ERROR)
-    except BaseException:  # Ctrl-C while the workers start: stop them now, not in distributed's exit hook
-        _close_unstarted_clusters()
-        raise
-    try:
-        client = Client(cluster)
-        try:
-            yield client
-        finally:
-            client.close()
-    finally:
-        with contextlib.suppress(Exception):
-            cluster.close()
-
-
-def _close_unstarted_clusters() -> None:
-    """Close clusters whose start was interrupted (their own exit hook would fail with a traceback)."""
-    from distributed.deploy.spec import SpecCluster
-
-    for cluster in list(SpecCluster._instances):
-        with contextlib.suppress(BaseException):
-            cluster.close(timeout=5)
-        SpecCluster._instances.discard(cluster)
-
-
-def check_workers(workers: int | None) -> None:
-    """Refuse a worker count below 1, or far above the cores this machine has (each worker is a process)."""
-    from cca_cli.optics.fft import cpu_count
-
-    if workers is None:
-        return
-    if workers < 1:
-        raise ConfigError(f"--workers {workers}: give at least 1 worker process (or leave it out: one per core)")
-    most = 8 * cpu_count()
-    if workers > most:
-        raise ConfigError(f"--workers {workers}: this machine has {cpu_count()} cores; start at most {most} worker "
-                          "processes (or use --scheduler for a cluster)")
-
-
-def scheduler_timeout() -> float:
-    """Seconds to wait for a Dask scheduler to answer: ``CCA_SCHEDULER_TIMEOUT`` or 20."""
-    text = os.environ.get("CCA_SCHEDULER_TIMEOUT", "20")
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not 0 < value < 3600:
-        raise ConfigError(f"CCA_SCHEDULER_TIMEOUT={text!r}: give seconds, e.g. 20")
-    return value
-
-
-def check_scheduler(address: str, timeout: float) -> None:
-    """Refuse an address that is not a Dask scheduler answering within ``timeout`` seconds (one line).
-
-    A bare TCP connection is not enough: a dashboard or any other server
-    accepts it and then never answers the scheduler's handshake, where
-    ``distributed.Client`` would wait without end.
-    """
-    import asyncio
-
-    from distributed.comm import connect
-
-    async def identity() -> object:
-        comm = await connect(address, timeout=timeout)
-        try:
-            await comm.write({"op": "identity", "reply": True})
-            return await comm.read()
-        finally:
-            await comm.close()
-
-    try:
-        reply = asyncio.run(asyncio.wait_for(identity(), timeout))
-    except (asyncio.TimeoutError, TimeoutError):
-        raise ConfigError(f"--scheduler {address}: no Dask scheduler answered within {timeout:g} s "
-                          "(CCA_SCHEDULER_TIMEOUT); check the address and port (8786 by default, not the dashboard's)") \
-            from None
-    except (OSError, ValueError, TypeError, EOFError) as exc:
-        raise ConfigError(f"--scheduler {address}: cannot connect ({_one_line(exc)}); give tcp://host:port of a Dask "
-                          "scheduler") from None
-    except Exception as exc:  # a server that speaks another protocol garbles the handshake
-        raise ConfigError(f"--scheduler {address}: not a Dask scheduler ({_one_line(exc)})") from None
-    if not (isinstance(reply, dict) and reply.get("type") == "Scheduler"):
-        raise ConfigError(f"--scheduler {address}: the server there is not a Dask scheduler")
 
 
 def _row(point: SweepPoint, result: dict[str, Any], status: str | None = None) -> dict[str, Any]:

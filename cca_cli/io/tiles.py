@@ -1,0 +1,218 @@
+"""Files of a tiled reconstruction: one tile's captures read from captures.h5, and one tile's result.
+
+A worker reads only its tile's pixels of every capture (an HDF5 hyperslab), so
+its memory follows the tile, not the frame. Each finished tile is written as
+its own cca HDF5 file ``<output>.tiles/tile_RRR_CCC.h5`` (temporary file +
+rename), holding the tile's blended-grid object, its pupil(s), Zernike
+coefficients, residuals and history, and the fingerprint of the inputs and
+options it belongs to; a run that is started again reads the matching files and
+recovers only the tiles that have none.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from cca_cli.errors import InputError
+from cca_cli.io.captures import BOUNDARY_OPEN, Captures
+from cca_cli.io.geometry import read_geometry
+from cca_cli.io.h5 import Provenance, atomic_h5, open_input, require, write_dataset
+from cca_cli.io.measurements import INTENSITY, WEIGHT
+from cca_cli.io.outputs import is_cca_hdf5
+from cca_cli.io.schema import spec_for
+
+__all__ = ["FrameInfo", "read_frame_info", "read_tile_captures", "TileResult", "tile_folder", "tile_path",
+           "write_tile_result", "read_tile_result", "remove_tile_folder"]
+
+
+@dataclass(frozen=True)
+class FrameInfo:
+    """What the client needs to plan tiles, read without loading any image."""
+
+    n_images: int
+    frame_shape: tuple[int, int]
+    boundary: str
+    units: str | None
+    has_weight: bool
+
+
+def read_frame_info(path: Path) -> FrameInfo:
+    """Image count, frame shape, boundary and units of a captures file's /measurements/intensity."""
+    with open_input(path) as handle:
+        dataset = require(handle, INTENSITY, ndim=3)
+        k, h, w = dataset.shape
+        boundary = dataset.attrs.get("boundary", "periodic" if h == w else BOUNDARY_OPEN)
+        units = _text(dataset.attrs.get("units"))
+        units = None if units in (None, "", spec_for(INTENSITY).units) else units
+        has_weight = WEIGHT in handle
+    return FrameInfo(int(k), (int(h), int(w)), _text(boundary), units, has_weight)
+
+
+def read_tile_captures(path: Path, box: tuple[int, int, int, int]) -> Captures:
+    """The captures of one tile: every image's ``(y0, x0, h, w)`` box, with the frame's geometry.
+
+    The images are checked as :func:`~cca_cli.io.measurements.read_intensity` checks a whole
+    stack, except that a tile may hold only dark pixels of some images. The boundary is always
+    ``open``: a tile is a window on the scene.
+    """
+    y0, x0, h, w = box
+    with open_input(path) as handle:
+        dataset = require(handle, INTENSITY, ndim=3)
+        if dataset.dtype.kind not in "biuf":
+            raise InputError(f"{path}: {INTENSITY} holds {dataset.dtype} values, expected real numbers")
+        intensity = np.asarray(dataset[:, y0:y0 + h, x0:x0 + w], dtype=np.float32)
+        if intensity.shape[1:] != (h, w):
+            raise InputError(f"{path}: {INTENSITY} is {dataset.shape[2]}x{dataset.shape[1]} px, too small for a "
+                             f"tile at ({y0}, {x0}) of {w}x{h} px")
+        weight = None
+        if WEIGHT in handle:
+            weight = np.asarray(handle[WEIGHT][:, y0:y0 + h, x0:x0 + w], dtype=np.float32)
+            if not np.isfinite(weight).all() or weight.min() < 0 or weight.max() > 1:
+                raise InputError(f"{path}: {WEIGHT} holds values outside [0, 1] (or NaN) in the tile at "
+                                 f"({y0}, {x0}); weights are in [0, 1]")
+        geometry = read_geometry(handle)
+        units = _text(dataset.attrs.get("units"))
+        units = None if units in (None, "", spec_for(INTENSITY).units) else units
+        pupil = np.asarray(handle["/calibration/initial_pupil"]) if "/calibration/initial_pupil" in handle else None
+    bad = ~np.isfinite(intensity).reshape(intensity.shape[0], -1).all(axis=1)
+    if bad.any():
+        raise InputError(f"{path}: image {int(np.argmax(bad))} of {INTENSITY} contains NaN or Inf in the tile at "
+                         f"({y0}, {x0}); fix or mask it")
+    return Captures(path=Path(path), intensity=intensity, weight=weight, geometry=geometry, truth={}, units=units,
+                    boundary=BOUNDARY_OPEN, initial_pupil=pupil)
+
+
+@dataclass(frozen=True)
+class TileResult:
+    """One recovered tile.
+
+    Attributes
+    ----------
+    row, col : int
+        Place in the tile grid.
+    box : tuple of int
+        ``(y0, x0, h, w)`` in frame pixels.
+    object : ndarray, complex64, (q·h, q·w) or None
+        The recovered field on the blend grid (``q`` samples per frame pixel);
+        None in a summary passed between tasks.
+    pupil : ndarray, complex64, (P, b, b) or None
+        Recovered pupil(s) with the NA disc.
+    zernike_waves : ndarray, float64, (P, n_modes) or None
+    zernike_modes : list of (n, m)
+    residual : dict
+        ``all``, ``bright_field``, ``dark_field`` amplitude residuals.
+    iterations, seconds, stopped_by, engine
+        How the tile's recovery ran.
+    history : dict of ndarray
+        ``residual``, ``change``, ``seconds`` per iteration.
+    shift_px : tuple of float
+        Shift applied to register the tile to its centre capture (blend-grid px).
+    fingerprint : str
+    """
+
+    row: int
+    col: int
+    box: tuple[int, int, int, int]
+    object: np.ndarray | None
+    pupil: np.ndarray | None
+    zernike_waves: np.ndarray | None
+    zernike_modes: list
+    residual: dict
+    iterations: int
+    seconds: float
+    stopped_by: str
+    engine: str
+    history: dict
+    shift_px: tuple[float, float]
+    fingerprint: str
+
+    def summary(self) -> "TileResult":
+        """The same without the object (what a neighbour's task needs: small to send)."""
+        from dataclasses import replace
+
+        return replace(self, object=None)
+
+
+def tile_folder(output: Path) -> Path:
+    """``<output>.tiles`` beside the output."""
+    output = Path(output)
+    return output.with_name(output.name + ".tiles")
+
+
+def tile_path(output: Path, row: int, col: int) -> Path:
+    """The result file of tile (row, col)."""
+    return tile_folder(output) / f"tile_{row:03d}_{col:03d}.h5"
+
+
+def write_tile_result(path: Path, result: TileResult, provenance: Provenance) -> None:
+    """Write one tile's result atomically (a file cca wrote before is replaced; anything else is refused)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_h5(path, provenance, force=path.exists() and is_cca_hdf5(path)) as handle:
+        group = handle.create_group("tile")
+        write_dataset(handle, "/tile/object", result.object, units="",
+                      description="Recovered complex field of the tile on the blend grid (arbitrary global phase).")
+        if result.pupil is not None:
+            write_dataset(handle, "/tile/pupil", result.pupil, units="1",
+                          description="Recovered pupil(s) of the tile on the pupil box, NA disc included.")
+        if result.zernike_waves is not None:
+            write_dataset(handle, "/tile/zernike_waves", result.zernike_waves, units="waves RMS",
+                          description="Zernike coefficients of the tile's pupil phase, per pupil.")
+        for name, values in result.history.items():
+            write_dataset(handle, f"/tile/history/{name}", np.asarray(values, np.float64),
+                          units="s" if name == "seconds" else "1",
+                          description=f"The tile recovery's {name} per iteration.")
+        group.attrs.update(row=result.row, col=result.col, box=np.asarray(result.box, np.int64),
+                           zernike_modes=json.dumps([list(m) for m in result.zernike_modes]),
+                           residual=json.dumps(result.residual), iterations=result.iterations,
+                           seconds=result.seconds, stopped_by=result.stopped_by, engine=result.engine,
+                           shift_px=np.asarray(result.shift_px, np.float64), fingerprint=result.fingerprint)
+
+
+def read_tile_result(path: Path, fingerprint: str | None = None, *, with_object: bool = True) -> TileResult | None:
+    """The tile result at ``path``; None when there is none, it is not cca's, unreadable, or of other inputs."""
+    if not path.is_file() or not is_cca_hdf5(path):
+        return None
+    try:
+        with h5py.File(path, "r") as handle:
+            group = handle["tile"]
+            attrs = dict(group.attrs)
+            if fingerprint is not None and _text(attrs["fingerprint"]) != fingerprint:
+                return None
+            history = {name: np.asarray(data) for name, data in group["history"].items()} if "history" in group else {}
+            return TileResult(
+                row=int(attrs["row"]), col=int(attrs["col"]), box=tuple(int(v) for v in attrs["box"]),
+                object=np.asarray(group["object"]) if with_object else None,
+                pupil=np.asarray(group["pupil"]) if "pupil" in group else None,
+                zernike_waves=np.asarray(group["zernike_waves"]) if "zernike_waves" in group else None,
+                zernike_modes=[tuple(m) for m in json.loads(_text(attrs["zernike_modes"]))],
+                residual=json.loads(_text(attrs["residual"])), iterations=int(attrs["iterations"]),
+                seconds=float(attrs["seconds"]), stopped_by=_text(attrs["stopped_by"]), engine=_text(attrs["engine"]),
+                history=history, shift_px=tuple(float(v) for v in attrs["shift_px"]),
+                fingerprint=_text(attrs["fingerprint"]))
+    except (OSError, KeyError, ValueError, TypeError):
+        return None
+
+
+def remove_tile_folder(output: Path) -> None:
+    """Remove the tile files cca wrote for ``output``, and their folder once empty (anything else stays)."""
+    folder = tile_folder(output)
+    if not folder.is_dir() or folder.is_symlink():
+        return
+    for path in folder.glob("tile_*.h5"):
+        if path.is_file() and not path.is_symlink() and is_cca_hdf5(path):
+            with contextlib.suppress(FileNotFoundError):
+                path.unlink()
+    with contextlib.suppress(OSError):
+        folder.rmdir()
+
+
+def _text(value) -> str | None:
+    if value is None:
+        return None
+    return value.decode() if isinstance(value, bytes) else str(value)

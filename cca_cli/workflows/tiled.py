@@ -1,0 +1,511 @@
+"""Tiled reconstruction of a wide frame on Dask: every tile with its own pupil and illumination angles.
+
+The frame is cut into overlapping square tiles (:mod:`cca_cli.sampling.tiles`).
+Each tile is a task on a ``dask.distributed`` cluster (a local cluster of
+single-threaded worker processes by default, or the workers of ``--scheduler``):
+
+1. the worker reads only the tile's pixels of every capture (memory follows the
+   tile, never the frame), gives it its local geometry (LED arrays with a known
+   LED distance: the angle from each LED to the tile's centre; camera scans: the
+   same apertures) and a guard band (:func:`~cca_cli.workflows.recovery.embed_region`);
+2. it recovers the tile with the configured engine (``engine: auto``: the
+   calibrating preset of the kind of data, simulations included, so every tile
+   recovers a pupil), its pupil starting from a finished neighbour's (tiles
+   run from the centre outwards; the centre tile starts from the data);
+3. it puts the tile's object on the common blend grid (``q`` samples per frame
+   pixel, a zero-padded spectrum), registers it to the tile's centre capture
+   when the pupil model may have moved it (full pupil maps carry the tilt into
+   the object), and writes it with its pupil to ``<output>.tiles/`` (one
+   file per tile, temporary file + rename).
+
+The client then blends the tiles (weights summing to 1, sin² ramps over the
+middle half of each overlap), aligning each tile's arbitrary global phase to the
+tiles already placed. A run that was killed recovers only the tiles that have
+no finished file; ``pupil: global`` holds the centre tile's pupil fixed on every
+other tile (one pupil for the whole field, for comparison).
+"""
+
+from __future__ import annotations
+
+import collections
+import hashlib
+import json
+import math
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from cca_cli import __version__
+from cca_cli.config.model import ReconstructSection
+from cca_cli.engines.registry import get_engine
+from cca_cli.errors import CcaError, ConfigError, InputError
+from cca_cli.io.captures import Captures
+from cca_cli.io.h5 import Provenance
+from cca_cli.io.tiles import (FrameInfo, TileResult, read_frame_info, read_tile_captures, read_tile_result,
+                              tile_path, write_tile_result)
+from cca_cli.optics import fft
+from cca_cli.progress import ProgressEvent, ProgressFn, silent
+from cca_cli.sampling.capture import with_field_width
+from cca_cli.sampling.geometry import CaptureGeometry
+from cca_cli.sampling.grid import band_layout
+from cca_cli.sampling.region import plan_embedding
+from cca_cli.sampling.tiles import Tile, TilePlan, local_illumination, plan_tiles, tile_order
+from cca_cli.workflows.recovery import calibrated_pupils, embed_region, recover, resolve_engine
+
+__all__ = ["TiledPlan", "TiledRecovery", "plan_tiled", "tile_geometry", "tile_engine", "run_tile", "stitch",
+           "reconstruct_tiled"]
+
+#: Seconds between a worker's progress messages for one tile.
+_PROGRESS_EVERY_S = 0.5
+
+
+@dataclass(frozen=True)
+class TiledPlan:
+    """What a tiled reconstruction will do, known before any image is read.
+
+    Attributes
+    ----------
+    captures_path : Path
+    frame : FrameInfo
+    geometry : CaptureGeometry
+        The frame's geometry (field width across the frame's columns).
+    tiles : TilePlan
+    upsampling : int
+        Samples of the blend grid per frame pixel (``q``): the finest any tile's recovery needs.
+    """
+
+    captures_path: Path
+    frame: FrameInfo
+    geometry: CaptureGeometry
+    tiles: TilePlan
+    upsampling: int
+
+    @property
+    def frame_pixel_m(self) -> float:
+        """Object-plane size of one frame pixel (m)."""
+        return self.geometry.field_width_m / self.frame.frame_shape[1]
+
+    @property
+    def blend_shape(self) -> tuple[int, int]:
+        """``(q·H, q·W)``: the stitched object's shape."""
+        h, w = self.frame.frame_shape
+        return h * self.upsampling, w * self.upsampling
+
+
+@dataclass(frozen=True)
+class TiledRecovery:
+    """The stitched result of a tiled reconstruction.
+
+    ``object`` is the blended field on the blend grid (``q·H x q·W``); ``results`` the
+    tiles without their objects (pupils, coefficients, residuals), row by row.
+    """
+
+    plan: TiledPlan
+    object: np.ndarray
+    results: tuple[TileResult, ...]
+    seconds: float
+    ran: int          # tiles recovered by this run (the others were finished before)
+    engine: str
+    options: dict
+    pupil_mode: str = "per_tile"
+
+    @property
+    def history(self):
+        """Median residual and change over the tiles per iteration (:func:`~cca_cli.io.tiled_recon.combined_history`)."""
+        from cca_cli.io.tiled_recon import combined_history
+
+        return combined_history(self.results)
+
+    @property
+    def stopped_by(self) -> str:
+        """``cap`` when any tile reached its iteration cap, else the most common reason."""
+        reasons = [r.stopped_by for r in self.results]
+        return "cap" if "cap" in reasons else max(set(reasons), key=reasons.count)
+
+    @property
+    def hires_size(self) -> int:
+        """Side of the square grid the blended object is written on."""
+        return self.plan.upsampling * max(self.plan.frame.frame_shape)
+
+
+def tile_geometry(geometry: CaptureGeometry, frame_shape, tile: Tile) -> CaptureGeometry:
+    """The geometry one tile sees: its own field width and, for LED arrays with a known LED distance, its own angles.
+
+    Parameters
+    ----------
+    geometry : CaptureGeometry
+        The frame's (field width across its columns, angles at its centre).
+    frame_shape : tuple of int
+        ``(H, W)`` of the frame.
+    tile : Tile
+    """
+    h, w = frame_shape
+    pixel_m = geometry.field_width_m / w
+    local = with_field_width(geometry, tile.size * pixel_m)
+    if geometry.kind != "led_array" or not np.isfinite(geometry.led_distance_m):
+        return local
+    cy, cx = tile.centre_yx
+    offset_m = ((cy - (h - 1) / 2.0) * pixel_m, (cx - (w - 1) / 2.0) * pixel_m)
+    sines = local_illumination(geometry.aperture_centres_yx_m, offset_m, geometry.led_distance_m)
+    return with_field_width(replace(geometry, aperture_centres_yx_m=sines), tile.size * pixel_m)
+
+
+def plan_tiled(captures_path: Path, section: ReconstructSection) -> TiledPlan:
+    """Tiles, their grids and the blend grid for ``captures_path``, from shapes and geometry alone."""
+    from cca_cli.io.h5 import open_input
+    from cca_cli.io.geometry import read_geometry
+
+    if section.tiles is None:
+        raise ValueError("the reconstruct section has no tiles")
+    if section.init is not None:
+        raise ConfigError("reconstruct.init: a tiled reconstruction starts every tile from its own data; leave out "
+                          "init or reconstruct.tiles")
+    frame = read_frame_info(captures_path)
+    with open_input(captures_path) as handle:
+        geometry = read_geometry(handle)
+    if frame.n_images != geometry.n_images:
+        raise InputError(f"{captures_path}: {frame.n_images} images but /geometry describes {geometry.n_images} "
+                         "positions")
+    try:
+        tiles = plan_tiles(frame.frame_shape, section.tiles.size_px, section.tiles.overlap_px)
+    except ValueError as exc:
+        raise ConfigError(f"reconstruct.tiles: {exc}") from None
+    padding = section.padding
+    ratio = 1.0
+    for tile in tiles.tiles:
+        local = tile_geometry(geometry, frame.frame_shape, tile)
+        region = plan_embedding((tile.size, tile.size), local.pupil_radius_px, guard_px=padding.guard_px,
+                                apodize_px=padding.apodize_px)
+        padded = with_field_width(local, local.field_width_m * region.size / tile.size)
+        try:
+            layout = band_layout(padded.spectrum_centres_yx_px, padded.pupil_radius_px, sensor_size=region.size)
+        except ValueError as exc:
+            raise InputError(f"{captures_path}: tile at ({tile.y0}, {tile.x0}): {exc}") from None
+        ratio = max(ratio, layout.hires_size / region.size)
+    return TiledPlan(Path(captures_path), frame, geometry, tiles, int(math.ceil(ratio - 1e-9)))
+
+
+def tile_engine(section: ReconstructSection, kind: str) -> tuple[str, dict]:
+    """Engine and options a tile runs: ``auto`` takes the calibrating preset of the geometry's kind.
+
+    Simulated captures included: a tiled reconstruction exists to recover a pupil per tile. Each tile
+    runs single-threaded (``threads: 1``) unless the options say otherwise: the tiles are the parallelism.
+    """
+    name, options = resolve_engine(section, kind)
+    if section.engine == "auto" and kind not in ("led_array", "camera_scan"):
+        name, options = resolve_engine(section, "camera_scan")
+    if "threads" in get_engine(name).option_names() and "threads" not in section.options:
+        options["threads"] = 1
+    return name, options
+
+
+@dataclass(frozen=True)
+class TileTask:
+    """Everything a worker needs to recover one tile (plain data: it travels to another process)."""
+
+    plan: TiledPlan
+    section: dict
+    tile: Tile
+    output: str
+    fingerprint: str
+    provenance: dict
+    topic: str
+
+
+def tile_fingerprint(run_fingerprint: str, tile: Tile) -> str:
+    """SHA-256 of the run's fingerprint and the tile's box."""
+    return hashlib.sha256(f"{run_fingerprint}:{tile.box}".encode()).hexdigest()
+
+
+def run_tile(task: TileTask, parent: TileResult | None = None, fixed: bool = False) -> TileResult:
+    """Recover one tile (a Dask task) and write its result file; return it without the object.
+
+    Parameters
+    ----------
+    task : TileTask
+    parent : TileResult, optional
+        A finished neighbour: the tile's pupil starts from its Zernike coefficients.
+    fixed : bool
+        Hold the parent's pupil fixed (``tiles.pupil: global``) instead of recovering one.
+    """
+    section = ReconstructSection.model_validate(task.section)
+    plan, tile = task.plan, task.tile
+    fingerprint = tile_fingerprint(task.fingerprint, tile)
+    path = tile_path(Path(task.output), tile.row, tile.col)
+    done = read_tile_result(path, fingerprint, with_object=False)
+    if done is not None:
+        return done
+    captures = read_tile_captures(plan.captures_path, tile.box)
+    captures = replace(captures, geometry=tile_geometry(plan.geometry, plan.frame.frame_shape, tile))
+    padded, region = embed_region(captures, section)
+    kind = plan.geometry.kind
+    name, keywords = tile_engine(section, kind)
+    start = None
+    if parent is not None and parent.zernike_waves is not None:
+        start = np.asarray(parent.zernike_waves, np.float64)
+    if fixed:
+        keywords["pupil_recovery"] = "none"
+    options = get_engine(name).options(**keywords)
+    recovery = recover(padded, name, options, on_iteration=_reporter(task.topic, tile, options.max_iterations),
+                       aberration=start)
+    obj, shift = _on_blend_grid(recovery, padded, region, plan.upsampling, register=_moves_object(options))
+    pupil = waves = None
+    modes: list = []
+    if recovery.calibration is not None and recovery.calibration.pupil is not None:
+        estimate = recovery.calibration.pupil
+        pupil = calibrated_pupils(recovery.calibration, padded.geometry.pupil_radius_px)
+        waves, modes = np.asarray(estimate.coefficients, np.float64), [tuple(m) for m in estimate.modes]
+    elif start is not None:  # a fixed pupil: the coefficients it was held at
+        from cca_cli.engines.calibration import zernike_modes
+
+        waves, modes = start, list(zernike_modes(options.pupil_order))
+    fit = recovery.fit
+    residual = {} if fit is None else {"all": fit.all, "bright_field": fit.bright_field, "dark_field": fit.dark_field}
+    result = TileResult(row=tile.row, col=tile.col, box=tile.box, object=obj, pupil=pupil, zernike_waves=waves,
+                        zernike_modes=modes, residual=residual, iterations=recovery.history.iterations,
+                        seconds=recovery.seconds, stopped_by=recovery.stopped_by, engine=name,
+                        history={n: recovery.history.array(n) for n in ("residual", "change", "seconds")},
+                        shift_px=shift, fingerprint=fingerprint)
+    write_tile_result(path, result, Provenance(task.provenance))
+    _publish(task.topic, {"tile": tile.index, "done": options.max_iterations, "total": options.max_iterations,
+                          "finished": True})
+    return result.summary()
+
+
+def _moves_object(options) -> bool:
+    """A full pupil map hands its tilt to the object, which then sits shifted: such tiles are registered."""
+    return getattr(options, "pupil_recovery", "none") != "none" and getattr(options, "pupil_model", "") == "full"
+
+
+def _on_blend_grid(recovery, captures: Captures, region, upsampling: int, *, register: bool):
+    """The tile's region of the recovered field on the blend grid (``q`` samples per frame pixel).
+
+    The spectrum is zero-padded from the recovery's ``M`` to ``q·S`` (``S`` the padded tile), which puts
+    sensor pixel ``i`` at blend sample ``q·i`` exactly; the region is then cut out. With ``register`` the
+    field is shifted so that its intensity, below the centre capture's band, lines up with that capture.
+    """
+    spectrum = recovery.spectrum
+    m = spectrum.shape[-1]
+    s = region.size
+    size = upsampling * s
+    padded = np.zeros((size, size), np.complex64)
+    lo, dst = m // 2 - min(m, size) // 2, size // 2 - min(m, size) // 2
+    keep = min(m, size)
+    padded[dst:dst + keep, dst:dst + keep] = spectrum[lo:lo + keep, lo:lo + keep]
+    shift = (0.0, 0.0)
+    field = fft.ifft2c(padded) * np.float32(size / m)
+    oy, ox = region.offset_yx
+    h, w = region.shape
+    q = upsampling
+    crop = field[oy * q:(oy + h) * q, ox * q:(ox + w) * q]
+    if register:
+        from cca_cli.report.bar_reading import offset_to_observed
+        from cca_cli.report.summary import on_grid
+
+        observed = region.crop(captures.intensity[captures.geometry.centre_index])
+        cutoff = min(2.0 * captures.geometry.pupil_radius_px * w / s, 0.4 * w)
+        shift = offset_to_observed(np.abs(crop) ** 2, on_grid(observed, crop.shape), cutoff)
+        ky = np.fft.fftfreq(size)[:, None]
+        kx = np.fft.fftfreq(size)[None, :]
+        ramp = np.exp(2j * np.pi * (ky * shift[0] + kx * shift[1])).astype(np.complex64)
+        field = fft.ifft2(fft.fft2(field) * ramp)
+        crop = field[oy * q:(oy + h) * q, ox * q:(ox + w) * q]
+    return np.ascontiguousarray(crop.astype(np.complex64)), (float(shift[0]), float(shift[1]))
+
+
+def _reporter(topic: str, tile: Tile, total: int):
+    """An ``on_iteration`` callback that tells the client how far a tile is, at most every half second."""
+    last = [0.0]
+
+    def report(record) -> None:
+        now = time.monotonic()
+        if now - last[0] >= _PROGRESS_EVERY_S:
+            last[0] = now
+            _publish(topic, {"tile": tile.index, "done": record.iteration, "total": total,
+                             "residual": float(record.residual)})
+
+    return report
+
+
+def _publish(topic: str, message: dict) -> None:
+    """Send a progress message to the client (nothing outside a Dask worker)."""
+    try:
+        from distributed import get_worker
+
+        get_worker().log_event(topic, message)
+    except (ImportError, ValueError):
+        pass
+
+
+def stitch(plan: TiledPlan, read_object) -> np.ndarray:
+    """Blend the tiles' objects into the frame's, each tile's global phase aligned to those already placed.
+
+    Parameters
+    ----------
+    plan : TiledPlan
+    read_object : callable
+        ``read_object(tile)`` → the tile's object on the blend grid, complex64 ``(q·size, q·size)``.
+
+    Returns
+    -------
+    ndarray, complex64, ``plan.blend_shape``
+    """
+    q = plan.upsampling
+    out = np.zeros(plan.blend_shape, np.complex64)
+    placed = np.zeros(plan.blend_shape, np.float32)
+    for tile, _ in tile_order(plan.tiles):
+        y0, x0, size = tile.y0 * q, tile.x0 * q, tile.size * q
+        box = (slice(y0, y0 + size), slice(x0, x0 + size))
+        obj = read_object(tile)
+        weight = plan.tiles.weight(tile, q)
+        overlap = placed[box] * weight
+        if overlap.any():  # the tile's global phase is arbitrary: match the blend so far where both have weight
+            inner = np.vdot(obj * overlap, out[box] / np.maximum(placed[box], 1e-12))
+            if abs(inner) > 0:
+                obj = obj * np.complex64(inner / abs(inner))
+        out[box] += weight * obj
+        placed[box] += weight
+    return out
+
+
+def reconstruct_tiled(captures_path: Path, section: ReconstructSection, output: Path, *, run_fingerprint: str,
+                      provenance: Provenance, client=None, progress: ProgressFn = silent) -> TiledRecovery:
+    """Recover every tile of ``captures_path`` on Dask and blend them.
+
+    Parameters
+    ----------
+    captures_path : Path
+    section : ReconstructSection
+        With ``tiles`` set.
+    output : Path
+        The recon.h5 the result is for: tile files go to ``<output>.tiles/``.
+    run_fingerprint : str
+        What the result depends on (captures and options); tile files of another fingerprint are redone.
+    provenance : Provenance
+        Written into every tile file.
+    client : distributed.Client, optional
+        Default: a client of :func:`~cca_cli.workflows.cluster.cluster_settings` (a local cluster).
+    progress : callable, optional
+        Receives ``reconstruct/tiles`` events and one transient event stream per running tile.
+
+    Returns
+    -------
+    TiledRecovery
+    """
+    from cca_cli.workflows.cluster import cluster_settings, open_client
+
+    plan = plan_tiled(captures_path, section)
+    start = time.perf_counter()
+    name, keywords = tile_engine(section, plan.geometry.kind)
+    order = tile_order(plan.tiles)
+    total = len(order)
+    finished: dict[int, TileResult] = {}
+    for tile, _ in order:
+        done = read_tile_result(tile_path(output, tile.row, tile.col), tile_fingerprint(run_fingerprint, tile),
+                                with_object=False)
+        if done is not None:
+            finished[tile.index] = done
+    ran = total - len(finished)
+    progress(ProgressEvent("reconstruct", "tiles", len(finished), total))
+    if ran:
+        topic = f"cca-tiles-{hashlib.sha256(str(output).encode()).hexdigest()[:12]}-{time.time_ns()}"
+        task_data = dict(section=section.model_dump(mode="json"), output=str(output), fingerprint=run_fingerprint,
+                         provenance=dict(provenance), topic=topic)
+        tasks = {tile.index: TileTask(plan=plan, tile=tile, **task_data) for tile, _ in order}
+        if client is None:
+            settings = cluster_settings()
+            with open_client(workers=settings.workers, scheduler=settings.scheduler) as own:
+                _run_on(own, plan, order, tasks, finished, section, progress, topic)
+        else:
+            _run_on(client, plan, order, tasks, finished, section, progress, topic)
+
+    def read_object(tile: Tile) -> np.ndarray:
+        result = read_tile_result(tile_path(output, tile.row, tile.col), tile_fingerprint(run_fingerprint, tile))
+        if result is None:
+            raise CcaError(f"{tile_path(output, tile.row, tile.col)}: the tile's result vanished or was changed "
+                           "while the tiles were blended; run again")
+        return result.object
+
+    blended = stitch(plan, read_object)
+    results = tuple(finished[t.index] for t in plan.tiles.tiles)
+    options = dict(keywords)
+    return TiledRecovery(plan=plan, object=blended, results=results, seconds=time.perf_counter() - start, ran=ran,
+                         engine=name, options=options, pupil_mode=section.tiles.pupil)
+
+
+def _run_on(client, plan: TiledPlan, order, tasks: dict, finished: dict, section: ReconstructSection,
+            progress: ProgressFn, topic: str) -> None:
+    """Submit the unfinished tiles, each after the neighbour it starts from; report progress until all are done."""
+    from distributed import wait
+
+    messages: collections.deque = collections.deque()
+    client.subscribe_topic(topic, lambda event: messages.append(event[1]))
+    fixed = section.tiles.pupil == "global"
+    futures = {}
+    total = len(order)
+    centre = order[0][0]
+    try:
+        for tile, parent in order:
+            if tile.index in finished:
+                continue
+            if fixed:
+                source = None if tile is centre else finished.get(centre.index, futures.get(centre.index))
+            else:
+                source = None if parent is None else finished.get(parent.index, futures.get(parent.index))
+            futures[tile.index] = client.submit(run_tile, tasks[tile.index], source, fixed and tile is not centre,
+                                                key=f"cca-tile-{topic}-{tile.index}", pure=False, retries=0)
+        pending = set(futures.values())
+        by_future = {future: index for index, future in futures.items()}
+        running: dict[int, int] = {}
+        while pending:
+            try:
+                done, pending = wait(pending, timeout=0.3, return_when="FIRST_COMPLETED")
+            except TimeoutError:  # nothing finished yet: show how far the running tiles are
+                done = set()
+            while messages:
+                message = messages.popleft()
+                index = int(message["tile"])
+                if index in finished:
+                    continue
+                running[index] = int(message["total"])
+                tile = plan.tiles.tiles[index]
+                info = {"residual": message["residual"]} if "residual" in message else {}
+                progress(ProgressEvent("reconstruct", f"tile {tile.row},{tile.col}", int(message["done"]),
+                                       int(message["total"]), info, transient=True))
+            for future in done:
+                index = by_future[future]
+                try:
+                    finished[index] = future.result()
+                except CcaError:
+                    raise
+                except Exception as exc:  # a worker died, or the task failed in a way cca did not foresee
+                    raise CcaError(f"reconstruct: tile {plan.tiles.tiles[index].row},{plan.tiles.tiles[index].col} "
+                                   f"failed ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}); "
+                                   "run again to redo only the unfinished tiles") from None
+                tile = plan.tiles.tiles[index]
+                if index in running:
+                    progress(ProgressEvent("reconstruct", f"tile {tile.row},{tile.col}", running[index],
+                                           running[index], transient=True))
+                residual = finished[index].residual.get("all")
+                progress(ProgressEvent("reconstruct", "tiles", len(finished), total,
+                                       {} if residual is None else {"residual": float(residual)}))
+    except BaseException:
+        for future in futures.values():
+            future.cancel()
+        raise
+    finally:
+        try:
+            client.unsubscribe_topic(topic)
+        except Exception:  # the client is already closing
+            pass
+
+
+def run_fingerprint(section: ReconstructSection, inputs: list[str], captures_path: Path) -> str:
+    """SHA-256 of what a tiled result depends on: the captures' bytes, the section and the cca version."""
+    from cca_cli.io.h5 import file_sha256
+
+    data = {"inputs": inputs or [file_sha256(captures_path)], "version": __version__,
+            "section": section.model_dump(mode="json", exclude={"checkpoint_every"})}
+    return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()

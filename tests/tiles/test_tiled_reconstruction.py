@@ -1,0 +1,115 @@
+"""Tiled reconstruction on Dask: it matches the whole-frame recovery, resumes only unfinished tiles, reports its tiles."""
+
+from __future__ import annotations
+
+import json
+
+import h5py
+import numpy as np
+import pytest
+
+from cca_cli.config.model import ReconstructSection
+from cca_cli.errors import ConfigError
+from cca_cli.io.h5 import Provenance
+from cca_cli.io.tiles import remove_tile_folder, tile_folder, tile_path
+from cca_cli.report.summary import band_limited_truth, on_grid
+from cca_cli.metrics import rmse
+from cca_cli.stages import reconstruct as stage
+from cca_cli.workflows.tiled import plan_tiled, reconstruct_tiled
+
+
+def _band_rmse(recon_path) -> float:
+    from cca_cli.io.geometry import read_geometry
+
+    with h5py.File(recon_path, "r") as f:
+        truth = np.asarray(f["/truth/object"])
+        recovered = np.asarray(f["/recon/intensity"])
+        geometry = read_geometry(f)
+    band = band_limited_truth(truth, geometry)
+    return rmse(on_grid(recovered, band.shape[-1]), band)
+
+
+@pytest.fixture(scope="module")
+def tiled_run(tmp_path_factory, frame_captures, frame_config, client):
+    out = tmp_path_factory.mktemp("tiled") / "recon.h5"
+    provenance = Provenance.make("reconstruct", "", "", [frame_captures])
+    tiled = stage.run_tiled(frame_captures, frame_config.reconstruct, out, provenance=provenance, client=client)
+    return out, tiled
+
+
+def test_tiles_join_without_loss_against_the_whole_frame(tiled_run, frame_captures, frame_config, tmp_path):
+    out, tiled = tiled_run
+    assert len(tiled.results) == 4 and tiled.ran == 4
+    whole = tmp_path / "whole.h5"
+    section = frame_config.reconstruct.model_copy(update={"tiles": None})
+    stage.run(frame_captures, section, whole, provenance=Provenance.make("reconstruct", "", "", [frame_captures]))
+    tiled_error, whole_error = _band_rmse(out), _band_rmse(whole)
+    print(f"band-limited RMSE: tiles {tiled_error:.4f}, whole frame {whole_error:.4f}")
+    assert tiled_error < 1.5 * whole_error + 0.005, (tiled_error, whole_error)
+    assert not tile_folder(out).exists()         # the tile files go once recon.h5 is written
+
+
+def _undescribed(path) -> list[str]:
+    missing = []
+
+    def visit(name, obj):
+        if isinstance(obj, h5py.Dataset) and not (obj.attrs.get("units") is not None
+                                                  and str(obj.attrs.get("description", "")).strip()):
+            missing.append(name)
+
+    with h5py.File(path, "r") as handle:
+        handle.visititems(visit)
+    return missing
+
+
+def test_tiled_recon_describes_every_tile(tiled_run):
+    out, tiled = tiled_run
+    assert _undescribed(out) == []
+    with h5py.File(out, "r") as f:
+        boxes = np.asarray(f["/tiles/box_px"])
+        assert boxes.shape == (4, 4) and set(boxes[:, 2]) == {96}
+        assert f["/tiles/zernike_waves"].shape[0] == 4 and f["/tiles/pupil"].shape[0] == 4
+        for name in ("box_px", "residual", "iterations", "seconds", "zernike_waves", "pupil"):
+            assert f[f"/tiles/{name}"].attrs["units"] is not None and f[f"/tiles/{name}"].attrs["description"]
+        assert f["/recon/object"].shape == (160 * tiled.plan.upsampling,) * 2
+        assert np.all(np.isfinite(f["/tiles/residual"][:, 0])) and 0 < f["recon"].attrs["residual_all_tile_median"] < 0.2
+
+
+def test_report_maps_the_tiles(tiled_run, tmp_path):
+    from cca_cli.config.model import ReportSection
+    from cca_cli.stages import report
+
+    out, _ = tiled_run
+    summary = report.run(out, ReportSection(), tmp_path / "report", provenance=Provenance.make("report", "", ""))
+    assert summary["tiles"]["count"] == 4 and summary["tiles"]["grid"] == [2, 2]
+    assert "defocus" in summary["tiles"]["zernike_waves_min_median_max"]
+    assert (tmp_path / "report" / "tiles.png").stat().st_size > 10_000
+    assert "tiles.png" in json.loads((tmp_path / "report" / "report.json").read_text())["figures"]
+
+
+def test_a_stopped_run_recovers_only_its_unfinished_tiles(tmp_path, frame_captures, frame_config, client):
+    out = tmp_path / "recon.h5"
+    provenance = Provenance.make("reconstruct", "", "", [frame_captures])
+    first = reconstruct_tiled(frame_captures, frame_config.reconstruct, out, run_fingerprint="abc",
+                              provenance=provenance, client=client)
+    assert first.ran == 4
+    tile_path(out, 1, 1).unlink()                 # as if the run had been killed before this tile finished
+    foreign = tile_folder(out) / "notes.txt"
+    foreign.write_text("mine")
+    again = reconstruct_tiled(frame_captures, frame_config.reconstruct, out, run_fingerprint="abc",
+                              provenance=provenance, client=client)
+    assert again.ran == 1
+    assert _undescribed(tile_path(out, 1, 1)) == []
+    np.testing.assert_allclose(again.object, first.object, atol=1e-3 * np.abs(first.object).max())
+    other = reconstruct_tiled(frame_captures, frame_config.reconstruct, out, run_fingerprint="other options",
+                              provenance=provenance, client=client)
+    assert other.ran == 4                          # files of other inputs or options are not reused
+    remove_tile_folder(out)
+    assert foreign.read_text() == "mine" and not tile_path(out, 0, 0).exists()
+
+
+def test_tile_options_are_checked_before_anything_runs(frame_captures):
+    with pytest.raises(ConfigError, match="reconstruct.tiles: .*at most 160 px"):
+        plan_tiled(frame_captures, ReconstructSection(tiles={"size_px": 200, "overlap_px": 32}))
+    with pytest.raises(ConfigError, match="reconstruct.init"):
+        plan_tiled(frame_captures, ReconstructSection(tiles={"size_px": 96, "overlap_px": 32}, init="x.h5"))
