@@ -65,6 +65,8 @@ __all__ = [
     "usaf_chart",
     "simulate",
     "reconstruct",
+    "TiledReconstruction",
+    "reconstruct_tiles",
     "load",
     "save",
     "export",
@@ -589,6 +591,129 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
         pupil=None if calibration is None else calibrated_pupils(calibration, geometry.pupil_radius_px),
         positions_px=None if calibration is None else calibration.centres_px,
         calibration=calibration, fit=recovery.fit, region=region)
+
+
+@dataclass(frozen=True)
+class TiledReconstruction:
+    """A wide frame recovered in overlapping tiles, each with its own pupil, and blended.
+
+    Attributes
+    ----------
+    object : ndarray, complex64, (q·H, q·W)
+        The blended field, ``q`` samples per frame pixel (``upsampling``).
+    upsampling : int
+    pixel_size_m : float
+        Object-plane size of one sample of ``object`` (m).
+    boxes_px : ndarray, int, (T, 4)
+        Each tile's ``[y0, x0, height, width]`` in frame pixels, row by row.
+    zernike_waves : ndarray, (T, P, n_modes) or None
+        Each tile's pupil phase in Zernike modes (waves RMS).
+    zernike_modes : list of (n, m)
+    pupils : ndarray, complex64, (T, P, b, b) or None
+        Each tile's recovered pupil(s), NA disc included.
+    residual : ndarray, (T, 3)
+        Each tile's amplitude residual over all, bright-field and dark-field captures.
+    seconds : float
+    engine : str
+    options : dict
+    """
+
+    object: np.ndarray
+    upsampling: int
+    pixel_size_m: float
+    boxes_px: np.ndarray
+    zernike_waves: np.ndarray | None
+    zernike_modes: list
+    pupils: np.ndarray | None
+    residual: np.ndarray
+    seconds: float
+    engine: str
+    options: dict
+
+    @property
+    def intensity(self) -> np.ndarray:
+        """``|object|²`` (float32)."""
+        return (np.abs(self.object) ** 2).astype(np.float32)
+
+
+def reconstruct_tiles(captures, geometry: CaptureGeometry | None = None, *, size_px: int, overlap_px: int,
+                      pupil: str = "per_tile", engine: str = "auto", output=None, client=None,
+                      workers: int | None = None, scheduler: str | None = None, **options) -> TiledReconstruction:
+    """Recover a wide frame in overlapping tiles on Dask, each tile with its own pupil (``cca reconstruct`` with
+    ``reconstruct.tiles``).
+
+    Parameters
+    ----------
+    captures : path, CaptureSet or array_like (K, H, W)
+        A captures file (workers read their tiles from it: with ``scheduler`` it must be on a path every
+        worker sees), a :class:`CaptureSet`, or images with ``geometry`` (written to a temporary file).
+    geometry : CaptureGeometry, optional
+        With images: where each capture's pupil sits, over a field ``W`` pixels wide.
+    size_px, overlap_px : int
+        Tile side and the least overlap between neighbours (frame pixels; overlap below half the tile).
+    pupil : {"per_tile", "global"}
+        Every tile recovers its own pupil (from a finished neighbour's), or the centre tile's is held fixed.
+    engine : str
+        ``auto`` (the calibrating preset of the geometry's kind), ``momentum`` or ``altmin``.
+    output : path, optional
+        Also write the result as a recon.h5 there (``cca report`` reads it).
+    client : distributed.Client, optional
+        Where the tiles run; default a local cluster of ``workers`` processes (one per core), or ``scheduler``.
+    **options
+        ``iterations``, ``tol``, ``tau`` and the engine's options.
+
+    Returns
+    -------
+    TiledReconstruction
+    """
+    import contextlib
+    import tempfile
+
+    from cca_cli.config.model import ReconstructSection
+    from cca_cli.io.h5 import Provenance
+    from cca_cli.workflows.cluster import open_client
+    from cca_cli.workflows.tiled import reconstruct_tiled, run_fingerprint
+
+    section_keys = {key: options.pop(key) for key in ("iterations", "tol", "tau") if key in options}
+    section = ReconstructSection.model_validate({"engine": engine, "options": options, **section_keys,
+                                                 "tiles": {"size_px": size_px, "overlap_px": overlap_px,
+                                                           "pupil": pupil}})
+    with contextlib.ExitStack() as stack:
+        folder = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="cca-tiles-")))
+        if isinstance(captures, (str, Path)):
+            path = Path(captures)
+        else:
+            if not isinstance(captures, CaptureSet):
+                if geometry is None:
+                    raise ValueError("give the capture geometry with the images, or a CaptureSet or a captures file")
+                captures = CaptureSet(np.asarray(captures, np.float32), geometry)
+            path = save(captures, folder / "captures.h5")
+        if client is None:
+            client = stack.enter_context(open_client(workers=workers, scheduler=scheduler))
+        target = Path(output) if output is not None else folder / "recon.h5"
+        provenance = Provenance.make("reconstruct", "", "", [path])
+        tiled = reconstruct_tiled(path, section, target, run_fingerprint=run_fingerprint(section, [], path),
+                                  provenance=provenance, client=client)
+        from cca_cli.io.tiles import remove_tile_folder
+
+        if output is not None:
+            from cca_cli.io.tiled_recon import write_tiled_recon
+
+            write_tiled_recon(target, tiled, provenance, force=False)
+        remove_tile_folder(target)
+    results = tiled.results
+    plan = tiled.plan
+    have_waves = all(r.zernike_waves is not None for r in results)
+    have_pupils = all(r.pupil is not None for r in results)
+    return TiledReconstruction(
+        object=tiled.object, upsampling=plan.upsampling, pixel_size_m=plan.frame_pixel_m / plan.upsampling,
+        boxes_px=np.array([r.box for r in results]),
+        zernike_waves=np.stack([np.atleast_2d(r.zernike_waves) for r in results]) if have_waves else None,
+        zernike_modes=list(results[0].zernike_modes) if have_waves else [],
+        pupils=np.stack([r.pupil for r in results]) if have_pupils else None,
+        residual=np.array([[r.residual.get(n, np.nan) for n in ("all", "bright_field", "dark_field")]
+                           for r in results]),
+        seconds=tiled.seconds, engine=tiled.engine, options=tiled.options)
 
 
 # ------------------------------------------------------------------------------------------------------- files

@@ -113,3 +113,18 @@ def test_tile_options_are_checked_before_anything_runs(frame_captures):
         plan_tiled(frame_captures, ReconstructSection(tiles={"size_px": 200, "overlap_px": 32}))
     with pytest.raises(ConfigError, match="reconstruct.init"):
         plan_tiled(frame_captures, ReconstructSection(tiles={"size_px": 96, "overlap_px": 32}, init="x.h5"))
+
+
+def test_python_api_recovers_tiles_from_arrays(frame_captures, client, tmp_path):
+    from cca_cli import api
+
+    captures = api.load(frame_captures)
+    result = api.reconstruct_tiles(api.CaptureSet(captures.intensity, captures.geometry), size_px=96, overlap_px=32,
+                                   engine="momentum", iterations=10, client=client, output=tmp_path / "recon.h5",
+                                   pupil_recovery="shared", pupil_model="zernike", pupil_estimate=False)
+    assert result.object.shape == (160 * result.upsampling,) * 2 and result.boxes_px.shape == (4, 4)
+    assert result.zernike_waves.shape[:2] == (4, 1) and np.all(np.isfinite(result.residual[:, 0]))
+    assert np.isclose(result.pixel_size_m * result.upsampling, captures.geometry.field_width_m / 160)
+    assert isinstance(api.load(tmp_path / "recon.h5"), api.Reconstruction)
+    with pytest.raises(ValueError, match="overlap_px"):
+        api.reconstruct_tiles(frame_captures, size_px=96, overlap_px=60, client=client)
