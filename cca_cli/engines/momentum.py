@@ -263,7 +263,7 @@ class SequentialMomentum(IterativeEngine):
         model = problem.model
         self._nominal = model.layout
         k = model.n_images
-        cores = options.threads or fft.cpu_count()
+        cores = options.threads or fft.default_threads()
         self._threads = 2 if cores > 1 and k > 1 else 1
         self._data_norm = problem.energy
         self._eps = problem.amplitude_floor

@@ -42,7 +42,7 @@ class ChunkedPass:
         self.model = model
         self.slices = slices if slices is not None else chunk_slices(model.n_images, chunk)
         capacity = max(s.stop - s.start for s in self.slices)
-        cores = threads or fft.cpu_count()
+        cores = threads or fft.default_threads()
         self.threads = max(1, min(cores, len(self.slices)))
         fft_threads = max(1, cores // self.threads)
         self.workspaces = [model.workspace(capacity, threads=fft_threads) for _ in range(self.threads)]

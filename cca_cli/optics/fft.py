@@ -39,6 +39,8 @@ __all__ = [
     "backend_name",
     "use_backend",
     "cpu_count",
+    "default_threads",
+    "limit_threads",
     "planning_effort",
     "planning_seconds",
     "check_settings",
@@ -77,6 +79,26 @@ def cpu_count() -> int:
         return len(os.sched_getaffinity(0))
     except AttributeError:  # pragma: no cover - not Linux
         return os.cpu_count() or 1
+
+
+_thread_limit: int | None = None
+
+
+def default_threads() -> int:
+    """Threads the numeric core uses when a caller names none: the cores, or the :func:`limit_threads` limit."""
+    cores = cpu_count()
+    return cores if _thread_limit is None else max(1, min(cores, _thread_limit))
+
+
+@contextlib.contextmanager
+def limit_threads(count: int):
+    """Use at most ``count`` threads in FFTs and engines inside the block (a Dask worker running one task per core)."""
+    global _thread_limit
+    previous, _thread_limit = _thread_limit, max(1, int(count))
+    try:
+        yield
+    finally:
+        _thread_limit = previous
 
 
 def backend_name() -> str:
@@ -122,24 +144,24 @@ def zeros(shape, dtype=np.complex64) -> np.ndarray:
 
 def fft2(array, *, workers: int | None = None) -> np.ndarray:
     """Plain (uncentred, unnormalised) 2-D FFT over the last two axes."""
-    return scipy.fft.fft2(array, workers=workers or cpu_count())
+    return scipy.fft.fft2(array, workers=workers or default_threads())
 
 
 def ifft2(array, *, workers: int | None = None) -> np.ndarray:
     """Plain (uncentred) inverse 2-D FFT over the last two axes, normalised by 1/n."""
-    return scipy.fft.ifft2(array, workers=workers or cpu_count())
+    return scipy.fft.ifft2(array, workers=workers or default_threads())
 
 
 def fft2c(array, *, workers: int | None = None) -> np.ndarray:
     """Centred orthonormal 2-D FFT over the last two axes (DC at ``n // 2``)."""
-    workers = workers or cpu_count()
+    workers = workers or default_threads()
     shifted = scipy.fft.ifftshift(array, axes=(-2, -1))
     return scipy.fft.fftshift(scipy.fft.fft2(shifted, norm="ortho", workers=workers), axes=(-2, -1))
 
 
 def ifft2c(array, *, workers: int | None = None) -> np.ndarray:
     """Centred orthonormal inverse 2-D FFT over the last two axes."""
-    workers = workers or cpu_count()
+    workers = workers or default_threads()
     shifted = scipy.fft.ifftshift(array, axes=(-2, -1))
     return scipy.fft.fftshift(scipy.fft.ifft2(shifted, norm="ortho", workers=workers), axes=(-2, -1))
 
@@ -208,7 +230,7 @@ class InPlaceFFT2:
         check_settings()
         _checked_buffer(buffer, "InPlaceFFT2")
         self.buffer = buffer
-        self.threads = threads or cpu_count()
+        self.threads = threads or default_threads()
         self.backend = _backend
         self._plans = None
         if self.backend == "pyfftw":
@@ -297,7 +319,7 @@ class BandedFFT2:
         self.buffer = buffer
         self.band = buffer[:, row_start:row_stop, :]
         self.rows = (int(row_start), int(row_stop))
-        self.threads = threads or cpu_count()
+        self.threads = threads or default_threads()
         self.backend = _backend
         self._counts = _planned_counts(buffer.shape[0])
         self._group = {count: g for g, count in enumerate(self._counts)}

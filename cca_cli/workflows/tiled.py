@@ -58,7 +58,7 @@ __all__ = ["TiledPlan", "TiledRecovery", "plan_tiled", "tile_geometry", "tile_en
            "reconstruct_tiled"]
 
 #: Seconds between a worker's progress messages for one tile.
-_PROGRESS_EVERY_S = 0.5
+_PROGRESS_EVERY_S = 1.0
 
 
 @dataclass(frozen=True)
@@ -231,12 +231,24 @@ def run_tile(task: TileTask, parent: TileResult | None = None, fixed: bool = Fal
         Hold the parent's pupil fixed (``tiles.pupil: global``) instead of recovering one.
     """
     section = ReconstructSection.model_validate(task.section)
-    plan, tile = task.plan, task.tile
-    fingerprint = tile_fingerprint(task.fingerprint, tile)
-    path = tile_path(Path(task.output), tile.row, tile.col)
+    fingerprint = tile_fingerprint(task.fingerprint, task.tile)
+    path = tile_path(Path(task.output), task.tile.row, task.tile.col)
     done = read_tile_result(path, fingerprint, with_object=False)
     if done is not None:
         return done
+    threads = section.options.get("threads", 1)  # the tiles are the parallelism: one core each unless told
+    with fft.limit_threads(threads):
+        result = _recover_tile(task, section, parent, fixed, fingerprint)
+    write_tile_result(path, result, Provenance(task.provenance))
+    _publish(task.topic, {"tile": task.tile.index, "done": result.iterations, "total": result.iterations,
+                          "finished": True})
+    return result.summary()
+
+
+def _recover_tile(task: TileTask, section: ReconstructSection, parent: TileResult | None, fixed: bool,
+                  fingerprint: str) -> TileResult:
+    """Read, recover and put one tile on the blend grid (the work of :func:`run_tile`)."""
+    plan, tile = task.plan, task.tile
     captures = read_tile_captures(plan.captures_path, tile.box)
     captures = replace(captures, geometry=tile_geometry(plan.geometry, plan.frame.frame_shape, tile))
     padded, region = embed_region(captures, section)
@@ -268,10 +280,7 @@ def run_tile(task: TileTask, parent: TileResult | None = None, fixed: bool = Fal
                         seconds=recovery.seconds, stopped_by=recovery.stopped_by, engine=name,
                         history={n: recovery.history.array(n) for n in ("residual", "change", "seconds")},
                         shift_px=shift, fingerprint=fingerprint)
-    write_tile_result(path, result, Provenance(task.provenance))
-    _publish(task.topic, {"tile": tile.index, "done": options.max_iterations, "total": options.max_iterations,
-                          "finished": True})
-    return result.summary()
+    return result
 
 
 def _moves_object(options) -> bool:
@@ -461,7 +470,7 @@ def _run_on(client, plan: TiledPlan, order, tasks: dict, finished: dict, section
         running: dict[int, int] = {}
         while pending:
             try:
-                done, pending = wait(pending, timeout=0.3, return_when="FIRST_COMPLETED")
+                done, pending = wait(pending, timeout=1.0, return_when="FIRST_COMPLETED")
             except TimeoutError:  # nothing finished yet: show how far the running tiles are
                 done = set()
             while messages:
