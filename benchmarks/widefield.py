@@ -11,7 +11,9 @@ Run: ``python benchmarks/widefield.py [--config configs/widefield.yaml] [--sizes
 2. **Scaling**: the same per-tile run on a LocalCluster of 1 and of 2 single-threaded workers started
    beforehand (the time covers the tiles' work, Dask's scheduling and the blend, not the cluster start-up).
 3. **Memory per worker**: the per-tile run on frames of each ``--sizes`` (same optics and tiles, the field
-   widened), the peak resident memory of each worker process read from the workers when the run ends.
+   widened; a perfect lens and ``--memory-iterations`` passes per tile, so that 4096² takes minutes, not
+   an hour: a worker holds one tile at a time either way), the peak resident memory of each worker
+   process read from the workers when the run ends, and the client's own peak.
 
 Writes ``widefield.json`` and PNG panels (recovered, truth, error maps) under ``--out``.
 """
@@ -32,9 +34,17 @@ from cca_cli.config.load import parse_config
 from cca_cli.io.h5 import Provenance
 
 
-def config_at(data: dict, size: int, reference: int):
-    """The config with a ``size``-px frame: the scene widened at the same pixel pitch."""
+def config_at(data: dict, size: int, reference: int, *, aberration: bool = True, iterations: int | None = None):
+    """The config with a ``size``-px frame: the scene widened at the same pixel pitch.
+
+    ``aberration=False`` drops the aberration section (a perfect lens simulates much faster; a worker's
+    memory does not depend on it); ``iterations`` caps every tile's passes.
+    """
     data = copy.deepcopy(data)
+    if not aberration:
+        data.pop("aberration", None)
+    if iterations is not None:
+        data["reconstruct"]["iterations"] = iterations
     scene = data["scene"]
     scene["field_width_m"] = float(scene["field_width_m"]) * size / reference
     scene["size_px"] = size
@@ -72,6 +82,12 @@ def worker_peak_rss(client) -> list[float]:
 
     peaks = client.run(lambda: resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0)
     return sorted(float(v) for v in peaks.values())
+
+
+def _own_peak_mb() -> float:
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def band_truth(captures: Path):
@@ -168,6 +184,7 @@ def main() -> None:
     parser.add_argument("--sizes", default="1024,2048,4096")
     parser.add_argument("--quality-size", type=int, default=2048)
     parser.add_argument("--repeats", type=int, default=1)
+    parser.add_argument("--memory-iterations", type=int, default=20)
     parser.add_argument("--skip", default="", help="comma list of parts to skip: quality, scaling, memory")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/widefield"))
     args = parser.parse_args()
@@ -212,15 +229,16 @@ def main() -> None:
     if "memory" not in skip:
         memory = {}
         for size in (int(v) for v in args.sizes.split(",")):
-            sized = config_at(data, size, reference)
-            path = simulate(sized, args.out / f"captures_{size}.h5")
+            sized = config_at(data, size, reference, aberration=False, iterations=args.memory_iterations)
+            path = simulate(sized, args.out / f"captures_perfect_{size}.h5")
             with open_client(workers=2) as client:
                 before = worker_peak_rss(client)
                 tiled, seconds = run_tiles(path, sized.reconstruct, args.out / f"recon_{size}.h5", client)
                 after = worker_peak_rss(client)
             memory[str(size)] = {"tiles": len(tiled.results), "seconds": round(seconds, 1),
                                  "worker_peak_rss_mb_at_start": before, "worker_peak_rss_mb": after,
-                                 "frame_bytes_mb": round(path.stat().st_size / 1e6, 1)}
+                                 "captures_file_mb": round(path.stat().st_size / 1e6, 1),
+                                 "client_peak_rss_mb_so_far": _own_peak_mb()}
             print(size, memory[str(size)], flush=True)
         record["memory_per_worker"] = memory
     (args.out / "widefield.json").write_text(json.dumps(record, indent=2))

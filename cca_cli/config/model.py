@@ -22,6 +22,7 @@ __all__ = [
     "ArraySection",
     "NoiseSection",
     "SimulateSection",
+    "AberrationSection",
     "PaddingSection",
     "TilesSection",
     "ReconstructSection",
@@ -132,6 +133,22 @@ class SimulateSection(Section):
 
     store: Literal["sensor", "band"] = Field(
         "sensor", description="sensor: full sensor pixel grid as a camera records it; band: the smallest grid that holds the band.")
+
+
+class AberrationSection(Section):
+    """The simulated lens's aberration and how it changes across the field (waves RMS, Zernike normalisation).
+
+    h is the field position over half the frame width (1 at the middle of an edge); see
+    :mod:`cca_cli.optics.field_aberration`.
+    """
+
+    defocus_waves: float = Field(0.0, description="Defocus everywhere in the field (waves RMS).")
+    field_curvature_waves: float = Field(0.0, description="Defocus added in proportion to h² (waves RMS at h = 1).")
+    astigmatism_waves: float = Field(0.0, description="Astigmatism along the field direction, ∝ h² (waves RMS at "
+                                                      "h = 1).")
+    coma_waves: float = Field(0.0, description="Coma along the field direction, ∝ h (waves RMS at h = 1).")
+    nodes: int = Field(5, ge=2, le=33, description="The pupil is evaluated on nodes x nodes field points, corner "
+                                                  "to corner, and blended bilinearly in between.")
 
 
 class PaddingSection(Section):
@@ -402,6 +419,7 @@ class RunConfig(Section):
     array: ArraySection = ArraySection(grid=21)
     noise: NoiseSection = NoiseSection()
     simulate: SimulateSection = SimulateSection()
+    aberration: AberrationSection | None = None
     reconstruct: ReconstructSection = ReconstructSection()
     report: ReportSection = ReportSection()
     sweep: SweepSection | None = None

@@ -11,6 +11,7 @@ from cca_cli.config.model import RunConfig
 from cca_cli.errors import ConfigError
 from cca_cli.io.h5 import Provenance, check_output
 from cca_cli.optics import fft
+from cca_cli.optics.field_aberration import field_varying_intensity, node_positions, seidel_waves
 from cca_cli.optics.forward import ForwardModel
 from cca_cli.optics.pupil import circular_pupils
 from cca_cli.sampling.geometry import CaptureGeometry, camera_scan_geometry
@@ -23,7 +24,7 @@ from cca_cli.workflows.scenes import Scene, build_scene
 __all__ = ["SECTIONS", "Simulation", "simulate", "stored_grid", "record", "record_all", "write_captures", "run"]
 
 #: Config sections this stage depends on.
-SECTIONS = ("optics", "scene", "array", "noise", "simulate", "multiplex")
+SECTIONS = ("optics", "scene", "array", "noise", "simulate", "multiplex", "aberration")
 
 
 @dataclass(frozen=True)
@@ -35,6 +36,7 @@ class Simulation:
     scene: Scene
     intensity: np.ndarray  # (K, N, N) float32, sensor units
     pixel_pitch_m: float
+    aberration: dict | None = None   # field-varying aberration: node coefficients and positions (truth)
 
 
 def simulation_geometry(config: RunConfig) -> tuple[CaptureGeometry, int]:
@@ -68,12 +70,28 @@ def simulate(config: RunConfig, *, progress: ProgressFn = silent) -> Simulation:
     scene = build_scene(config.scene, layout.hires_size)
     model = ForwardModel(layout, circular_pupils(layout.box_size, layout.box_centres, layout.pupil_radius_px))
     spectrum = fft.fft2c(scene.field).astype(np.complex64)
-    band = model.sensor_intensity(spectrum)
-
     store_size, pitch = stored_grid(config, sensor_pixels, layout.lowres_size)
+    aberration = None
+    if config.aberration is None:
+        band = model.sensor_intensity(spectrum)
+    else:
+        aberration = field_aberration_truth(config.aberration, store_size)
+        band = field_varying_intensity(spectrum, layout, aberration["waves"], store_size)
     rng = np.random.default_rng(config.noise.seed)
     intensity = record_all(band, store_size, config.noise, rng, progress=progress)
-    return Simulation(geometry=geometry, layout=layout, scene=scene, intensity=intensity, pixel_pitch_m=pitch)
+    return Simulation(geometry=geometry, layout=layout, scene=scene, intensity=intensity, pixel_pitch_m=pitch,
+                      aberration=aberration)
+
+
+def field_aberration_truth(section, frame_pixels: int) -> dict:
+    """Zernike coefficients (waves) at the ``nodes x nodes`` field points of ``aberration``, and where they sit."""
+    positions = node_positions(section.nodes, frame_pixels)
+    half = (frame_pixels - 1) / 2.0
+    h = (positions - half) / (frame_pixels / 2.0)
+    grid = np.stack(np.meshgrid(h, h, indexing="ij"), axis=-1)
+    waves = seidel_waves(grid, defocus_waves=section.defocus_waves, field_curvature_waves=section.field_curvature_waves,
+                         astigmatism_waves=section.astigmatism_waves, coma_waves=section.coma_waves)
+    return {"waves": waves, "nodes_px": positions}
 
 
 def run(config: RunConfig, output: Path, *, provenance: Provenance, force: bool = False,
@@ -81,6 +99,9 @@ def run(config: RunConfig, output: Path, *, provenance: Provenance, force: bool 
     """Simulate and write ``output`` (multiplexed captures when the config has a ``multiplex`` section)."""
     check_output(output, force=force)
     if config.multiplex is not None:
+        if config.aberration is not None:
+            raise ConfigError("aberration: multiplexed captures are simulated with a perfect lens; leave out the "
+                              "aberration section or multiplex")
         from cca_cli.workflows import multiplex
 
         return multiplex.run_simulate(config, output, provenance=provenance, force=force, progress=progress)

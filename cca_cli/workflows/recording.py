@@ -75,6 +75,12 @@ def write_captures(path: Path, simulation, provenance: Provenance, *, force: boo
             write_dataset(handle, "/truth/bars", bars_to_table(simulation.scene.bars))
         if simulation.scene.usaf:
             write_dataset(handle, "/truth/usaf", usaf_to_table(simulation.scene.usaf, simulation.scene.usaf_size))
+        aberration = getattr(simulation, "aberration", None)
+        if aberration is not None:
+            from cca_cli.optics.field_aberration import MODES
+
+            write_dataset(handle, "/truth/aberration_waves", aberration["waves"], zernike_modes=np.asarray(MODES))
+            write_dataset(handle, "/truth/aberration_nodes_px", aberration["nodes_px"])
         if extra is not None:
             extra(handle)
         handle.attrs["simulation_grid"] = simulation.layout.hires_size
