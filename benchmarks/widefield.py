@@ -76,18 +76,27 @@ def run_tiles(captures: Path, section, out: Path, client) -> tuple[object, float
     return tiled, seconds
 
 
+def _reset_peak() -> bool:
+    """Reset this process's peak resident memory (Linux: ``/proc/self/clear_refs``), so that what a forked
+    worker inherited from its parent's peak does not count."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+        return True
+    except OSError:
+        return False
+
+
+def _peak_mb() -> float:
+    """This process's peak resident memory since the last reset (``VmHWM``), MB."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return float(line.split()[1]) / 1024.0
+    return float("nan")
+
+
 def worker_peak_rss(client) -> list[float]:
-    """Peak resident memory (MB) of each worker process so far."""
-    import resource
-
-    peaks = client.run(lambda: resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0)
-    return sorted(float(v) for v in peaks.values())
-
-
-def _own_peak_mb() -> float:
-    import resource
-
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    """Peak resident memory (MB) of each worker process since :func:`_reset_peak` ran on it."""
+    return sorted(float(v) for v in client.run(_peak_mb).values())
 
 
 def band_truth(captures: Path):
@@ -232,13 +241,15 @@ def main() -> None:
             sized = config_at(data, size, reference, aberration=False, iterations=args.memory_iterations)
             path = simulate(sized, args.out / f"captures_perfect_{size}.h5")
             with open_client(workers=2) as client:
+                client.run(_reset_peak)
                 before = worker_peak_rss(client)
+                _reset_peak()
                 tiled, seconds = run_tiles(path, sized.reconstruct, args.out / f"recon_{size}.h5", client)
                 after = worker_peak_rss(client)
             memory[str(size)] = {"tiles": len(tiled.results), "seconds": round(seconds, 1),
-                                 "worker_peak_rss_mb_at_start": before, "worker_peak_rss_mb": after,
+                                 "worker_rss_mb_after_reset": before, "worker_peak_rss_mb": after,
                                  "captures_file_mb": round(path.stat().st_size / 1e6, 1),
-                                 "client_peak_rss_mb_so_far": _own_peak_mb()}
+                                 "client_peak_rss_mb": _peak_mb()}
             print(size, memory[str(size)], flush=True)
         record["memory_per_worker"] = memory
     (args.out / "widefield.json").write_text(json.dumps(record, indent=2))

@@ -348,6 +348,16 @@ def _publish(topic: str, message: dict) -> None:
         pass
 
 
+def warm_up() -> None:
+    """Import the engines and compile their kernels in a worker process (run while the centre tile runs)."""
+    import importlib
+
+    from cca_cli.optics import kernels
+
+    importlib.import_module("cca_cli.engines.momentum")
+    kernels.warm_up()
+
+
 def stitch(plan: TiledPlan, read_object) -> np.ndarray:
     """Blend the tiles' objects into the frame's, each tile's global phase aligned to those already placed.
 
@@ -451,6 +461,8 @@ def _run_on(client, plan: TiledPlan, order, tasks: dict, finished: dict, section
 
     messages: collections.deque = collections.deque()
     client.subscribe_topic(topic, lambda event: messages.append(event[1]))
+    # Only the centre tile can run at first: the other workers load cca meanwhile, not after it.
+    client.run(warm_up, wait=False)
     fixed = section.tiles.pupil == "global"
     futures = {}
     total = len(order)
