@@ -358,6 +358,11 @@ def warm_up() -> None:
     kernels.warm_up()
 
 
+async def _warm_up_soon() -> None:
+    """:func:`warm_up` as Dask's ``client.run(..., wait=False)`` needs it (a coroutine)."""
+    warm_up()
+
+
 def stitch(plan: TiledPlan, read_object) -> np.ndarray:
     """Blend the tiles' objects into the frame's, each tile's global phase aligned to those already placed.
 
@@ -462,7 +467,7 @@ def _run_on(client, plan: TiledPlan, order, tasks: dict, finished: dict, section
     messages: collections.deque = collections.deque()
     client.subscribe_topic(topic, lambda event: messages.append(event[1]))
     # Only the centre tile can run at first: the other workers load cca meanwhile, not after it.
-    client.run(warm_up, wait=False)
+    client.run(_warm_up_soon, wait=False)
     fixed = section.tiles.pupil == "global"
     futures = {}
     total = len(order)
