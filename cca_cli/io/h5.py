@@ -161,6 +161,9 @@ def atomic_h5(path: str | Path, provenance: Provenance, *, force: bool = False) 
             raise sink.error
 
 
+_CHUNK_SIDE = 512
+
+
 def write_dataset(group: h5py.Group, path: str, data, *, units: str | None = None, description: str | None = None,
                   **attrs: Any) -> h5py.Dataset:
     """Write a dataset with its units and description (from the schema unless given).
@@ -173,7 +176,11 @@ def write_dataset(group: h5py.Group, path: str, data, *, units: str | None = Non
         dtype = h5py.string_dtype("utf-8")
     else:
         dtype = None
-    chunks = (1,) + data.shape[1:] if data.ndim == 3 and data.nbytes > (1 << 24) else None
+    # Large image stacks are stored in image tiles of at most 512² px: a whole image reads as fast, and a tile
+    # of a wide frame (a tiled reconstruction) reads only the chunks it overlaps.
+    chunks = None
+    if data.ndim == 3 and data.nbytes > (1 << 24):
+        chunks = (1, min(data.shape[1], _CHUNK_SIDE), min(data.shape[2], _CHUNK_SIDE))
     dataset = group.create_dataset(path, data=data, dtype=dtype, chunks=chunks)
     describe(dataset, units=units, description=description)
     for key, value in attrs.items():
