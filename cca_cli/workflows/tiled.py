@@ -484,6 +484,7 @@ def _run_on(client, plan: TiledPlan, order, tasks: dict, finished: dict, section
                                                 key=f"cca-tile-{topic}-{tile.index}", pure=False, retries=0)
         pending = set(futures.values())
         by_future = {future: index for index, future in futures.items()}
+        source = None
         running: dict[int, int] = {}
         while pending:
             try:
@@ -500,7 +501,7 @@ def _run_on(client, plan: TiledPlan, order, tasks: dict, finished: dict, section
                 info = {"residual": message["residual"]} if "residual" in message else {}
                 progress(ProgressEvent("reconstruct", f"tile {tile.row},{tile.col}", int(message["done"]),
                                        int(message["total"]), info, transient=True))
-            for future in done:
+            for future in list(done):
                 index = by_future[future]
                 try:
                     finished[index] = future.result()
@@ -510,6 +511,9 @@ def _run_on(client, plan: TiledPlan, order, tasks: dict, finished: dict, section
                     raise CcaError(f"reconstruct: tile {plan.tiles.tiles[index].row},{plan.tiles.tiles[index].col} "
                                    f"failed ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}); "
                                    "run again to redo only the unfinished tiles") from None
+                # Drop the client's hold on the result: the workers keep it only while a neighbour needs it,
+                # so their memory does not grow with the number of tiles.
+                del futures[index], by_future[future]
                 tile = plan.tiles.tiles[index]
                 if index in running:
                     progress(ProgressEvent("reconstruct", f"tile {tile.row},{tile.col}", running[index],
