@@ -175,6 +175,8 @@ def simulate_footprint(config: RunConfig) -> Footprint:
               + sizes.fields * (2 * sizes.box_px * sizes.box_px * _COMPLEX + _PER_CAPTURE)
               + 2 * _BATCH * m * m * _COMPLEX + sizes.images * stored * stored * _FLOAT
               + 4 * _BATCH * stored * stored * _COMPLEX)
+    if config.aberration is not None:  # the blended field, one node's fields and their weighted product
+        memory += 3 * sizes.fields * m * m * _COMPLEX
     disk = sizes.images * stored * stored * _FLOAT + big * big * _COMPLEX
     detail = (f"{sizes.images:.4g} images of {stored:.4g}² px, scene {config.scene.size_px:.4g}² px, "
               f"object {big:.4g}² px")
