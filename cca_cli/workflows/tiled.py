@@ -214,6 +214,12 @@ class TileTask:
     topic: str
 
 
+def task_section(section: ReconstructSection) -> dict:
+    """The section as a task carries it: only the keys the user set, so that ``engine: auto``'s preset fills
+    the rest on the worker exactly as on the client (a full dump would mark every default as set)."""
+    return section.model_dump(mode="json", exclude_unset=True)
+
+
 def tile_fingerprint(run_fingerprint: str, tile: Tile) -> str:
     """SHA-256 of the run's fingerprint and the tile's box."""
     return hashlib.sha256(f"{run_fingerprint}:{tile.box}".encode()).hexdigest()
@@ -435,7 +441,7 @@ def reconstruct_tiled(captures_path: Path, section: ReconstructSection, output: 
     progress(ProgressEvent("reconstruct", "tiles", len(finished), total))
     if ran:
         topic = f"cca-tiles-{hashlib.sha256(str(output).encode()).hexdigest()[:12]}-{time.time_ns()}"
-        task_data = dict(section=section.model_dump(mode="json"), output=str(output), fingerprint=run_fingerprint,
+        task_data = dict(section=task_section(section), output=str(output), fingerprint=run_fingerprint,
                          provenance=dict(provenance), topic=topic)
         tasks = {tile.index: TileTask(plan=plan, tile=tile, **task_data) for tile, _ in order}
         if client is None:

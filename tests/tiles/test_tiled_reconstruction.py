@@ -128,3 +128,17 @@ def test_python_api_recovers_tiles_from_arrays(frame_captures, client, tmp_path)
     assert isinstance(api.load(tmp_path / "recon.h5"), api.Reconstruction)
     with pytest.raises(ValueError, match="overlap_px"):
         api.reconstruct_tiles(frame_captures, size_px=96, overlap_px=60, client=client)
+
+
+def test_workers_resolve_the_engine_as_the_client_does():
+    from cca_cli.workflows.tiled import task_section, tile_engine
+
+    for data in ({"tiles": {"size_px": 96, "overlap_px": 32}},
+                 {"engine": "momentum", "iterations": 40, "tiles": {"size_px": 96, "overlap_px": 32}}):
+        section = ReconstructSection.model_validate(data)
+        on_worker = ReconstructSection.model_validate(task_section(section))
+        for kind in ("camera_scan", "led_array", "simulation"):
+            assert tile_engine(on_worker, kind) == tile_engine(section, kind)
+    name, options = tile_engine(ReconstructSection.model_validate(
+        task_section(ReconstructSection(tiles={"size_px": 96, "overlap_px": 32}))), "camera_scan")
+    assert options["max_iterations"] == 150 and options["threads"] == 1   # the preset's cap, one thread per tile
