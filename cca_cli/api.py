@@ -363,6 +363,12 @@ class CaptureSet:
         Ground truth of simulations (``object`` and the chart layout tables), else empty.
     units : str or None
         Units of ``intensity`` when not the simulation's irradiance (``counts/s`` for recorded data).
+    boundary : {"periodic", "open"}
+        ``open``: the images are windows on a larger scene (recorded frames);
+        :func:`reconstruct` then places them on a larger grid with a guard band,
+        as ``cca reconstruct`` does. ``periodic``: simulated, wrapping images.
+    initial_pupil : ndarray, complex64, (P, P) or None
+        A known pupil on the NA disc (from the manifest's pupil file), the start of pupil recovery.
     """
 
     intensity: np.ndarray
@@ -370,6 +376,12 @@ class CaptureSet:
     weight: np.ndarray | None = None
     truth: dict = field(default_factory=dict)
     units: str | None = None
+    boundary: str = "periodic"
+    initial_pupil: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.boundary not in ("periodic", "open"):
+            raise ValueError(f"boundary must be 'periodic' or 'open', got {self.boundary!r}")
 
 
 @dataclass(frozen=True)
@@ -478,16 +490,19 @@ class Reconstruction:
 
 
 def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine: str = "auto", weight=None,
-                callback: Callable | None = None, init=None, **options) -> Reconstruction:
+                callback: Callable | None = None, init=None, padding: str = "auto", **options) -> Reconstruction:
     """Recover the high-resolution object from captured intensities.
 
     Parameters
     ----------
     intensities : array_like (K, N, N) or (K, H, W), or CaptureSet
         Captured images (linear, centred), or a :class:`CaptureSet` (which
-        brings its geometry, weights, truth and units). Non-square images are
-        placed in the middle of a square grid with a weight-0 guard band
-        (:mod:`cca_cli.sampling.region`) and the recovery is cut back to them.
+        brings its geometry, weights, truth, units, boundary and known pupil).
+        Non-square images, and recorded ones (a CaptureSet with ``boundary``
+        ``open``, as :func:`load` reads an ingested file), are placed in the
+        middle of a square grid with a weight-0 guard band
+        (:mod:`cca_cli.sampling.region`) and the recovery is cut back to them,
+        as ``cca reconstruct`` does.
     geometry : CaptureGeometry
         Where each capture's pupil sits (for non-square images, over a field
         ``W`` pixels wide); not needed with a CaptureSet.
@@ -503,6 +518,9 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
     init : path, Reconstruction or array_like (M, M), optional
         Start from this spectrum (a recon.h5, an earlier result, or the array)
         instead of the upsampled centre capture; it must be on the same grid.
+    padding : {"auto", "off"}
+        ``off`` recovers square recorded images as they are (periodic), like
+        ``reconstruct.padding.mode: off``.
     **options
         The engine's options: ``tau``, ``iterations`` (alias of
         ``max_iterations``), ``tol`` and the engine's own (see
@@ -527,18 +545,21 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
     >>> result.iterations <= 10, mtf20(result.intensity, chart)
     (True, 2)
     """
-    from cca_cli.engines.presets import preset
+    from cca_cli.engines.presets import engine_defaults, preset
     from cca_cli.engines.registry import engine_names, get_engine
     from cca_cli.optics import fft
     from cca_cli.stages.reconstruct import Captures, calibrated_pupils, recover
 
-    truth, units = {}, None
+    truth, units, boundary, initial_pupil = {}, None, "periodic", None
     if isinstance(intensities, CaptureSet):
         captures = intensities
         geometry = captures.geometry if geometry is None else geometry
         weight = captures.weight if weight is None else weight
         truth, units = captures.truth, captures.units
+        boundary, initial_pupil = captures.boundary, captures.initial_pupil
         intensities = captures.intensity
+    if padding not in ("auto", "off"):
+        raise ValueError(f"padding must be 'auto' or 'off', got {padding!r}")
     if geometry is None:
         raise ValueError("give the capture geometry (camera_scan, stage_scan or led_array), or a CaptureSet")
     images = np.asarray(intensities, np.float32)
@@ -547,9 +568,12 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
                          f"geometry, got shape {images.shape}")
     if "iterations" in options:
         options["max_iterations"] = options.pop("iterations")
+    kind = "simulation" if truth else geometry.kind
     if engine == "auto":
-        engine, preset_options = preset("simulation" if truth else geometry.kind)
-        options = {**preset_options, **options}
+        engine, preset_options = preset(kind)
+    else:
+        preset_options = engine_defaults(engine, kind) if engine in engine_names() else {}
+    options = {**preset_options, **options}
     if engine not in engine_names():
         raise ValueError(f"engine {engine!r}: choose auto or one of {', '.join(engine_names())}")
     entry = get_engine(engine)
@@ -563,7 +587,7 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
         raise ValueError(f"weight has shape {weights.shape}, the images {images.shape}")
     region = None
     observed = images[geometry.centre_index]
-    if images.shape[-1] != images.shape[-2]:
+    if images.shape[-1] != images.shape[-2] or (boundary == "open" and padding == "auto"):
         from cca_cli.sampling.capture import with_field_width
         from cca_cli.sampling.region import plan_embedding
 
@@ -571,7 +595,7 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
         images, weights = region.embed(images, weights)
         geometry = with_field_width(geometry, geometry.field_width_m * region.size / observed.shape[-1])
     captures = Captures(path=Path("<arrays>"), intensity=images, weight=weights, geometry=geometry, truth=dict(truth),
-                        units=units)
+                        units=units, initial_pupil=initial_pupil)
     if isinstance(init, Reconstruction):
         init = init.spectrum
     recovery = recover(captures, engine, engine_options, on_iteration=callback, init=init)
@@ -764,7 +788,8 @@ def load(path) -> CaptureSet | Reconstruction:
 
     captures = read_captures(Path(path))
     return CaptureSet(intensity=captures.intensity, geometry=captures.geometry, weight=captures.weight,
-                      truth=captures.truth, units=captures.units)
+                      truth=captures.truth, units=captures.units, boundary=captures.boundary,
+                      initial_pupil=captures.initial_pupil)
 
 
 def _load_recon(handle, geometry: CaptureGeometry) -> Reconstruction:
@@ -848,7 +873,11 @@ def save(data: CaptureSet | Reconstruction, path, *, force: bool = False) -> Pat
 
         provenance = Provenance.make("api", "", "")
         with atomic_h5(path, provenance, force=force) as handle:
-            write_dataset(handle, "/measurements/intensity", np.asarray(data.intensity, np.float32), units=data.units)
+            images = write_dataset(handle, "/measurements/intensity", np.asarray(data.intensity, np.float32),
+                                   units=data.units)
+            images.attrs["boundary"] = data.boundary
+            if data.initial_pupil is not None:
+                write_dataset(handle, "/calibration/initial_pupil", np.asarray(data.initial_pupil, np.complex64))
             if data.weight is not None:
                 write_dataset(handle, "/measurements/weight", np.asarray(data.weight, np.float32))
             write_geometry(handle, data.geometry)

@@ -43,7 +43,12 @@ does not:
 
 The run stops at ``max_iterations``, when a pass changes the spectrum by less
 than ``tol``, or when the misfit has fallen by less than ``plateau`` (relative)
-over the last ``plateau_window`` passes.
+over the last ``plateau_window`` passes. With ``batch_growth`` a plateau first
+makes the batches larger (down to one batch of every capture, a full-gradient
+step), and only a plateau at the full batch ends the run: on recorded data,
+which the model never explains exactly, fixed small batches settle into a
+cycle between the captures' constraints rather than at a minimum of the
+whole misfit.
 
 References
 ----------
@@ -109,6 +114,13 @@ class MomentumOptions:
     batch : int
         Captures updated together (1: strictly one aperture at a time). Shells
         of 2, 2, 4, 4, 8, … batches are visited in turn.
+    batch_growth : int
+        Each time the misfit reaches a plateau (``plateau`` > 0), the batch
+        grows by this factor, until a batch may hold every capture; only then
+        does a plateau end the run. 1: the batch stays fixed. Small batches
+        make fast progress at first, but on data the model does not explain
+        exactly they end in a cycle between the captures' constraints; growing
+        batches take the run to a stationary point of the whole misfit.
     cost : str
         ``"amplitude"`` (magnitude replacement) or ``"poisson"`` (a gradient
         step on the Poisson likelihood, ``ψ' = ψ (1 − μ (1 − I/|ψ|²))``).
@@ -173,6 +185,7 @@ class MomentumOptions:
     calibration_start: int = 3
     calibration_every: int = 2
     threads: int | None = None
+    batch_growth: int = 1
 
     def __post_init__(self):
         if isinstance(self.position_refinement, bool):  # older configs: true / false
@@ -187,6 +200,7 @@ class MomentumOptions:
             (0 < self.beta < 2, f"beta must be in (0, 2), got {self.beta}"),
             (0 <= self.eta < 1, f"eta must be in [0, 1), got {self.eta}"),
             (self.batch >= 1, f"batch must be ≥ 1, got {self.batch}"),
+            (self.batch_growth >= 1, f"batch_growth must be ≥ 1, got {self.batch_growth}"),
             (self.cost in _COSTS, f"cost must be one of {', '.join(_COSTS)}, got {self.cost!r}"),
             (0 < self.poisson_step <= 1, f"poisson_step must be in (0, 1], got {self.poisson_step}"),
             (self.pupil_recovery in _PUPILS,
@@ -299,6 +313,8 @@ class SequentialMomentum(IterativeEngine):
         self._change = np.inf
         self._misfits: list[float] = []
         self._previous_misfit = np.inf
+        self._batch = options.batch
+        self._plateau_from = 0
         self._arrange()
 
     def _starting_coefficients(self) -> np.ndarray | None:
@@ -353,7 +369,7 @@ class SequentialMomentum(IterativeEngine):
         opts = self.options
         layout = self._layout_for(self._centres())
         distances = np.hypot(layout.centres_px[:, 0], layout.centres_px[:, 1])
-        self._schedule = build_schedule(layout.box_origins, layout.box_size, distances, opts.batch)
+        self._schedule = build_schedule(layout.box_origins, layout.box_size, distances, self._batch)
         self._order = order = self._schedule.order
         self._layout = _subset(layout, order)
         self._origin_array = np.ascontiguousarray(self._layout.box_origins, dtype=np.int64)
@@ -603,16 +619,37 @@ class SequentialMomentum(IterativeEngine):
         self._previous_misfit = misfit
         self._misfits.append(misfit)
         self._iteration += 1
+        if self._can_grow() and self._misfit_flat():
+            self._grow_batch()
         return float(np.sqrt(misfit / max(self._data_norm, 1e-30))), self._change
 
-    def on_plateau(self) -> bool:
-        """Whether the misfit fell by less than ``plateau`` over the last ``plateau_window`` passes."""
+    def _can_grow(self) -> bool:
+        return self.options.batch_growth > 1 and self._batch < self.problem.model.n_images
+
+    def _grow_batch(self) -> None:
+        """Take larger batches from the next pass on; the plateau test starts afresh."""
+        self._batch = min(self._batch * self.options.batch_growth, self.problem.model.n_images)
+        self._plateau_from = len(self._misfits)
+        self._velocity[:] = 0
+        self._arrange()
+
+    def _misfit_flat(self) -> bool:
+        """Whether the misfit fell by less than ``plateau`` over the last ``plateau_window`` passes at this batch."""
         opts = self.options
         window = opts.plateau_window
-        if opts.plateau <= 0 or len(self._misfits) <= window:
+        if opts.plateau <= 0 or len(self._misfits) - self._plateau_from <= window:
             return False
         then, now = self._misfits[-1 - window], self._misfits[-1]
         return (then - now) < opts.plateau * now
+
+    @property
+    def batch(self) -> int:
+        """Captures per batch now (``batch``, grown by ``batch_growth`` at each plateau)."""
+        return self._batch
+
+    def on_plateau(self) -> bool:
+        """Whether the run has reached its plateau: the misfit is flat and the batch can grow no more."""
+        return not self._can_grow() and self._misfit_flat()
 
     def done(self) -> bool:
         """Stop at ``max_iterations``, when a pass changes the spectrum by less than ``tol``, or on a plateau."""
@@ -648,7 +685,7 @@ class SequentialMomentum(IterativeEngine):
         out = {"spectrum": self._spectrum, "velocity": self._velocity, "anchor": self._anchor,
                "misfits": np.asarray(self._misfits, np.float64), "brightness": self._brightness,
                "offsets": self._offsets, "iteration": self._iteration, "change": self._change,
-               "previous_misfit": self._previous_misfit}
+               "previous_misfit": self._previous_misfit, "batch": self._batch, "plateau_from": self._plateau_from}
         if self._parameters is not None:
             out["parameters"] = np.asarray(self._parameters, np.float64)
         if self._recovery is not None:
@@ -666,6 +703,8 @@ class SequentialMomentum(IterativeEngine):
         self._iteration = int(state["iteration"])
         self._change = float(state["change"])
         self._previous_misfit = float(state["previous_misfit"])
+        self._batch = int(state.get("batch", self.options.batch))
+        self._plateau_from = int(state.get("plateau_from", 0))
         if self._parameters is not None and "parameters" in state:
             self._parameters = np.array(state["parameters"], np.float64)
         if self._recovery is not None and "pupil_maps" in state:

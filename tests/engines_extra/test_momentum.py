@@ -142,3 +142,41 @@ def test_pupil_functions_match_simulation_helpers():
     expected = circular_pupils(layout.box_size, layout.box_centres, RADIUS) * np.exp(1j * phase)
     np.testing.assert_allclose(aberrated, expected, atol=2e-5)
     assert 0 < cal.max_position_offset(layout) <= 2.0
+
+
+def test_batch_growth_takes_inconsistent_data_past_the_small_batch_plateau():
+    # Pupils displaced by up to a pixel that the model does not know: no spectrum fits every capture.
+    problem = make_case(position_error=1.0, seed=3)[0]
+    run = dict(max_iterations=300, tol=0, batch=4, plateau=0.01, plateau_window=5)
+    fixed = SequentialMomentum(problem, MomentumOptions(**run))
+    _, fixed_history = run_engine(fixed)
+    growing = SequentialMomentum(problem, MomentumOptions(**run, batch_growth=2))
+    batches, misfit = [], None
+    while not growing.done():
+        misfit = growing.update()[0]
+        batches.append(growing.batch)
+    growing.close()
+    assert batches[0] == 4 and batches[-1] == problem.model.n_images   # 4, 8, 16, 32, then all 49
+    assert len(set(batches)) == 5
+    assert fixed.on_plateau() and growing.on_plateau()
+    assert misfit < 0.97 * fixed_history.records[-1].residual
+
+
+def test_batch_growth_survives_a_checkpoint_restore():
+    problem = make_case(position_error=1.0, seed=3)[0]
+    options = MomentumOptions(max_iterations=60, tol=0, batch=4, plateau=0.01, plateau_window=5, batch_growth=2)
+    engine = SequentialMomentum(problem, options)
+    while engine.batch < 16:
+        engine.update()
+    state = engine.state()
+    engine.close()
+    resumed = SequentialMomentum(problem, options)
+    resumed.restore(state)
+    assert resumed.batch == engine.batch
+    assert not resumed.on_plateau()
+    resumed.close()
+
+
+def test_batch_growth_is_checked():
+    with pytest.raises(ValueError, match="batch_growth must be ≥ 1"):
+        MomentumOptions(batch_growth=0)
