@@ -20,7 +20,7 @@ def test_momentum_named_on_recorded_data_keeps_the_preset_unless_told_otherwise(
     section = ReconstructSection(engine="momentum", iterations=40, options={"pupil_recovery": "none"})
     _, options = resolve_engine(section, "led_array")
     assert options["pupil_recovery"] == "none" and options["max_iterations"] == 40
-    assert options["alpha"] == preset("led_array")[1]["alpha"]
+    assert options["batch_growth"] == preset("led_array")[1]["batch_growth"]
 
 
 @pytest.mark.parametrize("engine, kind", [("momentum", "simulation"), ("altmin", "led_array"),
