@@ -28,8 +28,7 @@ RESULTS = Path(__file__).resolve().parent / "results"
 READINGS = {"amplitude": "bloodsmear_green_amplitude", "intensity": "bloodsmear_green_intensity"}
 
 
-def scan(path: Path, z_um: list[float]) -> list[dict]:
-    data = cca.load(path)
+def scan(data: cca.CaptureSet, z_um: list[float]) -> list[dict]:
     rows = []
     for z in z_um:
         geometry = dataclasses.replace(data.geometry, defocus_m=z * 1e-6)
@@ -55,17 +54,22 @@ def main() -> None:
     parser.add_argument("--out", default=str(RESULTS / "defocus_scan.json"))
     args = parser.parse_args()
     z_um = [float(v) for v in args.z_um.split(",")]
-    waves_per_um = float(defocus_zernike(1e-6, wavelength_m=532e-9, numerical_aperture=0.1)[0])
-    out = {"waves_rms_per_um": waves_per_um, "readings": {}}
+    out = {"readings": {}}
     for reading, folder in READINGS.items():
         path = RESULTS / "real_work" / folder / "raw.h5"
         if not path.exists():
             raise SystemExit(f"{path} is missing: run python benchmarks/bench_real.py first")
         print(f"{reading} reading ({path})")
-        rows = scan(path, z_um)
-        out["readings"][reading] = {"rows": rows, "best_z_um": best_z(rows)}
-        print(f"  best z {best_z(rows):+.1f} µm (parabola through the lowest three)")
-    print(f"+10 µm is {10 * waves_per_um:+.4f} waves RMS of Zernike defocus at NA 0.1, 532 nm")
+        data = cca.load(path)
+        rows = scan(data, z_um)
+        z = best_z(rows)
+        out["readings"][reading] = {"rows": rows, "best_z_um": z}
+        print(f"  best z {z:+.1f} µm (parabola through the lowest three)")
+    g = data.geometry
+    out["waves_rms_per_um"] = float(defocus_zernike(1e-6, wavelength_m=g.wavelength_m,
+                                                    numerical_aperture=g.numerical_aperture)[0])
+    print(f"+10 µm is {10 * out['waves_rms_per_um']:+.4f} waves RMS of Zernike defocus at NA "
+          f"{g.numerical_aperture:g}, {g.wavelength_m * 1e9:.0f} nm")
     Path(args.out).write_text(json.dumps(out, indent=1))
     print(f"wrote {args.out}")
 

@@ -545,7 +545,7 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
     >>> result.iterations <= 10, mtf20(result.intensity, chart)
     (True, 2)
     """
-    from cca_cli.engines.presets import engine_defaults, preset
+    from cca_cli.engines.presets import starting_options
     from cca_cli.engines.registry import engine_names, get_engine
     from cca_cli.optics import fft
     from cca_cli.stages.reconstruct import Captures, calibrated_pupils, recover
@@ -568,14 +568,10 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
                          f"geometry, got shape {images.shape}")
     if "iterations" in options:
         options["max_iterations"] = options.pop("iterations")
-    kind = "simulation" if truth else geometry.kind
-    if engine == "auto":
-        engine, preset_options = preset(kind)
-    else:
-        preset_options = engine_defaults(engine, kind) if engine in engine_names() else {}
-    options = {**preset_options, **options}
-    if engine not in engine_names():
+    if engine != "auto" and engine not in engine_names():
         raise ValueError(f"engine {engine!r}: choose auto or one of {', '.join(engine_names())}")
+    engine, preset_options = starting_options(engine, "simulation" if truth else geometry.kind)
+    options = {**preset_options, **options}
     entry = get_engine(engine)
     unknown = sorted(set(options) - set(entry.option_names()))
     if unknown:

@@ -44,8 +44,8 @@ does not:
 The run stops at ``max_iterations``, when a pass changes the spectrum by less
 than ``tol``, or when the misfit has fallen by less than ``plateau`` (relative)
 over the last ``plateau_window`` passes. With ``batch_growth`` a plateau first
-makes the batches larger (down to one batch of every capture, a full-gradient
-step), and only a plateau at the full batch ends the run: on recorded data,
+makes the batches larger (until a batch may hold every capture), and only a
+plateau at the largest batch ends the run: on recorded data,
 which the model never explains exactly, fixed small batches settle into a
 cycle between the captures' constraints rather than at a minimum of the
 whole misfit.

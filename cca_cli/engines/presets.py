@@ -14,12 +14,12 @@ the light varies, so they get the sequential engine with calibration.
 
 Both stop when the data misfit falls by less than 2% over 10 passes (a few
 seconds on the sets in the README), or after 150 passes (300 for LED arrays,
-below). Momentum is moderate
-(η = 0.3): on recorded data a larger η makes the low spatial frequencies
-oscillate, on simulations η = 0.3 converges as fast as 0.7. Batches are 24
-captures, not 12: averaging each step over more captures fitted both real
-LED-array sets better and sooner (blood smear: residual 0.076 / 0.070 over all /
-bright-field images after 30 passes, against 0.078 / 0.076 after 60 with 12).
+below). Momentum is moderate (η = 0.3): on recorded data a larger η makes the
+low spatial frequencies oscillate, on simulations η = 0.3 converges as fast as
+0.7. Batches are 24 captures, not 12: averaging each step over more captures
+fitted both real LED-array sets better and sooner (blood smear: residual
+0.076 / 0.070 over all / bright-field images after 30 passes, against
+0.078 / 0.076 after 60 with 12).
 
 LED arrays also take batches that double at each plateau until a batch may
 hold every capture: fixed small batches end in a cycle between the captures'
@@ -27,9 +27,10 @@ constraints, which recorded data never satisfy all at once. On the real sets
 in the README this lowered the residual over all images from 0.101 to 0.095
 (USAF tile), 0.066 to 0.063 (blood smear, amplitudes) and 0.114 to 0.111
 (blood smear, intensities), for about 1.5× the passes (so the cap is 300
-passes), and kept the USAF bars' contrast. rPIE's α stays 0.1: α = 0.5 fitted the data a little better still
-(0.094 / 0.059 / 0.107) but damped the outer spectrum, which few captures see,
-and the finest USAF bars lost contrast (G9E3 0.24 → 0.11).
+passes), and kept the USAF bars' contrast. rPIE's α stays 0.1: α = 0.5 fitted
+the data a little better still (0.094 / 0.059 / 0.107) but damped the outer
+spectrum, which few captures see, and the finest USAF bars lost contrast
+(G9E3 0.24 → 0.11).
 
 The engine the preset picks keeps these settings when a user names it outright
 on recorded captures (:func:`engine_defaults`): ``engine: momentum`` on an
@@ -39,7 +40,7 @@ default.
 
 from __future__ import annotations
 
-__all__ = ["DATA_KINDS", "preset", "engine_defaults"]
+__all__ = ["DATA_KINDS", "preset", "engine_defaults", "starting_options"]
 
 _REAL_DATA = dict(max_iterations=150, tol=1e-7, plateau=0.02, plateau_window=10, eta=0.3, batch=24)
 
@@ -95,3 +96,13 @@ def engine_defaults(engine: str, kind: str) -> dict:
     """
     chosen, options = preset(kind)
     return options if kind != "simulation" and chosen == engine else {}
+
+
+def starting_options(engine: str, kind: str) -> tuple[str, dict]:
+    """The engine ``engine`` names (``auto`` resolved for ``kind``) and the options it starts from.
+
+    What the user sets goes on top of these options.
+    """
+    if engine == "auto":
+        return preset(kind)
+    return engine, engine_defaults(engine, kind)

@@ -15,7 +15,7 @@ from cca_cli.engines.calibration import defocus_zernike
 from cca_cli.engines.fit import FitReport, fit_report
 from cca_cli.engines.illumination import LedArrayModel
 from cca_cli.engines.momentum import Calibration
-from cca_cli.engines.presets import engine_defaults, preset
+from cca_cli.engines.presets import starting_options
 from cca_cli.engines.problem import PhaseRetrievalProblem
 from cca_cli.engines.registry import get_engine
 from cca_cli.errors import CcaError, ConfigError, InputError
@@ -75,15 +75,12 @@ def resolve_engine(section: ReconstructSection, kind: str) -> tuple[str, dict]:
 
     ``engine: auto`` takes the preset for the kind of data
     (:func:`cca_cli.engines.presets.preset`), and so does the preset's engine
-    named outright on recorded captures (:func:`~cca_cli.engines.presets.engine_defaults`);
+    named outright on recorded captures (:func:`~cca_cli.engines.presets.starting_options`);
     what the section sets explicitly (``tau``, ``iterations``, ``tol``,
     ``options``) overrides the preset.
     """
     section_values = {"tau": section.tau, "max_iterations": section.iterations, "tol": section.tol}
-    if section.engine == "auto":
-        name, options = preset(kind)
-    else:
-        name, options = section.engine, engine_defaults(section.engine, kind)
+    name, options = starting_options(section.engine, kind)
     given = section.model_fields_set
     for key, field in (("tau", "tau"), ("max_iterations", "iterations"), ("tol", "tol")):
         if field in given or key not in options:
