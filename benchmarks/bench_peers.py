@@ -1,9 +1,9 @@
 """Side-by-side benchmark of our engines against peer FPM codes on the headline data.
 
 Data: the paper's Fig. 5 case made by our simulator (441 captures, 21 x 21 at
-61% overlap, 512² output). Our engines get the band-stored captures (84²) and,
+61% overlap, 512² output). Our engines get the band-stored captures (90²) and,
 separately, the full-size sensor captures (512²); peers get the band captures
-Fourier-interpolated to 128² (exact: the intensity band fits in 84², so every
+Fourier-interpolated to 128² (exact: the intensity band fits in 90², so every
 method sees the same measurements and the same noise).
 
 Every method runs in its own subprocess (``peer_worker.py``), in interleaved
@@ -292,7 +292,8 @@ def main() -> None:
     # amplitude_rmse and alignment() read only |band truth|: the square root of its intensity
     band_truth = np.sqrt(band_limited_truth(truth, data["geometry"]))
 
-    floor_samples = {84: [], PEER_SIZE: []}
+    band_size = int(data["band"]["shape"][-1])  # our engines' per-capture grid (the band-stored captures)
+    floor_samples = {band_size: [], PEER_SIZE: []}
 
     def measure_floors() -> None:  # interleaved with the methods; the floor is the fastest sample
         for size in floor_samples:

@@ -9,9 +9,9 @@ import os
 import pytest
 import yaml
 
-# Tests plan many small FFT shapes once each: estimated FFTW plans take no time to make and, unlike timed
-# ones, are the same on every run (tests/optics/test_planning.py covers the timed planning).
-os.environ.setdefault("CCA_FFTW_PLANNING", "estimate")
+# Estimated FFTW plans (the default) take no time to make and are the same on every run; a developer's own
+# CCA_FFTW_PLANNING is kept out of the suite (tests/optics/test_planning.py covers the timed planning).
+os.environ["CCA_FFTW_PLANNING"] = "estimate"
 
 #: 96-px sensor (12 mm field, 125 µm object pixels), pupil radius 9.8 spectrum px, 5 x 5 grid at 61 %:
 #: the centre image resolves 6-px bars, the recovery 2-px bars.

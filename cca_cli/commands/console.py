@@ -14,7 +14,6 @@ from typing import Iterator
 
 import typer
 from rich.console import Console
-from rich.logging import RichHandler
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 from rich.text import Text
@@ -48,10 +47,33 @@ def print_warning(message: str) -> None:
     err_console.print(styled("warning:", "bold yellow", message), highlight=False, soft_wrap=True)
 
 
+class _LineHandler(logging.Handler):
+    """Prints each library log record as one labelled line: ``note:``, ``warning:`` or ``error:``.
+
+    A message the library starts with ``note:`` is information a user need not act on; other
+    warnings ask for attention. With ``--verbose``, information records print as they are.
+    """
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            message = " ".join(self.format(record).split())
+            if record.levelno >= logging.ERROR:
+                print_error(message)
+            elif record.levelno >= logging.WARNING:
+                if message.startswith("note:"):
+                    print_note(message[len("note:"):].strip())
+                else:
+                    print_warning(message)
+            else:
+                err_console.print(message, highlight=False, soft_wrap=True)
+        except Exception:  # noqa: BLE001 - logging must never stop a run
+            self.handleError(record)
+
+
 def configure_logging(verbose: bool = False) -> None:
-    """Route library warnings through rich (the only place logging is configured)."""
+    """Route library log records to one labelled line each on stderr (the only place logging is configured)."""
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(message)s",
-                        handlers=[RichHandler(console=err_console, show_path=False, show_time=False)], force=True)
+                        handlers=[_LineHandler()], force=True)
 
 
 def handle_errors(func):

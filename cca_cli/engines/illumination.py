@@ -194,7 +194,7 @@ def capture_statistics(model: ForwardModel, spectrum: np.ndarray, amplitudes: np
     CaptureStatistics
     """
     k = model.n_images
-    workspace = workspace or model.workspace(min(32, k), effort="measure")
+    workspace = workspace or model.workspace(min(32, k))
     misfit, power, cross, energy = (np.zeros(k) for _ in range(4))
     positions = pupil_derivatives is not None
     gradient = np.zeros((k, 2)) if positions else None

@@ -530,7 +530,7 @@ class SequentialMomentum(IterativeEngine):
         layout = self._layout_for(self._centres(parameters, offsets))
         model = ForwardModel(layout, self._pupils_for(layout, self._pupil_index))
         if self._evaluation_workspace is None:
-            self._evaluation_workspace = model.workspace(min(32, model.n_images), threads=1, effort="measure")
+            self._evaluation_workspace = model.workspace(min(32, model.n_images), threads=1)
         derivatives = self._pupil_derivatives(layout) if positions else None
         scale = 1.0 / np.sqrt(self._brightness)
         return ill.capture_statistics(model, self._spectrum, self.problem.amplitudes, self.problem.weights,

@@ -4,20 +4,28 @@
 
 Planning
 --------
-FFTW finds fast plans by timing candidates. ``$CCA_FFTW_PLANNING`` sets how:
+FFTW can find faster plans by timing candidates, but a timed search may pick
+another algorithm on another run, and another algorithm rounds differently.
+``$CCA_FFTW_PLANNING`` sets how plans are made:
 
-* ``auto`` (default): a transform starts with the best plan FFTW already
-  knows for its shape (the wisdom kept in ``$CCA_CACHE_DIR``, default
-  ``~/.cache/cca``) or else an estimated plan (no timing, milliseconds). While
-  the transforms run, their plans are improved one at a time, first to
+* ``estimate`` (default): FFTW's estimated plans, made without timing and
+  without the saved wisdom, so the same inputs and thread count give
+  bit-identical results on every run and every machine with the same FFTW
+  build.
+* ``auto`` (opt-in, faster, not reproducible): a transform starts with the
+  best plan FFTW already knows for its shape (the wisdom kept in
+  ``$CCA_CACHE_DIR``, default ``~/.cache/cca``) or else an estimated plan.
+  While the transforms run, their plans are improved one at a time, first to
   ``measure`` and then to ``patient`` quality, each step at most
   :data:`STEP_SECONDS` long and only while planning has cost less than
   :data:`UPGRADE_SHARE` of the time the transforms ran (and, beyond
-  :data:`SHAPE_SECONDS` per shape, less than :data:`LONG_RUN_SHARE`). A run
-  of seconds plans next to nothing, a long one ends with patient plans for
-  what it uses most, and the next run on the machine starts from them.
-* ``estimate``, ``measure`` or ``patient``: plan at that effort when the
-  transform is made (``patient`` takes seconds per new shape).
+  :data:`SHAPE_SECONDS` per shape, less than :data:`LONG_RUN_SHARE`). A plan
+  improved mid-run changes the rounding from then on, so two runs of the same
+  inputs may stop at other iterations with slightly other results.
+* ``measure`` or ``patient`` (opt-in): plan at that effort when the transform
+  is made (``patient`` takes seconds per new shape), from the wisdom when it
+  holds a plan of that quality. Each run uses one plan per transform
+  throughout, but which plan depends on the timings and the wisdom.
 
 Timed planning runs on a scratch copy of the buffer, so planning never
 touches the data.
@@ -378,7 +386,8 @@ class PlanSet:
 
     def _plan_all(self, effort: str) -> None:
         with PLANNER_LOCK:
-            _load_wisdom()
+            if effort != "estimate":  # estimated plans never see the wisdom: the same plans on every run
+                _load_wisdom()
             n = len(self.specs)
             wanted = "patient" if effort == "auto" else effort
             known = [i for i in range(n) if wanted != "estimate" and self._adopt(i, wanted)]

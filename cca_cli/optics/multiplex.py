@@ -296,7 +296,7 @@ class MultiplexedForwardModel:
         model = self.model
         offsets = self.group_offsets
         out = np.empty((self.n_measurements,) + model.field_shape, np.float32)
-        ws = model.workspace(max(chunk, int(np.diff(offsets).max())), effort="measure")
+        ws = model.workspace(max(chunk, int(np.diff(offsets).max())))
         scale = np.float32(1.0 / model.intensity_scale)
         for sl in self.chunk_slices(ws.capacity):
             fields = model.forward_into(spectrum, sl, ws)

@@ -263,7 +263,7 @@ def recover(captures: Captures, engine: str, options, *, progress: ProgressFn = 
             runner.restore(saved.state)
             history = History([IterationRecord(i + 1, *values) for i, values in
                                enumerate(zip(*(saved.history[n].tolist() for n in ("residual", "change", "seconds"))))])
-            _log.warning("resuming from iteration %d (checkpoint %s)", history.iterations, checkpoint.path)
+            _log.warning("note: resuming from iteration %d (checkpoint %s)", history.iterations, checkpoint.path)
         except (KeyError, ValueError, TypeError, NotImplementedError) as exc:
             _log.warning("%s cannot be resumed (%s): starting afresh", checkpoint.path, exc)
             runner.close()

@@ -68,6 +68,13 @@ def test_grouped_projection_matches_the_summed_intensity():
     np.testing.assert_allclose(ratio[:3] / ratio[0], 1.0, rtol=1e-4)
 
 
+def _altmin(problem, iterations):
+    options = AltMinOptions(max_iterations=iterations, tol=0.0, chunk=4, threads=1)
+    engine = (MultiplexedAlternatingMinimization if isinstance(problem, MultiplexedProblem)
+              else AlternatingMinimization)(problem, options)
+    return run_engine(engine)
+
+
 def test_nmux_one_equals_the_single_source_path():
     geo = _geometry([(3,), (5,)])
     mux = MultiplexedForwardModel(geo, sensor_size=64)
@@ -79,14 +86,23 @@ def test_nmux_one_equals_the_single_source_path():
     reference = single.sensor_intensity(fft.fft2c(obj).astype(np.complex64))
     np.testing.assert_allclose(images, reference, rtol=1e-5, atol=1e-6)
 
-    options = AltMinOptions(max_iterations=15, tol=0.0, chunk=4, threads=1)
-    s_mux, h_mux = run_engine(MultiplexedAlternatingMinimization(MultiplexedProblem.from_sensor_images(mux, images),
-                                                                 options))
-    s_one, h_one = run_engine(AlternatingMinimization(PhaseRetrievalProblem.from_sensor_images(single, reference),
-                                                      options))
-    np.testing.assert_allclose(h_mux.array("residual"), h_one.array("residual"), rtol=1e-3)
+    # Both paths recover the same data. They batch their FFTs differently, so they agree to float32
+    # rounding, which the iterations amplify. How much is measured, not assumed: the single path run on
+    # the two forward models' images (which differ by that rounding alone) gives the spread.
+    mux_problem = MultiplexedProblem.from_sensor_images(mux, images)
+    one_problem = PhaseRetrievalProblem.from_sensor_images(single, images)
+    s_mux, _ = _altmin(mux_problem, 1)
+    s_one, _ = _altmin(one_problem, 1)
     scale = np.abs(s_one).max()
-    np.testing.assert_allclose(s_mux / scale, s_one / scale, atol=1e-4)
+    eps = np.finfo(np.float32).eps
+    assert np.abs(s_mux - s_one).max() / scale < 64 * eps  # one iteration: a few roundings of each FFT
+
+    s_mux, h_mux = _altmin(mux_problem, 15)
+    s_one, h_one = _altmin(one_problem, 15)
+    s_ref, _ = _altmin(PhaseRetrievalProblem.from_sensor_images(single, reference), 15)
+    np.testing.assert_allclose(h_mux.array("residual"), h_one.array("residual"), rtol=1e-3)
+    spread = np.abs(s_ref - s_one).max() / scale
+    assert np.abs(s_mux - s_one).max() / scale <= max(4 * spread, 64 * eps)
 
 
 def test_adjoint_dot_product_of_the_linear_part():

@@ -158,6 +158,6 @@ def test_an_unknown_planning_effort_is_one_line_naming_the_variable(tmp_path, wr
     result = CliRunner().invoke(app, ["simulate", str(write_config()), "-o", str(captures), "--quiet"])
     assert result.exit_code == 2
     lines = [line for line in result.stderr.splitlines() if line.strip()]
-    assert lines == ["error: environment variable CCA_FFTW_PLANNING='bogus' is not one of auto, estimate, "
+    assert lines == ["error: environment variable CCA_FFTW_PLANNING='bogus' is not one of estimate, auto, "
                      "measure, patient; unset it or pick one"]
     assert not captures.exists()
