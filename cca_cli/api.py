@@ -545,8 +545,7 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
     >>> result.iterations <= 10, mtf20(result.intensity, chart)
     (True, 2)
     """
-    from cca_cli.engines.presets import starting_options
-    from cca_cli.engines.registry import engine_names, get_engine
+    from cca_cli.engines.registry import resolve
     from cca_cli.optics import fft
     from cca_cli.stages.reconstruct import Captures, calibrated_pupils, recover
 
@@ -566,18 +565,7 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
     if images.ndim != 3 or len(images) != geometry.n_images:
         raise ValueError(f"intensities must be (K, N, N) or (K, H, W) with K = {geometry.n_images} images of the "
                          f"geometry, got shape {images.shape}")
-    if "iterations" in options:
-        options["max_iterations"] = options.pop("iterations")
-    if engine != "auto" and engine not in engine_names():
-        raise ValueError(f"engine {engine!r}: choose auto or one of {', '.join(engine_names())}")
-    engine, preset_options = starting_options(engine, "simulation" if truth else geometry.kind)
-    options = {**preset_options, **options}
-    entry = get_engine(engine)
-    unknown = sorted(set(options) - set(entry.option_names()))
-    if unknown:
-        raise ValueError(f"unknown option(s) {', '.join(unknown)} for engine {engine}; "
-                         f"accepted: iterations, {', '.join(entry.option_names())}")
-    engine_options = entry.options(**options)
+    engine, engine_options = resolve(engine, "simulation" if truth else geometry.kind, options)
     weights = None if weight is None else np.asarray(weight, np.float32)
     if weights is not None and weights.shape != images.shape:
         raise ValueError(f"weight has shape {weights.shape}, the images {images.shape}")
@@ -596,8 +584,6 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
         init = init.spectrum
     recovery = recover(captures, engine, engine_options, on_iteration=callback, init=init)
     calibration = recovery.calibration
-    from dataclasses import asdict
-
     obj = fft.ifft2c(recovery.spectrum).astype(np.complex64)
     if region is not None:
         y0, x0, rows, cols = region.hires_box(recovery.layout.hires_size)
@@ -605,7 +591,7 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
     return Reconstruction(
         object=obj, spectrum=recovery.spectrum,
         history={name: recovery.history.array(name) for name in ("residual", "change", "seconds")},
-        geometry=geometry, engine=engine, options=asdict(engine_options), seconds=recovery.seconds,
+        geometry=geometry, engine=engine, options=engine_options.model_dump(), seconds=recovery.seconds,
         stopped_by=recovery.stopped_by, observed=observed, truth=dict(truth),
         units=units, band_grid_px=recovery.layout.lowres_size,
         pupil=None if calibration is None else calibrated_pupils(calibration, geometry.pupil_radius_px),
@@ -694,10 +680,19 @@ def reconstruct_tiles(captures, geometry: CaptureGeometry | None = None, *, size
     from cca_cli.workflows.cluster import open_client
     from cca_cli.workflows.tiled import reconstruct_tiled, run_fingerprint
 
+    from pydantic import ValidationError
+
+    from cca_cli.values import validation_message
+
+    if "max_iterations" in options:
+        options["iterations"] = options.pop("max_iterations")
     section_keys = {key: options.pop(key) for key in ("iterations", "tol", "tau") if key in options}
-    section = ReconstructSection.model_validate({"engine": engine, "options": options, **section_keys,
-                                                 "tiles": {"size_px": size_px, "overlap_px": overlap_px,
-                                                           "pupil": pupil}})
+    try:
+        section = ReconstructSection.model_validate({"engine": engine, "options": options, **section_keys,
+                                                     "tiles": {"size_px": size_px, "overlap_px": overlap_px,
+                                                               "pupil": pupil}})
+    except ValidationError as exc:
+        raise ValueError(validation_message(exc)) from None
     with contextlib.ExitStack() as stack:
         folder = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="cca-tiles-")))
         if isinstance(captures, (str, Path)):

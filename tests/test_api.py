@@ -51,7 +51,7 @@ def test_unknown_names_engines_and_options_are_clear():
     images = np.ones((9, 64, 64), np.float32)
     with pytest.raises(ValueError, match="choose auto or one of altmin, momentum"):
         cca.reconstruct(images, g, engine="altmn")
-    with pytest.raises(ValueError, match="unknown option.*taw.*accepted: iterations, tau"):
+    with pytest.raises(ValueError, match="unknown option.*taw.*accepted: tau, iterations, tol"):
         cca.reconstruct(images, g, taw=1e-3)
     with pytest.raises(ValueError, match="K = 9 images"):
         cca.reconstruct(images[:4], g)

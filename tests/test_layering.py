@@ -76,7 +76,7 @@ def test_only_registration_imports_opencv():
 #: commands → stages → workflows → {io, config, report} → {engines, registration, hdr, metrics}
 #: → {optics, sampling, targets} → {units, errors, progress}.
 LAYERS = {
-    "units.py": 0, "errors.py": 0, "progress.py": 0,
+    "units.py": 0, "errors.py": 0, "progress.py": 0, "values.py": 0,
     "optics": 1, "sampling": 1, "targets": 1,
     "engines": 2, "registration": 2, "hdr": 2, "metrics": 2,
     "io": 3, "config": 3, "report": 3,

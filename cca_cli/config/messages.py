@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pydantic import BaseModel
 
+from cca_cli.values import error_message
+
 __all__ = ["model_in", "accepted_keys", "error_message"]
 
 
@@ -33,8 +35,3 @@ def accepted_keys(model: type[BaseModel], loc: tuple) -> list[str]:
         if current is None:
             return []
     return list(current.model_fields)
-
-
-def error_message(error: dict) -> str:
-    """The message of one pydantic error, without pydantic's ``Value error,`` prefix."""
-    return error["msg"].removeprefix("Value error, ")

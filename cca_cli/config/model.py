@@ -2,7 +2,7 @@
 
 Unknown keys are rejected (``extra="forbid"``) and values are coerced to their
 annotated types, so ``550e-9`` (a string to PyYAML) is read as a number; booleans,
-integers and finite numbers are read strictly (:mod:`cca_cli.config.values`).
+integers and finite numbers are read strictly (:mod:`cca_cli.values`).
 """
 
 from __future__ import annotations
@@ -13,6 +13,7 @@ from typing import Any, Literal
 from pydantic import Field, NonNegativeInt, PositiveFloat, PositiveInt, field_validator, model_validator
 
 from cca_cli.config.section import Section
+from cca_cli.engines import presets, registry
 
 __all__ = [
     "STAGES",
@@ -189,11 +190,12 @@ class TilesSection(Section):
 class ReconstructSection(Section):
     """Phase retrieval."""
 
-    engine: str = Field("auto", description="Engine name (see `cca reconstruct --help`), or auto: the paper's "
-                                            "altmin for simulations, momentum with calibration for recorded captures.")
-    tau: float = Field(1e-3, ge=0.0, description="Tikhonov weight τ.")
-    iterations: PositiveInt = Field(1000, description="Maximum iterations.")
-    tol: float = Field(1e-5, ge=0.0, description="Stop when the relative spectrum change is below this.")
+    engine: str = Field("auto", description=f"Engine name, or auto: the {presets.summary()}.")
+    tau: float | None = Field(None, ge=0.0, description="Tikhonov weight τ (default: the engine's, 1e-3).")
+    iterations: PositiveInt | None = Field(None, description="Maximum iterations (default: the engine's or the "
+                                                             "preset's).")
+    tol: float | None = Field(None, ge=0.0, description="Stop when the relative spectrum change is below this "
+                                                        "(default: the engine's, 1e-5).")
     options: dict[str, Any] = Field(default_factory=dict, description="Engine-specific options.")
     padding: PaddingSection = Field(PaddingSection(), description="Guard band for recorded / non-square frames.")
     checkpoint_every: NonNegativeInt = Field(
@@ -209,32 +211,32 @@ class ReconstructSection(Section):
     @field_validator("engine")
     @classmethod
     def _known_engine(cls, engine):
-        from cca_cli.engines.registry import ENGINES, engine_names
-
-        if engine != "auto" and engine not in ENGINES:
-            raise ValueError(f"{engine!r} is not an engine; choose auto or one of {', '.join(engine_names())}")
+        if engine != "auto" and engine not in registry.ENGINES:
+            raise ValueError(f"{engine!r} is not an engine; choose auto or one of {', '.join(registry.engine_names())}")
         return engine
 
     @field_validator("options")
     @classmethod
     def _engine_options(cls, options, info):
-        """Read ``options`` with the options model of ``engine`` (:mod:`cca_cli.config.options`)."""
-        from cca_cli.config.options import SECTION_KEYS, validate_options
-        from cca_cli.engines.registry import ENGINES
-
+        """Read ``options`` as the engine reads them (:func:`cca_cli.engines.registry.resolve`)."""
+        for key in _SECTION_KEYS:
+            if key in options:
+                raise ValueError(f"{key} is not an option: set it as reconstruct.{_SECTION_KEYS[key]}")
         engine = info.data.get("engine")
-        if engine == "auto":  # the engine depends on the data: read the options with an engine that takes them all
-            fitting = [name for name in ("momentum", *ENGINES) if set(options) <= set(ENGINES[name].option_names())]
-            if not fitting:
-                accepted = set().union(*(set(entry.option_names()) for entry in ENGINES.values()))
-                unknown = sorted(set(options) - accepted) or sorted(options)
-                raise ValueError(f"unknown option(s) {', '.join(unknown)} for engine auto; accepted: "
-                                 f"{', '.join(sorted(accepted - set(SECTION_KEYS)))}")
-            engine = fitting[0]
-        elif engine not in ENGINES:
+        if engine is None:  # the engine was refused already
             return options
-        section = {name: info.data.get(key, cls.model_fields[key].default) for name, key in SECTION_KEYS.items()}
-        return validate_options(engine, options, section)
+        section = {key: info.data.get(key) for key in ("tau", "iterations", "tol") if info.data.get(key) is not None}
+        _, read = registry.resolve(engine, None, {**section, **options})
+        return {key: getattr(read, key) for key in options}
+
+    def given(self) -> dict:
+        """What the user set: ``tau``, ``iterations``, ``tol`` (when set) and the engine's options."""
+        section = {key: getattr(self, key) for key in ("tau", "iterations", "tol") if getattr(self, key) is not None}
+        return {**section, **self.options}
+
+
+#: Options set by reconstruct's own keys, not in ``options``.
+_SECTION_KEYS = {"tau": "tau", "max_iterations": "iterations", "iterations": "iterations", "tol": "tol"}
 
 
 class BaselineSpec(Section):

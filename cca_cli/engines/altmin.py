@@ -15,57 +15,16 @@ Holloway et al., IEEE Trans. Comput. Imaging 2(3), 2016, Section IV.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
-from cca_cli.engines.base import IterativeEngine, check_options
+from cca_cli.engines.base import IterativeEngine
+from cca_cli.engines.options import AltMinOptions
 from cca_cli.engines.passes import ChunkedPass
 from cca_cli.engines.problem import PhaseRetrievalProblem, initial_spectrum
 from cca_cli.engines.projections import project_magnitudes
 from cca_cli.optics import kernels
 
 __all__ = ["AltMinOptions", "AlternatingMinimization"]
-
-
-@dataclass(frozen=True)
-class AltMinOptions:
-    """Options of the alternating-minimization engine.
-
-    Attributes
-    ----------
-    tau : float
-        Tikhonov weight τ added to ``Σ |P_i|²`` (same units: pupil power; a
-        spectrum pixel seen by one capture has ``Σ |P_i|² = 1``).
-    max_iterations : int
-        Iteration cap (paper: 1000).
-    tol : float
-        Stop when the relative spectrum change ``‖ΔS‖/‖S‖`` falls below it (paper: 1e-5).
-    chunk : int
-        Captures processed together (cache-sized).
-    threads : int or None
-        Worker threads; None uses every core.
-    """
-
-    tau: float = 1e-3
-    max_iterations: int = 1000
-    tol: float = 1e-5
-    chunk: int = 16
-    threads: int | None = None
-
-    def __post_init__(self):
-        check_options([
-            (self.tau >= 0, f"tau must be ≥ 0, got {self.tau}"),
-            (self.max_iterations >= 1, f"max_iterations must be ≥ 1, got {self.max_iterations}"),
-            (self.tol >= 0, f"tol must be ≥ 0, got {self.tol}"),
-            (_is_count(self.chunk), f"chunk must be an integer ≥ 1, got {self.chunk!r}"),
-            (self.threads is None or _is_count(self.threads),
-             f"threads must be an integer ≥ 1 or null, got {self.threads!r}"),
-        ])
-
-
-def _is_count(value) -> bool:
-    return isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= 1
 
 
 class AlternatingMinimization(IterativeEngine):

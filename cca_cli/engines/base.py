@@ -11,11 +11,11 @@ from __future__ import annotations
 import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
-from typing import Callable, Iterable
+from typing import Callable
 
 import numpy as np
 
-__all__ = ["IterationRecord", "History", "IterativeEngine", "run_engine", "check_options"]
+__all__ = ["IterationRecord", "History", "IterativeEngine", "run_engine"]
 
 
 @dataclass(frozen=True)
@@ -54,20 +54,6 @@ class History:
     def array(self, name: str) -> np.ndarray:
         """One column of the history (``residual``, ``change`` or ``seconds``) as float64."""
         return np.array([getattr(r, name) for r in self.records], dtype=np.float64)
-
-
-def check_options(checks: Iterable[tuple[bool, str]]) -> None:
-    """Raise :class:`ValueError` with the message of the first failed check.
-
-    Parameters
-    ----------
-    checks : iterable of (bool, str)
-        Each condition an options object must meet, with the message that names
-        the option, its valid range and the value given.
-    """
-    for ok, message in checks:
-        if not ok:
-            raise ValueError(message)
 
 
 class IterativeEngine(ABC):

@@ -35,12 +35,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cca_cli.engines.options import POSITION_MODES
 from cca_cli.optics.forward import ForwardModel, Workspace, chunk_slices
 
 __all__ = ["POSITION_MODES", "CaptureStatistics", "PositionModel", "StageModel", "LedArrayModel",
            "capture_statistics", "global_step", "per_image_steps", "shrunk_brightness"]
 
-POSITION_MODES = ("none", "global", "per_image", "both")
 #: Largest per-image position step in one round (spectrum pixels).
 _MAX_IMAGE_STEP = 0.5
 

@@ -66,9 +66,10 @@ import numpy as np
 
 from cca_cli.engines import calibration as cal
 from cca_cli.engines import illumination as ill
-from cca_cli.engines.base import IterativeEngine, check_options
+from cca_cli.engines.base import IterativeEngine
+from cca_cli.engines.options import MomentumOptions
 from cca_cli.engines.problem import PhaseRetrievalProblem, initial_spectrum
-from cca_cli.engines.pupil_recovery import PUPIL_MODELS, PupilEstimate, PupilRecovery, resample_pupil
+from cca_cli.engines.pupil_recovery import PupilEstimate, PupilRecovery, resample_pupil
 from cca_cli.engines.schedule import build_schedule
 from cca_cli.optics import fft, kernels
 from cca_cli.optics.forward import ForwardModel
@@ -77,145 +78,10 @@ from cca_cli.sampling.grid import BandLayout, band_layout
 
 __all__ = ["MomentumOptions", "Calibration", "SequentialMomentum"]
 
-_COSTS = ("amplitude", "poisson")
-_PUPILS = ("none", "shared", "per_camera")
 #: Captures with less than this share of the brightest capture's energy are left out of the aberration estimate.
 _ESTIMATE_LIGHT = 0.01
 #: Relative misfit drop a capture's position step must bring to be kept.
 _CLEAR_GAIN = 1e-2
-
-
-@dataclass(frozen=True)
-class MomentumOptions:
-    """Options of the sequential momentum engine.
-
-    Attributes
-    ----------
-    tau : float
-        Added to the update denominator (pupil-power units, as AltMin's τ).
-    max_iterations : int
-        Cap on passes over all captures.
-    tol : float
-        Stop when the relative spectrum change of a pass falls below it.
-    plateau : float
-        Stop when the data misfit fell by less than this fraction over the last
-        ``plateau_window`` passes (0: never).
-    plateau_window : int
-        Passes the plateau test looks back.
-    alpha : float
-        rPIE regularisation α in [0, 1]: 0 divides by the batch's pupil power
-        (ePIE-like full projection), 1 by its maximum (small, uniform steps).
-    beta : float
-        Step size β in (0, 2).
-    eta : float
-        Momentum η in [0, 1); 0 gives plain (batched) rPIE.
-    restart : bool
-        Reset the momentum whenever a pass fits the data worse than the previous one.
-    batch : int
-        Captures updated together (1: strictly one aperture at a time). Shells
-        of 2, 2, 4, 4, 8, … batches are visited in turn.
-    batch_growth : int
-        Each time the misfit reaches a plateau (``plateau`` > 0), the batch
-        grows by this factor, until a batch may hold every capture; only then
-        does a plateau end the run. 1: the batch stays fixed. Small batches
-        make fast progress at first, but on data the model does not explain
-        exactly they end in a cycle between the captures' constraints; growing
-        batches take the run to a stationary point of the whole misfit.
-    cost : str
-        ``"amplitude"`` (magnitude replacement) or ``"poisson"`` (a gradient
-        step on the Poisson likelihood, ``ψ' = ψ (1 − μ (1 − I/|ψ|²))``).
-    poisson_step : float
-        μ of the Poisson step; 0.5 makes the magnitude update a Newton step
-        towards ``√I``.
-    pupil_recovery : str
-        ``"none"``, ``"shared"`` (one pupil for all captures: a scanned camera or
-        an LED-array microscope) or ``"per_camera"`` (one pupil per camera of a
-        camera array; the same as ``shared`` when the captures name no cameras).
-    pupil_model : str
-        ``"full"`` (complex map inside the NA, amplitude and phase) or
-        ``"zernike"`` (phase in Zernike modes up to ``pupil_order``).
-    pupil_order : int
-        Highest Zernike radial order fitted (``zernike``) or reported (``full``): 2, 3 or 4.
-    pupil_amplitude : bool
-        ``full`` model: recover the pupil's amplitude as well as its phase.
-    pupil_start : int
-        Passes before the first pupil step.
-    pupil_step : float
-        Initial pupil step fraction in (0, 1].
-    pupil_estimate : bool
-        Start the quadratic modes from the neighbour-shift estimate
-        (:func:`~cca_cli.engines.calibration.estimate_quadratic_aberration`)
-        unless the captures come with a known aberration.
-    position_refinement : str or bool
-        ``"none"``, ``"global"`` (a few parameters of the whole LED array or
-        stage), ``"per_image"`` (each capture's own offset) or ``"both"``
-        (global, then per image).
-    brightness : bool
-        Fit each capture's illumination brightness.
-    calibration_start : int
-        Passes before the first position / brightness round.
-    calibration_every : int
-        Passes between position / brightness rounds.
-    threads : int or None
-        Worker threads; None uses every core (at most 2 are used). The result
-        does not depend on it beyond float rounding.
-    """
-
-    tau: float = 1e-3
-    max_iterations: int = 200
-    tol: float = 1e-5
-    plateau: float = 0.0
-    plateau_window: int = 5
-    alpha: float = 0.1
-    beta: float = 1.0
-    eta: float = 0.7
-    restart: bool = True
-    batch: int = 12
-    cost: str = "amplitude"
-    poisson_step: float = 0.5
-    pupil_recovery: str = "none"
-    pupil_model: str = "zernike"
-    pupil_order: int = 4
-    pupil_amplitude: bool = True
-    pupil_start: int = 1
-    pupil_step: float = 1.0
-    pupil_estimate: bool = True
-    position_refinement: str | bool = "none"
-    brightness: bool = False
-    calibration_start: int = 3
-    calibration_every: int = 2
-    threads: int | None = None
-    batch_growth: int = 1
-
-    def __post_init__(self):
-        if isinstance(self.position_refinement, bool):  # older configs: true / false
-            object.__setattr__(self, "position_refinement", "both" if self.position_refinement else "none")
-        check_options([
-            (self.tau >= 0, f"tau must be ≥ 0, got {self.tau}"),
-            (self.max_iterations >= 1, f"max_iterations must be ≥ 1, got {self.max_iterations}"),
-            (self.tol >= 0, f"tol must be ≥ 0, got {self.tol}"),
-            (0 <= self.plateau < 1, f"plateau must be in [0, 1), got {self.plateau}"),
-            (self.plateau_window >= 1, f"plateau_window must be ≥ 1, got {self.plateau_window}"),
-            (0 <= self.alpha <= 1, f"alpha must be in [0, 1], got {self.alpha}"),
-            (0 < self.beta < 2, f"beta must be in (0, 2), got {self.beta}"),
-            (0 <= self.eta < 1, f"eta must be in [0, 1), got {self.eta}"),
-            (self.batch >= 1, f"batch must be ≥ 1, got {self.batch}"),
-            (self.batch_growth >= 1, f"batch_growth must be ≥ 1, got {self.batch_growth}"),
-            (self.cost in _COSTS, f"cost must be one of {', '.join(_COSTS)}, got {self.cost!r}"),
-            (0 < self.poisson_step <= 1, f"poisson_step must be in (0, 1], got {self.poisson_step}"),
-            (self.pupil_recovery in _PUPILS,
-             f"pupil_recovery must be one of {', '.join(_PUPILS)}, got {self.pupil_recovery!r}"),
-            (self.pupil_model in PUPIL_MODELS,
-             f"pupil_model must be one of {', '.join(PUPIL_MODELS)}, got {self.pupil_model!r}"),
-            (self.pupil_order in (2, 3, 4), f"pupil_order must be 2, 3 or 4, got {self.pupil_order}"),
-            (self.pupil_start >= 0, f"pupil_start must be ≥ 0, got {self.pupil_start}"),
-            (0 < self.pupil_step <= 1, f"pupil_step must be in (0, 1], got {self.pupil_step}"),
-            (self.position_refinement in ill.POSITION_MODES,
-             f"position_refinement must be one of {', '.join(ill.POSITION_MODES)}, "
-             f"got {self.position_refinement!r}"),
-            (self.calibration_start >= 0, f"calibration_start must be ≥ 0, got {self.calibration_start}"),
-            (self.calibration_every >= 1, f"calibration_every must be ≥ 1, got {self.calibration_every}"),
-        ])
 
 
 @dataclass(frozen=True)

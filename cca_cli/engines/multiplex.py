@@ -21,14 +21,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cca_cli.engines.altmin import AlternatingMinimization, AltMinOptions
+from cca_cli.engines.altmin import AlternatingMinimization
+from cca_cli.engines.options import AltMinOptions
 from cca_cli.engines.problem import MeasuredAmplitudes, sensor_amplitudes, zero_phase_spectrum
 from cca_cli.engines.projections import project_grouped_magnitudes
 from cca_cli.optics.forward import ForwardModel
 from cca_cli.optics.multiplex import MultiplexedForwardModel, group_chunk_slices
 
-__all__ = ["MultiplexedProblem", "MultiplexedAlternatingMinimization", "initial_multiplexed_spectrum",
-           "MULTIPLEX_ENGINES"]
+__all__ = ["MultiplexedProblem", "MultiplexedAlternatingMinimization", "initial_multiplexed_spectrum"]
 
 
 @dataclass(frozen=True)
@@ -127,6 +127,3 @@ class MultiplexedAlternatingMinimization(AlternatingMinimization):
         return project_grouped_magnitudes(fields, self.problem.amplitudes[g0:g1], scratch, local,
                                           weights=weights, eps=self._eps)
 
-
-#: Engines that accept a :class:`MultiplexedProblem`, by the names used in configs.
-MULTIPLEX_ENGINES = {"altmin": MultiplexedAlternatingMinimization}

@@ -40,7 +40,7 @@ default.
 
 from __future__ import annotations
 
-__all__ = ["DATA_KINDS", "preset", "engine_defaults", "starting_options"]
+__all__ = ["DATA_KINDS", "preset", "engine_defaults", "starting_options", "summary"]
 
 _REAL_DATA = dict(max_iterations=150, tol=1e-7, plateau=0.02, plateau_window=10, eta=0.3, batch=24)
 
@@ -106,3 +106,8 @@ def starting_options(engine: str, kind: str) -> tuple[str, dict]:
     if engine == "auto":
         return preset(kind)
     return engine, engine_defaults(engine, kind)
+
+
+def summary() -> str:
+    """What ``auto`` picks, in a few words (for help texts)."""
+    return "altmin for simulations, momentum with calibration for recorded captures"

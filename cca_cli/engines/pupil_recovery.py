@@ -45,6 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cca_cli.engines.options import PUPIL_MODELS
 from cca_cli.engines import calibration as cal
 from cca_cli.optics import kernels
 from cca_cli.optics.pupil import circular_pupils
@@ -52,7 +53,6 @@ from cca_cli.sampling.grid import BandLayout
 
 __all__ = ["PUPIL_MODELS", "PupilEstimate", "PupilRecovery", "tilt_of", "resample_pupil"]
 
-PUPIL_MODELS = ("full", "zernike")
 #: Largest change of any Zernike coefficient in one step (waves): the linearisation holds within ~0.05.
 _MAX_ZERNIKE_STEP = 0.1
 #: Damping of the full-map step, relative to the largest pupil power: pixels seen by little light move little.

@@ -27,8 +27,7 @@ from cca_cli.sampling.geometry import CaptureGeometry
 from cca_cli.sampling.region import RegionEmbedding
 from cca_cli.stages.progress import ProgressFn, silent
 from cca_cli.workflows.recovery import (Recovery, build_model, calibrated_pupils, data_kind, embed_region,
-                                        engine_options, initial_spectrum_from, problem_calibration, recover,
-                                        resolve_engine)
+                                        engine_options, initial_spectrum_from, problem_calibration, recover)
 
 # recover, build_model, embed_region … live in cca_cli.workflows.recovery; they are re-exported here.
 __all__ = ["SECTIONS", "Captures", "Recovery", "Checkpointing", "read_captures", "read_measurements", "build_model",
@@ -132,9 +131,8 @@ def reconstruct(captures: Captures, section: ReconstructSection, *, progress: Pr
     ``section.init`` names a recon.h5 whose spectrum the engine starts from; with
     ``checkpoint`` the run continues from a matching checkpoint and writes new ones.
     """
-    kind = data_kind(captures)
-    name, _ = resolve_engine(section, kind)
-    return recover(captures, name, engine_options(section, kind), progress=progress, init=section.init,
+    name, options = engine_options(section, data_kind(captures))
+    return recover(captures, name, options, progress=progress, init=section.init,
                    checkpoint=checkpoint)
 
 

@@ -34,6 +34,7 @@ import yaml
 from cca_cli.config.load import apply_overrides, dump_config, parse_config
 from cca_cli.config.messages import accepted_keys
 from cca_cli.config.model import RunConfig, SweepSection
+from cca_cli.engines.registry import ENGINES, resolve
 from cca_cli.errors import CcaError, ConfigError
 from cca_cli.io.h5 import Provenance, atomic_h5, atomic_path, remove_temporaries, write_dataset
 from cca_cli.io.outputs import starts_with
@@ -250,8 +251,6 @@ def expand_points(base: RunConfig, spec: SweepSection, sweep_dir: Path, *, sourc
     product = [dict(zip(spec.parameters, combo)) for combo in itertools.product(*spec.parameters.values())]
     base = base.model_copy(update={"sweep": None})
     sets_threads = "threads" in base.reconstruct.options
-    from cca_cli.engines.registry import ENGINES
-
     candidates = ENGINES.values() if base.reconstruct.engine == "auto" else [ENGINES[base.reconstruct.engine]]
     takes_threads = all("threads" in entry.option_names() for entry in candidates)
     points = []
@@ -283,8 +282,8 @@ def point_cost(point: SweepPoint) -> PointCost | None:
 
     try:
         sizes = simulation_sizes(point.config)
-        return PointCost(int(sizes.images), int(sizes.lowres_px), int(sizes.hires_px),
-                         point.config.reconstruct.iterations)
+        _, options = resolve(point.config.reconstruct.engine, "simulation", point.config.reconstruct.given())
+        return PointCost(int(sizes.images), int(sizes.lowres_px), int(sizes.hires_px), options.max_iterations)
     except (CcaError, ValueError, OverflowError):
         return None
 

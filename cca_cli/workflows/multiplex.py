@@ -17,7 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from cca_cli.config.model import ReconstructSection, RunConfig
-from cca_cli.engines.multiplex import MULTIPLEX_ENGINES, MultiplexedProblem
+from cca_cli.engines.multiplex import MultiplexedProblem
+from cca_cli.engines.registry import engine_names, get_engine
 from cca_cli.errors import ConfigError, InputError
 from cca_cli.io.captures import Captures, read_measurements
 from cca_cli.io.h5 import Provenance, check_output, open_input, write_dataset
@@ -29,7 +30,7 @@ from cca_cli.sampling.geometry import CaptureGeometry, camera_scan_geometry
 from cca_cli.sampling.grid import BandLayout
 from cca_cli.progress import ProgressFn, silent
 from cca_cli.workflows.recording import record, record_all, stored_grid, write_captures
-from cca_cli.workflows.recovery import Recovery, drive_engine, engine_options, resolve_engine
+from cca_cli.workflows.recovery import Recovery, drive_engine, engine_options
 from cca_cli.workflows.scenes import Scene, build_scene
 from cca_cli.units import FourierScale
 
@@ -210,17 +211,17 @@ def reconstruct_multiplexed(data: MultiplexedCaptures, section: ReconstructSecti
                             progress: ProgressFn = silent) -> Recovery:
     """Run the configured engine's multiplexed form on ``data``."""
     captures = data.captures
-    name, _ = resolve_engine(section, "simulation")
-    engine_class = MULTIPLEX_ENGINES.get(name)
+    name, options = engine_options(section, "simulation")
+    engine_class = get_engine(name).multiplexed_class()
     if engine_class is None:
+        able = [n for n in engine_names() if get_engine(n).multiplexed is not None]
         raise ConfigError(f"reconstruct.engine: {section.engine!r} cannot use multiplexed captures ({captures.path}); "
-                          f"choose one of {', '.join(sorted(MULTIPLEX_ENGINES))}")
+                          f"choose one of {', '.join(able)}")
     try:
         model = MultiplexedForwardModel(data.multiplex, sensor_size=captures.intensity.shape[-1])
         problem = MultiplexedProblem.from_sensor_images(model, captures.intensity, captures.weight)
     except ValueError as exc:
         raise InputError(f"{captures.path}: {exc}") from None
-    options = engine_options(section, "simulation")
     engine = engine_class(problem, options)
     return drive_engine(engine, options, model.layout, name, progress=progress)
 

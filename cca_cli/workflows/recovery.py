@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -15,9 +15,9 @@ from cca_cli.engines.calibration import defocus_zernike
 from cca_cli.engines.fit import FitReport, fit_report
 from cca_cli.engines.illumination import LedArrayModel
 from cca_cli.engines.momentum import Calibration
-from cca_cli.engines.presets import starting_options
 from cca_cli.engines.problem import PhaseRetrievalProblem
-from cca_cli.engines.registry import get_engine
+from cca_cli.engines.options import EngineOptions
+from cca_cli.engines.registry import get_engine, resolve
 from cca_cli.errors import CcaError, ConfigError, InputError
 from cca_cli.io.captures import Captures
 from cca_cli.io.checkpoint import read_spectrum
@@ -29,7 +29,7 @@ from cca_cli.sampling.geometry import CaptureGeometry
 from cca_cli.sampling.grid import BandLayout, band_layout, smallest_fft_size
 from cca_cli.sampling.region import RegionEmbedding, plan_embedding
 
-__all__ = ["Recovery", "stop_reason", "resolve_engine", "engine_options", "drive_engine", "initial_spectrum_from",
+__all__ = ["Recovery", "stop_reason", "engine_options", "drive_engine", "initial_spectrum_from",
            "embed_region", "build_model", "data_kind", "problem_calibration", "recover", "calibrated_pupils"]
 
 _log = logging.getLogger("cca")
@@ -70,32 +70,16 @@ def stop_reason(history: History, options, engine=None) -> str:
     return "cap" if history.iterations >= options.max_iterations else "tol"
 
 
-def resolve_engine(section: ReconstructSection, kind: str) -> tuple[str, dict]:
-    """Engine name and its keyword options (``tau``, ``max_iterations``, ``tol`` included).
+def engine_options(section: ReconstructSection, kind: str = "simulation", **overrides) -> tuple[str, EngineOptions]:
+    """The engine the section's ``engine`` stands for on ``kind`` of data, and its options object.
 
-    ``engine: auto`` takes the preset for the kind of data
-    (:func:`cca_cli.engines.presets.preset`), and so does the preset's engine
-    named outright on recorded captures (:func:`~cca_cli.engines.presets.starting_options`);
-    what the section sets explicitly (``tau``, ``iterations``, ``tol``,
-    ``options``) overrides the preset.
+    ``overrides`` go on top of what the section gives. One line naming
+    ``reconstruct.options`` when the options do not fit the engine
+    (:func:`cca_cli.engines.registry.resolve`).
     """
-    section_values = {"tau": section.tau, "max_iterations": section.iterations, "tol": section.tol}
-    name, options = starting_options(section.engine, kind)
-    given = section.model_fields_set
-    for key, field in (("tau", "tau"), ("max_iterations", "iterations"), ("tol", "tol")):
-        if field in given or key not in options:
-            options[key] = section_values[key]
-    options.update(section.options)
-    return name, options
-
-
-def engine_options(section: ReconstructSection, kind: str = "simulation"):
-    """The engine's options object from the reconstruct section (``engine: auto`` resolved for ``kind``)."""
-    name, keywords = resolve_engine(section, kind)
-    entry = get_engine(name)
     try:
-        return entry.options(**keywords)
-    except (TypeError, ValueError) as exc:
+        return resolve(section.engine, kind, {**section.given(), **overrides})
+    except ValueError as exc:
         raise ConfigError(f"reconstruct.options: {exc}") from None
 
 
@@ -126,7 +110,7 @@ def drive_engine(engine, options, layout: BandLayout, name: str, *, progress: Pr
         raise CcaError(f"reconstruct: the recovery diverged (NaN or Inf after {history.iterations} iterations), so "
                        "nothing was written; raise reconstruct.tau or choose other reconstruct.options")
     return Recovery(spectrum=spectrum, layout=layout, history=history, engine=name,
-                    options=asdict(options), seconds=time.perf_counter() - start,
+                    options=options.model_dump(), seconds=time.perf_counter() - start,
                     stopped_by=stop_reason(history, options, engine))
 
 
@@ -236,7 +220,7 @@ def recover(captures: Captures, engine: str, options, *, progress: ProgressFn = 
     Recovery
     """
     margin = 0
-    if getattr(options, "position_refinement", "none") != "none":
+    if options.refines_positions:
         margin = int(np.ceil(captures.geometry.pupil_radius_px / 8)) + 2
     try:
         model = build_model(captures.geometry, captures.intensity.shape[-1], margin_px=margin)
@@ -254,8 +238,8 @@ def recover(captures: Captures, engine: str, options, *, progress: ProgressFn = 
         if start.shape != model.spectrum_shape:
             raise ValueError(f"init: the spectrum is {start.shape}, this reconstruction's grid "
                              f"{model.spectrum_shape}; start from a result of the same captures")
-    entry = get_engine(engine)
-    runner = entry.engine(problem, options, spectrum=start)
+    engine_class = get_engine(engine).engine_class()
+    runner = engine_class(problem, options, spectrum=start)
     history = None
     saved = checkpoint.load() if checkpoint is not None else None
     if saved is not None:
@@ -267,7 +251,7 @@ def recover(captures: Captures, engine: str, options, *, progress: ProgressFn = 
         except (KeyError, ValueError, TypeError, NotImplementedError) as exc:
             _log.warning("%s cannot be resumed (%s): starting afresh", checkpoint.path, exc)
             runner.close()
-            runner, history = entry.engine(problem, options, spectrum=start), None
+            runner, history = engine_class(problem, options, spectrum=start), None
     recovery = drive_engine(runner, options, model.layout, engine, progress=progress, on_iteration=on_iteration,
                             history=history, checkpoint=checkpoint)
     calibration = runner.calibration() if hasattr(runner, "calibration") else None

@@ -39,6 +39,7 @@ import numpy as np
 
 from cca_cli import __version__
 from cca_cli.config.model import ReconstructSection
+from cca_cli.engines.options import EngineOptions
 from cca_cli.engines.registry import get_engine
 from cca_cli.errors import CcaError, ConfigError, InputError
 from cca_cli.io.captures import Captures
@@ -52,7 +53,7 @@ from cca_cli.sampling.geometry import CaptureGeometry
 from cca_cli.sampling.grid import band_layout
 from cca_cli.sampling.region import plan_embedding
 from cca_cli.sampling.tiles import Tile, TilePlan, local_illumination, plan_tiles, tile_order
-from cca_cli.workflows.recovery import calibrated_pupils, embed_region, recover, resolve_engine
+from cca_cli.workflows.recovery import calibrated_pupils, embed_region, engine_options, recover
 
 __all__ = ["TiledPlan", "TiledRecovery", "plan_tiled", "tile_geometry", "tile_engine", "run_tile", "stitch",
            "reconstruct_tiled"]
@@ -187,18 +188,23 @@ def plan_tiled(captures_path: Path, section: ReconstructSection) -> TiledPlan:
     return TiledPlan(Path(captures_path), frame, geometry, tiles, int(math.ceil(ratio - 1e-9)))
 
 
-def tile_engine(section: ReconstructSection, kind: str) -> tuple[str, dict]:
+def tile_engine(section: ReconstructSection, kind: str, *, fixed: bool = False) -> tuple[str, EngineOptions]:
     """Engine and options a tile runs: ``auto`` takes the calibrating preset of the geometry's kind.
 
     Simulated captures included: a tiled reconstruction exists to recover a pupil per tile. Each tile
     runs single-threaded (``threads: 1``) unless the options say otherwise: the tiles are the parallelism.
+    ``fixed`` holds the pupil the tile starts from (no pupil recovery).
     """
-    name, options = resolve_engine(section, kind)
     if section.engine == "auto" and kind not in ("led_array", "camera_scan"):
-        name, options = resolve_engine(section, "camera_scan")
-    if "threads" in get_engine(name).option_names() and "threads" not in section.options:
-        options["threads"] = 1
-    return name, options
+        kind = "camera_scan"
+    name, _ = engine_options(section, kind)
+    names = get_engine(name).option_names()
+    overrides = {}
+    if "threads" in names and "threads" not in section.options:
+        overrides["threads"] = 1
+    if fixed and "pupil_recovery" in names:
+        overrides["pupil_recovery"] = "none"
+    return engine_options(section, kind, **overrides)
 
 
 @dataclass(frozen=True)
@@ -258,17 +264,13 @@ def _recover_tile(task: TileTask, section: ReconstructSection, parent: TileResul
     captures = read_tile_captures(plan.captures_path, tile.box)
     captures = replace(captures, geometry=tile_geometry(plan.geometry, plan.frame.frame_shape, tile))
     padded, region = embed_region(captures, section)
-    kind = plan.geometry.kind
-    name, keywords = tile_engine(section, kind)
+    name, options = tile_engine(section, plan.geometry.kind, fixed=fixed)
     start = None
     if parent is not None and parent.zernike_waves is not None:
         start = np.asarray(parent.zernike_waves, np.float64)
-    if fixed:
-        keywords["pupil_recovery"] = "none"
-    options = get_engine(name).options(**keywords)
     recovery = recover(padded, name, options, on_iteration=_reporter(task.topic, tile, options.max_iterations),
                        aberration=start)
-    obj, shift = _on_blend_grid(recovery, padded, region, plan.upsampling, register=_moves_object(options))
+    obj, shift = _on_blend_grid(recovery, padded, region, plan.upsampling, register=options.recovers_pupil_map)
     pupil = waves = None
     modes: list = []
     if recovery.calibration is not None and recovery.calibration.pupil is not None:
@@ -287,11 +289,6 @@ def _recover_tile(task: TileTask, section: ReconstructSection, parent: TileResul
                         history={n: recovery.history.array(n) for n in ("residual", "change", "seconds")},
                         shift_px=shift, fingerprint=fingerprint)
     return result
-
-
-def _moves_object(options) -> bool:
-    """A full pupil map hands its tilt to the object, which then sits shifted: such tiles are registered."""
-    return getattr(options, "pupil_recovery", "none") != "none" and getattr(options, "pupil_model", "") == "full"
 
 
 def _on_blend_grid(recovery, captures: Captures, region, upsampling: int, *, register: bool):
@@ -428,7 +425,7 @@ def reconstruct_tiled(captures_path: Path, section: ReconstructSection, output: 
 
     plan = plan_tiled(captures_path, section)
     start = time.perf_counter()
-    name, keywords = tile_engine(section, plan.geometry.kind)
+    name, options = tile_engine(section, plan.geometry.kind)
     order = tile_order(plan.tiles)
     total = len(order)
     finished: dict[int, TileResult] = {}
@@ -460,9 +457,8 @@ def reconstruct_tiled(captures_path: Path, section: ReconstructSection, output: 
 
     blended = stitch(plan, read_object)
     results = tuple(finished[t.index] for t in plan.tiles.tiles)
-    options = dict(keywords)
     return TiledRecovery(plan=plan, object=blended, results=results, seconds=time.perf_counter() - start, ran=ran,
-                         engine=name, options=options, pupil_mode=section.tiles.pupil)
+                         engine=name, options=options.model_dump(), pupil_mode=section.tiles.pupil)
 
 
 def _run_on(client, plan: TiledPlan, order, tasks: dict, finished: dict, section: ReconstructSection,

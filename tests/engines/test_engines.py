@@ -167,8 +167,8 @@ def test_altmin_options_are_frozen():
 
 def test_registry_lookup_and_unknown_name_lists_valid_names():
     entry = get_engine("altmin")
-    assert entry.engine is AlternatingMinimization and entry.options is AltMinOptions
-    assert issubclass(entry.engine, IterativeEngine) and entry.engine.name == "altmin"
+    assert entry.engine_class() is AlternatingMinimization and entry.options is AltMinOptions
+    assert issubclass(entry.engine_class(), IterativeEngine) and entry.engine_class().name == "altmin"
     assert {"tau", "max_iterations", "tol"} <= set(entry.option_names())
     assert engine_names() == sorted(ENGINES)
     with pytest.raises(KeyError) as excinfo:
@@ -184,7 +184,7 @@ def test_every_registered_engine_improves_on_the_observed_image(name, captures):
     options = entry.options(tau=1e-3, max_iterations=40, tol=0.0)
     problem = PhaseRetrievalProblem.from_sensor_images(model, band)
     calls = []
-    spectrum, history = run_engine(entry.engine(problem, options), on_iteration=calls.append)
+    spectrum, history = run_engine(entry.engine_class()(problem, options), on_iteration=calls.append)
     assert history.iterations == 40 == len(calls)
     truth_intensity = np.abs(truth) ** 2
     recovered = np.abs(fft.ifft2c(spectrum)) ** 2

@@ -101,7 +101,7 @@ def test_poisson_cost_and_weights_recover(clean_case):
 def test_registry_and_reconstruct_stage_keywords():
     entry = get_engine("momentum")
     options = entry.options(tau=1e-3, max_iterations=5, tol=1e-5)
-    assert entry.engine is SequentialMomentum and options.max_iterations == 5
+    assert entry.engine_class() is SequentialMomentum and options.max_iterations == 5
     for bad in (dict(alpha=1.5), dict(beta=0), dict(eta=1.0), dict(cost="l1"), dict(batch=0)):
         with pytest.raises(ValueError):
             MomentumOptions(**bad)

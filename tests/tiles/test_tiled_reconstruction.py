@@ -141,4 +141,4 @@ def test_workers_resolve_the_engine_as_the_client_does():
             assert tile_engine(on_worker, kind) == tile_engine(section, kind)
     name, options = tile_engine(ReconstructSection.model_validate(
         task_section(ReconstructSection(tiles={"size_px": 96, "overlap_px": 32}))), "camera_scan")
-    assert options["max_iterations"] == 150 and options["threads"] == 1   # the preset's cap, one thread per tile
+    assert options.max_iterations == 150 and options.threads == 1   # the preset's cap, one thread per tile

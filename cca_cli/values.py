@@ -1,7 +1,8 @@
-"""How config values are read: numbers stay numbers, booleans stay booleans.
+"""How values a user gives are read: numbers stay numbers, booleans stay booleans.
 
-pydantic's lax mode reads ``true`` as the integer 1 and the string ``"no"`` as
-False. A config means what it says instead:
+Configs, manifests and the Python API's keyword options all read values by
+these rules. pydantic's lax mode reads ``true`` as the integer 1 and the string
+``"no"`` as False. A value means what it says instead:
 
 - a boolean key takes only ``true`` or ``false`` (YAML's unquoted ``yes``/``no``
   are booleans already); a string, a number or null is refused;
@@ -13,7 +14,10 @@ False. A config means what it says instead:
   (``allow_inf_nan=False``).
 
 :func:`read_value` applies these rules to one value given its annotation, and
-walks into lists, tuples and unions.
+walks into lists, tuples and unions. :class:`StrictModel` is the pydantic base
+that applies them to every field (config sections, engine options), and
+:func:`validation_message` turns a validation error into one line naming the
+key.
 """
 
 from __future__ import annotations
@@ -24,7 +28,11 @@ import typing
 from pathlib import Path
 from typing import Any, Literal, Union
 
-__all__ = ["read_value"]
+from pydantic import BaseModel, ConfigDict, ValidationError, ValidationInfo, field_validator
+
+from cca_cli.errors import short
+
+__all__ = ["read_value", "StrictModel", "error_message", "validation_message"]
 
 
 def _flat(annotation) -> list:
@@ -81,9 +89,11 @@ def read_value(annotation, value):
     if (isinstance(value, (int, float)) and not (_accepts(options, int) or _accepts(options, float))
             and _accepts(options, str) and _accepts(options, bool)):
         raise ValueError(f"expected text or true/false, got {value!r}")
-    if isinstance(value, str) and _accepts(options, int) and not _accepts(options, float) \
+    if isinstance(value, (str, float)) and _accepts(options, int) and not _accepts(options, float) \
             and not _accepts(options, str):
-        return _integral(value)
+        if isinstance(value, str):
+            return _integral(value)
+        return int(value) if value.is_integer() else value
     if isinstance(value, (list, tuple)):
         for option in options:
             origin = typing.get_origin(option)
@@ -96,3 +106,39 @@ def read_value(annotation, value):
                 if len(args) == len(value):
                     return [read_value(a, v) for a, v in zip(args, value)]
     return value
+
+
+class StrictModel(BaseModel):
+    """Frozen, unknown keys refused, no inf/nan, every value read by :func:`read_value`."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _read_value(cls, value, info: ValidationInfo):
+        field = cls.model_fields.get(info.field_name)
+        return value if field is None else read_value(field.annotation, value)
+
+
+def error_message(error: dict) -> str:
+    """The message of one pydantic error, without pydantic's ``Value error,`` prefix."""
+    return error["msg"].removeprefix("Value error, ")
+
+
+def validation_message(exc: ValidationError, *, prefix: str = "", accepted: list[str] | None = None) -> str:
+    """One line for a validation error: the key (after ``prefix``), what is wrong and the value given.
+
+    An unknown key lists the ``accepted`` ones (default: none listed).
+    """
+    errors = exc.errors()
+    error = next((e for e in errors if e["type"] == "extra_forbidden"), errors[0])
+    key = prefix + ".".join(short(p, 40) if not isinstance(p, str) or len(p) > 40 else p for p in error["loc"])
+    if error["type"] == "extra_forbidden":
+        listed = f"; accepted: {', '.join(accepted)}" if accepted else ""
+        return f"unknown key {key}{listed}"
+    if error["type"] == "literal_error":
+        choices = str(error.get("ctx", {}).get("expected", "")).replace("'", "").replace(" or ", ", ")
+        return f"{key}: must be one of {choices} (got {short(error.get('input'))})"
+    shown = "input" in error and not isinstance(error["input"], dict) and error["type"] != "value_error"
+    got = f" (got {short(error['input'])})" if shown else ""
+    return f"{key}: {error_message(error)}{got}" if key != prefix else f"{prefix}{error_message(error)}{got}"

@@ -1,0 +1,236 @@
+"""Every engine's options: frozen pydantic models, importable without the engines' numeric code.
+
+A config's ``reconstruct`` section, the Python API's keywords, tiles and
+multiplexed runs all read options through these models (by way of
+:func:`cca_cli.engines.registry.resolve`), so a value means the same wherever
+it is given: ``"1e-3"`` is 0.001, ``2.0`` is the integer 2, ``true`` is no
+number, and an unknown key or a value out of range is one line naming the
+option (:mod:`cca_cli.values`).
+"""
+
+from __future__ import annotations
+
+from typing import Literal, Optional
+
+from pydantic import model_validator
+
+from cca_cli.values import StrictModel
+
+__all__ = ["COSTS", "PUPIL_RECOVERIES", "PUPIL_MODELS", "POSITION_MODES", "ITERATIONS_ALIAS", "EngineOptions",
+           "AltMinOptions", "MomentumOptions"]
+
+COSTS = ("amplitude", "poisson")
+PUPIL_RECOVERIES = ("none", "shared", "per_camera")
+#: ``full``: the complex map inside the NA (EPRY); ``zernike``: the phase in Zernike modes.
+PUPIL_MODELS = ("full", "zernike")
+#: What position refinement fits: nothing, a global model of the array or stage, each capture's own offset, or both.
+POSITION_MODES = ("none", "global", "per_image", "both")
+#: The friendly name of ``max_iterations`` (configs' ``reconstruct.iterations``, the API's ``iterations=``).
+ITERATIONS_ALIAS = ("iterations", "max_iterations")
+
+
+def _checked(checks) -> None:
+    """Raise ValueError with the message of the first failed ``(condition, message)`` check."""
+    for ok, message in checks:
+        if not ok:
+            raise ValueError(message)
+
+
+class EngineOptions(StrictModel):
+    """What every engine takes.
+
+    Attributes
+    ----------
+    tau : float
+        Added to the update denominator (pupil-power units: a spectrum pixel
+        seen by one capture has ``Σ |P_i|² = 1``).
+    max_iterations : int
+        Cap on iterations (passes over all captures).
+    tol : float
+        Stop when the relative spectrum change of an iteration falls below it.
+    threads : int or None
+        Worker threads; None uses the cores the process may use.
+    """
+
+    tau: float = 1e-3
+    max_iterations: int = 1000
+    tol: float = 1e-5
+    threads: Optional[int] = None
+
+    @property
+    def refines_positions(self) -> bool:
+        """Whether the engine may move the captures' pupils (its spectrum grid then needs a margin)."""
+        return False
+
+    @property
+    def recovers_pupil_map(self) -> bool:
+        """Whether the engine recovers a full pupil map, whose tilt moves the object (so results are registered)."""
+        return False
+
+    @model_validator(mode="after")
+    def _common_ranges(self):
+        _checked([
+            (self.tau >= 0, f"tau must be ≥ 0, got {self.tau}"),
+            (self.max_iterations >= 1, f"max_iterations must be ≥ 1, got {self.max_iterations}"),
+            (self.tol >= 0, f"tol must be ≥ 0, got {self.tol}"),
+            (self.threads is None or self.threads >= 1, f"threads must be an integer ≥ 1 or null, got {self.threads}"),
+        ])
+        return self
+
+
+class AltMinOptions(EngineOptions):
+    """Options of the alternating-minimization engine (:mod:`cca_cli.engines.altmin`).
+
+    Attributes
+    ----------
+    tau : float
+        Tikhonov weight τ added to ``Σ |P_i|²``.
+    max_iterations : int
+        Iteration cap (paper: 1000).
+    tol : float
+        Stop when the relative spectrum change ``‖ΔS‖/‖S‖`` falls below it (paper: 1e-5).
+    chunk : int
+        Captures processed together (cache-sized).
+    threads : int or None
+        Worker threads; None uses every core.
+    """
+
+    chunk: int = 16
+
+    @model_validator(mode="after")
+    def _ranges(self):
+        _checked([(self.chunk >= 1, f"chunk must be an integer ≥ 1, got {self.chunk}")])
+        return self
+
+
+class MomentumOptions(EngineOptions):
+    """Options of the sequential momentum engine (:mod:`cca_cli.engines.momentum`).
+
+    Attributes
+    ----------
+    tau : float
+        Added to the update denominator (pupil-power units, as AltMin's τ).
+    max_iterations : int
+        Cap on passes over all captures.
+    tol : float
+        Stop when the relative spectrum change of a pass falls below it.
+    plateau : float
+        Stop when the data misfit fell by less than this fraction over the last
+        ``plateau_window`` passes (0: never).
+    plateau_window : int
+        Passes the plateau test looks back.
+    alpha : float
+        rPIE regularisation α in [0, 1]: 0 divides by the batch's pupil power
+        (ePIE-like full projection), 1 by its maximum (small, uniform steps).
+    beta : float
+        Step size β in (0, 2).
+    eta : float
+        Momentum η in [0, 1); 0 gives plain (batched) rPIE.
+    restart : bool
+        Reset the momentum whenever a pass fits the data worse than the previous one.
+    batch : int
+        Captures updated together (1: strictly one aperture at a time). Shells
+        of 2, 2, 4, 4, 8, … batches are visited in turn.
+    batch_growth : int
+        Each time the misfit reaches a plateau (``plateau`` > 0), the batch
+        grows by this factor, until a batch may hold every capture; only then
+        does a plateau end the run. 1: the batch stays fixed. Small batches
+        make fast progress at first, but on data the model does not explain
+        exactly they end in a cycle between the captures' constraints; growing
+        batches take the run to a stationary point of the whole misfit.
+    cost : {"amplitude", "poisson"}
+        Magnitude replacement, or a gradient step on the Poisson likelihood,
+        ``ψ' = ψ (1 − μ (1 − I/|ψ|²))``.
+    poisson_step : float
+        μ of the Poisson step; 0.5 makes the magnitude update a Newton step
+        towards ``√I``.
+    pupil_recovery : {"none", "shared", "per_camera"}
+        No pupil recovery, one pupil for all captures (a scanned camera or an
+        LED-array microscope), or one per camera of a camera array (the same as
+        ``shared`` when the captures name no cameras).
+    pupil_model : {"full", "zernike"}
+        The complex map inside the NA (amplitude and phase), or the phase in
+        Zernike modes up to ``pupil_order``.
+    pupil_order : {2, 3, 4}
+        Highest Zernike radial order fitted (``zernike``) or reported (``full``).
+    pupil_amplitude : bool
+        ``full`` model: recover the pupil's amplitude as well as its phase.
+    pupil_start : int
+        Passes before the first pupil step.
+    pupil_step : float
+        Initial pupil step fraction in (0, 1].
+    pupil_estimate : bool
+        Start the quadratic modes from the neighbour-shift estimate
+        (:func:`~cca_cli.engines.calibration.estimate_quadratic_aberration`)
+        unless the captures come with a known aberration.
+    position_refinement : {"none", "global", "per_image", "both"}
+        Nothing, a few parameters of the whole LED array or stage, each
+        capture's own offset, or the global model and then each offset
+        (``true``/``false`` are read as ``both``/``none``).
+    brightness : bool
+        Fit each capture's illumination brightness.
+    calibration_start : int
+        Passes before the first position / brightness round.
+    calibration_every : int
+        Passes between position / brightness rounds.
+    threads : int or None
+        Worker threads; None uses every core (at most 2 are used). The result
+        does not depend on it beyond float rounding.
+    """
+
+    max_iterations: int = 200
+    plateau: float = 0.0
+    plateau_window: int = 5
+    alpha: float = 0.1
+    beta: float = 1.0
+    eta: float = 0.7
+    restart: bool = True
+    batch: int = 12
+    batch_growth: int = 1
+    cost: Literal["amplitude", "poisson"] = "amplitude"
+    poisson_step: float = 0.5
+    pupil_recovery: Literal["none", "shared", "per_camera"] = "none"
+    pupil_model: Literal["full", "zernike"] = "zernike"
+    pupil_order: Literal[2, 3, 4] = 4
+    pupil_amplitude: bool = True
+    pupil_start: int = 1
+    pupil_step: float = 1.0
+    pupil_estimate: bool = True
+    position_refinement: Literal["none", "global", "per_image", "both"] = "none"
+    brightness: bool = False
+    calibration_start: int = 3
+    calibration_every: int = 2
+
+    @property
+    def refines_positions(self) -> bool:
+        return self.position_refinement != "none"
+
+    @property
+    def recovers_pupil_map(self) -> bool:
+        return self.pupil_recovery != "none" and self.pupil_model == "full"
+
+    @model_validator(mode="before")
+    @classmethod
+    def _old_position_switch(cls, data):
+        """Older configs say ``position_refinement: true`` / ``false``: read them as ``both`` / ``none``."""
+        if isinstance(data, dict) and isinstance(data.get("position_refinement"), bool):
+            data = dict(data, position_refinement="both" if data["position_refinement"] else "none")
+        return data
+
+    @model_validator(mode="after")
+    def _ranges(self):
+        _checked([
+            (0 <= self.plateau < 1, f"plateau must be in [0, 1), got {self.plateau}"),
+            (self.plateau_window >= 1, f"plateau_window must be ≥ 1, got {self.plateau_window}"),
+            (0 <= self.alpha <= 1, f"alpha must be in [0, 1], got {self.alpha}"),
+            (0 < self.beta < 2, f"beta must be in (0, 2), got {self.beta}"),
+            (0 <= self.eta < 1, f"eta must be in [0, 1), got {self.eta}"),
+            (self.batch >= 1, f"batch must be ≥ 1, got {self.batch}"),
+            (self.batch_growth >= 1, f"batch_growth must be ≥ 1, got {self.batch_growth}"),
+            (0 < self.poisson_step <= 1, f"poisson_step must be in (0, 1], got {self.poisson_step}"),
+            (self.pupil_start >= 0, f"pupil_start must be ≥ 0, got {self.pupil_start}"),
+            (0 < self.pupil_step <= 1, f"pupil_step must be in (0, 1], got {self.pupil_step}"),
+            (self.calibration_start >= 0, f"calibration_start must be ≥ 0, got {self.calibration_start}"),
+            (self.calibration_every >= 1, f"calibration_every must be ≥ 1, got {self.calibration_every}"),
+        ])
+        return self
