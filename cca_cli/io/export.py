@@ -1,18 +1,22 @@
 """Export a recovery as an image file: float32 TIFF, 16-bit PNG or NumPy ``.npy``.
 
-The file format follows the output's suffix. Every image file records the
-object-plane pixel size:
+The file format follows the output's suffix (or ``format``, with any suffix).
+Every image file records the object-plane pixel size:
 
 - **TIFF** (``.tif``, ``.tiff``): float32 values as stored in ``recon.h5``, at
-  full resolution; ``XResolution``/``YResolution`` in pixels per centimetre
-  and an ``ImageDescription`` holding JSON (quantity, units, pixel size).
+  full resolution, uncompressed (Deflate with the floating-point predictor,
+  which OpenImageIO would pick, is unreadable to ``tifffile`` without
+  ``imagecodecs`` and to ImageJ); ``XResolution``/``YResolution`` in pixels
+  per centimetre (``ResolutionUnit`` cm, which ImageJ reads as its pixel
+  size) and an ``ImageDescription`` holding JSON (quantity, units, pixel size).
 - **PNG** (``.png``): 16-bit codes ``c`` with ``value = offset + scale · c``;
   ``offset``, ``scale``, the pixel size, quantity and units are PNG text
   chunks (``cca:offset`` …), the pixel size also the ``pHYs`` chunk.
 - **NPY** (``.npy``): the float32 array alone (NumPy files hold no metadata).
 
 Files appear atomically: a failed or interrupted export leaves nothing behind,
-and an existing file is replaced only with ``force``.
+and an existing file is replaced only with ``force``. Files are read back by
+their content, not their suffix.
 """
 
 from __future__ import annotations
@@ -27,8 +31,8 @@ import numpy as np
 from cca_cli.errors import CcaError, ConfigError, InputError
 from cca_cli.io.h5 import atomic_path, open_input, require
 
-__all__ = ["QUANTITIES", "FORMATS", "ExportedImage", "export_format", "recon_quantity", "export_image", "export_recon",
-           "read_exported"]
+__all__ = ["QUANTITIES", "FORMATS", "ExportedImage", "export_format", "file_format", "recon_quantity", "export_image",
+           "export_recon", "read_exported"]
 
 #: What can be exported from a recovery.
 QUANTITIES = ("amplitude", "intensity", "phase")
@@ -36,6 +40,8 @@ QUANTITIES = ("amplitude", "intensity", "phase")
 FORMATS = {".tif": "tiff", ".tiff": "tiff", ".png": "png", ".npy": "npy"}
 
 _PNG_TOP = 65535
+_MAGIC = ((b"\x93NUMPY", "npy"), (b"II*\x00", "tiff"), (b"MM\x00*", "tiff"), (b"II+\x00", "tiff"),
+          (b"MM\x00+", "tiff"), (b"\x89PNG\r\n\x1a\n", "png"))
 
 
 @dataclass(frozen=True)
@@ -220,7 +226,7 @@ def _write_oiio(tmp: Path, format_name: str, data: np.ndarray, pixel_type: str, 
     spec.attribute("ImageDescription", json.dumps(meta))
     spec.attribute("Software", "cca")
     if format_name == "tiff":
-        spec.attribute("compression", "zip")
+        spec.attribute("compression", "none")
     else:
         spec.attribute("oiio:ColorSpace", "linear")  # codes are linear in the value, not sRGB-encoded
         for key, value in meta.items():
@@ -266,12 +272,22 @@ def export_recon(recon_path: str | Path, path: str | Path, *, quantity: str = "a
     return export_image(values, path, pixel_size_m=pixel, quantity=quantity, units=units, format=kind, force=force)
 
 
+def file_format(path: str | Path) -> str | None:
+    """``tiff``, ``png`` or ``npy`` as the file's first bytes say (whatever its suffix); None for anything else."""
+    try:
+        with open(path, "rb") as handle:
+            head = handle.read(8)
+    except OSError:
+        return None
+    return next((kind for magic, kind in _MAGIC if head.startswith(magic)), None)
+
+
 def written_by_export(path: Path) -> bool:
     """Whether ``path`` is a TIFF or PNG that :func:`export_image` wrote (its Software tag says cca).
 
     A ``.npy`` file carries no such mark, so cca never replaces one it finds.
     """
-    if Path(path).suffix.lower() not in (".tif", ".tiff", ".png"):
+    if not Path(path).is_file() or file_format(path) not in ("tiff", "png"):
         return False
     import OpenImageIO as oiio
 
@@ -288,6 +304,8 @@ def written_by_export(path: Path) -> bool:
 def read_exported(path: str | Path) -> ExportedImage:
     """Read a file written by :func:`export_image` back into physical values.
 
+    The format is read from the file's content, so any suffix works (``cca export --format``).
+
     Raises
     ------
     InputError
@@ -296,7 +314,7 @@ def read_exported(path: str | Path) -> ExportedImage:
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: file not found")
-    if path.suffix.lower() == ".npy":
+    if file_format(path) == "npy":
         try:
             values = np.load(path, allow_pickle=False)
         except (OSError, ValueError) as exc:

@@ -246,7 +246,10 @@ class CapturePlan:
     darks, flats : list of (Path, float)
         Dark and flat frames with their exposures.
     bit_depth : int or None
-        Bit depth the rows state (one value for the whole set).
+        Bit depth the coherent, dark and flat rows state (one value for all of them).
+    calibration_bit_depths : dict of Path to int
+        Bit depth each calibration row states, where it states one (board views may be
+        taken in another camera mode than the captures).
     notes : list of str
         What was noticed while planning (ignored columns …), to show once.
     """
@@ -262,6 +265,7 @@ class CapturePlan:
     darks: list[tuple[Path, float]] = field(default_factory=list)
     flats: list[tuple[Path, float]] = field(default_factory=list)
     bit_depth: int | None = None
+    calibration_bit_depths: dict[Path, int] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
 
     @property
@@ -631,8 +635,8 @@ def plan_captures(manifest: Manifest, path: str | Path, *, notes: list[str] | No
     ConfigError
         An exposure listed twice at one position, positions with different
         numbers of exposures, grid entries without ``stage_pitch_mm``, a
-        calibration row without a coherent position (or the reverse), rows
-        stating different bit depths, or no coherent rows.
+        calibration row without a coherent position (or the reverse), coherent,
+        dark or flat rows stating different bit depths, or no coherent rows.
     """
     path = Path(path)
     if manifest.source is not None:
@@ -644,16 +648,7 @@ def plan_captures(manifest: Manifest, path: str | Path, *, notes: list[str] | No
     coherent = by_kind["coherent"]
     if not coherent:
         raise ConfigError(f"{path}: no coherent images listed (rows of kind coherent); list the captures")
-    bits = sorted({e.bit_depth for e in manifest.images if e.bit_depth is not None})
-    if len(bits) > 1:
-        first = next(e for e in manifest.images if e.bit_depth == bits[0])
-        other = next(e for e in manifest.images if e.bit_depth == bits[1])
-        raise ConfigError(f"{path}: rows state bit depths {bits[0]} ({first.path.name}) and {bits[1]} "
-                          f"({other.path.name}); every frame of a set must have the same bit depth")
-    bit_depth = bits[0] if bits else None
-    if bit_depth is not None and manifest.sensor.bit_depth is not None and bit_depth != manifest.sensor.bit_depth:
-        raise ConfigError(f"{path}: the rows state bit depth {bit_depth} but sensor.bit_depth is "
-                          f"{manifest.sensor.bit_depth}; make them agree")
+    bit_depth = _stated_bit_depth(coherent + by_kind["dark"] + by_kind["flat"], manifest, path)
 
     kinds = {e.position_kind for e in coherent}
     if "led" in kinds and "stage" in kinds:
@@ -716,8 +711,33 @@ def plan_captures(manifest: Manifest, path: str | Path, *, notes: list[str] | No
     flats = [(e.path, e.exposure_s) for e in by_kind["flat"]]
     if calibration is None and manifest.checkerboard is None and by_kind["calibration"]:
         notes.append(f"{path.name}: calibration rows given but no checkerboard section; they are not used")
+    board_bits = {e.path: e.bit_depth for e in by_kind["calibration"] if e.bit_depth is not None}
     return CapturePlan(manifest, path, files, np.asarray(exposures, np.float64), pos, grid_idx, labels,
-                       calibration=calibration, darks=darks, flats=flats, bit_depth=bit_depth, notes=notes)
+                       calibration=calibration, darks=darks, flats=flats, bit_depth=bit_depth,
+                       calibration_bit_depths=board_bits, notes=notes)
+
+
+def _stated_bit_depth(entries: list[ImageEntry], manifest: Manifest, path: Path) -> int | None:
+    """The one bit depth the capture, dark and flat rows state (calibration rows may state their own).
+
+    Raises
+    ------
+    ConfigError
+        Two depths stated, or one that contradicts ``sensor.bit_depth``.
+    """
+    bits = sorted({e.bit_depth for e in entries if e.bit_depth is not None})
+    if len(bits) > 1:
+        first = next(e for e in entries if e.bit_depth == bits[0])
+        other = next(e for e in entries if e.bit_depth == bits[1])
+        raise ConfigError(f"{path}: rows state bit depths {bits[0]} ({first.path.name}) and {bits[1]} "
+                          f"({other.path.name}); the captures, darks and flats of a set must have the same bit "
+                          "depth (calibration views may have their own)")
+    bit_depth = bits[0] if bits else None
+    if bit_depth is not None and manifest.sensor.bit_depth is not None and bit_depth != manifest.sensor.bit_depth:
+        first = next(e for e in entries if e.bit_depth == bit_depth)
+        raise ConfigError(f"{path}: the rows state bit depth {bit_depth} ({first.path.name}) but sensor.bit_depth is "
+                          f"{manifest.sensor.bit_depth}; make them agree")
+    return bit_depth
 
 
 def _check_grouped_positions(groups: dict, pos: np.ndarray, path: Path, kind: str) -> None:

@@ -198,7 +198,8 @@ DATASETS: tuple[DatasetSpec, ...] = (
                 "extrapolates there)."),
     DatasetSpec("/registration/board_views", "float32", "(K, H, W)", "counts/s",
                 "Calibration images of the board at each position (rows of kind calibration), linearised; the "
-                "board is found in these instead of the captures."),
+                "board is found in these instead of the captures. Views at another bit depth than the captures "
+                "are in their own codes per second (gain map applied, no black level subtracted)."),
     DatasetSpec("/registration/kept_index", "int32", "(K,)", "1", "Index of each registered view among the ingested ones."),
     DatasetSpec("/registration/corners", "float32", "(K, N, 2)", "px", "Detected inner corners (x, y) in each view."),
     DatasetSpec("/registration/dropped", "str", "(D,)", "text", "Positions lost because no checkerboard was found."),

@@ -9,8 +9,10 @@ which colour sites to keep. This module reads that meaning from the
 manifest's ``sensor`` section and, where the manifest is silent, from the
 values themselves, and refuses sets that contradict themselves:
 
-* every frame must have the same container, declared bit depth and channel
-  layout (one 8-bit PNG among 16-bit TIFFs would be 256x too dark);
+* every capture, dark and flat frame must have the same container, declared
+  bit depth and channel layout (one 8-bit PNG among 16-bit TIFFs would be
+  256x too dark); calibration (board) views, which are only searched for
+  corners, may have their own depth (:func:`board_decodings`);
 * colour frames need ``sensor.channel`` and mosaics ``sensor.bayer``;
 * a stated bit depth, alignment or white level must agree with the values.
 
@@ -22,14 +24,14 @@ and the fix.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from cca_cli.errors import ConfigError, InputError
 from cca_cli.io.images import StoredImage
 
-__all__ = ["SensorRule", "FrameValues", "Decoding", "frame_values", "decide_decoding"]
+__all__ = ["SensorRule", "FrameValues", "Decoding", "frame_values", "decide_decoding", "same_depth", "board_decodings"]
 
 _BAYER_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
 
@@ -297,6 +299,55 @@ def decide_decoding(frames: list[FrameValues], rule: SensorRule, *, white_level:
         raise InputError(f"{culprit.path}: holds values up to {culprit.max_value:g}, above the largest {n}-bit code "
                          f"{full:g}; the data look MSB-aligned: set sensor.alignment: msb in {rule.source}")
     return _checked(frames, Decoding(0, n, full, "codes", notes), white_level, rule)
+
+
+def same_depth(frame: FrameValues, reference: FrameValues) -> bool:
+    """Whether two files hold values of one kind: the same container and declared bit depth."""
+    return (frame.container_bits, frame.significant_bits) == (reference.container_bits, reference.significant_bits)
+
+
+def board_decodings(boards: list[FrameValues], stated: list[int | None], rule: SensorRule) -> list[Decoding]:
+    """Decode calibration views at another bit depth than the captures, each depth on its own values.
+
+    Board views only serve to find the board's corners, so a view taken in
+    another camera mode (an 8-bit photo beside 12-bit captures) is read at its
+    own depth: the bit depth its row states applies, and the channel rules,
+    but not the sensor's container, alignment or white level (they describe
+    the captures).
+
+    Parameters
+    ----------
+    boards : list of FrameValues
+        The views at another depth than the captures.
+    stated : list of int or None
+        The bit depth each view's row states.
+    rule : SensorRule
+        The manifest's rule (for the channel, mosaic and the manifest's name).
+
+    Returns
+    -------
+    list of Decoding
+        One per view; views of one container, declared and stated depth share one decision.
+
+    Raises
+    ------
+    InputError
+        A stated bit depth the view's file or values contradict.
+    """
+    own = replace(rule, container_bits=None, alignment=None)
+    groups: dict[tuple, list[int]] = {}
+    for i, (frame, bits) in enumerate(zip(boards, stated)):
+        if bits is not None and frame.container_bits is not None and bits > frame.container_bits:
+            raise InputError(f"{frame.path}: is a {frame.container_bits}-bit file but its row states bit depth "
+                             f"{bits}; state the view's own bit depth in its row, or none ({rule.source}; calibration "
+                             "views may have another depth than the captures)")
+        groups.setdefault((frame.container_bits, frame.significant_bits, bits), []).append(i)
+    out: list[Decoding | None] = [None] * len(boards)
+    for (_, _, bits), members in groups.items():
+        decoding = decide_decoding([boards[i] for i in members], replace(own, bit_depth=bits), white_level=None)
+        for i in members:
+            out[i] = replace(decoding, notes=[])
+    return out
 
 
 def _checked(frames: list[FrameValues], decoding: Decoding, white_level: float | None,

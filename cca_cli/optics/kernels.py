@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from cca_cli.optics import fft, switches
+from cca_cli.optics.jit import cache_enabled
 
 numba = None
 if switches.read_at_import("CCA_KERNELS", "numba", ("numba", "numpy")) == "numba":
@@ -117,8 +118,9 @@ def _scatter_numpy(fields, origins, pupils, accumulator, start):
 if _HAVE_NUMBA:  # pragma: no branch
     # error_model="numpy": float division by zero gives inf instead of raising, which lets
     # LLVM vectorise loops that divide (about 5x faster magnitude steps).
-    _jit = numba.njit(nogil=True, cache=True, error_model="numpy")
-    _jit_fast = numba.njit(nogil=True, cache=True, error_model="numpy", fastmath=True)
+    _cache = cache_enabled()  # False (with a note) where numba can write no cache folder: a read-only install
+    _jit = numba.njit(nogil=True, cache=_cache, error_model="numpy")
+    _jit_fast = numba.njit(nogil=True, cache=_cache, error_model="numpy", fastmath=True)
 
     @_jit
     def _first_bad_box(origins, start, count, last_y, last_x):  # pragma: no cover - compiled

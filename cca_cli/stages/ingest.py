@@ -7,7 +7,9 @@ flat frames a gain map (:mod:`cca_cli.hdr.calibration`); the coherent frames
 are black-subtracted (negative values kept: clipping them would bias dim
 pixels upwards), divided by the gain map and grouped by position into
 ``(K, E, H, W)`` exposure brackets. Calibration (board) images are stored
-per position for the register stage. Positions become pupil centres in
+per position for the register stage; they may come at another bit depth
+than the captures (the board shot in another camera mode) and are then read
+at their own depth. Positions become pupil centres in
 spectrum pixels in :mod:`cca_cli.sampling.capture`. Single-exposure
 datasets also get ``/measurements`` so they can go straight to
 `reconstruct` (or `register`).
@@ -30,7 +32,8 @@ from cca_cli.io.h5 import Provenance, atomic_h5, check_output, write_dataset
 from cca_cli.io.images import read_stored
 from cca_cli.io.manifest import CapturePlan, plan_captures, read_manifest, read_pupil
 from cca_cli.io.records import write_sensor_records
-from cca_cli.io.sensor import Decoding, FrameValues, SensorRule, decide_decoding, frame_values
+from cca_cli.io.sensor import (Decoding, FrameValues, SensorRule, board_decodings, decide_decoding, frame_values,
+                               same_depth)
 from cca_cli.sampling.capture import led_array_geometry, stage_scan_geometry
 from cca_cli.sampling.geometry import CaptureGeometry
 from cca_cli.stages.progress import ProgressEvent, ProgressFn, silent
@@ -113,7 +116,8 @@ class _Reader:
 
 
 def _read_files(plan: CapturePlan, progress: ProgressFn):
-    """All frames of the plan in stored units, and the decoding decided from them."""
+    """All frames of the plan in counts and the decoding decided from them; each calibration frame comes with
+    whether it is read at its own depth (:func:`_board_depths`)."""
     rule = _sensor_rule(plan)
     reader = _Reader(rule)
     k, e = plan.exposure_s.shape
@@ -140,16 +144,60 @@ def _read_files(plan: CapturePlan, progress: ProgressFn):
 
     darks = read_list(plan.darks)
     flats = read_list(plan.flats)
+    captured = len(reader.stats)
     boards = [read_list(views) for views in plan.calibration or ()]
-    white = plan.manifest.sensor.white_level
-    decoding = decide_decoding(reader.stats, rule, white_level=white)
+    own, notes = _board_depths(plan, reader.stats[:captured], reader.stats[captured:], rule)
+    with_captures = reader.stats[:captured] + [f for f, d in zip(reader.stats[captured:], own) if d is None]
+    decoding = decide_decoding(with_captures, rule, white_level=plan.manifest.sensor.white_level)
+    decoding = replace(decoding, notes=decoding.notes + notes)
     if decoding.shift:
         scale = np.float32(1.0 / 2**decoding.shift)
         frames *= scale
         darks = [d * scale for d in darks]
         flats = [f * scale for f in flats]
-        boards = [[b * scale for b in views] for views in boards]
+    owns = iter(own)
+    boards = [[_board_counts(frame, next(owns), decoding) for frame in views] for views in boards]
     return frames, darks, flats, boards, decoding
+
+
+def _board_counts(frame: np.ndarray, own: Decoding | None, captures: Decoding) -> tuple[np.ndarray, bool]:
+    """A calibration frame in counts, and whether it is at its own depth (then not in the captures' codes)."""
+    shift = (captures if own is None else own).shift
+    return (frame * np.float32(1.0 / 2**shift) if shift else frame), own is not None
+
+
+def _board_depths(plan: CapturePlan, captures: list[FrameValues], boards: list[FrameValues],
+                  rule: SensorRule) -> tuple[list[Decoding | None], list[str]]:
+    """Which calibration views are read at their own bit depth (their decoding; None: read like the captures).
+
+    A view whose file holds another kind of values than the captures (an 8-bit photo beside 16-bit files), or whose
+    row states another bit depth, is read at its own depth: only its board corners are used.
+    """
+    if not boards:
+        return [], []
+    stated = [plan.calibration_bit_depths.get(path) for views in plan.calibration for path, _ in views]
+    captures_bits = rule.bit_depth
+    differs = [not same_depth(frame, captures[0]) or (bits is not None and bits != captures_bits)
+               for frame, bits in zip(boards, stated)]
+    if not any(differs):
+        return [None] * len(boards), []
+    others = [i for i, d in enumerate(differs) if d]
+    decided = board_decodings([boards[i] for i in others], [stated[i] for i in others], rule)
+    own: list[Decoding | None] = [None] * len(boards)
+    for i, decoding in zip(others, decided):
+        own[i] = decoding
+    first = boards[others[0]]
+    more = f" and {len(others) - 1} more" if len(others) > 1 else ""
+    note = (f"calibration views at another bit depth than the captures ({_depth_text(first, stated[others[0]])} "
+            f"beside {_depth_text(captures[0], captures_bits)}: {first.path}{more}) are read at their own depth; "
+            "only the board's corners are taken from them")
+    return own, [note]
+
+
+def _depth_text(frame: FrameValues, stated: int | None = None) -> str:
+    if stated is not None:
+        return f"{stated}-bit"
+    return "float" if frame.significant_bits is None else f"{frame.significant_bits}-bit"
 
 
 def _calibrate(plan: CapturePlan, decoding: Decoding, darks, flats, notes: list[str]) -> SensorCalibration:
@@ -208,14 +256,21 @@ def _linearise(frames: np.ndarray, exposure_s: np.ndarray, calibration: SensorCa
                 frames[i, j] *= inverse_gain
 
 
-def _board_views(plan: CapturePlan, boards: list[list[np.ndarray]], calibration: SensorCalibration) -> np.ndarray:
-    """One board image per position (counts/s): the mean of its calibration frames, linearised."""
+def _board_views(plan: CapturePlan, boards: list[list[tuple[np.ndarray, bool]]],
+                 calibration: SensorCalibration) -> np.ndarray:
+    """One board image per position (counts/s): the mean of its calibration frames, linearised.
+
+    Frames at their own bit depth are divided by the gain map and their exposure only: the black level is in the
+    captures' codes.
+    """
     out = None
     for k, (views, frames) in enumerate(zip(plan.calibration, boards)):
         rates = []
-        for (path, t), frame in zip(views, frames):
-            level, _ = calibration.black_at(t)
-            linear = frame - np.asarray(level, np.float32)
+        for (path, t), (frame, own_depth) in zip(views, frames):
+            linear = frame
+            if not own_depth:
+                level, _ = calibration.black_at(t)
+                linear = frame - np.asarray(level, np.float32)
             if calibration.gain is not None:
                 linear = linear / calibration.gain
             rates.append(linear / np.float32(t))

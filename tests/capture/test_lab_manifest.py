@@ -239,6 +239,68 @@ def test_rows_stating_different_bit_depths(tmp_path):
     _refused(tmp_path, "lab.yaml", "bit depths 12", "14", "same bit depth")
 
 
+def _eight_bit(tmp_path, prefix, *, bits=None):
+    """Rows editor: the files of rows whose name starts with ``prefix`` become 8-bit PNGs, their rows stating ``bits``
+    ("" for none)."""
+    def edit(rows):
+        out = []
+        for row in rows:
+            if row[0].startswith(prefix):
+                name = row[0].replace(".tif", ".png")
+                level = 90 if row[1] == "calibration" else 4
+                write_image(tmp_path / name, np.clip(RNG.normal(level, 2, (16, 20)), 0, 255).astype(np.uint8),
+                            bit_depth=8)
+                row = [name] + row[1:7] + [row[7] if bits is None else bits] + row[8:]
+            out.append(row)
+        return out
+    return edit
+
+
+@pytest.mark.parametrize("bits", ["", 8])
+def test_eight_bit_calibration_views_beside_sixteen_bit_captures(tmp_path, bits):
+    # The board shot in another camera mode: accepted at its own depth whatever its row states (or without a column).
+    _lab(tmp_path, calibration=True, darks=True, flats=True, edit=_eight_bit(tmp_path, "cal", bits=bits))
+    result = _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
+    assert result.exit_code == 0, result.output
+    text = " ".join(result.output.split())
+    assert "calibration views at another bit depth than the captures" in text and "read at their own depth" in text
+    with h5py.File(tmp_path / "raw.h5") as f:
+        views = f["/registration/board_views"][()]
+        frames = f["/raw/frames"][()]
+        gain = f["/sensor/gain_map"][()]
+    assert abs(np.median(frames[0, 0]) - 50) < 3  # the captures are decoded as before (12-bit codes, black removed)
+    # the views keep their own 8-bit codes (no 12-bit black level taken off), per second of their 8 ms exposure
+    assert views.shape == (4, 16, 20) and abs(np.median(views * gain) * 0.008 - 90) < 2
+
+
+def test_calibration_row_stating_more_bits_than_its_file_holds(tmp_path):
+    _lab(tmp_path, calibration=True, edit=_eight_bit(tmp_path, "cal", bits=12))
+    _refused(tmp_path, "cal00.png", "8-bit file", "states bit depth 12", "lab.yaml")
+
+
+def test_eight_bit_calibration_views_match_the_captures_when_every_file_is_eight_bit(tmp_path):
+    # Every file 8-bit: the views are read like the captures (black level off), no note.
+    _lab(tmp_path, calibration=True, sensor={"black_level": 2},
+         edit=lambda rows: _eight_bit(tmp_path, "", bits="")(rows))
+    result = _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
+    assert result.exit_code == 0, result.output
+    assert "own depth" not in result.output
+    with h5py.File(tmp_path / "raw.h5") as f:
+        assert abs(np.median(f["/registration/board_views"][()]) * 0.008 - 88) < 2
+
+
+@pytest.mark.parametrize("prefix", ["d1_0", "f0"])
+def test_darks_and_flats_must_match_the_captures(tmp_path, prefix):
+    _lab(tmp_path, darks=True, flats=True, edit=_eight_bit(tmp_path, prefix, bits=""))
+    _refused(tmp_path, f"{prefix}.png", "8-bit", "16-bit", "same bit depth")
+
+
+def test_dark_rows_stating_another_bit_depth(tmp_path):
+    _lab(tmp_path, darks=True, sensor={}, edit=lambda rows: [r if r[0] != "d4_1.tif" else r[:7] + [14] + r[8:]
+                                                            for r in rows])
+    _refused(tmp_path, "lab.yaml", "bit depths 12", "14", "d4_1.tif", "same bit depth")
+
+
 def _rgb(path, values):
     h, w, c = values.shape
     out = oiio.ImageOutput.create(str(path))

@@ -705,6 +705,77 @@ case("ingest-over-an-image", "data-loss",
 case("ingest-works", "works", ["ingest", "lab/manifest.yaml", "-o", "raw.h5", "-q"], {"lab": Copy("manifest_dir")},
      exit=0, writes=("raw.h5",))
 
+
+
+def _lab_edit(*, replace: str | None = None, add: tuple = (), board: bool = False):
+    """Edit of the library's lab folder: ``replace`` (a view) becomes an 8-bit PNG; ``add`` appends image entries
+    (with an ``eight_bit`` flag: their files are 8-bit, else 16-bit); ``board`` adds a checkerboard section."""
+    def edit(folder: Path) -> None:
+        import yaml
+
+        from cca_cli.io.images import write_image
+
+        rng = np.random.default_rng(7)
+        manifest = yaml.safe_load((folder / "manifest.yaml").read_text())
+        if replace is not None:
+            write_image(folder / replace, rng.integers(0, 255, (32, 32)).astype(np.uint8), bit_depth=8)
+        for entry in add:
+            entry = dict(entry)
+            if entry.pop("eight_bit"):
+                write_image(folder / entry["path"], rng.integers(0, 255, (32, 32)).astype(np.uint8), bit_depth=8)
+            else:
+                write_image(folder / entry["path"], rng.integers(0, 60, (32, 32)).astype(np.uint16), bit_depth=16)
+            manifest["images"].append(entry)
+        if board:
+            manifest["checkerboard"] = {"pattern": [4, 3]}
+        (folder / "manifest.yaml").write_text(yaml.safe_dump(manifest, sort_keys=False))
+    return edit
+
+
+def _eight_bit_boards_stored(folder: Path, result) -> None:
+    import h5py
+
+    with h5py.File(folder / "raw.h5") as handle:
+        assert handle["/registration/board_views"].shape == (9, 32, 32)
+    assert "read at their own depth" in " ".join(result.stderr.split())
+
+
+LAB_ING = ["ingest", "lab/manifest.yaml", "-o", "raw.h5", "-q"]
+case("ingest-one-capture-8-bit", "silent", LAB_ING, {"lab": Copy("manifest_dir", _lab_edit(replace="view_r1c1.png"))},
+     exit=3, says=("view_r1c1.png", "8-bit", "16-bit", "same bit depth"))
+for kind in ("dark", "flat"):
+    case(f"ingest-{kind}-8-bit", "silent", LAB_ING,
+         {"lab": Copy("manifest_dir", _lab_edit(add=({"path": f"{kind}.png", "kind": kind, "exposure_s": 0.01,
+                                                      "eight_bit": True},)))},
+         exit=3, says=(f"{kind}.png", "8-bit", "16-bit", "same bit depth"))
+case("ingest-dark-row-states-another-depth", "silent", LAB_ING,
+     {"lab": Copy("manifest_dir", _lab_edit(add=({"path": "dark.png", "kind": "dark", "exposure_s": 0.01,
+                                                  "bit_depth": 14, "eight_bit": False},)))},
+     exit=2, says=("manifest.yaml", "bit depth 14 (dark.png)", "sensor.bit_depth is 12"))
+case("ingest-8-bit-calibration-views", "works", LAB_ING,
+     {"lab": Copy("manifest_dir", _lab_edit(board=True, add=tuple(
+         {"path": f"board_r{r}c{c}.png", "kind": "calibration", "exposure_s": 0.02, "grid": [r, c], "eight_bit": True}
+         for r in range(3) for c in range(3))))},
+     exit=0, writes=("raw.h5",), check=_eight_bit_boards_stored)
+
+# --- exports ---------------------------------------------------------------------------------------------------------
+
+
+def _is_float_tiff(name: str):
+    def check(folder: Path, result) -> None:
+        import h5py
+        import tifffile
+
+        with h5py.File(folder / "r.h5") as handle:
+            expected = np.abs(handle["/recon/object"][()]).astype(np.float32)
+        with tifffile.TiffFile(folder / name) as tif:
+            assert np.array_equal(tif.pages[0].asarray(), expected)
+    return check
+
+
+case("export-format-tiff-any-suffix", "works", ["export", "r.h5", "-o", "x.dat", "--format", "tiff"],
+     {"r.h5": Copy("recon")}, exit=0, writes=("x.dat",), check=_is_float_tiff("x.dat"))
+
 # --- run folders: resume, temporaries, locks ------------------------------------------------------------------------
 DEAD_PID = 4_194_309  # above Linux's largest pid_max: no process has it
 

@@ -8,6 +8,7 @@ import h5py
 import numpy as np
 import OpenImageIO as oiio
 import pytest
+import tifffile
 from typer.testing import CliRunner
 
 import cca_cli as cca
@@ -62,6 +63,45 @@ def test_tiff_read_back_equals_the_hdf5_data(recon, tmp_path, quantity):
     assert attrs["XResolution"] == pytest.approx(0.01 / pixel, rel=1e-6)
     meta = json.loads(attrs["ImageDescription"])
     assert meta["pixel_size_m"] == pixel and meta["quantity"] == quantity
+
+
+@pytest.mark.parametrize("quantity", ["amplitude", "phase"])
+def test_tiff_reads_with_plain_tifffile_with_its_pixel_size(recon, tmp_path, quantity):
+    # Deflate with the floating-point predictor needs imagecodecs (and ImageJ cannot read it): stored uncompressed.
+    path = cca.export(recon, tmp_path / "out.tif", quantity=quantity)
+    expected, pixel = _h5(recon, quantity)
+    with tifffile.TiffFile(path) as tif:
+        page = tif.pages[0]
+        assert page.compression == tifffile.COMPRESSION.NONE and page.predictor == tifffile.PREDICTOR.NONE
+        assert not page.is_tiled  # ImageJ opens strips, not tiles
+        values = page.asarray()
+        tags = page.tags
+        x_num, x_den = tags["XResolution"].value
+        y_num, y_den = tags["YResolution"].value
+        unit = tags["ResolutionUnit"].value
+        meta = json.loads(page.description)
+    assert values.dtype == np.float32 and np.array_equal(values, expected)
+    assert unit == tifffile.RESUNIT.CENTIMETER
+    assert 0.01 * x_den / x_num == pytest.approx(pixel, rel=1e-6)
+    assert 0.01 * y_den / y_num == pytest.approx(pixel, rel=1e-6)
+    assert meta["pixel_size_m"] == pixel and meta["quantity"] == quantity
+
+
+@pytest.mark.parametrize("kind, name", [("tiff", "x.dat"), ("png", "x.img"), ("npy", "x"), ("tiff", "x.jpg")])
+def test_format_option_works_with_any_suffix(recon, tmp_path, kind, name):
+    path = tmp_path / name
+    result = runner.invoke(app, ["export", str(recon), "-o", str(path), "--format", kind])
+    assert result.exit_code == 0, result.output
+    assert export_module.file_format(path) == kind
+    back = read_exported(path)
+    expected, pixel = _h5(recon, "amplitude")
+    assert np.allclose(back.values, expected, atol=2 * expected.max() / 65535)
+    assert back.pixel_size_m == (None if kind == "npy" else pixel)
+    if kind != "npy":  # cca recognises its own file whatever the suffix, so --force replaces it
+        again = runner.invoke(app, ["export", str(recon), "-o", str(path), "--format", kind, "--quantity", "phase",
+                                    "--force"])
+        assert again.exit_code == 0, again.output
+        assert read_exported(path).quantity == "phase"
 
 
 def test_png_is_16_bit_with_its_scale_and_pixel_size(recon, tmp_path):
