@@ -22,6 +22,7 @@ from cca_cli.engines.options import AltMinOptions
 from cca_cli.engines.passes import ChunkedPass
 from cca_cli.engines.problem import PhaseRetrievalProblem, initial_spectrum
 from cca_cli.engines.projections import project_magnitudes
+from cca_cli.engines.stopping import StoppingPolicy
 from cca_cli.optics import kernels
 
 __all__ = ["AltMinOptions", "AlternatingMinimization"]
@@ -51,8 +52,7 @@ class AlternatingMinimization(IterativeEngine):
         self._pass = ChunkedPass(model, chunk=options.chunk, threads=options.threads, slices=self._pass_slices())
         self._data_norm = problem.energy
         self._eps = problem.amplitude_floor
-        self._iteration = 0
-        self._change = np.inf
+        self.stopping = StoppingPolicy(max_iterations=options.max_iterations, tol=options.tol)
 
     def _pass_slices(self) -> list[slice] | None:
         """Capture ranges processed together (None: plain chunks); subclasses keep groups whole."""
@@ -66,28 +66,23 @@ class AlternatingMinimization(IterativeEngine):
         """One iteration: project every capture, then the closed-form Fourier update."""
         misfit = self._pass.run(self._spectrum, self._project, self._next)
         squared_change, norm = kernels.tikhonov_update(self._next, self._inverse_normal, self._spectrum)
-        self._change = float(np.sqrt(squared_change / max(norm, 1e-30)))
+        change = float(np.sqrt(squared_change / max(norm, 1e-30)))
         self._spectrum, self._next = self._next, self._spectrum
-        self._iteration += 1
-        return float(np.sqrt(misfit / max(self._data_norm, 1e-30))), self._change
-
-    def done(self) -> bool:
-        """Stop at ``max_iterations`` or when the relative change drops below ``tol``."""
-        return self._iteration >= self.options.max_iterations or self._change < self.options.tol
+        self.stopping.record(misfit, change)
+        return float(np.sqrt(misfit / max(self._data_norm, 1e-30))), change
 
     def spectrum(self) -> np.ndarray:
         """Current spectrum estimate (complex64, M x M)."""
         return self._spectrum
 
     def state(self) -> dict:
-        """The spectrum, the iteration count and the last change: all an iteration depends on."""
-        return {"spectrum": self._spectrum, "iteration": self._iteration, "change": self._change}
+        """The spectrum and the stopping counters: all an iteration depends on."""
+        return {"spectrum": self._spectrum, **self.stopping.state()}
 
     def restore(self, state: dict) -> None:
         """Continue from :meth:`state`."""
         self._spectrum[...] = state["spectrum"]
-        self._iteration = int(state["iteration"])
-        self._change = float(state["change"])
+        self.stopping.restore(state)
 
     def close(self) -> None:
         """Stop worker threads."""

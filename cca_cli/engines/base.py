@@ -1,8 +1,11 @@
 """The engine contract and the driver loop that watches it.
 
 An engine exposes one iteration (:meth:`IterativeEngine.update`) and a stopping
-test (:meth:`IterativeEngine.done`). :func:`run_engine` owns the loop, timing
-and history, and reports each iteration through an ``on_iteration`` callback;
+test (:meth:`IterativeEngine.done`, with :meth:`~IterativeEngine.stop_reason`).
+Optional features are declared by the class an engine derives from, never
+looked up by attribute: a :class:`CalibratingEngine` also recovers pupils,
+positions and brightness. :func:`run_engine` owns the loop, timing and
+history, and reports each iteration through an ``on_iteration`` callback;
 engines never print.
 """
 
@@ -11,11 +14,16 @@ from __future__ import annotations
 import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
-__all__ = ["IterationRecord", "History", "IterativeEngine", "run_engine"]
+from cca_cli.engines.stopping import StoppingPolicy
+
+if TYPE_CHECKING:  # the engines' numeric code stays unimported until an engine runs
+    from cca_cli.engines.calibrator import Calibration
+
+__all__ = ["IterationRecord", "History", "IterativeEngine", "CalibratingEngine", "run_engine"]
 
 
 @dataclass(frozen=True)
@@ -57,18 +65,27 @@ class History:
 
 
 class IterativeEngine(ABC):
-    """One phase-retrieval algorithm's state and iteration."""
+    """One phase-retrieval algorithm's state and iteration.
+
+    Subclasses set ``stopping`` (a :class:`~cca_cli.engines.stopping.StoppingPolicy`)
+    and record every iteration in it; :meth:`done` and :meth:`stop_reason` read it.
+    """
 
     #: Name used in configs and on the command line.
     name: str = ""
+    stopping: StoppingPolicy
 
     @abstractmethod
     def update(self) -> tuple[float, float]:
         """Run one iteration; return ``(residual, change)``."""
 
-    @abstractmethod
     def done(self) -> bool:
         """Whether the stopping rule is met."""
+        return self.stopping.done()
+
+    def stop_reason(self) -> str:
+        """Why the run ended: ``tol``, ``plateau`` or ``cap`` (see :class:`~cca_cli.engines.stopping.StoppingPolicy`)."""
+        return self.stopping.reason()
 
     @abstractmethod
     def spectrum(self) -> np.ndarray:
@@ -87,6 +104,14 @@ class IterativeEngine(ABC):
     def restore(self, state: dict) -> None:
         """Continue from a :meth:`state` taken earlier (same problem and options)."""
         raise NotImplementedError(f"engine {self.name!r} cannot be checkpointed")
+
+
+class CalibratingEngine(IterativeEngine):
+    """An engine that also recovers the model: pupils, capture positions, brightness."""
+
+    @abstractmethod
+    def calibration(self) -> Calibration:
+        """What the engine found so far, in the problem's capture order."""
 
 
 def run_engine(engine: IterativeEngine, *, on_iteration: Callable[[IterationRecord], None] | None = None,

@@ -1,22 +1,32 @@
-"""A full pass over all captures: forward, an in-place operation, adjoint.
+"""Passes over all captures, and the threads that run them.
 
-Captures are processed in chunks small enough to stay in cache between the
-inverse FFT, the magnitude projection and the forward FFT; chunks run on a
-few worker threads (FFTW and numpy release the GIL), each with its own
-buffer, FFT plan and spectrum accumulator.
+:class:`ChunkedPass` (simultaneous engines): forward, an in-place operation and
+adjoint of every capture. Captures are processed in chunks small enough to stay
+in cache between the inverse FFT, the magnitude projection and the forward FFT;
+chunks run on a few worker threads (FFTW and numpy release the GIL), each with
+its own buffer, FFT plan and spectrum accumulator.
+
+:class:`SequentialPass` (sequential engines): batches of captures update the
+spectrum one after the other, in the phases and lanes of a
+:class:`~cca_cli.engines.schedule.Schedule`. Lanes of a phase touch disjoint
+parts of the spectrum, so two threads run them side by side with the result of
+running them in turn; with numba and FFTW a thread's whole lane is one
+compiled, GIL-free call (:func:`~cca_cli.optics.kernels.sequential_lane`).
 """
 
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
 
-from cca_cli.optics import fft
+from cca_cli.engines.schedule import Schedule
+from cca_cli.optics import fft, kernels
 from cca_cli.optics.forward import ForwardModel, chunk_slices
 
-__all__ = ["ChunkedPass"]
+__all__ = ["ChunkedPass", "BatchTargets", "SequentialPass"]
 
 #: operation(fields, images, scratch (2, k, m, m) float32) -> float statistic summed over chunks
 ChunkOperation = Callable[[np.ndarray, slice, np.ndarray], float]
@@ -77,3 +87,164 @@ class ChunkedPass:
         if self._pool is not None:
             self._pool.shutdown(wait=True)
             self._pool = None
+
+
+@dataclass(frozen=True)
+class BatchTargets:
+    """What a sequential pass updates the spectrum towards, in the schedule's capture order.
+
+    Attributes
+    ----------
+    model : ForwardModel
+        The captures' pupils and boxes.
+    origins : ndarray, int64, (K, 2)
+        Box origins in the spectrum.
+    factors : ndarray, complex64, (K, b, b)
+        Each capture's update factor (step size over the batch's pupil power, times the conjugate pupil).
+    amplitudes : ndarray, float32, (K, m, m)
+        Target amplitudes.
+    weights : ndarray, float32, (K, m, m) or None
+    eps : float
+        Amplitude floor of the magnitude step.
+    """
+
+    model: ForwardModel
+    origins: np.ndarray
+    factors: np.ndarray
+    amplitudes: np.ndarray
+    weights: np.ndarray | None
+    eps: float
+
+
+#: data_step(fields, images, scratch) replaces ``fields`` by the data step ψ' − ψ and returns the squared misfit.
+DataStep = Callable[[np.ndarray, slice, np.ndarray], float]
+#: after_step(thread, images, spectrum, fields) sees each batch's data step in the spectrum domain (pupil sums).
+AfterStep = Callable[[int, slice, np.ndarray, np.ndarray], None]
+
+
+class SequentialPass:
+    """Runs the batches of a schedule over a spectrum, on one or two threads.
+
+    Parameters
+    ----------
+    model : ForwardModel
+        Any model of the captures' grids (makes the workspaces).
+    threads : int
+        1, or 2: lanes run side by side, and batches no line separates are split in halves.
+    """
+
+    def __init__(self, model: ForwardModel, threads: int):
+        self.threads = threads
+        self._model = model
+        self._pool = ThreadPoolExecutor(threads - 1) if threads > 1 else None
+        self._capacity = 0
+        self._workspaces: list = []
+        self._scratch: list[np.ndarray] = []
+        self._fused: list = []
+
+    def reserve(self, capacity: int, *, fusable: bool) -> None:
+        """Make room for batches of ``capacity`` captures; ``fusable``: lanes may run as one compiled call.
+
+        The fused lane does the magnitude step only, so engines with another data step or with
+        pupil sums pass ``fusable=False``. Nothing changes while the capacity suffices.
+        """
+        if capacity <= self._capacity:
+            return
+        self._capacity = capacity
+        model = self._model
+        self._workspaces = [model.workspace(capacity, threads=1) for _ in range(self.threads)]
+        self._scratch = [np.empty((capacity,) + model.field_shape, np.float32) for _ in range(self.threads)]
+        self._fused = [ws.box_fft.raw_plans() if fusable and ws.box_fft is not None else None
+                       for ws in self._workspaces]
+        if not all(kernels.can_fuse_lanes(raw) for raw in self._fused):
+            self._fused = [None] * self.threads
+
+    @property
+    def fused(self) -> bool:
+        """Whether each lane runs as one compiled call (numba and FFTW's own plans, magnitude steps only)."""
+        return bool(self._fused) and self._fused[0] is not None
+
+    def run(self, schedule: Schedule, spectrum: np.ndarray, targets: BatchTargets, data_step: DataStep,
+            after_step: AfterStep | None = None) -> float:
+        """One pass over every batch of ``schedule``, updating ``spectrum`` in place; returns the summed misfit."""
+        runner = _PassRun(self, spectrum, targets, data_step, after_step)
+        misfit = 0.0
+        for phase in schedule.phases:
+            if self._pool is None:
+                misfit += sum(runner.lane(0, lane) for lane in phase.lanes)
+            elif len(phase.lanes) == 1:
+                for sl in phase.lanes[0]:
+                    misfit += runner.shared_batch(sl)
+            else:
+                # Lanes touch disjoint parts of the spectrum: running them together equals running them in turn.
+                # The calling thread takes the longer lane: it waits least for the interpreter between kernels.
+                own, other = phase.lanes
+                if _lane_size(other) > _lane_size(own):
+                    own, other = other, own
+                future = self._pool.submit(runner.lane, 1, other)
+                misfit += runner.lane(0, own) + future.result()
+        return misfit
+
+    def close(self) -> None:
+        """Stop the worker thread."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
+
+
+def _lane_size(batches: tuple[slice, ...]) -> int:
+    return sum(sl.stop - sl.start for sl in batches)
+
+
+class _PassRun:
+    """The batches of one pass: fields, data step and scatter, per thread."""
+
+    def __init__(self, owner: SequentialPass, spectrum: np.ndarray, targets: BatchTargets, data_step: DataStep,
+                 after_step: AfterStep | None):
+        self.owner, self.spectrum, self.targets = owner, spectrum, targets
+        self.data_step, self.after_step = data_step, after_step
+
+    def half_batch(self, t: int, images: slice) -> float:
+        """Fields → data step → spectrum-domain update boxes, in workspace ``t``."""
+        if images.stop <= images.start:
+            return 0.0
+        ws = self.owner._workspaces[t]
+        k = images.stop - images.start
+        fields = self.targets.model.forward_into(self.spectrum, images, ws)
+        misfit = self.data_step(fields, images, self.owner._scratch[t][:k])
+        ws.forward(k)
+        if self.after_step is not None:
+            self.after_step(t, images, self.spectrum, ws.fields[:k])
+        return misfit
+
+    def scatter(self, t: int, images: slice) -> None:
+        """Add the batch's weighted update boxes (workspace ``t``) to the spectrum."""
+        k = images.stop - images.start
+        if k > 0:
+            kernels.scatter_boxes(self.owner._workspaces[t].fields[:k], self.targets.origins, self.targets.factors,
+                                  self.spectrum, images.start)
+
+    def lane(self, t: int, batches: tuple[slice, ...]) -> float:
+        """Run ``batches`` one after the other on thread ``t``; returns their summed misfit."""
+        raw = self.owner._fused[t]
+        if raw is not None:  # one compiled call for the whole lane: the threads never wait for the interpreter
+            bounds = np.array([[sl.start, sl.stop] for sl in batches], dtype=np.int64).reshape(-1, 2)
+            tg = self.targets
+            return kernels.sequential_lane(raw, bounds, self.spectrum, tg.origins, tg.model.pupil_boxes, tg.factors,
+                                           self.owner._workspaces[t].fields, tg.amplitudes, tg.weights, tg.eps)
+        misfit = 0.0
+        for sl in batches:
+            misfit += self.half_batch(t, sl)
+            self.scatter(t, sl)
+        return misfit
+
+    def shared_batch(self, sl: slice) -> float:
+        """One batch computed by both threads (half each), then scattered in order."""
+        middle = sl.start + (sl.stop - sl.start + 1) // 2
+        first, second = slice(sl.start, middle), slice(middle, sl.stop)
+        future = self.owner._pool.submit(self.half_batch, 1, second)
+        misfit = self.half_batch(0, first)
+        misfit += future.result()
+        self.scatter(0, first)
+        self.scatter(1, second)
+        return misfit

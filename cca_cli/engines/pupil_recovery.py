@@ -180,6 +180,16 @@ class PupilRecovery:
             self.maps = self._zernike_maps(self.coefficients)
             self.coefficients[:] = 0
 
+    @property
+    def step_size(self) -> float:
+        """The current step fraction (halved each time a step is undone)."""
+        return self._step
+
+    def restore(self, maps: np.ndarray, coefficients: np.ndarray, step_size: float) -> None:
+        """Continue from saved maps, coefficients and step size (a checkpoint); the last step cannot be undone."""
+        self.maps, self.coefficients, self._step = maps, coefficients, float(step_size)
+        self._previous = None
+
     # ------------------------------------------------------------------ geometry
     def set_geometry(self, layout: BandLayout, pupil_index: np.ndarray, offsets: np.ndarray | None = None) -> None:
         """Use new pupil boxes / centres (after a position update or a new visiting order)."""

@@ -15,7 +15,7 @@ from cca_cli import __version__
 from cca_cli.config.model import ReconstructSection
 from cca_cli.engines.base import History
 from cca_cli.engines.fit import FitReport
-from cca_cli.engines.momentum import Calibration
+from cca_cli.engines.calibrator import Calibration
 from cca_cli.errors import InputError
 from cca_cli.io.captures import Captures, read_measurements
 from cca_cli.io.checkpoint import checkpoint_path, read_checkpoint, remove_checkpoint, write_checkpoint

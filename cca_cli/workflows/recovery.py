@@ -10,13 +10,13 @@ from pathlib import Path
 import numpy as np
 
 from cca_cli.config.model import ReconstructSection
-from cca_cli.engines.base import History, IterationRecord, run_engine
+from cca_cli.engines.base import CalibratingEngine, History, IterationRecord, run_engine
 from cca_cli.engines.calibration import defocus_zernike
+from cca_cli.engines.calibrator import Calibration
 from cca_cli.engines.fit import FitReport, fit_report
 from cca_cli.engines.illumination import LedArrayModel
-from cca_cli.engines.momentum import Calibration
-from cca_cli.engines.problem import PhaseRetrievalProblem
 from cca_cli.engines.options import EngineOptions
+from cca_cli.engines.problem import PhaseRetrievalProblem
 from cca_cli.engines.registry import get_engine, resolve
 from cca_cli.errors import CcaError, ConfigError, InputError
 from cca_cli.io.captures import Captures
@@ -29,7 +29,7 @@ from cca_cli.sampling.geometry import CaptureGeometry
 from cca_cli.sampling.grid import BandLayout, band_layout, smallest_fft_size
 from cca_cli.sampling.region import RegionEmbedding, plan_embedding
 
-__all__ = ["Recovery", "stop_reason", "engine_options", "drive_engine", "initial_spectrum_from",
+__all__ = ["Recovery", "engine_options", "drive_engine", "initial_spectrum_from",
            "embed_region", "build_model", "data_kind", "problem_calibration", "recover", "calibrated_pupils"]
 
 _log = logging.getLogger("cca")
@@ -58,16 +58,6 @@ class Recovery:
     def hires_size(self) -> int:
         """Side of the recovery's object grid."""
         return self.layout.hires_size
-
-
-def stop_reason(history: History, options, engine=None) -> str:
-    """Why a run ended: ``"tol"`` (the last change fell below ``options.tol``), ``"plateau"`` (the engine's
-    misfit stopped falling) or ``"cap"`` (the iteration cap ended it first)."""
-    if history.records and history.records[-1].change < options.tol:
-        return "tol"
-    if engine is not None and getattr(engine, "on_plateau", lambda: False)():
-        return "plateau"
-    return "cap" if history.iterations >= options.max_iterations else "tol"
 
 
 def engine_options(section: ReconstructSection, kind: str = "simulation", **overrides) -> tuple[str, EngineOptions]:
@@ -111,7 +101,7 @@ def drive_engine(engine, options, layout: BandLayout, name: str, *, progress: Pr
                        "nothing was written; raise reconstruct.tau or choose other reconstruct.options")
     return Recovery(spectrum=spectrum, layout=layout, history=history, engine=name,
                     options=options.model_dump(), seconds=time.perf_counter() - start,
-                    stopped_by=stop_reason(history, options, engine))
+                    stopped_by=engine.stop_reason())
 
 
 def initial_spectrum_from(path: Path, layout: BandLayout, field_width_m: float) -> np.ndarray:
@@ -254,7 +244,7 @@ def recover(captures: Captures, engine: str, options, *, progress: ProgressFn = 
             runner, history = engine_class(problem, options, spectrum=start), None
     recovery = drive_engine(runner, options, model.layout, engine, progress=progress, on_iteration=on_iteration,
                             history=history, checkpoint=checkpoint)
-    calibration = runner.calibration() if hasattr(runner, "calibration") else None
+    calibration = runner.calibration() if isinstance(runner, CalibratingEngine) else None
     return replace(recovery, calibration=calibration, fit=fit_report(problem, recovery.spectrum, calibration))
 
 

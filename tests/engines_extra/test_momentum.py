@@ -158,7 +158,7 @@ def test_batch_growth_takes_inconsistent_data_past_the_small_batch_plateau():
     growing.close()
     assert batches[0] == 4 and batches[-1] == problem.model.n_images   # 4, 8, 16, 32, then all 49
     assert len(set(batches)) == 5
-    assert fixed.on_plateau() and growing.on_plateau()
+    assert fixed.stopping.on_plateau() and growing.stopping.on_plateau()
     assert misfit < 0.97 * fixed_history.records[-1].residual
 
 
@@ -173,7 +173,7 @@ def test_batch_growth_survives_a_checkpoint_restore():
     resumed = SequentialMomentum(problem, options)
     resumed.restore(state)
     assert resumed.batch == engine.batch
-    assert not resumed.on_plateau()
+    assert not resumed.stopping.on_plateau()
     resumed.close()
 
 

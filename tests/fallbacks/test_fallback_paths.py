@@ -77,7 +77,7 @@ def test_engines_fit_the_data(problem, engine):
         solver = AlternatingMinimization(problem, AltMinOptions(max_iterations=20, tol=0, threads=2))
     else:
         solver = SequentialMomentum(problem, MomentumOptions(max_iterations=8, tol=0, batch=3, threads=2))
-        fused = solver._fused_plans[0] is not None
+        fused = solver.passes.fused
         assert fused == (kernels.kernels_name() == "numba" and fft.raw_fftw_available())
     residuals = [solver.update()[0] for _ in range(solver.options.max_iterations)]
     solver.close()

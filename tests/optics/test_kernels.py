@@ -108,7 +108,7 @@ def test_momentum_lanes_fused_in_one_call_agree_with_the_numpy_kernels(weighted)
     def run():
         engine = SequentialMomentum(problem, MomentumOptions(max_iterations=4, tol=0, batch=3))
         two_lanes = any(len(phase.lanes) == 2 for phase in engine._schedule.phases)
-        fused.append(engine._fused_plans[0] is not None and two_lanes)
+        fused.append(engine.passes.fused and two_lanes)
         misfits = [engine.update()[0] for _ in range(4)]
         engine.close()
         return engine.spectrum().copy(), np.array(misfits)

@@ -1,0 +1,93 @@
+"""When an iterative engine stops, and why.
+
+Every engine counts its iterations against a cap and stops early when an
+iteration changes the spectrum by less than ``tol``. Engines that report a
+data misfit may also stop on a *plateau*: the misfit fell by less than
+``plateau`` (relative) over the last ``plateau_window`` iterations. An engine
+that can enlarge its batches first grows them at a plateau; only a plateau it
+can no longer grow out of ends the run.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+__all__ = ["StoppingPolicy"]
+
+
+class StoppingPolicy:
+    """The iteration cap, the change tolerance and the misfit plateau of one run.
+
+    Parameters
+    ----------
+    max_iterations : int
+    tol : float
+        Stop when an iteration's relative spectrum change falls below it.
+    plateau : float
+        Relative misfit drop over ``plateau_window`` iterations below which the
+        misfit counts as flat (0: never).
+    plateau_window : int
+    can_grow : callable, optional
+        Whether the engine can still enlarge its batches; while it can, a flat
+        misfit asks for growth (:meth:`record` returns True) instead of ending the run.
+    """
+
+    def __init__(self, *, max_iterations: int, tol: float, plateau: float = 0.0, plateau_window: int = 1,
+                 can_grow: Callable[[], bool] = lambda: False):
+        self.max_iterations = int(max_iterations)
+        self.tol = float(tol)
+        self.plateau = float(plateau)
+        self.window = int(plateau_window)
+        self._can_grow = can_grow
+        self.iteration = 0
+        self.change = np.inf
+        self.misfits: list[float] = []
+        self.plateau_from = 0   # first misfit of the current batch size: the plateau test looks no further back
+
+    def record(self, misfit: float, change: float) -> bool:
+        """Count one iteration; True when the misfit is flat and the engine should grow its batches now."""
+        self.misfits.append(float(misfit))
+        self.change = float(change)
+        self.iteration += 1
+        return self._can_grow() and self.flat()
+
+    def grew(self) -> None:
+        """The engine enlarged its batches: the plateau test starts afresh from the next iteration."""
+        self.plateau_from = len(self.misfits)
+
+    def flat(self) -> bool:
+        """Whether the misfit fell by less than ``plateau`` over the last ``plateau_window`` iterations."""
+        if self.plateau <= 0 or len(self.misfits) - self.plateau_from <= self.window:
+            return False
+        then, now = self.misfits[-1 - self.window], self.misfits[-1]
+        return (then - now) < self.plateau * now
+
+    def on_plateau(self) -> bool:
+        """Whether the run is on its plateau: the misfit is flat and the batches can grow no more."""
+        return not self._can_grow() and self.flat()
+
+    def done(self) -> bool:
+        """Whether the run ends now: the cap, a change below ``tol``, or the plateau."""
+        return self.iteration >= self.max_iterations or self.change < self.tol or self.on_plateau()
+
+    def reason(self) -> str:
+        """Why the run ended (or would end now): ``tol``, ``plateau`` or ``cap``."""
+        if self.change < self.tol:
+            return "tol"
+        if self.on_plateau():
+            return "plateau"
+        return "cap" if self.iteration >= self.max_iterations else "tol"
+
+    def state(self) -> dict:
+        """The counters a restored run continues from."""
+        return {"iteration": self.iteration, "change": self.change, "misfits": np.asarray(self.misfits, np.float64),
+                "plateau_from": self.plateau_from}
+
+    def restore(self, state: dict) -> None:
+        """Continue from :meth:`state`."""
+        self.iteration = int(state["iteration"])
+        self.change = float(state["change"])
+        self.misfits = [float(v) for v in state.get("misfits", ())]
+        self.plateau_from = int(state.get("plateau_from", 0))
