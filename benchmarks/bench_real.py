@@ -50,7 +50,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 from real_data import DATASETS, Prepared, prepare  # noqa: E402
-from real_methods import (forward_check, read_cca_recovery, relative_error, run_cca_engine,  # noqa: E402
+from real_methods import (forward_check, relative_error, run_cca_engine,  # noqa: E402
                           run_peer)
 from real_model import Recovery, fft2c, ifft2c, predicted_fields  # noqa: E402
 

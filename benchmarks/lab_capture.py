@@ -118,7 +118,6 @@ def edge_leak(iterations: int) -> dict:
     from cca_cli.config.model import PaddingSection, ReconstructSection
     from cca_cli.optics import fft
     from cca_cli.optics.forward import ForwardModel
-    from cca_cli.optics.pupil import circular_pupils
     from cca_cli.report.summary import band_limited_truth
     from cca_cli.sampling.capture import with_field_width
     from cca_cli.sampling.region import resolution_cell_px
@@ -132,7 +131,7 @@ def edge_leak(iterations: int) -> dict:
     sim = simulate(parse_config(base))
     other = simulate(parse_config({**base, "scene": {**base["scene"], "kind": "fingerprint"}}))
     layout = sim.layout
-    model = ForwardModel(layout, circular_pupils(layout.box_size, layout.box_centres, layout.pupil_radius_px))
+    model = ForwardModel.unaberrated(layout)
     out = {}
     for name, (y0, x0, h, w), mode in (("rectangle_48x72_guard_band", (24, 12, 48, 72), "auto"),
                                        ("square_48x48_guard_band", (24, 24, 48, 48), "auto"),

@@ -27,7 +27,8 @@ from cca_cli.metrics import rmse
 from cca_cli.optics import fft
 from cca_cli.optics.forward import ForwardModel, chunk_slices
 from cca_cli.optics.noise import add_gaussian_noise
-from cca_cli.optics.pupil import circular_pupils, zernike_phase
+from cca_cli.optics.pupil import circular_pupils
+from cca_cli.optics.zernike import zernike_phase
 from cca_cli.sampling.grid import band_layout, square_scan
 from cca_cli.sampling.overlap import step_m
 from cca_cli.targets import resolution_chart
@@ -44,8 +45,7 @@ def small_case(*, size=128, grid=9, overlap=0.61, radius=9.0, snr_db=30.0, defoc
     true_centres = layout.box_centres + offsets
     pupils = circular_pupils(layout.box_size, true_centres, radius).astype(np.complex64)
     if defocus or astigmatism:
-        pupils *= np.exp(1j * zernike_phase(layout.box_size, true_centres, radius, defocus_waves=defocus,
-                                            astigmatism_waves=astigmatism))
+        pupils *= np.exp(1j * zernike_phase(layout.box_size, true_centres, radius, [defocus, astigmatism]))
     truth_model = ForwardModel(layout, pupils)
     images = truth_model.sensor_intensity(fft.fft2c(chart.astype(np.complex64)).astype(np.complex64))
     if snr_db is not None:
@@ -135,7 +135,7 @@ def speed(repeats=3):
 
     geometry, sensor = simulation_geometry(load_config())
     layout = band_layout(geometry.spectrum_centres_yx_px, geometry.pupil_radius_px, sensor_size=sensor)
-    model = ForwardModel(layout, circular_pupils(layout.box_size, layout.box_centres, layout.pupil_radius_px))
+    model = ForwardModel.unaberrated(layout)
     rng = np.random.default_rng(0)
     amplitudes = rng.uniform(0.5, 1.5, (layout.n_images,) + model.field_shape).astype(np.float32)
     problem = PhaseRetrievalProblem(model=model, amplitudes=amplitudes)

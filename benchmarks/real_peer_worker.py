@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from real_model import Recovery, fft2c, ifft2c, predicted_fields  # noqa: E402
+from real_model import fft2c, ifft2c  # noqa: E402
 
 
 def snapshot_iterations(n: int, cap: int = 40) -> set[int]:

@@ -284,13 +284,7 @@ def _spectrum_on(field: np.ndarray, size: int) -> np.ndarray:
 
     n = field.shape[-1]
     spectrum = fft.fft2c(field.astype(np.complex64))
-    if n == size:
-        return spectrum
-    out = np.zeros((size, size), np.complex64)
-    keep = min(n, size)
-    src, dst = n // 2 - keep // 2, size // 2 - keep // 2
-    out[dst:dst + keep, dst:dst + keep] = spectrum[src:src + keep, src:src + keep]
-    return out * np.float32(size / n)
+    return spectrum if n == size else fft.resize_spectrum(spectrum, (size, size)) * np.float32(size / n)
 
 
 def simulate(obj, geometry: CaptureGeometry, *, snr_db: float | None = 30.0, photons_per_unit: float | None = None,
@@ -330,14 +324,13 @@ def simulate(obj, geometry: CaptureGeometry, *, snr_db: float | None = 30.0, pho
     from cca_cli.optics import fft
     from cca_cli.optics.forward import ForwardModel
     from cca_cli.optics.noise import add_gaussian_noise, add_shot_and_read_noise
-    from cca_cli.optics.pupil import circular_pupils
 
     field_in = np.asarray(obj)
     if field_in.ndim != 2 or field_in.shape[0] != field_in.shape[1]:
         raise ValueError(f"obj must be a square 2-D array, got shape {field_in.shape}")
     sensor = _sensor_pixels(geometry)
     layout = _layout(geometry, sensor)
-    model = ForwardModel(layout, circular_pupils(layout.box_size, layout.box_centres, layout.pupil_radius_px))
+    model = ForwardModel.unaberrated(layout)
     band = model.sensor_intensity(_spectrum_on(field_in, layout.hires_size))
     images = fft.fourier_resample(band, sensor)
     rng = np.random.default_rng(seed)

@@ -51,15 +51,12 @@ from __future__ import annotations
 import numpy as np
 
 from cca_cli.optics import fft
-
 from cca_cli.optics.forward import ForwardModel, Workspace, chunk_slices
 from cca_cli.optics.pupil import circular_pupils
+from cca_cli.optics.zernike import zernike_basis
 from cca_cli.sampling.grid import BandLayout
 
 __all__ = [
-    "ZERNIKE_MODES",
-    "zernike_modes",
-    "zernike_basis",
     "max_position_offset",
     "pupil_functions",
     "capture_misfits",
@@ -67,90 +64,7 @@ __all__ = [
     "quadratic_to_zernike",
     "estimate_quadratic_aberration",
     "defocus_zernike",
-    "zernike_name",
 ]
-
-#: (radial order n, azimuthal frequency m) of the modes used, Noll order from defocus on;
-#: ``m < 0`` is the sine term.
-ZERNIKE_MODES: tuple[tuple[int, int], ...] = (
-    (2, 0), (2, 2), (2, -2),
-    (3, 1), (3, -1), (3, 3), (3, -3),
-    (4, 0), (4, 2), (4, -2), (4, 4), (4, -4),
-)
-
-
-_MODE_NAMES = {(2, 0): "defocus", (2, 2): "astigmatism_0", (2, -2): "astigmatism_45", (3, 1): "coma_x",
-               (3, -1): "coma_y", (3, 3): "trefoil_0", (3, -3): "trefoil_30", (4, 0): "spherical",
-               (4, 2): "secondary_astigmatism_0", (4, -2): "secondary_astigmatism_45", (4, 4): "tetrafoil_0",
-               (4, -4): "tetrafoil_22"}
-
-
-def zernike_name(n: int, m: int) -> str:
-    """Readable name of the Zernike mode (radial order n, azimuthal frequency m; m < 0 the sine term)."""
-    return _MODE_NAMES.get((n, m), f"Z({n},{m})")
-
-
-def zernike_modes(order: int) -> tuple[tuple[int, int], ...]:
-    """The modes of :data:`ZERNIKE_MODES` with radial order ≤ ``order`` (2 to 4)."""
-    if not 2 <= order <= 4:
-        raise ValueError(f"Zernike order must be 2, 3 or 4, got {order}")
-    return tuple(mode for mode in ZERNIKE_MODES if mode[0] <= order)
-
-
-def _radial(n: int, m: int, rho2: np.ndarray, rho: np.ndarray) -> np.ndarray:
-    m = abs(m)
-    if (n, m) == (2, 0):
-        return 2 * rho2 - 1
-    if (n, m) == (2, 2):
-        return rho2
-    if (n, m) == (3, 1):
-        return (3 * rho2 - 2) * rho
-    if (n, m) == (3, 3):
-        return rho2 * rho
-    if (n, m) == (4, 0):
-        return 6 * rho2 * rho2 - 6 * rho2 + 1
-    if (n, m) == (4, 2):
-        return (4 * rho2 - 3) * rho2
-    if (n, m) == (4, 4):
-        return rho2 * rho2
-    raise ValueError(f"unsupported Zernike mode ({n}, {m})")
-
-
-def zernike_basis(box_size: int, box_centres, radius_px: float, *, order: int = 4) -> np.ndarray:
-    """Zernike phase modes (radians per wave of coefficient) on each pupil box.
-
-    RMS-normalised as in :func:`~cca_cli.optics.pupil.zernike_phase`: a
-    coefficient vector ``(d, a, o)`` of order 2 gives the same phase as
-    ``zernike_phase(defocus_waves=d, astigmatism_waves=a, oblique_astigmatism_waves=o)``.
-
-    Parameters
-    ----------
-    box_size : int
-    box_centres : array_like, (K, 2)
-        Pupil centre ``[y, x]`` inside each box (fractional pixels).
-    radius_px : float
-    order : int
-        Highest radial order (2, 3 or 4: 3, 7 or 12 modes).
-
-    Returns
-    -------
-    ndarray, float32, (n_modes, K, box_size, box_size)
-    """
-    centres = np.asarray(box_centres, dtype=np.float64).reshape(-1, 2)
-    grid = np.arange(box_size, dtype=np.float64)
-    y = (grid[None, :, None] - centres[:, 0, None, None]) / radius_px
-    x = (grid[None, None, :] - centres[:, 1, None, None]) / radius_px
-    rho2 = x * x + y * y
-    rho = np.sqrt(rho2)
-    theta = np.arctan2(y, x)
-    modes = zernike_modes(order)
-    out = np.empty((len(modes), centres.shape[0], box_size, box_size), np.float32)
-    for j, (n, m) in enumerate(modes):
-        norm = np.sqrt(n + 1.0) if m == 0 else np.sqrt(2.0 * (n + 1.0))
-        angular = 1.0 if m == 0 else (np.cos(m * theta) if m > 0 else np.sin(-m * theta))
-        out[j] = 2.0 * np.pi * norm * _radial(n, m, rho2, rho) * angular
-    return out
-
 
 def max_position_offset(layout: BandLayout) -> float:
     """Largest position offset (pixels per axis) for which every pupil disc stays inside its box."""
@@ -294,7 +208,7 @@ def quadratic_to_zernike(quadratic, radius_px: float) -> np.ndarray:
     Returns
     -------
     ndarray, float64, (3,)
-        Coefficients of modes (2, 0), (2, 2), (2, −2) (see :func:`zernike_basis`).
+        Coefficients of modes (2, 0), (2, 2), (2, −2) (see :func:`~cca_cli.optics.zernike.zernike_basis`).
     """
     q = np.asarray(quadratic, np.float64)
     defocus = 2.0 * np.pi * np.sqrt(3.0) * 2.0 / radius_px ** 2
@@ -400,7 +314,7 @@ def defocus_zernike(defocus_m: float, *, wavelength_m: float, numerical_aperture
     The field a distance ``z`` from focus reaches the objective's pupil with the
     phase ``2π z (√(1/λ² − |f|²) − 1/λ)`` at spatial frequency ``f`` (``|f| ≤
     NA/λ``); its least-squares projection on the modes of
-    :func:`zernike_modes` is returned (defocus and spherical terms).
+    :func:`~cca_cli.optics.zernike.zernike_modes` is returned (defocus and spherical terms).
 
     Parameters
     ----------

@@ -32,6 +32,7 @@ from cca_cli.engines.problem import PhaseRetrievalProblem
 from cca_cli.engines.pupil_recovery import PupilEstimate, PupilRecovery, resample_pupil
 from cca_cli.optics.forward import ForwardModel
 from cca_cli.optics.pupil import circular_pupils
+from cca_cli.optics.zernike import zernike_modes
 from cca_cli.sampling.grid import BandLayout, band_layout
 
 __all__ = ["Calibration", "Calibrator", "subset_layout"]
@@ -127,7 +128,7 @@ class Calibrator:
     def _starting_coefficients(self) -> np.ndarray | None:
         """Zernike coefficients per pupil to start from: the captures' known aberration, or the shift estimate."""
         opts, problem = self.options, self.problem
-        n_modes = len(cal.zernike_modes(opts.pupil_order))
+        n_modes = len(zernike_modes(opts.pupil_order))
         n_pupils = int(self.pupil_index.max()) + 1
         if problem.aberration is not None:
             known = np.zeros((n_pupils, n_modes))

@@ -50,7 +50,7 @@ class PhaseRetrievalProblem(MeasuredAmplitudes):
         that calibrate positions; None: a stage model of the nominal centres.
     aberration : ndarray, (n_modes,) or (P, n_modes), or None
         Known Zernike phase coefficients (waves, modes of
-        :func:`~cca_cli.engines.calibration.zernike_modes`) of the pupil(s),
+        :func:`~cca_cli.optics.zernike.zernike_modes`) of the pupil(s),
         e.g. a known defocus; engines start from it.
     initial_pupil : ndarray, complex, (n, n), or None
         A known pupil (aberration and apodisation) with the objective's NA disc

@@ -46,9 +46,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from cca_cli.engines.options import PUPIL_MODELS
-from cca_cli.engines import calibration as cal
 from cca_cli.optics import kernels
 from cca_cli.optics.pupil import circular_pupils
+from cca_cli.optics.zernike import zernike_basis, zernike_modes
 from cca_cli.sampling.grid import BandLayout
 
 __all__ = ["PUPIL_MODELS", "PupilEstimate", "PupilRecovery", "tilt_of", "resample_pupil"]
@@ -155,7 +155,7 @@ class PupilRecovery:
             raise ValueError(f"pupil model must be one of {', '.join(PUPIL_MODELS)}, got {model!r}")
         self.model = model
         self.order = order
-        self.modes = cal.zernike_modes(order)
+        self.modes = zernike_modes(order)
         self.amplitude = amplitude
         self.index = np.asarray(pupil_index, np.int64)
         self.n_pupils = int(self.index.max()) + 1 if self.index.size else 1
@@ -200,13 +200,13 @@ class PupilRecovery:
         self._discs = circular_pupils(layout.box_size, centres, layout.pupil_radius_px)
         self._basis = None
         if self.model == "zernike":
-            self._basis = cal.zernike_basis(layout.box_size, centres, layout.pupil_radius_px, order=self.order)
+            self._basis = zernike_basis(layout.box_size, centres, layout.pupil_radius_px, order=self.order)
         # Each pupil's modes on the box grid (for the curvature and for projections), at the mean centre.
         self._box_basis = np.empty((self.n_pupils, len(self.modes), layout.box_size, layout.box_size), np.float32)
         for p in range(self.n_pupils):
             members = self.index == p
             centre = centres[members].mean(axis=0) if np.any(members) else centres.mean(axis=0)
-            self._box_basis[p] = cal.zernike_basis(layout.box_size, centre[None], layout.pupil_radius_px,
+            self._box_basis[p] = zernike_basis(layout.box_size, centre[None], layout.pupil_radius_px,
                                                    order=self.order)[:, 0]
 
     def _zernike_maps(self, coefficients: np.ndarray) -> np.ndarray:
@@ -223,7 +223,7 @@ class PupilRecovery:
         discs = circular_pupils(layout.box_size, layout.box_centres, layout.pupil_radius_px)
         basis = None
         if self.model == "zernike":
-            basis = cal.zernike_basis(layout.box_size, layout.box_centres, layout.pupil_radius_px, order=self.order)
+            basis = zernike_basis(layout.box_size, layout.box_centres, layout.pupil_radius_px, order=self.order)
         return self._pupils(discs, basis, np.asarray(pupil_index, np.int64))
 
     def _pupils(self, discs: np.ndarray, basis: np.ndarray | None, index: np.ndarray) -> np.ndarray:

@@ -17,19 +17,15 @@ from __future__ import annotations
 import numpy as np
 
 from cca_cli.optics import fft
+from cca_cli.optics.pupil import centred_disc
 from cca_cli.sampling.grid import smallest_fft_size
 
-__all__ = ["circ_pupil", "circ_otf", "incoherent_otf", "coherent_image", "incoherent_image"]
+__all__ = ["circ_otf", "incoherent_otf", "coherent_image", "incoherent_image"]
 
 
 def _radius_grid(size: int) -> np.ndarray:
     k = np.arange(size, dtype=np.float64) - size // 2
     return np.hypot(k[:, None], k[None, :])
-
-
-def circ_pupil(size: int, radius_px: float) -> np.ndarray:
-    """Centred binary disc of radius ``radius_px`` on a ``size`` x ``size`` spectrum grid (float32)."""
-    return (_radius_grid(size) <= radius_px).astype(np.float32)
 
 
 def circ_otf(size: int, radius_px: float) -> np.ndarray:
@@ -84,7 +80,7 @@ def coherent_image(field: np.ndarray, radius_px: float) -> np.ndarray:
         Pupil radius in spectrum pixels of the object grid.
     """
     field = np.asarray(field, np.complex64)
-    spectrum = fft.fft2c(field) * circ_pupil(field.shape[-1], radius_px)
+    spectrum = fft.fft2c(field) * centred_disc(field.shape[-1], radius_px)
     return (np.abs(fft.ifft2c(spectrum)) ** 2).astype(np.float32)
 
 

@@ -52,6 +52,8 @@ __all__ = [
     "fft2c",
     "ifft2c",
     "fourier_resample",
+    "fourier_interpolate",
+    "resize_spectrum",
     "InPlaceFFT2",
     "BandedFFT2",
     "RawFFTPlans",
@@ -166,6 +168,32 @@ def ifft2c(array, *, workers: int | None = None) -> np.ndarray:
     return scipy.fft.fftshift(scipy.fft.ifft2(shifted, norm="ortho", workers=workers), axes=(-2, -1))
 
 
+def resize_spectrum(spectrum, shape) -> np.ndarray:
+    """A centred spectrum cropped or zero-padded about DC (pixel ``n // 2``) to ``shape`` (last two axes), complex64."""
+    spectrum = np.asarray(spectrum)
+    shape = tuple(int(v) for v in shape)
+    out = np.zeros(spectrum.shape[:-2] + shape, np.complex64)
+    keep = [min(a, b) for a, b in zip(spectrum.shape[-2:], shape)]
+    src = [n // 2 - k // 2 for n, k in zip(spectrum.shape[-2:], keep)]
+    dst = [n // 2 - k // 2 for n, k in zip(shape, keep)]
+    out[..., dst[0]:dst[0] + keep[0], dst[1]:dst[1] + keep[1]] = \
+        spectrum[..., src[0]:src[0] + keep[0], src[1]:src[1] + keep[1]]
+    return out
+
+
+def fourier_interpolate(image, shape, *, workers: int | None = None) -> np.ndarray:
+    """Band-limited interpolation of an image (real or complex, any aspect) onto ``shape``, values kept, complex64.
+
+    The spectrum is cropped or zero-padded about DC, so the centre pixel ``n // 2`` stays the centre and
+    a constant image keeps its value. Exact for images band-limited to the smaller grid.
+    """
+    image = np.asarray(image)
+    shape = tuple(int(v) for v in shape)
+    spectrum = resize_spectrum(fft2c(image.astype(np.complex64, copy=False), workers=workers), shape)
+    scale = np.float32(np.sqrt(shape[0] * shape[1] / (image.shape[-2] * image.shape[-1])))
+    return (ifft2c(spectrum, workers=workers) * scale).astype(np.complex64, copy=False)
+
+
 def fourier_resample(images, size: int, *, workers: int | None = None) -> np.ndarray:
     """Resample real images to ``size x size`` by cropping or zero-padding their spectra.
 
@@ -190,13 +218,8 @@ def fourier_resample(images, size: int, *, workers: int | None = None) -> np.nda
         raise ValueError(f"images must be square, got {images.shape[-2:]}")
     if size == n:
         return images.astype(np.float32, copy=True)
-    spectrum = fft2c(images.astype(np.complex64, copy=False), workers=workers)
-    out_spec = np.zeros(images.shape[:-2] + (size, size), dtype=np.complex64)
-    keep = min(n, size)
-    src = n // 2 - keep // 2
-    dst = size // 2 - keep // 2
-    out_spec[..., dst : dst + keep, dst : dst + keep] = spectrum[..., src : src + keep, src : src + keep]
-    out = ifft2c(out_spec, workers=workers).real * (size / n)
+    spectrum = resize_spectrum(fft2c(images.astype(np.complex64, copy=False), workers=workers), (size, size))
+    out = ifft2c(spectrum, workers=workers).real * (size / n)
     return out.astype(np.float32)
 
 

@@ -6,7 +6,7 @@ direction) and coma (``∝ h``) to its on-axis aberration — the Seidel field
 dependence. With ``(y, x)`` the field position over half the frame width
 (``h = 1`` at the middle of an edge), the pupil phase at a field point is, in
 RMS-normalised Zernike waves (modes ``(n, m)`` of :data:`MODES`, the
-normalisation of :func:`cca_cli.engines.calibration.zernike_basis`)::
+normalisation of :func:`cca_cli.optics.zernike.zernike_basis`)::
 
     defocus        = defocus_waves + field_curvature_waves · (x² + y²)
     astigmatism 0° = astigmatism_waves · (x² − y²)
@@ -31,6 +31,7 @@ import numpy as np
 
 from cca_cli.optics.forward import ForwardModel, to_sensor_layout
 from cca_cli.optics.pupil import circular_pupils
+from cca_cli.optics.zernike import zernike_basis
 from cca_cli.sampling.grid import BandLayout
 
 __all__ = ["MODES", "seidel_waves", "node_positions", "hat_weights", "aberration_at", "zernike_phases",
@@ -84,14 +85,7 @@ def aberration_at(waves: np.ndarray, nodes_px: np.ndarray, yx_px) -> np.ndarray:
 
 def zernike_phases(layout: BandLayout) -> np.ndarray:
     """The phase (radians per wave) of each mode of :data:`MODES` on every capture's pupil box: (modes, K, b, b)."""
-    centres = np.asarray(layout.box_centres, np.float64).reshape(-1, 2)
-    grid = np.arange(layout.box_size, dtype=np.float64)
-    y = (grid[None, :, None] - centres[:, 0, None, None]) / layout.pupil_radius_px
-    x = (grid[None, None, :] - centres[:, 1, None, None]) / layout.pupil_radius_px
-    rho2 = x * x + y * y
-    modes = [np.sqrt(3.0) * (2.0 * rho2 - 1.0), np.sqrt(6.0) * (x * x - y * y), np.sqrt(6.0) * 2.0 * x * y,
-             np.sqrt(8.0) * (3.0 * rho2 - 2.0) * x, np.sqrt(8.0) * (3.0 * rho2 - 2.0) * y]
-    return (2.0 * np.pi * np.stack(modes)).astype(np.float32)
+    return zernike_basis(layout.box_size, layout.box_centres, layout.pupil_radius_px, modes=MODES)
 
 
 def field_varying_intensity(spectrum: np.ndarray, layout: BandLayout, node_waves: np.ndarray,

@@ -33,6 +33,7 @@ import math
 import numpy as np
 
 from cca_cli.optics import fft, kernels
+from cca_cli.optics.pupil import circular_pupils
 from cca_cli.sampling.grid import BandLayout
 
 __all__ = ["ForwardModel", "Workspace", "to_model_layout", "to_sensor_layout", "chunk_slices"]
@@ -153,6 +154,11 @@ class ForwardModel:
         self._pupil_adjoint = None
         self._origin_array = np.ascontiguousarray(layout.box_origins, dtype=np.int64)
         kernels.warm_up()
+
+    @classmethod
+    def unaberrated(cls, layout: BandLayout) -> ForwardModel:
+        """The model of ideal lenses: each capture's pupil is its (anti-aliased) NA disc."""
+        return cls(layout, circular_pupils(layout.box_size, layout.box_centres, layout.pupil_radius_px))
 
     @property
     def pupil_boxes(self) -> np.ndarray:

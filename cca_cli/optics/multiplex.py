@@ -253,7 +253,7 @@ class MultiplexedForwardModel:
         layout = band_layout(geometry.virtual_centres_px, geometry.pupil_radius_px,
                              sensor_size=sensor_size, hires_size=hires_size)
         self.geometry = geometry
-        self.model = ForwardModel(layout, circular_pupils(layout.box_size, layout.box_centres, layout.pupil_radius_px))
+        self.model = ForwardModel.unaberrated(layout)
 
     @property
     def layout(self):
@@ -320,13 +320,13 @@ def _disc_boxes(centres_px: np.ndarray, radius: float, size: int):
     r = int(np.ceil(radius)) + 1
     for cy, cx in np.asarray(centres_px, dtype=np.float64):
         yc, xc = cy + size // 2, cx + size // 2
-        y0, y1 = max(int(np.floor(yc)) - r, 0), min(int(np.floor(yc)) + r + 2, size)
-        x0, x1 = max(int(np.floor(xc)) - r, 0), min(int(np.floor(xc)) + r + 2, size)
+        top, left = int(np.floor(yc)) - r, int(np.floor(xc)) - r
+        y0, y1 = max(top, 0), min(top + 2 * r + 2, size)
+        x0, x1 = max(left, 0), min(left + 2 * r + 2, size)
         if y0 >= y1 or x0 >= x1:
             continue
-        yy = np.arange(y0, y1)[:, None] - yc
-        xx = np.arange(x0, x1)[None, :] - xc
-        yield y0, y1, x0, x1, (yy * yy + xx * xx) <= radius * radius
+        disc = circular_pupils(2 * r + 2, [[yc - top, xc - left]], radius, edge_px=0)[0] > 0
+        yield y0, y1, x0, x1, disc[y0 - top:y1 - top, x0 - left:x1 - left]
 
 
 def coverage_map(geometry: MultiplexGeometry, size: int) -> np.ndarray:

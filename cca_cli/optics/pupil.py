@@ -1,10 +1,13 @@
-"""Pupil functions evaluated on the pupil boxes of a :class:`~cca_cli.sampling.BandLayout`."""
+"""Pupil discs: on the pupil boxes of a :class:`~cca_cli.sampling.BandLayout`, or centred on a spectrum grid.
+
+The aberration phase on them is :mod:`cca_cli.optics.zernike`'s.
+"""
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["circular_pupils", "zernike_phase"]
+__all__ = ["circular_pupils", "centred_disc"]
 
 
 def circular_pupils(box_size: int, box_centres, radius_px: float, *, edge_px: float = 1.0) -> np.ndarray:
@@ -43,23 +46,6 @@ def circular_pupils(box_size: int, box_centres, radius_px: float, *, edge_px: fl
     return np.clip((radius_px + 0.5 * edge_px - distance) / edge_px, 0.0, 1.0).astype(np.float32)
 
 
-def zernike_phase(box_size: int, box_centres, radius_px: float, *, defocus_waves: float = 0.0,
-                  astigmatism_waves: float = 0.0, oblique_astigmatism_waves: float = 0.0) -> np.ndarray:
-    """Low-order aberration phase (radians) over each pupil box.
-
-    Uses the Zernike polynomials ``Z(2,0) = √3 (2ρ² − 1)``, ``Z(2,2) = √6 ρ² cos 2θ``
-    and ``Z(2,−2) = √6 ρ² sin 2θ`` with coefficients in waves (RMS-normalised).
-
-    Returns
-    -------
-    ndarray, float32, (K, box_size, box_size)
-    """
-    centres = np.asarray(box_centres, dtype=np.float64).reshape(-1, 2)
-    grid = np.arange(box_size, dtype=np.float64)
-    y = (grid[None, :, None] - centres[:, 0, None, None]) / radius_px
-    x = (grid[None, None, :] - centres[:, 1, None, None]) / radius_px
-    rho2 = x * x + y * y
-    waves = (defocus_waves * np.sqrt(3.0) * (2.0 * rho2 - 1.0)
-             + astigmatism_waves * np.sqrt(6.0) * (x * x - y * y)
-             + oblique_astigmatism_waves * np.sqrt(6.0) * 2.0 * x * y)
-    return (2.0 * np.pi * waves).astype(np.float32)
+def centred_disc(size: int, radius_px: float) -> np.ndarray:
+    """Binary disc ``r ≤ radius_px`` centred on pixel ``size // 2`` of a ``size`` x ``size`` spectrum grid (float32)."""
+    return circular_pupils(size, [[size // 2, size // 2]], radius_px, edge_px=0)[0]

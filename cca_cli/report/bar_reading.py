@@ -15,6 +15,7 @@ import math
 import numpy as np
 
 from cca_cli.metrics.bars import three_bar_profile_contrast, usaf_period_m
+from cca_cli.optics import fft
 
 __all__ = ["FrameToRecovery", "read_elements", "finest_resolved", "offset_to_observed"]
 
@@ -86,8 +87,8 @@ def read_elements(recovered_object: np.ndarray, observed: np.ndarray, elements, 
     periods = [usaf_period_m(g, e) / frame_pixel_m * to_recovery.scale for g, e in names]
     factor = int(min(8, max(1, math.ceil(samples_per_period / min(periods)))))
     shape = tuple(n * factor for n in recovered_object.shape[-2:])
-    recovered_amplitude = np.abs(_interpolate(recovered_object, shape))
-    observed_amplitude = np.sqrt(np.clip(_interpolate(observed, shape).real, 0, None))
+    recovered_amplitude = np.abs(fft.fourier_interpolate(recovered_object, shape))
+    observed_amplitude = np.sqrt(np.clip(fft.fourier_interpolate(observed, shape).real, 0, None))
     small = recovered_object.shape[-2:]
     out = {}
     for spec, (group, element), period in zip(elements, names, periods):
@@ -169,20 +170,6 @@ def offset_to_observed(recovered: np.ndarray, observed: np.ndarray, cutoff_px: f
 def _finer(position: float, size: int, factor: int) -> float:
     """A pixel position on a grid ``factor`` times finer (both centred at ``size // 2``)."""
     return (size * factor) // 2 + (position - size // 2) * factor
-
-
-def _interpolate(image: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """Band-limited (Fourier) interpolation onto ``shape``; the centre ``n // 2`` stays the centre."""
-    from cca_cli.optics import fft
-
-    image = np.asarray(image)
-    spectrum = fft.fft2c(image.astype(np.complex64))
-    out = np.zeros(shape, np.complex64)
-    keep = [min(a, b) for a, b in zip(image.shape, shape)]
-    src = [n // 2 - k // 2 for n, k in zip(image.shape, keep)]
-    dst = [n // 2 - k // 2 for n, k in zip(shape, keep)]
-    out[dst[0]:dst[0] + keep[0], dst[1]:dst[1] + keep[1]] = spectrum[src[0]:src[0] + keep[0], src[1]:src[1] + keep[1]]
-    return fft.ifft2c(out) * np.float32(np.sqrt(shape[0] * shape[1] / (image.shape[0] * image.shape[1])))
 
 
 def _parse_name(name: str) -> tuple[int, int]:

@@ -11,7 +11,7 @@ import numpy as np
 
 from cca_cli.metrics import contrast_table, mtf_limit, rmse, speckle_contrast, usaf_gain, usaf_resolution
 from cca_cli.optics.baselines import coherent_image, incoherent_image
-from cca_cli.optics.fft import fft2c, ifft2c
+from cca_cli.optics.fft import fourier_interpolate
 from cca_cli.sampling.geometry import CaptureGeometry
 from cca_cli.units import FourierScale, spot_size_m
 
@@ -98,12 +98,7 @@ def field_intensity_on_grid(field: np.ndarray, size: int) -> np.ndarray:
     n = field.shape[-1]
     if size == n:
         return (np.abs(field) ** 2).astype(np.float32)
-    spectrum = fft2c(field)
-    out = np.zeros((size, size), np.complex64)
-    keep = min(n, size)
-    src, dst = n // 2 - keep // 2, size // 2 - keep // 2
-    out[dst:dst + keep, dst:dst + keep] = spectrum[src:src + keep, src:src + keep]
-    return (np.abs(ifft2c(out) * np.float32(size / n)) ** 2).astype(np.float32)
+    return (np.abs(fourier_interpolate(field, (size, size))) ** 2).astype(np.float32)
 
 
 def usaf_summary(images: dict[str, np.ndarray], chart, *, threshold: float, criterion: str = "three_bar") -> dict:

@@ -61,14 +61,7 @@ def on_grid(image: np.ndarray, size) -> np.ndarray:
         return image
     if image.shape[-1] == image.shape[-2] and shape[0] == shape[1]:
         return fft.fourier_resample(image[None], shape[0])[0]
-    spectrum = fft.fft2c(image.astype(np.complex64))
-    out = np.zeros(shape, np.complex64)
-    keep = [min(a, b) for a, b in zip(image.shape, shape)]
-    src = [n // 2 - k // 2 for n, k in zip(image.shape, keep)]
-    dst = [n // 2 - k // 2 for n, k in zip(shape, keep)]
-    out[dst[0]:dst[0] + keep[0], dst[1]:dst[1] + keep[1]] = spectrum[src[0]:src[0] + keep[0], src[1]:src[1] + keep[1]]
-    scale = np.sqrt(shape[0] * shape[1] / (image.shape[0] * image.shape[1]))
-    return (fft.ifft2c(out).real * scale).astype(np.float32)
+    return fft.fourier_interpolate(image, shape).real.astype(np.float32)
 
 
 def summarize(inputs: ReportInputs, *, threshold: float = 0.2) -> dict:

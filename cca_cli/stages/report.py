@@ -189,7 +189,7 @@ def _read_calibration(handle, geometry) -> dict | None:
     }
     group = handle["calibration"] if "calibration" in handle else None
     if group is not None and "/calibration/zernike_waves" in handle:
-        from cca_cli.engines.calibration import zernike_name
+        from cca_cli.optics.zernike import zernike_name
 
         waves = np.asarray(handle["/calibration/zernike_waves"])
         modes = [tuple(int(v) for v in mode) for mode in np.asarray(handle["/calibration/zernike_modes"])]
@@ -211,7 +211,7 @@ def _read_tiles(handle) -> dict | None:
            "iterations": np.asarray(group["iterations"]), "seconds": np.asarray(group["seconds"]),
            "attrs": {k: (v.item() if hasattr(v, "item") else _text(v)) for k, v in group.attrs.items()}}
     if "zernike_waves" in group:
-        from cca_cli.engines.calibration import zernike_name
+        from cca_cli.optics.zernike import zernike_name
 
         out["zernike_waves"] = np.asarray(group["zernike_waves"])[:, 0, :]
         out["zernike_names"] = [zernike_name(*(int(v) for v in mode)) for mode in np.asarray(group["zernike_modes"])]

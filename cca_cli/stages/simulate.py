@@ -13,7 +13,6 @@ from cca_cli.io.h5 import Provenance, check_output
 from cca_cli.optics import fft
 from cca_cli.optics.field_aberration import field_varying_intensity, node_positions, seidel_waves
 from cca_cli.optics.forward import ForwardModel
-from cca_cli.optics.pupil import circular_pupils
 from cca_cli.sampling.geometry import CaptureGeometry, camera_scan_geometry
 from cca_cli.sampling.grid import BandLayout, band_layout
 from cca_cli.sampling.overlap import grid_for_sar
@@ -68,7 +67,7 @@ def simulate(config: RunConfig, *, progress: ProgressFn = silent) -> Simulation:
     except ValueError as exc:
         raise ConfigError(f"optics/array: {exc}") from None
     scene = build_scene(config.scene, layout.hires_size)
-    model = ForwardModel(layout, circular_pupils(layout.box_size, layout.box_centres, layout.pupil_radius_px))
+    model = ForwardModel.unaberrated(layout)
     spectrum = fft.fft2c(scene.field).astype(np.complex64)
     store_size, pitch = stored_grid(config, sensor_pixels, layout.lowres_size)
     aberration = None

@@ -155,7 +155,7 @@ def build_model(geometry: CaptureGeometry, sensor_pixels: int, *, hires_size: in
     if margin_px > 0 and hires_size is None:
         layout = band_layout(geometry.spectrum_centres_yx_px, geometry.pupil_radius_px, sensor_size=sensor_pixels,
                              hires_size=smallest_fft_size(layout.hires_size + 2 * margin_px))
-    return ForwardModel(layout, circular_pupils(layout.box_size, layout.box_centres, layout.pupil_radius_px))
+    return ForwardModel.unaberrated(layout)
 
 
 def data_kind(captures: Captures) -> str:

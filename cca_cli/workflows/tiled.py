@@ -278,7 +278,7 @@ def _recover_tile(task: TileTask, section: ReconstructSection, parent: TileResul
         pupil = calibrated_pupils(recovery.calibration, padded.geometry.pupil_radius_px)
         waves, modes = np.asarray(estimate.coefficients, np.float64), [tuple(m) for m in estimate.modes]
     elif start is not None:  # a fixed pupil: the coefficients it was held at
-        from cca_cli.engines.calibration import zernike_modes
+        from cca_cli.optics.zernike import zernike_modes
 
         waves, modes = start, list(zernike_modes(options.pupil_order))
     fit = recovery.fit
@@ -302,12 +302,8 @@ def _on_blend_grid(recovery, captures: Captures, region, upsampling: int, *, reg
     m = spectrum.shape[-1]
     s = region.size
     size = upsampling * s
-    padded = np.zeros((size, size), np.complex64)
-    lo, dst = m // 2 - min(m, size) // 2, size // 2 - min(m, size) // 2
-    keep = min(m, size)
-    padded[dst:dst + keep, dst:dst + keep] = spectrum[lo:lo + keep, lo:lo + keep]
     shift = (0.0, 0.0)
-    field = fft.ifft2c(padded) * np.float32(size / m)
+    field = fft.ifft2c(fft.resize_spectrum(spectrum, (size, size))) * np.float32(size / m)
     oy, ox = region.offset_yx
     h, w = region.shape
     q = upsampling

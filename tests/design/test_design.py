@@ -10,7 +10,8 @@ from typer.testing import CliRunner
 from cca_cli.commands.app import app
 from cca_cli.config.model import SceneSection
 from cca_cli.metrics import contrast_table, mtf_limit, speckle_contrast
-from cca_cli.optics.baselines import circ_otf, circ_pupil, coherent_image, incoherent_otf
+from cca_cli.optics.baselines import circ_otf, coherent_image, incoherent_otf
+from cca_cli.optics.pupil import centred_disc
 from cca_cli.sampling.design import plan_array
 from cca_cli.sampling.overlap import synthetic_aperture_ratio
 from cca_cli.workflows.scenes import build_scene, surface_phase, table_to_usaf, usaf_to_table
@@ -49,7 +50,7 @@ def test_plan_warns_below_half_overlap_and_off_sensor():
 
 def test_incoherent_otf_matches_closed_form():
     for size, radius in ((128, 12.3), (96, 20.0)):
-        otf = incoherent_otf(circ_pupil(size, radius))
+        otf = incoherent_otf(centred_disc(size, radius))
         assert otf[size // 2, size // 2] == pytest.approx(1.0)
         assert np.max(np.abs(otf - circ_otf(size, radius))) < 0.015
 

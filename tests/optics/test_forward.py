@@ -7,7 +7,8 @@ import pytest
 
 from cca_cli.optics import fft
 from cca_cli.optics.forward import ForwardModel, chunk_slices, to_model_layout, to_sensor_layout
-from cca_cli.optics.pupil import circular_pupils, zernike_phase
+from cca_cli.optics.pupil import circular_pupils
+from cca_cli.optics.zernike import zernike_phase
 from cca_cli.sampling.grid import band_layout, square_scan
 
 RNG = np.random.default_rng(11)
@@ -19,7 +20,7 @@ def _model(radius=5.3, grid=3, overlap=0.61, *, sensor_size=None, phase=False):
     layout = band_layout(centres, radius, sensor_size=sensor_size)
     pupils = circular_pupils(layout.box_size, layout.box_centres, radius).astype(np.complex64)
     if phase:
-        pupils = pupils * np.exp(1j * zernike_phase(layout.box_size, layout.box_centres, radius, defocus_waves=0.3))
+        pupils = pupils * np.exp(1j * zernike_phase(layout.box_size, layout.box_centres, radius, [0.3]))
     return ForwardModel(layout, pupils.astype(np.complex64))
 
 
@@ -134,10 +135,24 @@ def test_circular_pupil_area_is_pi_r_squared(radius):
 
 
 def test_zernike_defocus_phase_is_radially_symmetric():
-    phase = zernike_phase(24, [[12.0, 12.0]], 8.0, defocus_waves=0.5)[0]
+    phase = zernike_phase(24, [[12.0, 12.0]], 8.0, [0.5])[0]
     np.testing.assert_allclose(phase, phase.T, atol=1e-6)
     assert phase[12, 12] == pytest.approx(2 * np.pi * 0.5 * np.sqrt(3) * -1.0, rel=1e-6)
-    assert np.all(zernike_phase(24, [[12.0, 12.0]], 8.0) == 0)
+    assert np.all(zernike_phase(24, [[12.0, 12.0]], 8.0, [0.0, 0.0, 0.0]) == 0)
+
+
+def test_zernike_modes_match_their_closed_forms():
+    """The RMS-normalised modes written out (Noll): defocus, both astigmatisms, coma x, spherical."""
+    from cca_cli.optics.zernike import zernike_basis
+
+    grid = np.arange(20.0)
+    y, x = ((grid[:, None] - 9.3) / 7.0) * np.ones((1, 20)), ((grid[None, :] - 10.1) / 7.0) * np.ones((20, 1))
+    r2 = x * x + y * y
+    expected = {(2, 0): np.sqrt(3) * (2 * r2 - 1), (2, 2): np.sqrt(6) * (x * x - y * y), (2, -2): np.sqrt(6) * 2 * x * y,
+                (3, 1): np.sqrt(8) * (3 * r2 - 2) * x, (4, 0): np.sqrt(5) * (6 * r2 * r2 - 6 * r2 + 1)}
+    basis = zernike_basis(20, [[9.3, 10.1]], 7.0, modes=list(expected))
+    for j, values in enumerate(expected.values()):
+        np.testing.assert_allclose(basis[j, 0], 2 * np.pi * values, atol=2e-4)
 
 
 def test_layout_conversions_are_inverse_and_chunks_cover_everything():

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from cca_cli.config.load import parse_config
-from cca_cli.engines.calibration import zernike_basis, zernike_modes
+from cca_cli.optics.zernike import zernike_basis, zernike_modes
 from cca_cli.errors import ConfigError
 from cca_cli.io.h5 import Provenance
 from cca_cli.optics import fft
