@@ -5,6 +5,7 @@ The command line is ``cca`` (``cca --help``). From Python, ``import cca_cli as c
 - geometry: ``camera_scan``, ``stage_scan``, ``led_array``, ``led_grid_sines``;
 - scenes: ``resolution_chart``, ``usaf_chart``;
 - imaging and recovery: ``simulate`` (object → intensities), ``reconstruct`` (intensities → ``Reconstruction``);
+- wide fields: ``reconstruct_tiles`` (overlapping tiles on Dask, a pupil per tile);
 - files: ``load``, ``save`` (``CaptureSet``, ``Reconstruction``), ``export`` (TIFF, PNG, .npy);
 - metrics: ``contrast``, ``mtf20``, ``usaf_reading``, ``rmse``.
 
@@ -12,38 +13,21 @@ Arrays in, arrays out, SI units at the boundary. See :mod:`cca_cli.api` for the 
 the names are imported on first use, so ``cca --help`` stays fast.
 """
 
-__version__ = "0.1.0"
-
-__all__ = [
-    "__version__",
-    "CaptureGeometry",
-    "CaptureSet",
-    "Reconstruction",
-    "camera_scan",
-    "stage_scan",
-    "led_array",
-    "led_grid_sines",
-    "resolution_chart",
-    "usaf_chart",
-    "simulate",
-    "reconstruct",
-    "load",
-    "save",
-    "export",
-    "contrast",
-    "mtf20",
-    "usaf_reading",
-    "rmse",
-]
+from cca_cli.version import __version__
 
 
 def __getattr__(name: str):
-    if name in __all__:
-        from cca_cli import api
+    # The public names are api.__all__ (one list); they load on first use so that `cca --help` stays fast.
+    from cca_cli import api
 
+    if name == "__all__":
+        return ["__version__", *api.__all__]
+    if name in api.__all__:
         return getattr(api, name)
     raise AttributeError(f"module 'cca_cli' has no attribute {name!r}")
 
 
 def __dir__():
-    return sorted(set(globals()) | set(__all__))
+    from cca_cli import api
+
+    return sorted(set(globals()) | set(api.__all__))

@@ -40,7 +40,15 @@ def test_help_shows_the_api():
 def test_importing_the_package_loads_no_numerics():
     code = "import sys, cca_cli; print(sorted(m for m in sys.modules if m.startswith(('cca_cli.', 'numpy'))))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
-    assert out.strip() == "[]"
+    assert out.strip() == "['cca_cli.version']"
+
+
+def test_the_package_and_the_api_list_the_same_names():
+    from cca_cli import api
+
+    assert cca.__all__ == ["__version__", *api.__all__]
+    assert cca.reconstruct_tiles is api.reconstruct_tiles
+    assert set(api.__all__) <= set(dir(cca))
 
 
 def test_unknown_names_engines_and_options_are_clear():

@@ -76,7 +76,7 @@ def test_only_registration_imports_opencv():
 #: commands → stages → workflows → {io, config, report} → {engines, registration, hdr, metrics}
 #: → {optics, sampling, targets} → {units, errors, progress}.
 LAYERS = {
-    "units.py": 0, "errors.py": 0, "progress.py": 0, "values.py": 0,
+    "units.py": 0, "errors.py": 0, "progress.py": 0, "values.py": 0, "version.py": 0,
     "optics": 1, "sampling": 1, "targets": 1,
     "engines": 2, "registration": 2, "hdr": 2, "metrics": 2,
     "io": 3, "config": 3, "report": 3,
@@ -102,10 +102,14 @@ def _entry(path: Path) -> str:
 
 
 def _layer_of_import(name: str) -> int | None:
+    """The layer of an imported name: a module of the package, or a name the package's ``__init__`` holds."""
     parts = name.split(".")
-    if parts[0] != "cca_cli" or len(parts) < 2:
+    if parts[0] != "cca_cli":
         return None
-    return LAYERS.get(parts[1], LAYERS.get(parts[1] + ".py"))
+    if len(parts) < 2:
+        return LAYERS["__init__.py"]
+    layer = LAYERS.get(parts[1], LAYERS.get(parts[1] + ".py"))
+    return LAYERS["__init__.py"] if layer is None else layer
 
 
 def _upward_imports(paths) -> list[str]:
@@ -168,13 +172,17 @@ def test_the_layer_checks_catch_what_they_forbid(tmp_path, monkeypatch):
     orchestrator.write_text("from cca_cli.stages import simulate as simulate_stage\n")
     upward = package / "optics" / "fft.py"
     upward.write_text("def f():\n    from ..workflows import scenes\n")
+    from_top = package / "optics" / "pupil.py"
+    from_top.write_text("from cca_cli import __version__\n")
 
     assert _stage_to_stage_imports([borrowing, clean, orchestrator]) == [
         "cca_cli/stages/simulate.py imports cca_cli.stages.reconstruct"]
     assert _violations([borrowing, clean], ("h5py",)) == ["cca_cli/stages/simulate.py imports h5py"]
-    assert _upward_imports([borrowing, clean, orchestrator, upward]) == [
+    assert _upward_imports([borrowing, clean, orchestrator, upward, from_top]) == [
         "cca_cli/optics/fft.py (layer 1) imports cca_cli.workflows (layer 4)",
-        "cca_cli/optics/fft.py (layer 1) imports cca_cli.workflows.scenes (layer 4)"]
+        "cca_cli/optics/fft.py (layer 1) imports cca_cli.workflows.scenes (layer 4)",
+        f"cca_cli/optics/pupil.py (layer 1) imports cca_cli (layer {LAYERS['__init__.py']})",
+        f"cca_cli/optics/pupil.py (layer 1) imports cca_cli.__version__ (layer {LAYERS['__init__.py']})"]
 
 
 def test_the_checker_sees_relative_and_function_local_imports(tmp_path):

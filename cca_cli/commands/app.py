@@ -12,7 +12,7 @@ try:  # recent typer vendors click
 except ImportError:  # pragma: no cover - typer that uses click itself
     from click import exceptions as click_errors
 
-from cca_cli import __version__
+from cca_cli.version import __version__
 from cca_cli.commands.capture_cmds import hdr_cli, ingest_cli, register_cli
 from cca_cli.commands.console import configure_logging, err_console, print_error, styled
 from cca_cli.commands.design import design_cli

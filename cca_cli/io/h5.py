@@ -12,7 +12,7 @@ from typing import Any, Iterator
 import h5py
 import numpy as np
 
-from cca_cli import __version__
+from cca_cli.version import __version__
 from cca_cli.errors import InputError, short
 from cca_cli.io.outputs import atomic_path, check_output, remove_stale_temporaries
 from cca_cli.io.schema import SCHEMA_VERSION, spec_for

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cca_cli import __version__
+from cca_cli.version import __version__
 from cca_cli.config.model import ReconstructSection
 from cca_cli.engines.base import History
 from cca_cli.engines.fit import FitReport

@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cca_cli import __version__
+from cca_cli.version import __version__
 from cca_cli.config.model import ReconstructSection
 from cca_cli.engines.options import EngineOptions
 from cca_cli.engines.registry import get_engine
