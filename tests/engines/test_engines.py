@@ -178,7 +178,7 @@ def test_registry_lookup_and_unknown_name_lists_valid_names():
 
 
 @pytest.mark.parametrize("name", engine_names())
-def test_every_registered_engine_improves_on_the_observed_image(name, captures):
+def test_every_registered_engine_improves_on_the_observed_image(name, captures, chart):
     model, centre, truth, band, _ = captures
     entry = get_engine(name)
     options = entry.options(tau=1e-3, max_iterations=40, tol=0.0)
@@ -187,6 +187,10 @@ def test_every_registered_engine_improves_on_the_observed_image(name, captures):
     spectrum, history = run_engine(entry.engine_class()(problem, options), on_iteration=calls.append)
     assert history.iterations == 40 == len(calls)
     truth_intensity = np.abs(truth) ** 2
-    recovered = np.abs(fft.ifft2c(spectrum)) ** 2
+    recovered = (np.abs(fft.ifft2c(spectrum)) ** 2).astype(np.float32)
     observed = fft.fourier_resample(band[centre][None], SIZE)[0]
-    assert rmse(recovered, truth_intensity) < rmse(observed, truth_intensity)
+    # Noise-free data: every engine fits it (altmin to 3e-4, momentum to 4e-7 here) and resolves the 2-px bars
+    # the centre image cannot; the intensity error left is the detail beyond the synthetic aperture.
+    assert history.records[-1].residual < 1e-3
+    assert mtf_limit(contrast_table(recovered, chart)) == 2
+    assert rmse(recovered, truth_intensity) < 0.6 * rmse(observed, truth_intensity)

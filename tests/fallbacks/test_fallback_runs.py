@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-FOCUSED = Path(__file__).with_name("test_fallback_paths.py")
+FOCUSED = [Path(__file__).with_name("test_fallback_paths.py"), Path(__file__).parents[1] / "engines" / "test_golden.py"]
 FALLBACKS = {
     "no pyfftw": {"CCA_FFT_BACKEND": "scipy"},
     "no numba": {"CCA_KERNELS": "numpy"},
@@ -35,7 +35,7 @@ def children(tmp_path_factory):
     for name, switch in FALLBACKS.items():
         env = dict(os.environ, **switch)
         started[name] = subprocess.Popen([sys.executable, "-m", "pytest", "-p", "no:cacheprovider", "-o", "addopts=", "-q",
-                                          str(FOCUSED)],
+                                          *map(str, FOCUSED)],
                                          cwd=root, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     for name, value in BAD_SWITCHES.items():
         env = dict(os.environ, **{name: value})
