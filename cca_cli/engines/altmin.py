@@ -55,9 +55,9 @@ class AltMinOptions:
 
     def __post_init__(self):
         check_options([
-            (self.tau >= 0, f"tau must be ≥ 0, got {self.tau}"),
+            (0 <= self.tau < np.inf, f"tau must be a finite number ≥ 0, got {self.tau}"),
             (self.max_iterations >= 1, f"max_iterations must be ≥ 1, got {self.max_iterations}"),
-            (self.tol >= 0, f"tol must be ≥ 0, got {self.tol}"),
+            (0 <= self.tol < np.inf, f"tol must be a finite number ≥ 0, got {self.tol}"),
             (_is_count(self.chunk), f"chunk must be an integer ≥ 1, got {self.chunk!r}"),
             (self.threads is None or _is_count(self.threads),
              f"threads must be an integer ≥ 1 or null, got {self.threads!r}"),

@@ -191,9 +191,9 @@ class MomentumOptions:
         if isinstance(self.position_refinement, bool):  # older configs: true / false
             object.__setattr__(self, "position_refinement", "both" if self.position_refinement else "none")
         check_options([
-            (self.tau >= 0, f"tau must be ≥ 0, got {self.tau}"),
+            (0 <= self.tau < np.inf, f"tau must be a finite number ≥ 0, got {self.tau}"),
             (self.max_iterations >= 1, f"max_iterations must be ≥ 1, got {self.max_iterations}"),
-            (self.tol >= 0, f"tol must be ≥ 0, got {self.tol}"),
+            (0 <= self.tol < np.inf, f"tol must be a finite number ≥ 0, got {self.tol}"),
             (0 <= self.plateau < 1, f"plateau must be in [0, 1), got {self.plateau}"),
             (self.plateau_window >= 1, f"plateau_window must be ≥ 1, got {self.plateau_window}"),
             (0 <= self.alpha <= 1, f"alpha must be in [0, 1], got {self.alpha}"),
