@@ -13,13 +13,20 @@ Arrays in, arrays out, SI units at the boundary. See :mod:`cca_cli.api` for the 
 the names are imported on first use, so ``cca --help`` stays fast.
 """
 
-from cca_cli.version import __version__
+from cca_cli.version import __version__  # noqa: F401 - the package's version, listed by __all__
+
+
+def _api():
+    import importlib
+
+    return importlib.import_module("cca_cli.api")
 
 
 def __getattr__(name: str):
     # The public names are api.__all__ (one list); they load on first use so that `cca --help` stays fast.
-    from cca_cli import api
-
+    if name.startswith("__") and name != "__all__":
+        raise AttributeError(f"module 'cca_cli' has no attribute {name!r}")
+    api = _api()
     if name == "__all__":
         return ["__version__", *api.__all__]
     if name in api.__all__:
@@ -28,6 +35,4 @@ def __getattr__(name: str):
 
 
 def __dir__():
-    from cca_cli import api
-
-    return sorted(set(globals()) | set(api.__all__))
+    return sorted(set(globals()) | set(_api().__all__))

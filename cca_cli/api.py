@@ -43,7 +43,7 @@ chart and measure the resolution before and after:
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
@@ -77,6 +77,40 @@ __all__ = [
 ]
 
 
+# ---------------------------------------------------------------------------------------------------- checks
+
+
+def _is_number(value) -> bool:
+    """Whether ``value`` is a finite real number (a bool is not one)."""
+    return (isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+            and bool(np.isfinite(value)))
+
+
+def _count(name: str, value) -> int:
+    """A whole number ≥ 1 (``10`` or ``10.0``), or ``ValueError`` naming the argument."""
+    if not (_is_number(value) and value == int(value) and value >= 1):
+        raise ValueError(f"{name} must be a whole number ≥ 1, got {value!r}")
+    return int(value)
+
+
+def _number(name: str, value, *, low: float = -np.inf) -> float:
+    """A finite real number ≥ ``low``, or ``ValueError`` naming the argument."""
+    if not (_is_number(value) and value >= low):
+        bound = "" if low == -np.inf else f" ≥ {low:g}"
+        raise ValueError(f"{name} must be a finite number{bound}, got {value!r}")
+    return float(value)
+
+
+def _real_images(values, name: str) -> np.ndarray:
+    """``values`` as float32, or ``ValueError`` naming the argument when they are complex or not numbers."""
+    array = np.asarray(values)
+    if np.iscomplexobj(array):
+        raise ValueError(f"{name} holds complex values; give real intensities (|field|², ≥ 0)")
+    if array.dtype.kind not in "biuf":
+        raise ValueError(f"{name} must be real numbers, got {array.dtype} values")
+    return array.astype(np.float32)
+
+
 # ---------------------------------------------------------------------------------------------------- geometry
 
 
@@ -108,7 +142,8 @@ def camera_scan(*, wavelength_m: float, focal_length_m: float, aperture_diameter
     Raises
     ------
     ValueError
-        Neither or both of ``grid`` and ``sar``, or optics that leave too few pixels.
+        Neither or both of ``grid`` and ``sar``, a quantity that is not a positive, finite
+        number (named), or optics that leave too few pixels.
 
     Examples
     --------
@@ -122,7 +157,10 @@ def camera_scan(*, wavelength_m: float, focal_length_m: float, aperture_diameter
 
     if (grid is None) == (sar is None):
         raise ValueError("give either grid (positions per side) or sar (synthetic aperture ratio), not both")
-    n = int(grid) if grid is not None else grid_for_sar(sar, overlap)
+    overlap = _number("overlap", overlap)
+    if not 0 <= overlap < 1:
+        raise ValueError(f"overlap must be in [0, 1), got {overlap!r}")
+    n = _count("grid", grid) if grid is not None else grid_for_sar(_number("sar", sar, low=1.0), overlap)
     geometry, _ = camera_scan_geometry(wavelength_m=wavelength_m, focal_length_m=focal_length_m,
                                        aperture_diameter_m=aperture_diameter_m, pixel_pitch_m=pixel_pitch_m,
                                        distance_m=distance_m, field_width_m=field_width_m, grid=n, overlap=overlap)
@@ -146,6 +184,11 @@ def stage_scan(positions_yx_m, *, wavelength_m: float, focal_length_m: float, ap
     -------
     CaptureGeometry
 
+    Raises
+    ------
+    ValueError
+        Positions that are not finite (K, 2) pairs, or a quantity that is not a positive, finite number (named).
+
     Examples
     --------
     >>> steps = np.array([[y, x] for y in (-1e-3, 0, 1e-3) for x in (-1e-3, 0, 1e-3)])
@@ -155,9 +198,11 @@ def stage_scan(positions_yx_m, *, wavelength_m: float, focal_length_m: float, ap
     (9, (3, 3), 9.6)
     """
     from cca_cli.sampling.capture import stage_scan_geometry
+    from cca_cli.sampling.geometry import check_positive
     from cca_cli.units import sensor_field_width_m
 
-    field_width = sensor_field_width_m(int(image_pixels), pixel_pitch_m, focal_length_m, distance_m)
+    check_positive(pixel_pitch_m=pixel_pitch_m, focal_length_m=focal_length_m, distance_m=distance_m)
+    field_width = sensor_field_width_m(_count("image_pixels", image_pixels), pixel_pitch_m, focal_length_m, distance_m)
     return stage_scan_geometry(positions_yx_m, wavelength_m=wavelength_m, focal_length_m=focal_length_m,
                                aperture_diameter_m=aperture_diameter_m, pixel_pitch_m=pixel_pitch_m,
                                distance_m=distance_m, field_width_m=field_width)
@@ -180,13 +225,22 @@ def led_grid_sines(grid: int, *, pitch_m: float, height_m: float) -> np.ndarray:
     ndarray, float64, (grid², 2)
         Row-major over the LED grid.
 
+    Raises
+    ------
+    ValueError
+        A grid that is not a whole number ≥ 1, or a pitch or height that is not a positive, finite number.
+
     Examples
     --------
     >>> s = led_grid_sines(3, pitch_m=4e-3, height_m=90e-3)
     >>> s.shape, float(s[4, 0]), round(float(s[5, 1]), 4)
     ((9, 2), 0.0, 0.0444)
     """
-    offsets = (np.arange(int(grid)) - (int(grid) - 1) / 2) * float(pitch_m)
+    from cca_cli.sampling.geometry import check_positive
+
+    grid = _count("grid", grid)
+    check_positive(pitch_m=pitch_m, height_m=height_m)
+    offsets = (np.arange(grid) - (grid - 1) / 2) * float(pitch_m)
     y, x = np.meshgrid(offsets, offsets, indexing="ij")
     r = np.sqrt(x**2 + y**2 + float(height_m) ** 2)
     return np.stack([(y / r).ravel(), (x / r).ravel()], axis=1)
@@ -216,6 +270,12 @@ def led_array(sin_yx, *, wavelength_m: float, numerical_aperture: float, pixel_p
     CaptureGeometry
         Pupil radius ``NA·W/λ`` pixels; capture k's pupil at ``sign · sin θ · W/λ``.
 
+    Raises
+    ------
+    ValueError
+        Sines that are not finite (K, 2) pairs in [-1, 1], an NA outside (0, 1), or a quantity that
+        is not a positive, finite number (named).
+
     Examples
     --------
     >>> g = led_array(led_grid_sines(15, pitch_m=4e-3, height_m=90.88e-3), wavelength_m=532e-9,
@@ -224,10 +284,13 @@ def led_array(sin_yx, *, wavelength_m: float, numerical_aperture: float, pixel_p
     (225, 44.39, 3.94)
     """
     from cca_cli.sampling.capture import led_array_geometry
+    from cca_cli.sampling.geometry import check_positive
 
+    check_positive(pixel_pitch_object_m=pixel_pitch_object_m)
     return led_array_geometry(sin_yx, wavelength_m=wavelength_m, numerical_aperture=numerical_aperture,
                               pixel_pitch_object_m=pixel_pitch_object_m,
-                              field_width_m=int(image_pixels) * float(pixel_pitch_object_m), sign=sign)
+                              field_width_m=_count("image_pixels", image_pixels) * float(pixel_pitch_object_m),
+                              sign=sign)
 
 
 # ------------------------------------------------------------------------------------------------------ scenes
@@ -300,18 +363,25 @@ def simulate(obj, geometry: CaptureGeometry, *, snr_db: float | None = 30.0, pho
     geometry : CaptureGeometry
     snr_db : float or None
         Gaussian noise at this SNR per image, ``σ² = var(I)/10^(SNR/10)`` (the
-        paper's definition); None for no Gaussian noise.
+        paper's definition; at least -10 dB, below which the noise swamps the
+        images); None for no Gaussian noise.
     photons_per_unit, read_noise_e : float, optional
-        Shot noise (photons per unit intensity) and read noise (electrons)
-        instead of Gaussian noise.
+        Shot noise (photons per unit intensity, at most 1e12) and read noise
+        (electrons) instead of Gaussian noise.
     seed : int
-        Seed of the noise.
+        Seed of the noise (≥ 0).
 
     Returns
     -------
     ndarray, float32, (K, N, N)
         Intensities on the sensor grid (N pixels across the field), centred,
         in the object's units squared (irradiance).
+
+    Raises
+    ------
+    ValueError
+        An ``obj`` that is not a finite, square 2-D array of numbers, or a noise
+        setting out of range (each names its argument).
 
     Examples
     --------
@@ -325,20 +395,48 @@ def simulate(obj, geometry: CaptureGeometry, *, snr_db: float | None = 30.0, pho
     from cca_cli.optics.forward import ForwardModel
     from cca_cli.optics.noise import add_gaussian_noise, add_shot_and_read_noise
 
-    field_in = np.asarray(obj)
-    if field_in.ndim != 2 or field_in.shape[0] != field_in.shape[1]:
-        raise ValueError(f"obj must be a square 2-D array, got shape {field_in.shape}")
+    field_in = _object_field(obj)
+    noise = _noise_settings(snr_db, photons_per_unit, read_noise_e, seed)
     sensor = _sensor_pixels(geometry)
     layout = _layout(geometry, sensor)
     model = ForwardModel.unaberrated(layout)
     band = model.sensor_intensity(_spectrum_on(field_in, layout.hires_size))
     images = fft.fourier_resample(band, sensor)
-    rng = np.random.default_rng(seed)
-    if photons_per_unit is not None:
-        return add_shot_and_read_noise(images, photons_per_unit=photons_per_unit, read_noise_e=read_noise_e, rng=rng)
-    if snr_db is not None:
-        return add_gaussian_noise(images, snr_db, rng)
+    rng = np.random.default_rng(noise["seed"])
+    if noise["photons_per_unit"] is not None:
+        return add_shot_and_read_noise(images, photons_per_unit=noise["photons_per_unit"],
+                                       read_noise_e=noise["read_noise_e"], rng=rng)
+    if noise["snr_db"] is not None:
+        return add_gaussian_noise(images, noise["snr_db"], rng)
     return images.astype(np.float32)
+
+
+def _object_field(obj) -> np.ndarray:
+    """The object as a finite, square 2-D array of numbers (real or complex), or ``ValueError`` naming ``obj``."""
+    field_in = np.asarray(obj)
+    if field_in.dtype.kind not in "biufc":
+        raise ValueError(f"obj must be numbers (a real amplitude or a complex field), got {field_in.dtype} values")
+    if field_in.ndim != 2 or field_in.shape[0] != field_in.shape[1]:
+        raise ValueError(f"obj must be a square 2-D array, got shape {field_in.shape}")
+    bad = int(np.size(field_in) - np.count_nonzero(np.isfinite(field_in)))
+    if bad:
+        raise ValueError(f"obj holds {bad} NaN or infinite pixel(s); every pixel of the object must be finite")
+    return field_in
+
+
+def _noise_settings(snr_db, photons_per_unit, read_noise_e, seed) -> dict:
+    """The noise arguments of :func:`simulate`, checked as the config's noise section is."""
+    from cca_cli.optics.noise import MIN_SNR_DB
+
+    if snr_db is not None and _number("snr_db", snr_db) < MIN_SNR_DB:
+        raise ValueError(f"snr_db {snr_db:g}: the noise would swamp the signal (σ {10 ** (-snr_db / 20):.3g} times "
+                         f"each image's standard deviation); use a value of at least {MIN_SNR_DB:g} dB")
+    if photons_per_unit is not None and not 0 < _number("photons_per_unit", photons_per_unit) <= 1e12:
+        raise ValueError(f"photons_per_unit must be in (0, 1e12] (electrons at irradiance 1), got {photons_per_unit!r}")
+    if not (_is_number(seed) and isinstance(seed, (int, np.integer)) and seed >= 0):
+        raise ValueError(f"seed must be a whole number ≥ 0, got {seed!r}")
+    return {"snr_db": snr_db, "photons_per_unit": photons_per_unit, "seed": seed,
+            "read_noise_e": _number("read_noise_e", read_noise_e, low=0.0)}
 
 
 @dataclass(frozen=True)
@@ -526,8 +624,13 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
     Raises
     ------
     ValueError
-        Unknown engine or option (the message lists the valid ones), or
-        images that do not match the geometry.
+        Unknown engine or option (the message lists the valid ones); images
+        that do not match the geometry; intensities or weights the CLI would
+        refuse in a captures file (complex, NaN or infinite values, an image
+        with a negative mean, every image flat, weights outside [0, 1]), each
+        naming ``intensities`` or ``weight``; or more dead (constant) images
+        than can be left out, or a dead centre image. Up to 5% dead images are
+        left out with a warning, as ``cca reconstruct`` does.
 
     Examples
     --------
@@ -539,8 +642,10 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
     (True, 2)
     """
     from cca_cli.engines.registry import resolve
+    from cca_cli.io.measurements import check_intensity, check_weight
     from cca_cli.optics import fft
     from cca_cli.stages.reconstruct import Captures, calibrated_pupils, recover
+    from cca_cli.workflows.recovery import without_dead_captures
 
     truth, units, boundary, initial_pupil = {}, None, "periodic", None
     if isinstance(intensities, CaptureSet):
@@ -554,14 +659,19 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
         raise ValueError(f"padding must be 'auto' or 'off', got {padding!r}")
     if geometry is None:
         raise ValueError("give the capture geometry (camera_scan, stage_scan or led_array), or a CaptureSet")
-    images = np.asarray(intensities, np.float32)
+    images = _real_images(intensities, "intensities")
     if images.ndim != 3 or len(images) != geometry.n_images:
         raise ValueError(f"intensities must be (K, N, N) or (K, H, W) with K = {geometry.n_images} images of the "
                          f"geometry, got shape {images.shape}")
     engine, engine_options = resolve(engine, "simulation" if truth else geometry.kind, options)
-    weights = None if weight is None else np.asarray(weight, np.float32)
-    if weights is not None and weights.shape != images.shape:
-        raise ValueError(f"weight has shape {weights.shape}, the images {images.shape}")
+    check_intensity(images, "intensities", error=ValueError)
+    weights = None if weight is None else _real_images(weight, "weight")
+    if weights is not None:
+        check_weight(weights, images.shape, "weight", error=ValueError)
+    live = without_dead_captures(Captures(path=Path("<arrays>"), intensity=images, weight=weights, geometry=geometry,
+                                          truth=dict(truth), units=units, initial_pupil=initial_pupil),
+                                 name="intensities", error=ValueError)
+    images, weights, geometry = live.intensity, live.weight, live.geometry
     region = None
     observed = images[geometry.centre_index]
     if images.shape[-1] != images.shape[-2] or (boundary == "open" and padding == "auto"):
@@ -571,8 +681,7 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
         region = plan_embedding(images.shape[-2:], geometry.pupil_radius_px)
         images, weights = region.embed(images, weights)
         geometry = with_field_width(geometry, geometry.field_width_m * region.size / observed.shape[-1])
-    captures = Captures(path=Path("<arrays>"), intensity=images, weight=weights, geometry=geometry, truth=dict(truth),
-                        units=units, initial_pupil=initial_pupil)
+    captures = replace(live, intensity=images, weight=weights, geometry=geometry)
     if isinstance(init, Reconstruction):
         init = init.spectrum
     recovery = recover(captures, engine, engine_options, on_iteration=callback, init=init)
@@ -664,12 +773,18 @@ def reconstruct_tiles(captures, geometry: CaptureGeometry | None = None, *, size
     Returns
     -------
     TiledReconstruction
+
+    Raises
+    ------
+    ValueError
+        Images (an array or a CaptureSet) that ``cca reconstruct`` would refuse in a file, naming ``captures``.
     """
     import contextlib
     import tempfile
 
     from cca_cli.config.model import ReconstructSection
     from cca_cli.io.h5 import Provenance
+    from cca_cli.io.measurements import check_intensity
     from cca_cli.workflows.cluster import open_client
     from cca_cli.workflows.tiled import reconstruct_tiled, run_fingerprint
 
@@ -694,7 +809,8 @@ def reconstruct_tiles(captures, geometry: CaptureGeometry | None = None, *, size
             if not isinstance(captures, CaptureSet):
                 if geometry is None:
                     raise ValueError("give the capture geometry with the images, or a CaptureSet or a captures file")
-                captures = CaptureSet(np.asarray(captures, np.float32), geometry)
+                captures = CaptureSet(_real_images(captures, "captures"), geometry)
+            check_intensity(np.asarray(captures.intensity, np.float32), "captures", error=ValueError)
             path = save(captures, folder / "captures.h5")
         if client is None:
             client = stack.enter_context(open_client(workers=workers, scheduler=scheduler))

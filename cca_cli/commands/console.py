@@ -243,6 +243,8 @@ def _nested_rows(summary: dict) -> list[tuple[str, str]]:
     if summary.get("stopped_by"):
         reasons = {"tol": "tol", "plateau": "misfit plateau", "cap": "iteration cap (before tol)"}
         rows.append(("stopped by", reasons.get(summary["stopped_by"], summary["stopped_by"])))
+    if summary.get("dropped_captures"):
+        rows.append(("dead captures left out (images)", ", ".join(str(i) for i in summary["dropped_captures"])))
     zernike = summary.get("zernike_waves") or {}
     if zernike:
         largest = sorted(zernike.items(), key=lambda item: -abs(item[1]))[:3]

@@ -14,6 +14,7 @@ from pydantic import Field, NonNegativeInt, PositiveFloat, PositiveInt, field_va
 
 from cca_cli.config.section import Section
 from cca_cli.engines import presets, registry
+from cca_cli.optics.noise import MIN_SNR_DB
 
 __all__ = [
     "STAGES",
@@ -122,11 +123,20 @@ class NoiseSection(Section):
     """Sensor noise."""
 
     model: Literal["none", "gaussian", "poisson"] = Field("gaussian", description="none, gaussian (SNR) or poisson (shot + read).")
-    snr_db: float = Field(30.0, description="Gaussian SNR per image: 10 log10(var(I) / σ²) (dB).")
+    snr_db: float = Field(30.0, description="Gaussian SNR per image: 10 log10(var(I) / σ²) (dB), at least -10.")
     photons_per_unit: PositiveFloat = Field(
         1000.0, le=1e12, description="Poisson: electrons per pixel at irradiance 1 (at most 1e12, beyond any sensor).")
     read_noise_e: float = Field(2.0, ge=0.0, description="Poisson: read noise (electrons RMS).")
     seed: int = Field(0, ge=0, description="Seed of the noise generator (≥ 0).")
+
+    @field_validator("snr_db")
+    @classmethod
+    def _signal_not_swamped(cls, snr_db):
+        if snr_db < MIN_SNR_DB:
+            raise ValueError(f"{snr_db:g} dB: the noise would swamp the signal (σ {10 ** (-snr_db / 20):.3g} times "
+                             "each image's standard deviation, so dim images average below zero); use a value of at "
+                             f"least {MIN_SNR_DB:g} dB")
+        return snr_db
 
 
 class SimulateSection(Section):

@@ -35,6 +35,7 @@ class Captures:
     units: str | None = None   # units of /measurements/intensity when they are not the schema's (counts/s)
     boundary: str = "periodic"                 # "open": a window on a larger scene (recorded frames)
     initial_pupil: np.ndarray | None = None    # (P, P) complex64 on the NA disc, from the manifest
+    dropped: tuple[int, ...] = ()              # images of the file left out as dead (constant) captures
 
 
 def read_measurements(handle, path: Path) -> Captures:

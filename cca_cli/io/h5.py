@@ -70,6 +70,10 @@ def check_input_file(path: str | Path, *, listed_in: str | Path | None = None) -
     """
     path = Path(path)
     if not path.exists():
+        if path.is_symlink():
+            named = f" (listed in {listed_in})" if listed_in is not None else ""
+            raise InputError(f"{path}: is a symbolic link that leads nowhere{named}: it loops, or what it points to "
+                             "is gone; fix the link or give the file itself")
         if listed_in is not None:
             raise InputError(f"{path}: listed in {listed_in} but not found; check the path there")
         raise InputError(f"{path}: input file not found; check the path or run the stage that writes it")

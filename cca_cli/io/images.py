@@ -135,6 +135,9 @@ def read_stored(path) -> StoredImage:
     of multi-image files is read.
     """
     name = os.fspath(path)
+    if not os.path.exists(name) and os.path.islink(name):
+        raise InputError(f"{name}: is a symbolic link that leads nowhere (it loops, or what it points to is gone); "
+                         "fix the link or give the image file itself")
     if not os.path.exists(name):
         raise InputError(f"{name}: file not found; check the path and the capture folder")
     if os.path.isdir(name):

@@ -16,6 +16,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -633,10 +634,11 @@ def plan_captures(manifest: Manifest, path: str | Path, *, notes: list[str] | No
     Raises
     ------
     ConfigError
-        An exposure listed twice at one position, positions with different
-        numbers of exposures, grid entries without ``stage_pitch_mm``, a
-        calibration row without a coherent position (or the reverse), coherent,
-        dark or flat rows stating different bit depths, or no coherent rows.
+        An exposure listed twice at one position, one image file listed for
+        two positions or exposures (also under another name: a link to it),
+        positions with different numbers of exposures, grid entries without
+        ``stage_pitch_mm``, a calibration row without a coherent position (or
+        the reverse), rows stating different bit depths, or no coherent rows.
     """
     path = Path(path)
     if manifest.source is not None:
@@ -694,6 +696,7 @@ def plan_captures(manifest: Manifest, path: str | Path, *, notes: list[str] | No
         else:
             positions.append(np.asarray(key[1:], np.float64) * manifest.stage_pitch_mm * 1e-3)
         labels.append(f"{where} ({entries[0].path.name})")
+    _check_distinct_files(groups, path)
     pos = np.asarray(positions, np.float64)
     grid_idx = None
     if grid:
@@ -738,6 +741,35 @@ def _stated_bit_depth(entries: list[ImageEntry], manifest: Manifest, path: Path)
         raise ConfigError(f"{path}: the rows state bit depth {bit_depth} ({first.path.name}) but sensor.bit_depth is "
                           f"{manifest.sensor.bit_depth}; make them agree")
     return bit_depth
+
+
+def _file_identity(path: Path) -> tuple:
+    """What makes two paths one file: device and inode (links included), else the resolved path."""
+    try:
+        stat = os.stat(path)
+    except OSError:  # missing or unreadable: reading it later says so
+        return ("path", os.path.realpath(path))
+    return ("inode", stat.st_dev, stat.st_ino)
+
+
+def _check_distinct_files(groups: dict, path: Path) -> None:
+    """Every coherent row must name its own image: one file at two positions or exposures is a copy-paste slip."""
+    seen: dict[tuple, tuple[tuple, ImageEntry]] = {}
+    for key, entries in groups.items():
+        for entry in entries:
+            identity = _file_identity(entry.path)
+            if identity not in seen:
+                seen[identity] = (key, entry)
+                continue
+            first_key, first = seen[identity]
+            same = (f"the same file {entry.path.name}" if first.path.name == entry.path.name
+                    else f"{entry.path.name}, the same file as {first.path.name}")
+            if first_key == key:
+                raise ConfigError(f"{path}: {_position_text(key)} lists {same} for exposures "
+                                  f"{_fmt(first.exposure_s)} s and {_fmt(entry.exposure_s)} s; each exposure needs "
+                                  "its own image")
+            raise ConfigError(f"{path}: {_position_text(first_key)} and {_position_text(key)} both name {same}; "
+                              "each position needs its own image: fix the path of one of the rows")
 
 
 def _check_grouped_positions(groups: dict, pos: np.ndarray, path: Path, kind: str) -> None:

@@ -162,16 +162,22 @@ def _first_existing(path: Path) -> Path:
     return here
 
 
+def _resolved(path: Path) -> Path:
+    """The absolute path with links followed, as far as they lead (a link that loops is kept as it is, where
+    ``Path.resolve`` raises on Python before 3.13)."""
+    return Path(os.path.realpath(path))
+
+
 def _same_file(a: Path, b: Path) -> bool:
     try:
         return os.path.samefile(a, b)
     except OSError:
-        return a.resolve() == b.resolve()
+        return _resolved(a) == _resolved(b)
 
 
 def _inside(inner: Path, outer: Path) -> bool:
     try:
-        inner.resolve().relative_to(outer.resolve())
+        _resolved(inner).relative_to(_resolved(outer))
         return True
     except ValueError:
         return False
@@ -223,7 +229,7 @@ def check_output(path: str | Path, *, force: bool = False, kind: str = "file", i
         source = Path(source)
         if not os.path.lexists(source):
             continue
-        if (os.path.lexists(path) and _same_file(path, source)) or path.resolve() == source.resolve():
+        if (os.path.lexists(path) and _same_file(path, source)) or _resolved(path) == _resolved(source):
             raise OutputError(f"{shown}: is the input {source}; write the output elsewhere (cca never writes "
                               "over its input)")
         if _inside(source, path):

@@ -4,7 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["gaussian_noise_sigma", "add_gaussian_noise", "add_shot_and_read_noise"]
+__all__ = ["MIN_SNR_DB", "gaussian_noise_sigma", "add_gaussian_noise", "add_shot_and_read_noise"]
+
+#: Lowest Gaussian SNR a simulation takes. Below it the noise (σ over 3 times an image's own standard
+#: deviation) swamps the images: the means of dim (dark-field) images fall below zero, which no intensity can have.
+MIN_SNR_DB = -10.0
 
 
 def gaussian_noise_sigma(images: np.ndarray, snr_db: float) -> np.ndarray:

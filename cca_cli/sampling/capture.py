@@ -12,7 +12,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from cca_cli.sampling.geometry import CaptureGeometry
+from cca_cli.sampling.geometry import CaptureGeometry, check_positive
 from cca_cli.units import FourierScale, led_fourier_scale, object_pixel_pitch_m
 
 __all__ = ["stage_scan_geometry", "led_array_geometry", "with_field_width", "object_pixel_m", "grid_from_positions"]
@@ -53,8 +53,16 @@ def stage_scan_geometry(positions_yx_m, *, wavelength_m: float, focal_length_m: 
     -------
     CaptureGeometry
         ``kind="camera_scan"``; spectrum centres ``positions / (λ z / W)``.
+
+    Raises
+    ------
+    ValueError
+        Positions that are not finite [y, x] pairs, or an optical quantity that is not a positive,
+        finite number (named).
     """
-    pos = np.asarray(positions_yx_m, dtype=np.float64).reshape(-1, 2)
+    check_positive(wavelength_m=wavelength_m, focal_length_m=focal_length_m, aperture_diameter_m=aperture_diameter_m,
+                   pixel_pitch_m=pixel_pitch_m, distance_m=distance_m, field_width_m=field_width_m)
+    pos = _pairs(positions_yx_m, "positions_yx_m")
     scale = FourierScale.fraunhofer(wavelength_m, distance_m, field_width_m)
     grid = grid_from_positions(pos) if grid_indices is None else np.asarray(grid_indices, np.int32)
     return CaptureGeometry(
@@ -92,10 +100,23 @@ def led_array_geometry(sin_yx, *, wavelength_m: float, numerical_aperture: float
         aperture-plane "metres" are ``sin θ`` values and
         ``aperture_diameter_m = 2 NA``: every SI helper (spot size, SAR) then
         reads correctly at the object.
+
+    Raises
+    ------
+    ValueError
+        Sines that are not finite pairs in [-1, 1], an NA outside (0, 1), another ``sign``, or a
+        wavelength, pixel or field that is not a positive, finite number (named).
     """
     if sign not in (-1, 1):
         raise ValueError(f"sign must be -1 or +1, got {sign}")
-    centres = sign * np.asarray(sin_yx, dtype=np.float64).reshape(-1, 2)
+    check_positive(wavelength_m=wavelength_m, pixel_pitch_object_m=pixel_pitch_object_m, field_width_m=field_width_m)
+    if isinstance(numerical_aperture, bool) or not 0 < _float(numerical_aperture) < 1:
+        raise ValueError(f"numerical_aperture must be a number in (0, 1), got {numerical_aperture!r}")
+    sines = _pairs(sin_yx, "sin_yx")
+    if (np.abs(sines) > 1).any():
+        raise ValueError(f"sin_yx holds sines beyond ±1 (largest {float(np.abs(sines).max()):.4g}); give sin θ, "
+                         "not angles or positions")
+    centres = sign * sines
     scale = led_fourier_scale(wavelength_m, field_width_m)
     grid = grid_from_positions(centres) if grid_indices is None else np.asarray(grid_indices, np.int32)
     return CaptureGeometry(
@@ -104,6 +125,28 @@ def led_array_geometry(sin_yx, *, wavelength_m: float, numerical_aperture: float
         aperture_centres_yx_m=centres, spectrum_centres_yx_px=scale.to_pixels(centres), grid_indices=grid,
         pupil_radius_px=scale.pupil_radius_px(2.0 * float(numerical_aperture)), kind="led_array",
         numerical_aperture=float(numerical_aperture))
+
+
+def _float(value) -> float:
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return float("nan")
+
+
+def _pairs(values, name: str) -> np.ndarray:
+    """``values`` as a finite float64 (K, 2) array of [y, x] pairs, or ``ValueError`` naming the argument."""
+    try:
+        pairs = np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be numbers, shape (K, 2)") from None
+    if pairs.shape == (2,):
+        pairs = pairs[None]
+    if pairs.ndim != 2 or pairs.shape[1] != 2 or pairs.shape[0] == 0:
+        raise ValueError(f"{name} must have shape (K, 2) with K ≥ 1 ([y, x] of each capture), got {pairs.shape}")
+    if not np.isfinite(pairs).all():
+        raise ValueError(f"{name} holds NaN or infinite values (row {int(np.argmax(~np.isfinite(pairs).all(1)))})")
+    return pairs
 
 
 def object_pixel_m(geometry: CaptureGeometry) -> float:

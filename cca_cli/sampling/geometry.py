@@ -2,15 +2,36 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from cca_cli.sampling.grid import square_scan
-from cca_cli.sampling.overlap import step_m, synthetic_aperture_ratio
+from cca_cli.sampling.overlap import step_m
 from cca_cli.units import FourierScale, sensor_field_width_m, sensor_pixels_across
 
-__all__ = ["CaptureGeometry", "camera_scan_geometry"]
+__all__ = ["CaptureGeometry", "camera_scan_geometry", "check_positive"]
+
+
+def check_positive(**values) -> None:
+    """Refuse any value that is not a positive, finite number: ``ValueError`` naming the argument.
+
+    Examples
+    --------
+    >>> check_positive(wavelength_m=550e-9, distance_m=50)
+    >>> check_positive(wavelength_m=-5e-7)
+    Traceback (most recent call last):
+    ...
+    ValueError: wavelength_m must be a positive, finite number (SI units), got -5e-07
+    """
+    for name, value in values.items():
+        try:
+            number = float(value)
+        except (TypeError, ValueError):
+            number = math.nan
+        if isinstance(value, (bool, np.bool_)) or not (math.isfinite(number) and number > 0):
+            raise ValueError(f"{name} must be a positive, finite number (SI units), got {value!r}")
 
 
 @dataclass(frozen=True)
@@ -87,6 +108,17 @@ class CaptureGeometry:
         """(rows, columns) of the capture grid."""
         return (int(self.grid_indices[:, 0].max()) + 1, int(self.grid_indices[:, 1].max()) + 1)
 
+    def select(self, keep) -> "CaptureGeometry":
+        """The same geometry for the captures ``keep`` only (indices or a boolean mask over K).
+
+        Every per-capture array is indexed alike; :attr:`centre_index` then refers to the kept captures.
+        """
+        index = np.asarray(keep)
+        return replace(self, aperture_centres_yx_m=np.asarray(self.aperture_centres_yx_m)[index],
+                       spectrum_centres_yx_px=np.asarray(self.spectrum_centres_yx_px)[index],
+                       grid_indices=np.asarray(self.grid_indices)[index],
+                       camera_index=None if self.camera_index is None else np.asarray(self.camera_index)[index])
+
 
 def camera_scan_geometry(*, wavelength_m: float, focal_length_m: float, aperture_diameter_m: float,
                          pixel_pitch_m: float, distance_m: float, field_width_m: float, grid: int,
@@ -102,7 +134,15 @@ def camera_scan_geometry(*, wavelength_m: float, focal_length_m: float, aperture
     geometry : CaptureGeometry
     sensor_pixels : int
         N.
+
+    Raises
+    ------
+    ValueError
+        An optical quantity that is not a positive, finite number (named), a grid below 1, an
+        overlap outside [0, 1), or a field of view under 8 sensor pixels.
     """
+    check_positive(wavelength_m=wavelength_m, focal_length_m=focal_length_m, aperture_diameter_m=aperture_diameter_m,
+                   pixel_pitch_m=pixel_pitch_m, distance_m=distance_m, field_width_m=field_width_m)
     sensor_pixels = sensor_pixels_across(field_width_m, pixel_pitch_m, focal_length_m, distance_m)
     if sensor_pixels < 8:
         raise ValueError(f"the field of view spans only {sensor_pixels} sensor pixels; widen the scene or use smaller pixels")
@@ -122,5 +162,4 @@ def camera_scan_geometry(*, wavelength_m: float, focal_length_m: float, aperture
         pupil_radius_px=scale.pupil_radius_px(aperture_diameter_m),
         overlap=overlap,
     )
-    assert abs(geometry.synthetic_aperture_ratio - synthetic_aperture_ratio(grid, overlap)) < 1e-9
     return geometry, sensor_pixels

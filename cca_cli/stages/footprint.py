@@ -203,10 +203,12 @@ def reconstruct_footprint(captures_path: Path, section=None) -> Footprint:
         weighted = "/measurements/weight" in handle
         geometry = read_geometry(handle)
         truth = _shape(handle, "/truth/object") if "/truth/object" in handle else (0, 0)
+        boundary = handle["/measurements/intensity"].attrs.get("boundary", "")
     if len(shape) != 3:
         raise InputError(f"{captures_path}: /measurements/intensity has shape {shape}, expected 3 dimensions")
     if section is not None and getattr(section, "tiles", None) is not None:
         return _tiled_footprint(captures_path, section, shape, geometry, truth)
+    _check_pupil_fits(captures_path, geometry.pupil_radius_px, shape[1:], boundary)
     k, n = float(shape[0]), float(shape[-1])
     centres = geometry.spectrum_centres_yx_px
     reach = float(np.max(np.abs(np.rint(centres)))) if centres.size else 0.0
@@ -216,6 +218,22 @@ def reconstruct_footprint(captures_path: Path, section=None) -> Footprint:
     disk = hires * hires * (2 * _COMPLEX + _FLOAT) + n * n * _FLOAT + float(truth[0]) * truth[1] * _COMPLEX
     return Footprint("reconstruct", memory, disk, f"{k:.4g} images of {n:.4g}² px, object {hires:.4g}² px",
                      "reconstruct fewer or smaller images (crop them, or simulate with simulate.store: band)")
+
+
+def _check_pupil_fits(captures_path: Path, radius: float, frame: tuple[int, int], boundary) -> None:
+    """A pupil the images cannot hold is a wrong geometry, not a memory question: say so before estimating."""
+    from cca_cli.sampling.region import plan_embedding
+
+    h, w = frame
+    boundary = boundary.decode() if isinstance(boundary, bytes) else str(boundary)
+    grid = w
+    if (h != w or boundary == "open") and radius >= 1:
+        grid = plan_embedding((h, w), radius).size  # recorded frames get a guard band, so a wider grid
+    try:
+        band_sizes(0.0, radius, sensor_size=grid)
+    except ValueError as exc:
+        raise InputError(f"{captures_path}: /geometry pupil_radius_px is {radius:.4g}: {exc}; the geometry does not "
+                         "belong to these images (re-run the stage that wrote the file)") from None
 
 
 def _tiled_footprint(captures_path: Path, section, shape, geometry, truth) -> Footprint:

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cca_cli.errors import InputError
+from cca_cli.errors import ConfigError, InputError
 from cca_cli.hdr.calibration import (dark_model, electrons_per_count_from_flats, gain_map,
                                      read_noise_from_darks)
 from cca_cli.io.captures import BOUNDARY_OPEN, SensorCalibration, read_labels, read_sensor, write_labels
@@ -36,12 +36,17 @@ from cca_cli.io.sensor import (Decoding, FrameValues, SensorRule, board_decoding
                                same_depth)
 from cca_cli.sampling.capture import led_array_geometry, stage_scan_geometry
 from cca_cli.sampling.geometry import CaptureGeometry
+from cca_cli.sampling.grid import band_sizes
+from cca_cli.sampling.region import plan_embedding
 from cca_cli.stages.progress import ProgressEvent, ProgressFn, silent
 
-__all__ = ["SECTIONS", "Ingested", "SensorCalibration", "ingest", "write_raw", "run", "write_labels", "read_labels",
-           "read_sensor", "BOUNDARY_OPEN"]
+__all__ = ["SECTIONS", "MAX_GRID_PX", "Ingested", "SensorCalibration", "ingest", "check_geometry", "write_raw", "run",
+           "write_labels", "read_labels", "read_sensor", "BOUNDARY_OPEN"]
 
 SECTIONS = ("ingest",)
+#: Widest recovery grid a manifest may imply (px): one such complex grid alone takes 34 GB, so a wider one
+#: comes from a wrong position or wrong optics, not from a capture set.
+MAX_GRID_PX = 1 << 16
 
 _log = logging.getLogger(__name__)
 
@@ -324,6 +329,7 @@ def ingest(manifest_path: Path, *, progress: ProgressFn = silent) -> Ingested:
                                       numerical_aperture=il.numerical_aperture,
                                       pixel_pitch_object_m=pitch, field_width_m=w * pitch, sign=il.sign,
                                       grid_indices=plan.grid_indices)
+    check_geometry(plan, geometry, (h, w))
     seen: set[str] = set()
     unique_notes = [n for n in notes if not (n in seen or seen.add(n))]
     for note in unique_notes:
@@ -331,6 +337,50 @@ def ingest(manifest_path: Path, *, progress: ProgressFn = silent) -> Ingested:
     return Ingested(plan=plan, frames=frames, exposure_s=plan.exposure_s, saturation_level=saturation,
                     geometry=geometry, sensor=calibration, board_views=boards, initial_pupil=pupil,
                     notes=unique_notes)
+
+
+def check_geometry(plan: CapturePlan, geometry: CaptureGeometry, frame_shape: tuple[int, int]) -> None:
+    """Refuse optics or positions no recovery could represent, naming the manifest keys or the position.
+
+    The pupil must span at least one spectrum pixel and fit the grid the frames are recovered on
+    (:func:`~cca_cli.sampling.region.plan_embedding`, :func:`~cca_cli.sampling.grid.band_sizes`: the choice
+    reconstruct makes), and every pupil must lie within :data:`MAX_GRID_PX` of the recovery grid.
+
+    Raises
+    ------
+    ConfigError
+        One line naming the manifest, the keys to check and, for a position, its row.
+    """
+    radius = geometry.pupil_radius_px
+    if plan.kind == "camera_scan":
+        optics = "optics.aperture_diameter_m, pixel_pitch_m, focal_length_m and distance_m"
+    else:
+        optics = "illumination.numerical_aperture, pixel_pitch_object_m and wavelength_m"
+    width = frame_shape[1]
+    if radius < 1:
+        raise ConfigError(f"{plan.path}: the optics give a pupil of {radius:.3g} spectrum px in radius, less than "
+                          f"one resolution cell across the {width}-px frames; check {optics}")
+    try:
+        band_sizes(0.0, radius, sensor_size=plan_embedding(frame_shape, radius).size)
+    except ValueError:
+        raise ConfigError(f"{plan.path}: the optics give a pupil of {radius:.3g} spectrum px in radius, more than "
+                          f"{width}-px frames can sample; check {optics}") from None
+    reach = np.max(np.abs(geometry.spectrum_centres_yx_px), axis=1)
+    far = int(np.argmax(reach))
+    needed = 2.0 * (float(reach[far]) + radius)
+    if needed > MAX_GRID_PX:
+        raise ConfigError(f"{plan.path}: {plan.labels[far]} lies {reach[far]:.3g} spectrum px from the axis, so "
+                          f"the recovery grid would be {needed:.3g} px wide (at most {MAX_GRID_PX}); "
+                          f"{_position_fix(plan, optics)}")
+
+
+def _position_fix(plan: CapturePlan, optics: str) -> str:
+    """What sets a position's distance from the axis: the stage reading, the stage pitch, or (LED arrays) the optics."""
+    if plan.kind == "led_array":
+        return f"check {optics}"
+    if all(e.position_kind == "grid" for e in plan.manifest.images if e.kind == "coherent"):
+        return "check stage_pitch_mm"
+    return "check that row's stage position (stage_x_mm/stage_y_mm, or a table's columns and units.position)"
 
 
 def _write_sensor(handle, calibration: SensorCalibration) -> None:

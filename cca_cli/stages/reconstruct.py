@@ -27,7 +27,8 @@ from cca_cli.sampling.geometry import CaptureGeometry
 from cca_cli.sampling.region import RegionEmbedding
 from cca_cli.stages.progress import ProgressFn, silent
 from cca_cli.workflows.recovery import (Recovery, build_model, calibrated_pupils, data_kind, embed_region,
-                                        engine_options, initial_spectrum_from, problem_calibration, recover)
+                                        engine_options, initial_spectrum_from, problem_calibration, recover,
+                                        without_dead_captures)
 
 # recover, build_model, embed_region … live in cca_cli.workflows.recovery; they are re-exported here.
 __all__ = ["SECTIONS", "Captures", "Recovery", "Checkpointing", "read_captures", "read_measurements", "build_model",
@@ -141,7 +142,8 @@ def write_recon(path: Path, captures: Captures, recovery: Recovery, provenance: 
     """Write ``recon.h5`` atomically: recovery, history, centre capture, truth and geometry.
 
     ``observed`` replaces the centre capture as /observed/centre; ``extra(handle)``
-    writes further groups (multiplexed runs add /multiplex). With ``region``
+    writes further groups (multiplexed runs add /multiplex). Captures left out as
+    dead (``captures.dropped``) are listed in the /recon attribute ``dropped_captures``. With ``region``
     (padded captures) /recon/object, /recon/intensity and /observed/centre
     hold the region only and /recon/region_px says where it sits.
     """
@@ -184,6 +186,8 @@ def write_recon(path: Path, captures: Captures, recovery: Recovery, provenance: 
         recon.attrs["lowres_size"] = layout.lowres_size
         recon.attrs["pixel_pitch_object_m"] = captures.geometry.field_width_m / layout.hires_size
         recon.attrs["fft_backend"] = fft.backend_name()
+        if captures.dropped:
+            recon.attrs["dropped_captures"] = np.asarray(captures.dropped, np.int32)
 
 
 def write_fit(handle, fit: FitReport) -> None:
@@ -240,7 +244,8 @@ def run(captures_path: Path, section: ReconstructSection, output: Path, *, prove
         return multiplex.run_reconstruct(captures_path, section, output, provenance=provenance, force=force,
                                          write_recon=write_recon,
                                          progress=progress)
-    captures, region = embed_region(read_captures(captures_path), section)
+    captures, region = embed_region(without_dead_captures(read_captures(captures_path), source=captures_path),
+                                    section)
     checkpoint = Checkpointing(checkpoint_path(output), checkpoint_fingerprint(section, provenance, captures_path),
                                section.checkpoint_every, provenance)
     recovery = reconstruct(captures, section, progress=progress, checkpoint=checkpoint)

@@ -35,7 +35,7 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
         residual = np.asarray(require(handle, "/history/residual", ndim=1))
         change = np.asarray(require(handle, "/history/change", ndim=1))
         truth_obj = read_finite(handle, "/truth/object", ndim=2) if "/truth/object" in handle else None
-        bars = table_to_bars(_table(handle, "/truth/bars", 8)) if "/truth/bars" in handle else ()
+        bars = _bars(handle) if "/truth/bars" in handle else ()
         usaf_table = _table(handle, "/truth/usaf", 11) if "/truth/usaf" in handle else None
         region_px = _region_px(handle)
         recon = require(handle, "/recon/spectrum").parent
@@ -58,6 +58,8 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
     for name, image in (("/recon/spectrum", spectrum), ("/truth/object", truth_obj)):
         if image is not None and image.shape[0] != image.shape[1]:
             raise InputError(f"{recon_path}: {name} has shape {image.shape}, expected a square image")
+    if truth_obj is not None:
+        _check_truth(recon_path, truth_obj, bars)
     truth = None if truth_obj is None else (np.abs(truth_obj) ** 2).astype(np.float32)
     inputs = ReportInputs(geometry=geometry, observed=observed, recovered=recovered, truth=truth, bars=bars,
                           engine=str(attrs.get("engine")), iterations=int(attrs.get("iterations", 0)),
@@ -65,6 +67,8 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
                           lowres_size=int(attrs.get("lowres_size")), truth_field=truth_obj)
     summary = summarize(inputs, threshold=section.mtf_threshold)
     summary.update(_stopping(attrs, change))
+    if "dropped_captures" in attrs:
+        summary["dropped_captures"] = [int(i) for i in np.atleast_1d(attrs["dropped_captures"])]
     summary["intensity_units"] = units
     summary.update(capture_summary)
     if calibration is not None:
@@ -300,6 +304,29 @@ def _zoom_region(summary: dict, bars, truth, usaf_table, recovered, geometry, hi
     # proportionally fewer cycles per its own width.
     cutoff = min(2.0 * geometry.pupil_radius_px * width / hires_size, width / 2.0)
     return regions.detail_region(recovered, cutoff)
+
+
+def _bars(handle) -> tuple:
+    """The bar chart's layout from /truth/bars (one line naming the dataset when it is not a layout)."""
+    table = _table(handle, "/truth/bars", 8)
+    try:
+        return table_to_bars(table)
+    except (IndexError, KeyError, ValueError):
+        raise InputError(f"{handle.filename}: /truth/bars is not a chart layout (each group needs its bars, gaps "
+                         "and box, orientation 0 or 1); re-run simulate and reconstruct") from None
+
+
+def _check_truth(path: Path, truth_obj: np.ndarray, bars) -> None:
+    """The truth must hold light, and the chart layout drawn on it must lie on its grid."""
+    if not np.any(truth_obj):
+        raise InputError(f"{path}: /truth/object is zero everywhere, so there is nothing to compare the recovery "
+                         "with; re-run simulate and reconstruct")
+    size = truth_obj.shape[-1]
+    boxes = np.array([box for group in bars for box in (group.box, *group.bar_boxes, *group.gap_boxes)])
+    if boxes.size and (boxes.min() < 0 or boxes[:, [1, 3]].max() > size):
+        raise InputError(f"{path}: /truth/object is {size}x{size} px but /truth/bars places bars up to pixel "
+                         f"{int(boxes[:, [1, 3]].max())}: the truth and its chart layout do not belong together; "
+                         "re-run simulate and reconstruct")
 
 
 def _table(handle, path: str, columns: int) -> np.ndarray:

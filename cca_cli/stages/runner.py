@@ -144,10 +144,12 @@ def _sha256(path: Path) -> str:
 
 
 def _state(plan: StagePlan, digest: str) -> str:
-    """``current``; ``incomplete`` (cca's, same config and inputs, files missing); ``other`` (another config or
-    inputs); ``foreign`` (not written by cca, or unreadable)."""
+    """``current``; ``incomplete`` (cca's, same config and inputs, files missing, or a report folder that lost
+    report.json); ``other`` (another config or inputs); ``foreign`` (not written by cca, or unreadable)."""
     if foreign_part(plan.output) is not None:
         return "foreign"
+    if plan.output.is_dir() and not (plan.output / report_stage.REPORT_JSON).is_file():
+        return "incomplete"  # cca's folder (its marker lists its files) without the file that records its provenance
     recorded = _recorded_provenance(plan.output)
     if recorded.get("config_hash") != digest:
         return "other"

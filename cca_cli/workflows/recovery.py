@@ -21,6 +21,7 @@ from cca_cli.engines.registry import get_engine, resolve
 from cca_cli.errors import CcaError, ConfigError, InputError
 from cca_cli.io.captures import Captures
 from cca_cli.io.checkpoint import read_spectrum
+from cca_cli.io.measurements import INTENSITY, constant_images
 from cca_cli.optics.forward import ForwardModel
 from cca_cli.optics.pupil import circular_pupils
 from cca_cli.progress import ProgressEvent, ProgressFn, silent
@@ -30,9 +31,12 @@ from cca_cli.sampling.grid import BandLayout, band_layout, smallest_fft_size
 from cca_cli.sampling.region import RegionEmbedding, plan_embedding
 
 __all__ = ["Recovery", "engine_options", "drive_engine", "initial_spectrum_from",
-           "embed_region", "build_model", "data_kind", "problem_calibration", "recover", "calibrated_pupils"]
+           "embed_region", "build_model", "data_kind", "problem_calibration", "recover", "calibrated_pupils",
+           "MAX_DEAD_FRACTION", "without_dead_captures"]
 
 _log = logging.getLogger("cca")
+#: Share of the captures that may be dead (constant) and left out; more is refused as a broken recording.
+MAX_DEAD_FRACTION = 0.05
 
 
 @dataclass(frozen=True)
@@ -117,6 +121,66 @@ def initial_spectrum_from(path: Path, layout: BandLayout, field_width_m: float) 
         raise InputError(f"{path}: its object pixels are {float(pitch):.6g} m but this reconstruction's are "
                          f"{field_width_m / m:.6g} m; reconstruct.init needs a recon.h5 of the same geometry")
     return spectrum
+
+
+def _listed(indices, grid: np.ndarray, limit: int = 6) -> str:
+    """``image 3 (row 0, col 3), image 7 (row 1, col 2)`` for the first ``limit`` indices."""
+    items = [f"image {int(i)} (row {int(grid[i, 0])}, col {int(grid[i, 1])})" for i in indices[:limit]]
+    return ", ".join(items) + (", …" if len(indices) > limit else "")
+
+
+def without_dead_captures(captures: Captures, *, name: str = INTENSITY, source=None,
+                          error: type[Exception] = InputError) -> Captures:
+    """Leave out the captures whose images hold one value only (a camera that recorded nothing).
+
+    Such an image carries no information, and fitting it would pull the recovery
+    towards a dark (or flat) patch of spectrum. Up to :data:`MAX_DEAD_FRACTION` of
+    the captures are left out with one warning naming them and their grid
+    positions. More, or a dead centre capture (the one that holds the object's
+    lowest frequencies, and the single-camera image the report compares with),
+    are refused.
+
+    Parameters
+    ----------
+    captures : Captures
+    name, source, error
+        How messages name the images and their file, and the exception a refusal raises
+        (see :func:`cca_cli.io.measurements.check_intensity`).
+
+    Returns
+    -------
+    Captures
+        ``captures`` itself, or the live captures with their weights and geometry
+        (``dropped`` lists the indices left out).
+    """
+    dead = constant_images(captures.intensity)
+    if dead.size == 0:
+        return captures
+    where = f"{source}: " if source else ""
+    geometry = captures.geometry
+    grid = np.asarray(geometry.grid_indices)
+    k = captures.intensity.shape[0]
+    centre = geometry.centre_index
+    holds = "holds" if dead.size == 1 else "hold"
+    if centre in dead:
+        value = float(captures.intensity[centre].flat[0])
+        raise error(f"{where}image {centre} of {name}, the centre capture (row {int(grid[centre, 0])}, col "
+                    f"{int(grid[centre, 1])}), holds one value (every pixel {value:g}): nothing was recorded there, "
+                    "and the recovery needs it for the object's lowest frequencies; re-take it")
+    allowed = int(MAX_DEAD_FRACTION * k)
+    if dead.size > allowed:
+        each = "" if dead.size == 1 else " each"
+        raise error(f"{where}{dead.size} of {k} images of {name} {holds} one value{each}, so nothing was recorded "
+                    f"there ({_listed(dead, grid)}); at most {MAX_DEAD_FRACTION:.0%} of the captures ({allowed} "
+                    f"here) may be left out: check the camera and re-take them")
+    values = ", ".join(f"{float(captures.intensity[i].flat[0]):g}" for i in dead[:6])
+    _log.warning("%sleft out %s of %d images of %s: %s %s one value (%s), nothing was recorded there; the "
+                 "recovery uses the other %d", where, dead.size, k, name, _listed(dead, grid), holds, values,
+                 k - dead.size)
+    keep = np.setdiff1d(np.arange(k), dead)
+    weight = None if captures.weight is None else captures.weight[keep]
+    return replace(captures, intensity=captures.intensity[keep], weight=weight, geometry=geometry.select(keep),
+                   dropped=tuple(int(i) for i in dead))
 
 
 def embed_region(captures: Captures, section: ReconstructSection) -> tuple[Captures, RegionEmbedding | None]:

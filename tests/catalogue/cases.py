@@ -408,7 +408,7 @@ case("iterations-1e1-is-ten", "works", SIM, {"cfg.yaml": Config({"reconstruct.it
      exit=0, writes=("c.h5",), check=_loads_as("iterations", 10))
 case("options-bool-false", "works", SIM,
      {"cfg.yaml": Config({"reconstruct.engine": "momentum", "reconstruct.options": {"position_refinement": False}})},
-     exit=0, writes=("c.h5",), check=_loads_as("position_refinement", False))
+     exit=0, writes=("c.h5",), check=_loads_as("position_refinement", "none"))
 case("options-from-reconstruct-config", "silent", ["reconstruct", "c.h5", "-o", "r.h5", "-c", "cfg.yaml", "-q"],
      {"c.h5": Copy("captures"),
       "cfg.yaml": Config({"reconstruct.engine": "momentum", "reconstruct.options": {"position_refinement": "no"}})},
@@ -954,3 +954,200 @@ case("report-markup-output-name", "messages", ["report", "recon.h5", "-o", "rep[
 case("run-markup-out-dir", "messages", ["run", "cfg.yaml", "--out-dir", "o[red]ut", "-q"], {"cfg.yaml": Config()},
      exit=0, writes=("o[red]ut",), check=lambda folder, result: _stdout_has(result, "o[red]ut/captures.h5"))
 case("input-name-not-utf8", "messages", ["reconstruct", "bad\udcff.h5", "-o", "r.h5", "-q"], exit=3, says=("bad",))
+
+
+# --- dead captures, misleading causes, one file listed twice ---------------------------------------------------------
+def _dead(*indices):
+    def edit(a):
+        a = a.copy()
+        a[list(indices)] = 0
+        return a
+    return edit
+
+
+case("capture-dead-centre", "silent", REC,
+     {"in.h5": Copy("captures", set_data("/measurements/intensity", _dead(4)))}, exit=3,
+     says=("in.h5", "image 4", "centre", "row 1, col 1"))
+case("capture-dead-one-of-nine", "silent", REC,
+     {"in.h5": Copy("captures", set_data("/measurements/intensity", _dead(1)))}, exit=3,
+     says=("in.h5", "image 1 (row 0, col 1)", "5%"))
+for value in (0.25, -0.25):  # a dead frame less a scalar black level holds one negative value
+    case(f"capture-constant-{value}", "silent", REC,
+         {"in.h5": Copy("captures", set_data("/measurements/intensity",
+                                             lambda a, v=value: np.where(np.arange(len(a))[:, None, None] == 7, v, a)))},
+         exit=3, says=("in.h5", "image 7 (row 2, col 1)", "one value"),
+         not_says=("Traceback", "internal error", "black level"))
+
+
+def _camera_dies(index: int):
+    """The simulated camera records nothing (all zero) at capture ``index``: a dead capture in captures.h5."""
+    def patch(monkeypatch, folder: Path) -> None:
+        from cca_cli.stages import simulate
+
+        record_all = simulate.record_all
+
+        def dead(*args, **kwargs):
+            images = record_all(*args, **kwargs)
+            images[index] = 0
+            return images
+
+        monkeypatch.setattr(simulate, "record_all", dead)
+    return patch
+
+
+def _dead_capture_left_out(folder: Path, result) -> None:
+    import h5py
+
+    text = " ".join(result.stderr.split())  # the terminal may wrap the warning
+    assert text.count("left out") == 1 and "image 3 (row 0, col 3) holds one value (0)" in text, result.stderr
+    assert "the recovery uses the other 24" in text, result.stderr
+    with h5py.File(folder / "out" / "recon.h5", "r") as handle:
+        assert handle["/geometry/spectrum_centres_yx_px"].shape == (24, 2)
+        assert handle["/geometry"].attrs["centre_index"] == 11  # the centre (2, 2), one place earlier
+        assert np.asarray(handle["/geometry/grid_indices"])[11].tolist() == [2, 2]
+        assert handle["/recon"].attrs["dropped_captures"].tolist() == [3]
+        assert np.isfinite(handle["/recon/intensity"][()]).all()
+    document = json.loads((folder / "out" / "report" / "report.json").read_text())
+    assert document["dropped_captures"] == [3] and document["n_images"] == 24
+
+
+case("capture-dead-left-out", "works", RUN, {"cfg.yaml": Config({"array.grid": 5})}, exit=0, writes=("out",),
+     patch=_camera_dies(3), check=_dead_capture_left_out, seconds=40)
+
+
+def _resolve_as_before_python_3_13(monkeypatch, folder: Path) -> None:
+    """``Path.resolve`` as Python 3.10–3.12 have it: a symbolic link that loops raises RuntimeError."""
+    import os
+
+    original = Path.resolve
+
+    def resolve(self, strict=False):
+        try:
+            os.stat(self)
+        except OSError as exc:
+            if exc.errno == errno.ELOOP:
+                raise RuntimeError(f"Symlink loop from {str(self)!r}") from None
+        return original(self, strict=strict)
+
+    monkeypatch.setattr(Path, "resolve", resolve)
+
+
+LOOP_MANIFEST = ("optics: {wavelength_m: 5.5e-7, focal_length_m: 0.1, aperture_diameter_m: 4.6e-3, "
+                 "pixel_pitch_m: 2.5e-6, distance_m: 10}\nimages: [{path: loop.png, stage_x_mm: 0, stage_y_mm: 0}]\n")
+case("manifest-image-symlink-loop", "traceback", ING, {"m.yaml": Text(LOOP_MANIFEST), "loop.png": Symlink("loop.png")},
+     exit=3, says=("loop.png", "symbolic link"), patch=_resolve_as_before_python_3_13)
+case("reconstruct-input-symlink-loop", "traceback", REC, {"in.h5": Symlink("in.h5")}, exit=3,
+     says=("in.h5", "symbolic link"), patch=_resolve_as_before_python_3_13)
+case("report-truth-other-size", "traceback", REP,
+     {"in.h5": Copy("recon", set_data("/truth/object", lambda a: a[:32, :32]))}, exit=3,
+     says=("in.h5", "/truth/object", "/truth/bars"))
+case("report-truth-zero", "traceback", REP,
+     {"in.h5": Copy("recon", set_data("/truth/object", lambda a: np.zeros((1, 1), a.dtype)))}, exit=3,
+     says=("in.h5", "/truth/object"))
+case("report-bars-not-a-layout", "traceback", REP,
+     {"in.h5": Copy("recon", set_data("/truth/bars", lambda a: np.where(np.arange(8) == 3, 0, a)))}, exit=3,
+     says=("in.h5", "/truth/bars"))
+
+
+def _edit_manifest(change):
+    """An edit of the library's lab manifest (``change(data, folder)`` alters the YAML mapping in place)."""
+    import yaml
+
+    def edit(folder: Path) -> None:
+        path = folder / "manifest.yaml"
+        data = yaml.safe_load(path.read_text())
+        change(data, folder)
+        path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return edit
+
+
+def _optics(**values):
+    return _edit_manifest(lambda data, folder: data["optics"].update(values))
+
+
+def _stage_positions(far_mm: float):
+    """Each row at its stage position (mm) instead of grid indices, the last one ``far_mm`` along x."""
+    def change(data, folder):
+        pitch = data.pop("stage_pitch_mm")
+        for entry in data["images"]:
+            row, col = entry.pop("grid")
+            entry.update(stage_x_mm=(col - 1) * pitch, stage_y_mm=(row - 1) * pitch)
+        data["images"][-1]["stage_x_mm"] = far_mm
+    return _edit_manifest(change)
+
+
+def _same_file(row: int, as_row: int, how: str = "path"):
+    """Row ``row`` names row ``as_row``'s image: its path, a hard link or a symbolic link to that file."""
+    import os
+
+    def change(data, folder):
+        entry, other = data["images"][row], data["images"][as_row]
+        if how == "path":
+            entry["path"] = other["path"]
+            return
+        mine = folder / entry["path"]
+        mine.unlink()
+        if how == "hard-link":
+            os.link(folder / other["path"], mine)
+        else:
+            mine.symlink_to(other["path"])
+    return _edit_manifest(change)
+
+
+def _second_exposure_same_file(data, folder):
+    """Every position gets a 40 ms frame of its own (a copy), except (0, 0), whose 40 ms row names its 10 ms file."""
+    import shutil
+
+    longer = []
+    for entry in data["images"]:
+        longer.append({**entry, "exposure_s": 0.04, "path": entry["path"].replace(".png", "_40ms.png")})
+        shutil.copy(folder / entry["path"], folder / longer[-1]["path"])
+    longer[0]["path"] = data["images"][0]["path"]
+    data["images"] += longer
+
+
+LAB_ING = ["ingest", "lab/manifest.yaml", "-o", "raw.h5", "-q"]
+case("manifest-aperture-huge", "messages", LAB_ING, {"lab": Copy("manifest_dir", _optics(aperture_diameter_m=1000.0))},
+     exit=2, says=("manifest.yaml", "pupil", "optics.aperture_diameter_m"), not_says=("Traceback", "memory"))
+case("manifest-aperture-tiny", "messages", LAB_ING, {"lab": Copy("manifest_dir", _optics(aperture_diameter_m=1e-9))},
+     exit=2, says=("manifest.yaml", "pupil", "optics.aperture_diameter_m"), not_says=("Traceback", "memory"))
+case("manifest-stage-position-far", "messages", LAB_ING, {"lab": Copy("manifest_dir", _stage_positions(1e9))},
+     exit=2, says=("manifest.yaml", "x 1e+09", "view_r2c2.png", "stage_x"), not_says=("Traceback", "memory"))
+case("manifest-stage-pitch-far", "messages", LAB_ING,
+     {"lab": Copy("manifest_dir", _edit_manifest(lambda data, folder: data.update(stage_pitch_mm=1.8e9)))},
+     exit=2, says=("manifest.yaml", "stage_pitch_mm"), not_says=("Traceback", "memory"))
+case("manifest-stage-positions-work", "works", LAB_ING, {"lab": Copy("manifest_dir", _stage_positions(1.8))},
+     exit=0, writes=("raw.h5",))
+case("run-manifest-aperture-huge", "messages", ["run", "cfg.yaml", "--out-dir", "out", "-q"],
+     {"cfg.yaml": Text("run: {stages: [ingest, hdr, reconstruct, report]}\ningest: {manifest: lab/manifest.yaml}\n"),
+      "lab": Copy("manifest_dir", _optics(aperture_diameter_m=1000.0))},
+     exit=2, says=("manifest.yaml", "optics.aperture_diameter_m"), not_says=("Traceback", "memory"), writes=("out",))
+case("reconstruct-pupil-radius-huge", "messages", REC,
+     {"in.h5": Copy("captures", set_attr("/geometry", "pupil_radius_px", 1e6))}, exit=3,
+     says=("in.h5", "pupil_radius_px"), not_says=("Traceback", "internal error", "memory"))
+config_case("snr-db-minus-100", "messages", {"noise.snr_db": -100}, ["noise.snr_db", "swamp", "-10"], argv=RUN,
+            not_says=("Traceback", "black level"))
+config_case("snr-db-below-floor", "validation", {"noise.snr_db": -10.5}, ["noise.snr_db", "-10"])
+case("snr-db-at-floor-works", "works", SIM, {"cfg.yaml": Config({"noise.snr_db": -10})}, exit=0, writes=("c.h5",))
+
+
+def _report_json_back(folder: Path, result) -> None:
+    _stdout_has(result, "reconstruct skipped")
+    document = json.loads((folder / "out" / "report" / "report.json").read_text())
+    assert json.loads(document["provenance"]["inputs"])[0]["path"].endswith("recon.h5")
+
+
+case("run-report-json-deleted", "works", RUN,
+     {"cfg.yaml": Config({"report.figures": True}), "out": Copy("run_dir", lambda p: (p / "report" / "report.json").unlink())},
+     exit=0, writes=("out/report", "out/.cca-run.lock"), check=_report_json_back)
+case("manifest-same-file-two-positions", "silent", LAB_ING, {"lab": Copy("manifest_dir", _same_file(1, 0))}, exit=2,
+     says=("manifest.yaml", "view_r0c0.png", "(row 0, col 0)", "(row 0, col 1)"))
+case("manifest-hard-link-two-positions", "silent", LAB_ING,
+     {"lab": Copy("manifest_dir", _same_file(4, 2, "hard-link"))}, exit=2,
+     says=("manifest.yaml", "view_r1c1.png", "view_r0c2.png", "(row 1, col 1)", "(row 0, col 2)"))
+case("manifest-symlink-two-positions", "silent", LAB_ING,
+     {"lab": Copy("manifest_dir", _same_file(8, 0, "symlink"))}, exit=2,
+     says=("manifest.yaml", "view_r2c2.png", "view_r0c0.png"))
+case("manifest-same-file-two-exposures", "silent", LAB_ING,
+     {"lab": Copy("manifest_dir", _edit_manifest(_second_exposure_same_file))}, exit=2,
+     says=("manifest.yaml", "view_r0c0.png", "(row 0, col 0)", "exposures 0.01 s and 0.04 s"))

@@ -93,7 +93,7 @@ def test_the_api_and_a_config_read_an_option_alike(given, read, tmp_path):
         assert type(getattr(from_api, key)) is type(value)
     geometry = cca.camera_scan(wavelength_m=550e-9, focal_length_m=0.8, aperture_diameter_m=45e-3, pixel_pitch_m=2e-6,
                                distance_m=50, field_width_m=12e-3, grid=3, overlap=0.61)
-    images = cca.simulate(np.ones((96, 96)), geometry, snr_db=None)
+    images = cca.simulate(cca.resolution_chart(96, widths=(4, 2)).image, geometry, snr_db=None)
     result = cca.reconstruct(images, geometry, engine="momentum", **{**given, "iterations": 2})
     for key, value in read.items():
         if key != "max_iterations":
@@ -110,7 +110,7 @@ def test_the_api_refuses_an_option_in_one_line_naming_it(given, message):
 
     geometry = cca.camera_scan(wavelength_m=550e-9, focal_length_m=0.8, aperture_diameter_m=45e-3, pixel_pitch_m=2e-6,
                                distance_m=50, field_width_m=12e-3, grid=3, overlap=0.61)
-    images = cca.simulate(np.ones((96, 96)), geometry, snr_db=None)
+    images = cca.simulate(cca.resolution_chart(96, widths=(4, 2)).image, geometry, snr_db=None)
     with pytest.raises(ValueError, match=message) as caught:
         cca.reconstruct(images, geometry, engine="momentum", **given)
     assert "\n" not in str(caught.value)
