@@ -3,11 +3,25 @@
 Every error the pipeline raises on purpose derives from :class:`CcaError`.
 The command layer prints ``str(error)`` on one line and exits with
 :attr:`CcaError.exit_code`; nothing else in the package prints.
+
+Ctrl-C is a ``KeyboardInterrupt``, which Python drops when it is raised while a
+weakref callback, a ``__del__`` method or a garbage collection runs (matplotlib
+and h5py run many). Inside :func:`noting_interrupts` every Ctrl-C is noted as
+well, and :func:`check_interrupt` raises it again where it matters: before an
+output is put in place and before a command reports success.
 """
 
 from __future__ import annotations
 
+import contextlib
+import signal
+import sys
+import threading
+from typing import Iterator
+
 __all__ = [
+    "check_interrupt",
+    "noting_interrupts",
     "short",
     "CcaError",
     "ConfigError",
@@ -18,6 +32,52 @@ __all__ = [
     "RunLockedError",
     "CheckerboardNotFound",
 ]
+
+
+_interrupted = False
+
+
+def check_interrupt() -> None:
+    """Raise ``KeyboardInterrupt`` if Ctrl-C was pressed inside :func:`noting_interrupts` (even if its exception
+    was dropped)."""
+    if _interrupted:
+        raise KeyboardInterrupt
+
+
+def _on_sigint(signum, frame) -> None:
+    global _interrupted
+    _interrupted = True
+    raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def noting_interrupts() -> Iterator[None]:
+    """Note every Ctrl-C (SIGINT) in the enclosed block for :func:`check_interrupt`.
+
+    A ``KeyboardInterrupt`` that Python drops is not printed either ("Exception ignored in …"): it is
+    raised again by the next :func:`check_interrupt`. Where SIGINT has a handler other than Python's
+    own (or is ignored), or outside the main thread, nothing changes.
+    """
+    global _interrupted
+    if threading.current_thread() is not threading.main_thread() or \
+            signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        yield
+        return
+    previous_hook = sys.unraisablehook
+
+    def unraisable(info) -> None:
+        if not (_interrupted and issubclass(info.exc_type, KeyboardInterrupt)):
+            previous_hook(info)
+
+    _interrupted = False
+    signal.signal(signal.SIGINT, _on_sigint)
+    sys.unraisablehook = unraisable
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        sys.unraisablehook = previous_hook
+        _interrupted = False
 
 
 def short(value, limit: int = 60) -> str:

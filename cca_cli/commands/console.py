@@ -18,7 +18,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 from rich.text import Text
 
-from cca_cli.errors import CcaError
+from cca_cli.errors import CcaError, check_interrupt, noting_interrupts
 from cca_cli.io.outputs import disk_full
 from cca_cli.stages.progress import ProgressEvent
 
@@ -82,7 +82,12 @@ def handle_errors(func):
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
         try:
-            return func(*args, **kwargs)
+            with noting_interrupts():
+                result = func(*args, **kwargs)
+                check_interrupt()  # a Ctrl-C that Python dropped on the way is not a success
+            return result
+        except typer.Exit:  # an exit code a command chose (a RuntimeError: not a bug)
+            raise
         except CcaError as exc:
             print_error(" ".join(str(exc).split()))
             raise typer.Exit(exc.exit_code) from None

@@ -12,7 +12,7 @@ from rich.text import Text
 
 from cca_cli.commands.console import console, err_console, handle_errors, styled
 from cca_cli.commands.options import ConfigArg, Force, Quiet, Scheduler, Workers
-from cca_cli.errors import ConfigError
+from cca_cli.errors import CcaError, ConfigError
 from cca_cli.io.lock import folder_lock
 from cca_cli.io.outputs import check_folder
 from cca_cli.stages.runner import prepare_folder
@@ -43,14 +43,18 @@ def _sweep(study: str, config: Path, sets: list[str] | None, workers: int | None
     points = sw.expand_points(cfg, spec, sweep_dir, source=str(config))
     if all(p.error for p in points):
         raise ConfigError(f"every point of the sweep is invalid; the first: {points[0].error}")
+    earlier = sw.earlier_points(cfg, spec, points, sweep_dir, force=force, source=str(config))
     if scheduler and not dry_run:
         sw.check_scheduler(scheduler, sw.scheduler_timeout())
     costs = {p.index: sw.point_cost(p) for p in points}
     images = sum(c.images for c in costs.values() if c)
     work = sum(c.work * c.iterations for c in costs.values() if c)
-    err_console.print(styled(f"{len(points)} points", "bold",
-                             f"({spec.study} study) → {sweep_dir}: {images} images in all; work ≤ {work / 1e9:.2f} "
-                             "G pixel-iterations (Σ images × m² × iteration cap)"), highlight=False, soft_wrap=True)
+    kept = f"; the table keeps {len(earlier)} complete points of earlier sweeps" if earlier else ""
+    if not quiet or dry_run:
+        err_console.print(styled(f"{len(points)} points", "bold",
+                                 f"({spec.study} study) → {sweep_dir}: {images} images in all; work ≤ "
+                                 f"{work / 1e9:.2f} G pixel-iterations (Σ images × m² × iteration cap){kept}"),
+                          highlight=False, soft_wrap=True)
     if dry_run:
         table = Table(title=f"cca sweep {study} --dry-run", header_style="bold")
         for name in ("#", "point id", "overrides", "images", "m", "M", "iterations ≤", "status"):
@@ -82,16 +86,17 @@ def _sweep(study: str, config: Path, sets: list[str] | None, workers: int | None
 
             with sw.open_client(workers=workers, scheduler=scheduler) as client:
                 rows = sw.run_sweep(points, client, force=force, on_row=on_row)
+        rows = sw.earlier_rows(earlier) + rows
+        everything = earlier + points
         csv_path, h5_path = sw.write_table(rows, sweep_dir, spec=spec, base=cfg)
-        figures = sw.write_sweep_figures(rows, sweep_dir, spec=spec, points=points) if spec.figures else []
-    _print_rows(rows, spec, points)
+        figures = sw.write_sweep_figures(rows, sweep_dir, spec=spec, points=everything) if spec.figures else []
+    _print_rows(rows, spec, everything)
     console.print(f"table: {csv_path}  {h5_path}")
     for path in figures:
         console.print(f"figure: {path}")
     if counts["failed"]:
-        err_console.print(styled(f"{counts['failed']} of {len(points)} points failed", "bold red",
-                                 "(see the error column)"), highlight=False)
-        raise typer.Exit(1)
+        raise CcaError(f"{counts['failed']} of {len(points)} points failed; each one's error is in the error column "
+                       f"of {csv_path} (the other points' results are kept)")
 
 
 def _print_rows(rows, spec, points) -> None:

@@ -20,8 +20,8 @@ from cca_cli.errors import InputError
 from cca_cli.io.h5 import Provenance, atomic_h5, open_input, write_dataset
 from cca_cli.io.outputs import is_cca_hdf5
 
-__all__ = ["Checkpoint", "checkpoint_path", "write_checkpoint", "read_checkpoint", "remove_checkpoint",
-           "read_spectrum"]
+__all__ = ["Checkpoint", "checkpoint_path", "write_checkpoint", "read_checkpoint", "checkpoint_damage",
+           "remove_checkpoint", "read_spectrum"]
 
 _HISTORY = ("residual", "change", "seconds")
 
@@ -71,6 +71,45 @@ def read_checkpoint(path: Path) -> Checkpoint | None:
         return None
     fingerprint = fingerprint.decode() if isinstance(fingerprint, bytes) else str(fingerprint)
     return Checkpoint(fingerprint, state, history)
+
+
+def checkpoint_damage(checkpoint: Checkpoint, expected: dict) -> str | None:
+    """Why ``checkpoint`` cannot continue a run whose engine starts from the state ``expected`` (None if it can).
+
+    Every array the engine holds must have its shape in the checkpoint (one the fresh engine holds empty
+    grows as it runs: only its dimensions are compared) and be finite; no number may be NaN; the history
+    columns must be as long as each other and as the iterations the state counts, and hold no NaN.
+
+    Parameters
+    ----------
+    checkpoint : Checkpoint
+    expected : dict
+        ``state()`` of the engine about to run (arrays and scalars by name).
+
+    Returns
+    -------
+    str or None
+        What is wrong, for a note (``/checkpoint/spectrum holds NaN or Inf``).
+    """
+    for name, value in expected.items():
+        if name not in checkpoint.state:
+            continue
+        saved = np.asarray(checkpoint.state[name])
+        if isinstance(value, np.ndarray):
+            same = saved.ndim == value.ndim if value.size == 0 else saved.shape == value.shape
+            if not same:
+                return f"/checkpoint/{name} has shape {saved.shape}, this run's {value.shape}"
+            if saved.dtype.kind not in "biufc" or not np.all(np.isfinite(saved)):
+                return f"/checkpoint/{name} holds NaN or Inf"
+        elif saved.dtype.kind not in "biuf" or saved.ndim != 0 or np.isnan(saved):
+            return f"/checkpoint attribute {name} is {saved!r}, not a number"
+    lengths = {name: len(np.atleast_1d(values)) for name, values in checkpoint.history.items()}
+    counted = checkpoint.state.get("iteration", next(iter(lengths.values()), 0))
+    if len(set(lengths.values()) | {int(counted)}) != 1:
+        return f"its history holds {lengths} iterations but its state {int(counted)}"
+    if any(np.isnan(values).any() for values in checkpoint.history.values()):
+        return "its /history holds NaN"
+    return None
 
 
 def remove_checkpoint(path: Path) -> None:

@@ -30,7 +30,7 @@ import shutil
 from pathlib import Path
 from typing import Callable, Iterable, Iterator
 
-from cca_cli.errors import OutputError, OutputExistsError, ResourceError
+from cca_cli.errors import OutputError, OutputExistsError, ResourceError, check_interrupt
 
 __all__ = [
     "MARKER",
@@ -356,6 +356,7 @@ def atomic_path(path: str | Path, *, force: bool = False, kind: str = "file", in
     existed = path.exists()
     try:
         yield tmp
+        check_interrupt()  # an output made while Ctrl-C was pressed is not put in place
         _replace(tmp, path)
     except (OSError, RuntimeError) as exc:  # HDF5 reports some failed writes as RuntimeError
         if disk_full(exc):

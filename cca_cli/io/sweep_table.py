@@ -9,7 +9,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-__all__ = ["read_table"]
+__all__ = ["read_table", "read_table_layout"]
 
 
 def read_table(path: Path) -> list[dict[str, Any]]:
@@ -24,6 +24,16 @@ def read_table(path: Path) -> list[dict[str, Any]]:
             data[c] = [_cell(v, missing) for v in values]
     n = len(next(iter(data.values()))) if data else 0
     return [{c: data[c][i] for c in columns} for i in range(n)]
+
+
+def read_table_layout(path: Path) -> tuple[str, list[str]]:
+    """The study of a ``sweep.h5`` table and its parameter columns (dotted config keys), in column order."""
+    with h5py.File(path, "r") as handle:
+        columns = json.loads(handle.attrs["columns"])
+        study = handle.attrs.get("study", "")
+        study = study.decode() if isinstance(study, bytes) else str(study)
+        parameters = [c for c in columns if bool(handle["table"][c].attrs.get("parameter", False))]
+    return study, parameters
 
 
 def _cell(value, missing):

@@ -28,7 +28,9 @@ from cca_cli.io.outputs import is_cca_hdf5
 from cca_cli.io.schema import spec_for
 
 __all__ = ["FrameInfo", "read_frame_info", "read_tile_captures", "TileResult", "tile_folder", "tile_path",
-           "write_tile_result", "read_tile_result", "remove_tile_folder"]
+           "write_tile_result", "read_tile_result", "tile_file_problem", "remove_tile_folder"]
+
+_HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 
 
 @dataclass(frozen=True)
@@ -197,6 +199,43 @@ def read_tile_result(path: Path, fingerprint: str | None = None, *, with_object:
                 fingerprint=_text(attrs["fingerprint"]))
     except (OSError, KeyError, ValueError, TypeError):
         return None
+
+
+def tile_file_problem(path: Path) -> tuple[str, str] | None:
+    """What is wrong with the file at a tile's path, or None when there is none or it is a readable tile result.
+
+    Returns
+    -------
+    (kind, why) or None
+        ``kind`` is ``damaged`` for a file cca wrote that cannot be used (empty, or an HDF5 file that cannot
+        be opened — truncated by a crash — or that lacks the tile's datasets: it may be replaced), or
+        ``foreign`` for anything else (never replaced); ``why`` says what was found, for a message.
+    """
+    if not (path.exists() or path.is_symlink()):
+        return None
+    if path.is_symlink() or not path.is_file():
+        return "foreign", "not a regular file"
+    try:
+        with open(path, "rb") as handle:
+            start = handle.read(len(_HDF5_SIGNATURE))
+    except OSError as exc:
+        return "foreign", f"cannot be read ({exc.strerror})"
+    if not start:
+        return "damaged", "empty"
+    if start != _HDF5_SIGNATURE:
+        return "foreign", "not an HDF5 file"
+    try:
+        with h5py.File(path, "r") as handle:
+            schema = handle.attrs.get("cca_schema")
+            group = handle.get("tile")
+            complete = isinstance(group, h5py.Group) and "object" in group and "fingerprint" in group.attrs
+    except (OSError, ValueError, KeyError) as exc:
+        return "damaged", f"it cannot be opened ({type(exc).__name__})"
+    if not (isinstance(schema, (str, bytes)) and _text(schema).startswith("cca/")):
+        return "foreign", "an HDF5 file cca did not write"
+    if not complete:
+        return "damaged", "it lacks the tile's datasets"
+    return None
 
 
 def remove_tile_folder(output: Path) -> None:

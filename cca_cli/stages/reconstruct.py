@@ -18,7 +18,8 @@ from cca_cli.engines.fit import FitReport
 from cca_cli.engines.calibrator import Calibration
 from cca_cli.errors import InputError
 from cca_cli.io.captures import Captures, read_measurements
-from cca_cli.io.checkpoint import checkpoint_path, read_checkpoint, remove_checkpoint, write_checkpoint
+from cca_cli.io.checkpoint import (checkpoint_damage, checkpoint_path, read_checkpoint, remove_checkpoint,
+                                   write_checkpoint)
 from cca_cli.io.geometry import write_geometry
 from cca_cli.io.h5 import Provenance, atomic_h5, check_output, file_sha256, open_input, write_dataset
 from cca_cli.io.outputs import is_cca_hdf5
@@ -47,8 +48,8 @@ class Checkpointing:
 
     A checkpoint is written after every ``every`` iterations, but never so often that writing takes more
     than 1/20 of the run time; one whose ``fingerprint`` differs (other captures, options, engine or
-    starting spectrum) is ignored with a note and replaced. A file at ``path`` that cca did not write is
-    neither read nor replaced.
+    starting spectrum) is ignored with a note and replaced, and so is a damaged one (arrays of NaN or of
+    other shapes). A file at ``path`` that cca did not write is neither read nor replaced.
     """
 
     path: Path
@@ -60,8 +61,12 @@ class Checkpointing:
     _cost: float = field(default=0.0, repr=False)
     _since: int = field(default=0, repr=False)
 
-    def load(self):
-        """The matching checkpoint's state and history, or None (with a note when one is ignored)."""
+    def load(self, expected: dict | None = None):
+        """The matching checkpoint's state and history, or None (with a note when one is ignored).
+
+        With ``expected`` (the state of the engine about to run) a checkpoint whose arrays are not
+        finite or have other shapes is ignored too, and replaced (:func:`~cca_cli.io.checkpoint.checkpoint_damage`).
+        """
         if not (self.path.exists() or self.path.is_symlink()):
             return None
         if not self.path.is_file() or not is_cca_hdf5(self.path):
@@ -73,6 +78,10 @@ class Checkpointing:
         if checkpoint is None or checkpoint.fingerprint != self.fingerprint:
             _log.warning("%s belongs to other captures or reconstruct options: starting afresh (it will be "
                          "replaced)", self.path)
+            return None
+        damage = None if expected is None else checkpoint_damage(checkpoint, expected)
+        if damage is not None:
+            _log.warning("%s is damaged (%s): starting afresh (it will be replaced)", self.path, damage)
             return None
         return checkpoint
 

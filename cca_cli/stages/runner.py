@@ -22,7 +22,7 @@ import yaml
 from pydantic import BaseModel
 
 from cca_cli.config.model import RunConfig
-from cca_cli.errors import OutputError, OutputExistsError
+from cca_cli.errors import OutputError, OutputExistsError, check_interrupt
 from cca_cli.io.h5 import Provenance, file_sha256, read_provenance
 from cca_cli.io.lock import folder_lock
 from cca_cli.io.outputs import check_folder, folder_complete, foreign_part, remove_stale_temporaries
@@ -253,6 +253,7 @@ def _run_stages(config: RunConfig, plans: list[StagePlan], *, force: bool, progr
     outcomes = []
     rewritten: set[Path] = set()
     for plan in plans:
+        check_interrupt()
         sections = pick_sections(config, plan.sections)
         digest = config_hash(sections)
         if plan.output.exists() or plan.output.is_symlink():
@@ -285,6 +286,7 @@ def _run_stages(config: RunConfig, plans: list[StagePlan], *, force: bool, progr
                 check_footprint(report_footprint(plan.inputs[0]), plan.output, source=plan.inputs[0])
             args = (plan.inputs[0], getattr(config, plan.sections[0]))
         result = RUNS[plan.name](*args, plan.output, provenance=provenance, force=True, progress=progress)
+        check_interrupt()
         outcomes.append(StageOutcome(plan.name, "ran", plan.output, time.perf_counter() - start, result))
         rewritten.add(plan.output)
     return outcomes

@@ -11,6 +11,11 @@ Resumability comes in two layers: a point whose ``point.json`` records the
 same full config is not resubmitted at all, and a point that was interrupted
 resumes at its first incomplete stage (:func:`run_pipeline` skips up-to-date
 stages). Every file appears atomically, the sweep table included.
+
+A sweep run into the folder of an earlier sweep of the same base config and
+study adds to it: the table and figures hold the complete points of both
+(:func:`earlier_points`). A folder of another base config or study is refused
+unless ``force``.
 """
 
 from __future__ import annotations
@@ -35,11 +40,12 @@ from cca_cli.config.load import apply_overrides, dump_config, parse_config
 from cca_cli.config.messages import accepted_keys
 from cca_cli.config.model import RunConfig, SweepSection
 from cca_cli.engines.registry import ENGINES, resolve
-from cca_cli.errors import CcaError, ConfigError
+from cca_cli.errors import CcaError, ConfigError, OutputExistsError
 from cca_cli.io.h5 import Provenance, atomic_h5, atomic_path, remove_temporaries, write_dataset
-from cca_cli.io.outputs import starts_with
-from cca_cli.io.sweep_table import read_table
-from cca_cli.workflows.cluster import check_scheduler, check_workers, open_client, scheduler_timeout
+from cca_cli.io.outputs import is_cca_hdf5, starts_with
+from cca_cli.io.sweep_table import read_table, read_table_layout
+from cca_cli.workflows.cluster import (check_scheduler, check_workers, open_client, scheduler_gone, scheduler_lost,
+                                      scheduler_timeout)
 
 __all__ = [
     "PAPER_STUDIES",
@@ -53,6 +59,8 @@ __all__ = [
     "point_cost",
     "run_point",
     "cached_result",
+    "earlier_points",
+    "earlier_rows",
     "open_client",
     "check_scheduler",
     "check_workers",
@@ -249,29 +257,34 @@ def expand_points(base: RunConfig, spec: SweepSection, sweep_dir: Path, *, sourc
             raise ConfigError(f"{source}: {key}: give a non-empty list of values")
     explicit = spec.points or [{}]
     product = [dict(zip(spec.parameters, combo)) for combo in itertools.product(*spec.parameters.values())]
-    base = base.model_copy(update={"sweep": None})
-    sets_threads = "threads" in base.reconstruct.options
-    candidates = ENGINES.values() if base.reconstruct.engine == "auto" else [ENGINES[base.reconstruct.engine]]
-    takes_threads = all("threads" in entry.option_names() for entry in candidates)
     points = []
     for index, (fixed, varied) in enumerate(itertools.product(explicit, product)):
         overrides = {**fixed, **varied}
         if "noise.seed" not in overrides:
             overrides["noise.seed"] = base.noise.seed + index
         point_id = f"{_slug(overrides)}-{_hash(overrides)[:8]}"
-        out_dir = Path(sweep_dir) / "points" / point_id
-        extra = {"run.out_dir": str(out_dir)}
-        engine = overrides.get("reconstruct.engine", base.reconstruct.engine)
-        explicit_threads = sets_threads or any(k == "reconstruct.options.threads" for k in overrides)
-        if takes_threads and engine == base.reconstruct.engine and not explicit_threads:
-            extra["reconstruct.options.threads"] = 1
-        try:
-            config = apply_overrides(base, {**overrides, **extra}, source=f"{source} point {point_id}")
-            error = None
-        except ConfigError as exc:
-            config, error = None, str(exc)
-        points.append(SweepPoint(index, point_id, overrides, out_dir, config, error))
+        points.append(_make_point(base, index, point_id, overrides, Path(sweep_dir) / "points" / point_id,
+                                  source=source))
     return points
+
+
+def _make_point(base: RunConfig, index: int, point_id: str, overrides: dict[str, Any], out_dir: Path, *,
+                source: str) -> SweepPoint:
+    """The point ``base`` + ``overrides`` run in ``out_dir`` (one thread per point unless the config says)."""
+    base = base.model_copy(update={"sweep": None})
+    candidates = ENGINES.values() if base.reconstruct.engine == "auto" else [ENGINES[base.reconstruct.engine]]
+    takes_threads = all("threads" in entry.option_names() for entry in candidates)
+    extra = {"run.out_dir": str(out_dir)}
+    engine = overrides.get("reconstruct.engine", base.reconstruct.engine)
+    explicit_threads = "threads" in base.reconstruct.options or "reconstruct.options.threads" in overrides
+    if takes_threads and engine == base.reconstruct.engine and not explicit_threads:
+        extra["reconstruct.options.threads"] = 1
+    try:
+        config = apply_overrides(base, {**overrides, **extra}, source=f"{source} point {point_id}")
+        error = None
+    except ConfigError as exc:
+        config, error = None, str(exc)
+    return SweepPoint(index, point_id, overrides, out_dir, config, error)
 
 
 def point_cost(point: SweepPoint) -> PointCost | None:
@@ -307,7 +320,8 @@ def _metrics(summary: dict) -> dict[str, Any]:
     }
 
 
-def run_point(config_data: dict, out_dir: str, *, force: bool = False) -> dict[str, Any]:
+def run_point(config_data: dict, out_dir: str, *, force: bool = False, index: int | None = None,
+              overrides: dict[str, Any] | None = None) -> dict[str, Any]:
     """Run one point's pipeline (a Dask task); never raises.
 
     Parameters
@@ -318,6 +332,9 @@ def run_point(config_data: dict, out_dir: str, *, force: bool = False) -> dict[s
         The point's directory.
     force : bool
         Recompute every stage.
+    index, overrides : optional
+        The point's place in its sweep and its overrides, kept in ``point.json``: a later sweep into the
+        same folder puts the point in its table (:func:`earlier_points`).
 
     Returns
     -------
@@ -339,9 +356,9 @@ def run_point(config_data: dict, out_dir: str, *, force: bool = False) -> dict[s
         summary = json.loads(report.read_text()) if report.exists() else {}
         result = {"status": "ok", "error": "", "wall_s": round(time.perf_counter() - start, 3),
                   "stages": {o.name: o.status for o in outcomes}, "worker": _worker_name(), **_metrics(summary)}
-        record = {"config_digest": config_digest(config), "result": result}
+        record = {"config_digest": config_digest(config), "index": index, "overrides": overrides, "result": result}
         with atomic_path(directory / POINT_JSON, force=True, owned=starts_with(POINT_JSON_START)) as tmp:
-            tmp.write_text(json.dumps(record, indent=2))
+            tmp.write_text(json.dumps(record, indent=2, default=str))
         return result
     except Exception as exc:  # a failed point is recorded, the others go on
         return {"status": "failed", "error": _one_line(exc), "wall_s": round(time.perf_counter() - start, 3),
@@ -376,6 +393,111 @@ def cached_result(point: SweepPoint) -> dict[str, Any] | None:
     return result if result.get("status") == "ok" else None
 
 
+def earlier_points(base: RunConfig, spec: SweepSection, points: list[SweepPoint], sweep_dir: Path, *,
+                   force: bool = False, source: str = "sweep") -> list[SweepPoint]:
+    """Complete points that earlier sweeps of ``base`` left in ``sweep_dir``, other than ``points``.
+
+    A sweep run into the folder of an earlier one adds its points to the table and figures rather than
+    replacing them: these points' rows join the table (:func:`earlier_rows`). A point counts when its
+    directory holds a complete run whose config is ``base`` with the point's overrides (kept in its
+    ``point.json``, or in the folder's table for points of older cca versions).
+
+    Raises
+    ------
+    OutputExistsError
+        Without ``force``, when the folder's table is of another study, or a complete point in the folder
+        (this sweep's own included) was made from another base config: one table cannot hold both. With
+        ``force`` those points are left out of the table (their directories stay; this sweep's own points
+        are recomputed), and a table of another study is replaced by this sweep's points.
+    """
+    sweep_dir = Path(sweep_dir)
+    study, recorded, order = _recorded_points(sweep_dir)
+    if study is not None and study != spec.study:
+        if force:
+            return []
+        raise OutputExistsError(f"{sweep_dir / 'sweep.h5'}: holds a {study} study, not {spec.study}; use --force to "
+                                "replace its table with this sweep's points, or choose another --out-dir")
+    ours = {p.point_id: p for p in points}
+    kept, other = [], None
+    for directory in _point_dirs(sweep_dir):
+        record = _point_record(directory)
+        if record is None:
+            continue
+        point = ours.get(directory.name)
+        if point is None:
+            index, overrides = record.get("index"), record.get("overrides")
+            if not isinstance(overrides, dict):
+                index, overrides = recorded.get(directory.name, (None, None))
+            if overrides is None:  # nothing says what the point is
+                continue
+            point = _make_point(base, index, directory.name, overrides, directory, source=source)
+            same = point.config is not None and record.get("config_digest") == config_digest(point.config)
+            if same and cached_result(point) is not None:
+                kept.append(point)
+        else:
+            same = point.config is None or record.get("config_digest") == config_digest(point.config)
+        if not same and other is None:
+            other = directory
+    if other is not None and not force:
+        raise OutputExistsError(f"{sweep_dir}: holds points made from another base config than {source} "
+                                f"({other.relative_to(sweep_dir)} …); use --force to recompute this sweep's points "
+                                "and leave the others out of the table, or choose another --out-dir")
+    return sorted(kept, key=lambda p: (order.get(p.point_id, len(order)), p.index if p.index is not None else 0,
+                                       p.point_id))
+
+
+def earlier_rows(points: list[SweepPoint]) -> list[dict[str, Any]]:
+    """Table rows (status ``cached``) of the points :func:`earlier_points` found."""
+    return [_row(point, cached_result(point) or {}, "cached") for point in points]
+
+
+def _recorded_points(sweep_dir: Path) -> tuple[str | None, dict[str, tuple[int | None, dict]], dict[str, int]]:
+    """The study of the folder's sweep.h5, each of its rows' index and overrides by point id, and the row order."""
+    path = sweep_dir / "sweep.h5"
+    if not path.is_file() or not is_cca_hdf5(path):
+        return None, {}, {}
+    try:
+        study, parameters = read_table_layout(path)
+        rows = read_table(path)
+    except (OSError, KeyError, ValueError, TypeError):
+        return None, {}, {}
+    recorded, order = {}, {}
+    for position, row in enumerate(rows):
+        overrides = {key: _table_value(row[key]) for key in parameters if row.get(key) not in (None, "")}
+        recorded[str(row.get("point_id"))] = (row.get("index"), overrides)
+        order[str(row.get("point_id"))] = position
+    return study, recorded, order
+
+
+def _table_value(value: Any) -> Any:
+    """A parameter cell as the config reads it (text cells hold YAML: lists, numbers of mixed columns)."""
+    if not isinstance(value, str):
+        return value
+    try:
+        return yaml.safe_load(value)
+    except yaml.YAMLError:
+        return value
+
+
+def _point_dirs(sweep_dir: Path) -> list[Path]:
+    try:
+        return sorted(d for d in (sweep_dir / "points").iterdir() if d.is_dir() and not d.is_symlink())
+    except OSError:
+        return []
+
+
+def _point_record(directory: Path) -> dict | None:
+    """The point.json cca wrote in ``directory`` (None when there is none or it cannot be read)."""
+    path = directory / POINT_JSON
+    if not starts_with(POINT_JSON_START)(path):
+        return None
+    try:
+        record = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return record if isinstance(record, dict) else None
+
+
 def _row(point: SweepPoint, result: dict[str, Any], status: str | None = None) -> dict[str, Any]:
     row = {"point_id": point.point_id, "index": point.index, "status": status or result.get("status", "failed"),
            "error": result.get("error", ""), "wall_s": result.get("wall_s"), "out_dir": str(point.out_dir)}
@@ -397,6 +519,11 @@ def run_sweep(points: list[SweepPoint], client, *, force: bool = False,
         Recompute points (and every stage) even when complete.
     on_row : callable, optional
         Called with ``(row, done, total)`` as each point finishes or is found complete.
+
+    Raises
+    ------
+    CcaError
+        The scheduler went away (one line: the finished points are kept, a re-run does the rest).
 
     Notes
     -----
@@ -424,16 +551,22 @@ def run_sweep(points: list[SweepPoint], client, *, force: bool = False,
             finish(point, _row(point, cached, "cached"))
             continue
         future = client.submit(run_point, point.config.model_dump(mode="json"), str(point.out_dir), force=force,
-                               pure=False)
+                               index=point.index, overrides=point.overrides, pure=False)
         futures[future] = point
     try:
         for future in as_completed(list(futures)):
             point = futures[future]
             try:
                 result = future.result()
+            except scheduler_gone():  # below
+                raise
             except Exception as exc:  # the worker died or the task was lost
                 result = {"status": "failed", "error": _one_line(exc)}
             finish(point, _row(point, result))
+    except scheduler_gone():
+        kept = sum(cached_result(point) is not None for point in points)
+        where = points[0].out_dir.parent if points else "the sweep folder"
+        raise scheduler_lost("sweep", f"the finished points are kept in {where} ({kept} of {total})") from None
     except BaseException:
         for future in futures:
             future.cancel()
@@ -456,7 +589,7 @@ def table_columns(rows: list[dict[str, Any]]) -> list[str]:
 #: Units and meaning of the sweep table's columns (parameter columns are described by :func:`_column_info`).
 TABLE_COLUMNS: dict[str, tuple[str, str]] = {
     "point_id": ("text", "Point directory name: a readable slug of its overrides plus a short hash of them."),
-    "index": ("1", "Position of the point in the sweep (also its seed offset)."),
+    "index": ("1", "Position of the point in the sweep that ran it (also its seed offset)."),
     "status": ("text", "ok (ran now), cached (complete from an earlier run), failed, or pending (interrupted)."),
     "error": ("text", "Why the point failed, in one line; empty otherwise."),
     "wall_s": ("s", "Wall time of the point's whole run (every stage)."),
@@ -575,17 +708,18 @@ def write_sweep_figures(rows: list[dict[str, Any]], sweep_dir: Path, *, spec: Sw
 
     x, group = default_axes(spec, points)
     ok = [r for r in rows if r["status"] in ("ok", "cached")]
-    by_index = {p.index: p for p in points}
+    by_id = {p.point_id: p for p in points}
     series = []
     for row in ok:
         xv, gv = _value(row, x), (_value(row, group) if group else None)
         if xv is None:
             continue
-        series.append({"x": float(xv), "group": gv, **{k: row.get(k) for k in METRICS}, "index": row["index"]})
+        series.append({"x": float(xv), "group": gv, **{k: row.get(k) for k in METRICS}, "index": row["index"],
+                       "point_id": row["point_id"]})
     highlight = _highlighted(series, spec.highlight)
     contrast, crops = [], []
     for item in highlight:
-        point = by_index[item["index"]]
+        point = by_id[item["point_id"]]
         contrast.append((item, _contrast(point.out_dir)))
         crops.append((item, _crops(point.out_dir)))
     data = SweepPlotData(study=spec.study, x=x, group=group, series=series, contrast=contrast, crops=crops)

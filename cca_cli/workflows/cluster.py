@@ -11,15 +11,21 @@ opens a client deep inside a pipeline.
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import warnings
+from concurrent.futures import CancelledError
 from dataclasses import dataclass
 from typing import Any, Iterator
 
 from cca_cli.errors import CcaError, ConfigError
 
 __all__ = ["open_client", "check_workers", "check_scheduler", "scheduler_timeout", "ClusterSettings",
-           "cluster_settings", "use_cluster"]
+           "cluster_settings", "use_cluster", "scheduler_gone", "scheduler_lost"]
+
+#: Loggers of dask.distributed: their messages (a lost scheduler logs tracebacks) would break the one-line rule.
+_DASK_LOGGERS = ("distributed", "distributed.client", "distributed.nanny", "distributed.scheduler",
+                 "distributed.worker", "distributed.core", "distributed.comm", "distributed.utils")
 
 
 @dataclass(frozen=True)
@@ -50,6 +56,31 @@ def use_cluster(workers: int | None = None, scheduler: str | None = None) -> Ite
         _settings = previous
 
 
+def scheduler_gone() -> tuple[type[BaseException], ...]:
+    """What a client raises once its scheduler is gone: its futures are cancelled, or its connection closed.
+
+    distributed's ``FuturesCancelledError`` (recent versions) derives from
+    ``concurrent.futures.CancelledError``, which older versions raise themselves.
+    """
+    from distributed.comm.core import CommClosedError
+
+    return CancelledError, CommClosedError
+
+
+def scheduler_lost(what: str, kept: str) -> CcaError:
+    """The one-line error of ``what`` (``sweep``, ``reconstruct``) when its Dask scheduler went away mid-run.
+
+    ``kept`` says what the finished tasks left behind (``the finished tiles are kept in recon.h5.tiles (3 of 4)``).
+    """
+    return CcaError(f"{what}: lost the Dask scheduler (its tasks were cancelled); {kept}; start the scheduler again "
+                    "(or run without --scheduler) and re-run to do only the rest")
+
+
+def _quiet_dask_logs() -> None:
+    for name in _DASK_LOGGERS:
+        logging.getLogger(name).setLevel(logging.CRITICAL)
+
+
 def _one_line(exc: BaseException) -> str:
     text = str(exc).strip().splitlines()
     message = text[0] if text else ""
@@ -67,10 +98,9 @@ def open_client(*, workers: int | None = None, scheduler: str | None = None) -> 
     scheduler : str, optional
         Address of an existing scheduler (``tcp://host:8786``); ``workers`` is then ignored.
     """
-    import logging
-
     from distributed import Client, LocalCluster
 
+    _quiet_dask_logs()
     if scheduler:
         timeout = scheduler_timeout()
         check_scheduler(scheduler, timeout)
@@ -88,13 +118,11 @@ def open_client(*, workers: int | None = None, scheduler: str | None = None) -> 
 
     check_workers(workers)
     n = workers or cpu_count()
-    for name in ("distributed", "distributed.nanny", "distributed.scheduler", "distributed.worker"):
-        logging.getLogger(name).setLevel(logging.ERROR)
     try:
         with warnings.catch_warnings():  # another cluster on this machine holds the usual HTTP port: no matter
             warnings.filterwarnings("ignore", message="Port .* is already in use", category=UserWarning)
             cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
-                                   silence_logs=logging.ERROR)
+                                   silence_logs=logging.CRITICAL)
     except BaseException:  # Ctrl-C while the workers start: stop them now, not in distributed's exit hook
         _close_unstarted_clusters()
         raise

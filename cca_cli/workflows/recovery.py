@@ -263,8 +263,8 @@ def recover(captures: Captures, engine: str, options, *, progress: ProgressFn = 
     init : path or ndarray, optional
         A recon.h5 (or a complex64 (M, M) spectrum) to start from instead of the upsampled centre capture.
     checkpoint : optional
-        The reconstruct stage's ``Checkpointing``: continue from its checkpoint when one matches; write new
-        ones as the run goes.
+        The reconstruct stage's ``Checkpointing``: continue from its checkpoint when one matches and is
+        sound (finite, of this engine's shapes); write new ones as the run goes.
     aberration : ndarray, (n_modes,) or (P, n_modes), optional
         Zernike coefficients (waves) the pupil starts from, in place of what the captures know
         (a tiled reconstruction passes a neighbour tile's).
@@ -295,7 +295,7 @@ def recover(captures: Captures, engine: str, options, *, progress: ProgressFn = 
     engine_class = get_engine(engine).engine_class()
     runner = engine_class(problem, options, spectrum=start)
     history = None
-    saved = checkpoint.load() if checkpoint is not None else None
+    saved = checkpoint.load(_state_of(runner)) if checkpoint is not None else None
     if saved is not None:
         try:
             runner.restore(saved.state)
@@ -310,6 +310,14 @@ def recover(captures: Captures, engine: str, options, *, progress: ProgressFn = 
                             history=history, checkpoint=checkpoint)
     calibration = runner.calibration() if isinstance(runner, CalibratingEngine) else None
     return replace(recovery, calibration=calibration, fit=fit_report(problem, recovery.spectrum, calibration))
+
+
+def _state_of(engine) -> dict | None:
+    """The engine's state as it starts (what a checkpoint must match), or None for an engine without one."""
+    try:
+        return engine.state()
+    except NotImplementedError:
+        return None
 
 
 def calibrated_pupils(calibration: Calibration, radius_px: float) -> np.ndarray | None:

@@ -21,15 +21,18 @@ single-threaded worker processes by default, or the workers of ``--scheduler``):
 The client then blends the tiles (weights summing to 1, sin² ramps over the
 middle half of each overlap), aligning each tile's arbitrary global phase to the
 tiles already placed. A run that was killed recovers only the tiles that have
-no finished file; ``pupil: global`` holds the centre tile's pupil fixed on every
-other tile (one pupil for the whole field, for comparison).
+no finished file (a file a crash left damaged is redone); ``pupil: global``
+holds the centre tile's pupil fixed on every other tile (one pupil for the whole
+field, for comparison).
 """
 
 from __future__ import annotations
 
+import asyncio
 import collections
 import hashlib
 import json
+import logging
 import math
 import time
 from dataclasses import dataclass, replace
@@ -41,11 +44,11 @@ from cca_cli.version import __version__
 from cca_cli.config.model import ReconstructSection
 from cca_cli.engines.options import EngineOptions
 from cca_cli.engines.registry import get_engine
-from cca_cli.errors import CcaError, ConfigError, InputError
+from cca_cli.errors import CcaError, ConfigError, InputError, OutputError
 from cca_cli.io.captures import Captures
 from cca_cli.io.h5 import Provenance
 from cca_cli.io.tiles import (FrameInfo, TileResult, read_frame_info, read_tile_captures, read_tile_result,
-                              tile_path, write_tile_result)
+                              tile_file_problem, tile_folder, tile_path, write_tile_result)
 from cca_cli.optics import fft
 from cca_cli.progress import ProgressEvent, ProgressFn, silent
 from cca_cli.sampling.capture import with_field_width
@@ -60,6 +63,7 @@ __all__ = ["TiledPlan", "TiledRecovery", "plan_tiled", "tile_geometry", "tile_en
 
 #: Seconds between a worker's progress messages for one tile.
 _PROGRESS_EVERY_S = 1.0
+_log = logging.getLogger("cca")
 
 
 @dataclass(frozen=True)
@@ -426,10 +430,12 @@ def reconstruct_tiled(captures_path: Path, section: ReconstructSection, output: 
     total = len(order)
     finished: dict[int, TileResult] = {}
     for tile, _ in order:
-        done = read_tile_result(tile_path(output, tile.row, tile.col), tile_fingerprint(run_fingerprint, tile),
-                                with_object=False)
+        path = tile_path(output, tile.row, tile.col)
+        done = read_tile_result(path, tile_fingerprint(run_fingerprint, tile), with_object=False)
         if done is not None:
             finished[tile.index] = done
+        else:
+            _make_way(path)
     ran = total - len(finished)
     progress(ProgressEvent("reconstruct", "tiles", len(finished), total))
     if ran:
@@ -457,20 +463,43 @@ def reconstruct_tiled(captures_path: Path, section: ReconstructSection, output: 
                          engine=name, options=options.model_dump(), pupil_mode=section.tiles.pupil)
 
 
+def _finished_file(task: TileTask) -> bool:
+    """Whether the task's tile has its result file (it may have been written after the client last heard)."""
+    fingerprint = tile_fingerprint(task.fingerprint, task.tile)
+    path = tile_path(Path(task.output), task.tile.row, task.tile.col)
+    return read_tile_result(path, fingerprint, with_object=False) is not None
+
+
+def _make_way(path: Path) -> None:
+    """Let a tile's result be written at ``path``: a damaged file cca wrote there (a crash truncated it) is
+    removed with a note; a file cca did not write is refused, before any tile runs."""
+    problem = tile_file_problem(path)
+    if problem is None:
+        return
+    kind, why = problem
+    if kind == "foreign":
+        raise OutputError(f"{path}: the tile's result goes there, but cca did not write this file ({why}) and "
+                          "never replaces what it did not write; move it away and run again")
+    _log.warning("%s is damaged (%s): the tile is recovered again", path, why)
+    path.unlink(missing_ok=True)
+
+
 def _run_on(client, plan: TiledPlan, order, tasks: dict, finished: dict, section: ReconstructSection,
             progress: ProgressFn, topic: str) -> None:
     """Submit the unfinished tiles, each after the neighbour it starts from; report progress until all are done."""
     from distributed import wait
 
+    from cca_cli.workflows.cluster import scheduler_gone, scheduler_lost
+
     messages: collections.deque = collections.deque()
-    client.subscribe_topic(topic, lambda event: messages.append(event[1]))
-    # Only the centre tile can run at first: the other workers load cca meanwhile, not after it.
-    client.run(_warm_up_soon, wait=False)
     fixed = section.tiles.pupil == "global"
     futures = {}
     total = len(order)
     centre = order[0][0]
     try:
+        client.subscribe_topic(topic, lambda event: messages.append(event[1]))
+        # Only the centre tile can run at first: the other workers load cca meanwhile, not after it.
+        client.run(_warm_up_soon, wait=False)
         for tile, parent in order:
             if tile.index in finished:
                 continue
@@ -487,7 +516,7 @@ def _run_on(client, plan: TiledPlan, order, tasks: dict, finished: dict, section
         while pending:
             try:
                 done, pending = wait(pending, timeout=1.0, return_when="FIRST_COMPLETED")
-            except TimeoutError:  # nothing finished yet: show how far the running tiles are
+            except (TimeoutError, asyncio.TimeoutError):  # nothing finished yet: show how far the running tiles are
                 done = set()
             while messages:
                 message = messages.popleft()
@@ -503,7 +532,7 @@ def _run_on(client, plan: TiledPlan, order, tasks: dict, finished: dict, section
                 index = by_future[future]
                 try:
                     finished[index] = future.result()
-                except CcaError:
+                except (CcaError, *scheduler_gone()):  # the scheduler went away: below
                     raise
                 except Exception as exc:  # a worker died, or the task failed in a way cca did not foresee
                     raise CcaError(f"reconstruct: tile {plan.tiles.tiles[index].row},{plan.tiles.tiles[index].col} "
@@ -519,6 +548,10 @@ def _run_on(client, plan: TiledPlan, order, tasks: dict, finished: dict, section
                 residual = finished[index].residual.get("all")
                 progress(ProgressEvent("reconstruct", "tiles", len(finished), total,
                                        {} if residual is None else {"residual": float(residual)}))
+    except scheduler_gone():
+        kept = sum(_finished_file(task) for task in tasks.values())
+        folder = tile_folder(Path(tasks[centre.index].output))
+        raise scheduler_lost("reconstruct", f"the finished tiles are kept in {folder} ({kept} of {total})") from None
     except BaseException:
         for future in futures.values():
             future.cancel()

@@ -24,7 +24,8 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
-from makers import DROP, Bytes, Config, Copy, Fifo, Folder, H5, Symlink, Text, Truncated, drop, set_attr, set_data
+from makers import (DROP, Bytes, Checkpoint, Config, Copy, Fifo, Folder, H5, Simulated, SweepFolder, Symlink, Text,
+                    Truncated, drop, set_attr, set_data)
 
 __all__ = ["Case", "CASES"]
 
@@ -1151,3 +1152,86 @@ case("manifest-symlink-two-positions", "silent", LAB_ING,
 case("manifest-same-file-two-exposures", "silent", LAB_ING,
      {"lab": Copy("manifest_dir", _edit_manifest(_second_exposure_same_file))}, exit=2,
      says=("manifest.yaml", "view_r0c0.png", "(row 0, col 0)", "exposures 0.01 s and 0.04 s"))
+
+
+# --- trust: sweeps into an earlier sweep's folder, failing points, damaged checkpoints and tiles ---------------------
+def _sweep_point_id(snr_db: float, seed: int) -> str:
+    from cca_cli.config.load import parse_config
+    from cca_cli.config.model import SweepSection
+    from cca_cli.stages.sweep import expand_points
+
+    from micro import micro_config
+
+    spec = SweepSection(points=[{"noise.snr_db": snr_db, "noise.seed": seed}])
+    return expand_points(parse_config(micro_config()), spec, Path("sw"))[0].point_id
+
+
+def _sweep_table_holds(*values):
+    def check(folder: Path, result) -> None:
+        import csv
+
+        with open(folder / "sw" / "sweep.csv") as handle:
+            rows = list(csv.DictReader(handle))
+        assert sorted(float(r["noise.snr_db"]) for r in rows) == sorted(values), rows
+        assert {r["status"] for r in rows} <= {"ok", "cached"}, rows
+        assert (folder / "sw" / "figures" / "rmse_vs_noise_snr_db.png").is_file()
+    return check
+
+
+SWEEP_MORE = ["sweep", "grid", "cfg.yaml", "--set", "noise.snr_db=30", "--out-dir", "sw", "-q", "--workers", "1"]
+case("sweep-adds-to-an-earlier-sweep", "data-loss", SWEEP_MORE,
+     {"cfg.yaml": Config(), "sw": SweepFolder({"noise.snr_db": [10, 20]})}, exit=0,
+     writes=("sw/sweep.csv", "sw/sweep.h5", "sw/figures", f"sw/points/{_sweep_point_id(30, 1)}"),
+     check=_sweep_table_holds(10, 20, 30), seconds=120)
+case("sweep-into-another-base-config", "data-loss", SWEEP_MORE,
+     {"cfg.yaml": Config(), "sw": SweepFolder({"noise.snr_db": [10, 20]}, {"reconstruct.iterations": 5})}, exit=4,
+     says=("sw", "another base config", "--force"))
+case("sweep-into-another-study", "data-loss", SWEEP_MORE,
+     {"cfg.yaml": Config(), "sw": SweepFolder({"noise.snr_db": [10, 20]}, study="noise")}, exit=4,
+     says=("sweep.h5", "noise study", "--force"))
+case("sweep-points-fail", "traceback",
+     ["sweep", "grid", "cfg.yaml", "--set", "scene.size_px=20,12.7", "--out-dir", "sw", "-q", "--workers", "1"],
+     {"cfg.yaml": Config()}, exit=1, says=("2 of 2 points failed", "sw/sweep.csv"), writes=("sw",), seconds=120)
+
+
+def _started_afresh(folder: Path, result) -> None:
+    import h5py
+
+    assert "damaged" in result.stderr and "resuming" not in result.stderr, result.stderr
+    with h5py.File(folder / "r.h5", "r") as handle:
+        assert np.isfinite(handle["/recon/spectrum"][()]).all()
+        assert handle["/history/residual"].shape == (20,)
+
+
+RESUME = ["reconstruct", "c.h5", "-o", "r.h5", "--iterations", "20", "--checkpoint-every", "1", "-q"]
+case("checkpoint-nan", "silent", RESUME,
+     {"c.h5": Copy("captures"),
+      "r.h5.checkpoint": Checkpoint("c.h5", 20, set_data("/checkpoint/spectrum", lambda a: a * np.nan))},
+     exit=0, writes=("r.h5", "r.h5.checkpoint"), check=_started_afresh)
+case("checkpoint-spectrum-of-another-shape", "silent", RESUME,
+     {"c.h5": Copy("captures"), "r.h5.checkpoint": Checkpoint("c.h5", 20, set_data("/checkpoint/spectrum",
+                                                                                  lambda a: a[:1]))},
+     exit=0, writes=("r.h5", "r.h5.checkpoint"), check=_started_afresh)
+case("checkpoint-history-nan", "silent", RESUME,
+     {"c.h5": Copy("captures"),
+      "r.h5.checkpoint": Checkpoint("c.h5", 20, set_data("/history/residual", lambda a: a * np.nan))},
+     exit=0, writes=("r.h5", "r.h5.checkpoint"), check=_started_afresh)
+
+TILED = ["reconstruct", "c.h5", "-o", "r.h5", "-c", "tiles.yaml", "-q", "--workers", "1"]
+TILES_CONFIG = Text("reconstruct: {iterations: 5, tiles: {size_px: 40, overlap_px: 16}}\n")
+
+
+def _tile_redone(folder: Path, result) -> None:
+    assert "tile_000_000.h5 is damaged" in " ".join(result.stderr.split()), result.stderr
+    assert (folder / "r.h5").is_file() and not (folder / "r.h5.tiles").exists()
+
+
+for name, damaged in (("truncated", Truncated("recon", 0.3)), ("empty", Bytes(b"")),
+                      ("without-datasets", Copy("recon"))):
+    case(f"tile-file-{name}", "traceback", TILED,
+         {"c.h5": Simulated({"simulate.store": "sensor"}), "tiles.yaml": TILES_CONFIG,
+          "r.h5.tiles/tile_000_000.h5": damaged}, exit=0, writes=("r.h5", "r.h5.tiles"), check=_tile_redone,
+         seconds=120)
+case("tile-file-not-cca", "data-loss", TILED,
+     {"c.h5": Simulated({"simulate.store": "sensor"}), "tiles.yaml": TILES_CONFIG,
+      "r.h5.tiles/tile_000_000.h5": Text("my notes\n")}, exit=4, says=("tile_000_000.h5", "move it away"))

@@ -14,8 +14,8 @@ import yaml
 
 from micro import Library, micro_config
 
-__all__ = ["DROP", "Config", "Text", "Bytes", "Copy", "H5", "Truncated", "Folder", "Symlink", "Fifo", "make",
-           "set_data", "drop", "set_attr"]
+__all__ = ["DROP", "Config", "Text", "Bytes", "Copy", "H5", "Truncated", "Folder", "Symlink", "Fifo", "Simulated",
+           "Checkpoint", "SweepFolder", "make", "set_data", "drop", "set_attr"]
 
 #: An override value that removes the key.
 DROP = object()
@@ -123,6 +123,91 @@ class Symlink:
 class Fifo:
     def make(self, path: Path, lib: Library) -> None:
         os.mkfifo(path)
+
+
+@dataclass(frozen=True)
+class Simulated:
+    """captures.h5 of the micro config with dotted-key ``overrides`` (``{"simulate.store": "sensor"}``)."""
+
+    overrides: dict = field(default_factory=dict)
+
+    def make(self, path: Path, lib: Library) -> None:
+        from cca_cli.config.load import parse_config
+        from cca_cli.stages import simulate
+        from cca_cli.stages.runner import pick_sections, stage_provenance
+
+        data = micro_config()
+        for key, value in self.overrides.items():
+            _apply(data, key, value)
+        config = parse_config(data)
+        simulate.run(config, path, provenance=stage_provenance("simulate", pick_sections(config, simulate.SECTIONS)))
+
+
+class _Stop(Exception):
+    pass
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    """The checkpoint that ``cca reconstruct <captures> -o <this name without .checkpoint> --iterations N``
+    resumes from (a real one, written at iteration 1 of an interrupted run), then ``edit``."""
+
+    captures: str
+    iterations: int
+    edit: Callable[[Path], None] | None = None
+
+    def make(self, path: Path, lib: Library) -> None:
+        from cca_cli.config.model import ReconstructSection
+        from cca_cli.stages import reconstruct
+        from cca_cli.stages.runner import stage_provenance
+
+        captures = path.parent / self.captures
+        section = ReconstructSection(iterations=self.iterations, checkpoint_every=1)
+        provenance = stage_provenance("reconstruct", {"reconstruct": section}, [captures])
+
+        def stop_once_saved(event) -> None:
+            if path.exists():
+                raise _Stop
+
+        try:
+            reconstruct.run(captures, section, path.with_name(path.name.removesuffix(".checkpoint")),
+                            provenance=provenance, progress=stop_once_saved)
+        except _Stop:
+            pass
+        assert path.is_file(), "no checkpoint was written"
+        if self.edit is not None:
+            self.edit(path)
+
+
+@dataclass(frozen=True)
+class SweepFolder:
+    """The folder of an earlier ``cca sweep <study>`` of the micro config (with ``overrides``) over ``sets``:
+    its table, and each point complete (the library's run folder with the point's point.json)."""
+
+    sets: dict
+    overrides: dict = field(default_factory=dict)
+    study: str = "grid"
+
+    def make(self, path: Path, lib: Library) -> None:
+        import json
+
+        from cca_cli.config.load import parse_config
+        from cca_cli.config.model import SweepSection
+        from cca_cli.stages import sweep
+
+        data = micro_config()
+        for key, value in self.overrides.items():
+            _apply(data, key, value)
+        base = parse_config(data)
+        spec = SweepSection(study=self.study, parameters=self.sets)
+        points = sweep.expand_points(base, spec, path)
+        for point in points:
+            shutil.copytree(lib.run_dir, point.out_dir)
+            result = {"status": "ok", "error": "", "wall_s": 1.0, "stages": {}}
+            record = {"config_digest": sweep.config_digest(point.config), "index": point.index,
+                      "overrides": point.overrides, "result": result}
+            (point.out_dir / "point.json").write_text(json.dumps(record, indent=2))
+        sweep.write_table(sweep.earlier_rows(points), path, spec=spec, base=base)
 
 
 def make(files: dict, root: Path, lib: Library) -> None:

@@ -238,3 +238,100 @@ def test_ctrl_c_during_a_reconstruction_stops_at_once_and_writes_nothing(tmp_pat
     assert proc.returncode == 130, err
     assert _one_line(subprocess.CompletedProcess(proc.args, proc.returncode, out, err)).startswith("interrupted:")
     assert _sha(tmp_path / "r.h5") == before and _temporaries(tmp_path) == []
+
+
+#: Moments of the report stage a Ctrl-C may land at (cca_with_hooks.py waits there for the signal).
+REPORT_MOMENTS = ("report-start", "figure-in-gc", "report-complete", "report-renamed", "stage-done-in-gc")
+
+
+def test_ctrl_c_at_any_moment_of_the_report_stage_ends_with_exit_130_and_no_half_written_report(tmp_path, library):
+    from cca_cli.io.outputs import folder_complete
+
+    config = _write_config(tmp_path / "cfg.yaml", report={"figures": True})  # the library's run_dir config
+    out = tmp_path / "out"
+    shutil.copytree(library.run_dir, out)
+    shutil.rmtree(out / "report")
+    inputs = {name: _sha(out / name) for name in ("captures.h5", "recon.h5")}
+    for moment in REPORT_MOMENTS:
+        mark = tmp_path / f"{moment}.mark"
+        proc = _start(["run", config, "--out-dir", out, "-q"], tmp_path, CCA_TEST_WAIT_AT=f"{moment}:{mark}")
+        deadline = time.monotonic() + 120
+        while not mark.exists():
+            assert proc.poll() is None and time.monotonic() < deadline, (moment, proc.communicate())
+            time.sleep(0.01)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+        assert proc.returncode == 130, (moment, err)
+        lines = [line for line in err.splitlines() if line.strip() and "is up to date, skipped" not in line]
+        assert len(lines) == 1 and lines[0].startswith("interrupted:"), (moment, err)
+        assert _temporaries(out) == [] and not (out / ".cca-run.lock").exists(), moment
+        assert not (out / "report").exists() or folder_complete(out / "report"), moment
+        assert {name: _sha(out / name) for name in inputs} == inputs, moment
+        shutil.rmtree(out / "report", ignore_errors=True)
+
+
+@pytest.fixture
+def scheduler(tmp_path):
+    """A Dask scheduler and one single-threaded worker, each in its own process (so the scheduler can be killed)."""
+    import socket
+
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    address = f"tcp://127.0.0.1:{port}"
+    quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL, "cwd": tmp_path}
+    processes = [subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
+                                   "--port", str(port), "--no-dashboard"], **quiet)]
+    processes.append(subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", address, "--nthreads", "1",
+                                       "--no-dashboard"], **quiet))
+    from distributed import Client
+
+    with Client(address, timeout="60s") as client:
+        client.wait_for_workers(1, timeout=60)
+    yield processes[0], address
+    for process in processes:
+        process.kill()
+        process.wait()
+
+
+def _kill_when(proc: subprocess.Popen, victim: subprocess.Popen, pattern: str, folder: Path) -> str:
+    """SIGKILL ``victim`` once a file matching ``pattern`` exists under ``folder``; return ``proc``'s one line."""
+    deadline = time.monotonic() + 300
+    while not list(folder.glob(pattern)):
+        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+        time.sleep(0.02)
+    victim.kill()
+    out, err = proc.communicate(timeout=120)
+    result = subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
+    line = _one_line(result)
+    assert proc.returncode == 1, err
+    return line
+
+
+def test_a_lost_scheduler_ends_a_tiled_reconstruction_in_one_line_and_keeps_the_finished_tiles(tmp_path, scheduler):
+    from cca_cli.io.outputs import is_cca_hdf5
+
+    process, address = scheduler
+    config = _write_config(tmp_path / "cfg.yaml", simulate={"store": "sensor"},
+                           reconstruct={"engine": "auto", "iterations": 3000, "tol": 0.0, "options": {"plateau": 0.0},
+                                        "tiles": {"size_px": 40, "overlap_px": 16}})
+    assert _run(["simulate", config, "-o", "c.h5", "-q"], tmp_path).returncode == 0
+    proc = _start(["reconstruct", "c.h5", "-o", "r.h5", "-c", config, "-q", "--scheduler", address], tmp_path)
+    line = _kill_when(proc, process, "r.h5.tiles/tile_*.h5", tmp_path)
+    assert "lost the Dask scheduler" in line and "r.h5.tiles" in line, line
+    kept = sorted((tmp_path / "r.h5.tiles").glob("tile_*.h5"))
+    assert kept and all(is_cca_hdf5(path) for path in kept)
+    assert not (tmp_path / "r.h5").exists() and _temporaries(tmp_path) == []
+
+
+def test_a_lost_scheduler_ends_a_sweep_in_one_line_and_keeps_the_finished_points(tmp_path, scheduler):
+    process, address = scheduler
+    config = _write_config(tmp_path / "cfg.yaml", reconstruct={"iterations": 3000})
+    proc = _start(["sweep", "grid", config, "--set", "noise.snr_db=10,20,30", "--out-dir", "sw", "-q",
+                   "--scheduler", address], tmp_path)
+    line = _kill_when(proc, process, "sw/points/*/point.json", tmp_path)
+    assert "lost the Dask scheduler" in line and "sw/points" in line, line
+    done = [path.parent for path in (tmp_path / "sw" / "points").glob("*/point.json")]
+    assert done and all(json.loads((d / "point.json").read_text())["result"]["status"] == "ok" for d in done)
+    dry = _run(["sweep", "grid", config, "--set", "noise.snr_db=10,20,30", "--out-dir", "sw", "--dry-run"], tmp_path)
+    assert dry.stdout.count("complete") == len(done), dry.stdout  # a re-run does only the others

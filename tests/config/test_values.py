@@ -3,7 +3,6 @@
 from dataclasses import replace
 from typing import Optional
 
-import numpy as np
 import pytest
 from pydantic import ValidationError, model_validator
 

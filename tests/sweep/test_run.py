@@ -100,3 +100,43 @@ def test_small_overlap_study_fails_at_zero_and_recovers_above_sixty(client, tmp_
     names = {f.name for f in figures}
     assert {"rmse_vs_array_overlap.png", "contrast_vs_width.png", "montage.png"} <= names
     assert all(f.stat().st_size > 5000 for f in figures)
+
+
+def test_a_second_sweep_into_the_folder_adds_its_points_to_the_table(client, tmp_path):
+    import pytest
+
+    from cca_cli.errors import OutputExistsError
+    from cca_cli.stages.sweep import earlier_points, earlier_rows
+
+    base = tiny_config()
+    first = SweepSection(parameters={"noise.snr_db": [10, 20]})
+    _run(client, first, tmp_path)
+    second = SweepSection(parameters={"noise.snr_db": [30, 40]})
+    points = expand_points(base, second, tmp_path)
+    earlier = earlier_points(base, second, points, tmp_path)
+    assert [p.overrides["noise.snr_db"] for p in earlier] == [10, 20]
+    rows = earlier_rows(earlier) + run_sweep(points, client)
+    write_table(rows, tmp_path, spec=second, base=base)
+    figures = write_sweep_figures(rows, tmp_path, spec=second, points=earlier + points)
+    table = read_table(tmp_path / "sweep.h5")
+    assert [r["noise.snr_db"] for r in table] == [10, 20, 30, 40]
+    assert [r["status"] for r in table] == ["cached", "cached", "ok", "ok"]
+    assert {f.name for f in figures} >= {"rmse_vs_noise_snr_db.png", "montage.png"}
+
+    # points of an older cca (no overrides in point.json) are found through the table
+    for point in earlier:
+        record = json.loads((point.out_dir / "point.json").read_text())
+        del record["overrides"], record["index"]
+        (point.out_dir / "point.json").write_text(json.dumps(record, indent=2))
+    third = SweepSection(parameters={"noise.snr_db": [50]})
+    found = earlier_points(base, third, expand_points(base, third, tmp_path), tmp_path)
+    assert [p.overrides["noise.snr_db"] for p in found] == [10, 20, 30, 40]
+
+    # another base config or another study: refused, unless --force (which keeps only this config's points)
+    other = tiny_config(reconstruct={"iterations": 7})
+    with pytest.raises(OutputExistsError, match="another base config"):
+        earlier_points(other, third, expand_points(other, third, tmp_path), tmp_path)
+    assert earlier_points(other, third, expand_points(other, third, tmp_path), tmp_path, force=True) == []
+    noise = SweepSection(study="noise", parameters={"noise.snr_db": [50]})
+    with pytest.raises(OutputExistsError, match="noise"):
+        earlier_points(base, noise, expand_points(base, noise, tmp_path), tmp_path)
