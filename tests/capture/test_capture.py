@@ -222,6 +222,7 @@ def test_config_rejects_simulate_with_ingest(tmp_path):
 
 
 @pytest.mark.skipif(not SHARED.is_dir(), reason=f"shared datasets not present: {SHARED}")
+@pytest.mark.slow
 def test_bloodsmear_led_dataset_reconstructs_sharper(tmp_path):
     config = load_config(ROOT / "configs" / "bloodsmear_green.yaml")
     config = config.model_copy(update={"reconstruct": config.reconstruct.model_copy(update={"iterations": 8})})

@@ -93,6 +93,7 @@ def test_registration_error_in_the_object_region(lab_run):
     assert reported.mean() >= 0.5 * true.mean()  # the figure users see does not understate the error
 
 
+@pytest.mark.slow
 def test_route_is_within_1_5x_of_the_perfectly_registered_full_frame(lab_run, tmp_path):
     out, _ = lab_run
     aligned = write_lab(tmp_path / "aligned", simulate_lab(7, seed=0, misregistered=False, boards=False), truth=False)

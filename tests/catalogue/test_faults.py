@@ -83,6 +83,7 @@ def _write_config(path: Path, **sections) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_kill_in_each_stage_then_the_run_resumes(tmp_path):
     config = _write_config(tmp_path / "cfg.yaml")
     out = tmp_path / "out"
@@ -103,6 +104,7 @@ def test_kill_in_each_stage_then_the_run_resumes(tmp_path):
     assert json.loads(report["provenance"]["inputs"])[0]["sha256"] == _sha(out / "recon.h5")
 
 
+@pytest.mark.slow
 def test_kill_in_the_lab_stages_then_the_run_resumes(tmp_path):
     config = yaml.safe_load((REPO / "configs" / "sample_capture.yaml").read_text())
     config["ingest"]["manifest"] = str(REPO / "data_samples" / "sample_capture" / "manifest.yaml")
@@ -122,6 +124,7 @@ def test_kill_in_the_lab_stages_then_the_run_resumes(tmp_path):
     assert _temporaries(out) == []
 
 
+@pytest.mark.slow
 def test_a_second_run_into_a_busy_folder_is_refused_and_a_dead_runs_lock_is_taken_over(tmp_path):
     first = _write_config(tmp_path / "a.yaml")
     second = _write_config(tmp_path / "b.yaml", noise={"seed": 2})
@@ -199,6 +202,7 @@ def test_an_output_folder_without_write_permission_is_refused_before_computing(t
     assert list(locked.iterdir()) == []
 
 
+@pytest.mark.slow
 def test_a_write_past_the_file_size_limit_keeps_the_old_file(tmp_path, library):
     shutil.copy(library.captures, tmp_path / "c.h5")
     config = _write_config(tmp_path / "cfg.yaml")
@@ -244,6 +248,7 @@ def test_ctrl_c_during_a_reconstruction_stops_at_once_and_writes_nothing(tmp_pat
 REPORT_MOMENTS = ("report-start", "figure-in-gc", "report-complete", "report-renamed", "stage-done-in-gc")
 
 
+@pytest.mark.slow
 def test_ctrl_c_at_any_moment_of_the_report_stage_ends_with_exit_130_and_no_half_written_report(tmp_path, library):
     from cca_cli.io.outputs import folder_complete
 
@@ -324,6 +329,7 @@ def test_a_lost_scheduler_ends_a_tiled_reconstruction_in_one_line_and_keeps_the_
     assert not (tmp_path / "r.h5").exists() and _temporaries(tmp_path) == []
 
 
+@pytest.mark.slow
 def test_a_lost_scheduler_ends_a_sweep_in_one_line_and_keeps_the_finished_points(tmp_path, scheduler):
     process, address = scheduler
     config = _write_config(tmp_path / "cfg.yaml", reconstruct={"iterations": 3000})

@@ -8,6 +8,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.slow  # subprocesses, each a run of seconds: the whole suite only
+
 FOCUSED = [Path(__file__).with_name("test_fallback_paths.py"), Path(__file__).parents[1] / "engines" / "test_golden.py"]
 FALLBACKS = {
     "no pyfftw": {"CCA_FFT_BACKEND": "scipy"},

@@ -19,6 +19,7 @@ import pytest
 import cca_cli
 
 pytest.importorskip("numba")
+pytestmark = pytest.mark.slow  # subprocesses, each a run of seconds: the whole suite only
 
 SCRIPT = """
 import numpy as np

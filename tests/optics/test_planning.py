@@ -106,6 +106,7 @@ CACHE_CHILD = textwrap.dedent('''
 ''')
 
 
+@pytest.mark.slow
 def test_a_new_process_reuses_the_plans_saved_in_the_cache(tmp_path):
     env = dict(os.environ, CCA_CACHE_DIR=str(tmp_path))
     first = subprocess.run([sys.executable, "-c", CACHE_CHILD], env=dict(env, CCA_FFTW_PLANNING="measure"),
@@ -133,6 +134,7 @@ INTERRUPT_CHILD = textwrap.dedent('''
 ''')
 
 
+@pytest.mark.slow
 def test_ctrl_c_during_planning_is_answered_within_one_planning_step(tmp_path):
     env = dict(os.environ, CCA_CACHE_DIR=str(tmp_path), CCA_FFTW_PLANNING="auto")
     child = subprocess.Popen([sys.executable, "-c", INTERRUPT_CHILD], env=env, stdout=subprocess.PIPE,

@@ -56,6 +56,7 @@ def _spectrum(path: Path) -> np.ndarray:
         return np.asarray(handle["/recon/spectrum"])
 
 
+@pytest.mark.slow
 def test_kill_9_mid_run_then_the_rerun_resumes_from_the_checkpoint_and_matches_an_uninterrupted_run(tiny, tmp_path):
     captures, section = tiny
     iterations = 1000

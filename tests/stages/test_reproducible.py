@@ -11,6 +11,8 @@ import h5py
 import numpy as np
 import pytest
 
+pytestmark = pytest.mark.slow  # subprocesses, each a run of seconds: the whole suite only
+
 
 def _cca(args, *, cache: Path, planning: str | None = None, cwd: Path) -> None:
     env = {key: value for key, value in os.environ.items() if key != "CCA_FFTW_PLANNING"}
