@@ -642,7 +642,7 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
     (True, 2)
     """
     from cca_cli.engines.registry import resolve
-    from cca_cli.io.measurements import check_intensity, check_weight
+    from cca_cli.library.data import check_intensity, check_weight
     from cca_cli.optics import fft
     from cca_cli.stages.reconstruct import Captures, calibrated_pupils, recover
     from cca_cli.workflows.recovery import without_dead_captures
@@ -784,7 +784,7 @@ def reconstruct_tiles(captures, geometry: CaptureGeometry | None = None, *, size
 
     from cca_cli.config.model import ReconstructSection
     from cca_cli.io.h5 import Provenance
-    from cca_cli.io.measurements import check_intensity
+    from cca_cli.library.data import check_intensity
     from cca_cli.workflows.cluster import open_client
     from cca_cli.workflows.tiled import reconstruct_tiled, run_fingerprint
 

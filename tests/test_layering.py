@@ -9,7 +9,7 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / "cca_cli"
 
 #: The numeric core: no files, no config, no terminal, no plotting.
-CORE = ["engines", "optics", "sampling", "targets", "metrics", "units.py"]
+CORE = ["engines", "optics", "sampling", "targets", "metrics", "units.py", "library"]
 FORBIDDEN_IN_CORE = ("h5py", "yaml", "typer", "rich", "matplotlib", "cca_cli.io", "cca_cli.config",
                      "cca_cli.stages", "cca_cli.commands")
 
@@ -73,17 +73,19 @@ def test_only_registration_imports_opencv():
 
 
 #: Each package (or top-level module) and its layer: a module may import its own layer and those below, never above.
-#: commands → stages → workflows → {io, config, report} → {engines, registration, hdr, metrics}
-#: → {optics, sampling, targets} → {units, errors, progress}.
+#: commands → stages → api → workflows → {io, config, report} → library → {engines, registration, hdr, metrics}
+#: → {optics, sampling, targets} → {units, errors, progress, values, version}.
 LAYERS = {
     "units.py": 0, "errors.py": 0, "progress.py": 0, "values.py": 0, "version.py": 0,
     "optics": 1, "sampling": 1, "targets": 1,
     "engines": 2, "registration": 2, "hdr": 2, "metrics": 2,
-    "io": 3, "config": 3, "report": 3,
-    "workflows": 4,
-    "stages": 5,
-    "commands": 6, "api.py": 6,
-    "__main__.py": 7, "__init__.py": 7,
+    "library": 3,
+    "io": 4, "config": 4, "report": 4,
+    "workflows": 5,
+    "api.py": 6,
+    "stages": 7,
+    "commands": 8,
+    "__main__.py": 9, "__init__.py": 9,
 }
 
 #: Stage modules that run other stages (orchestration): they may import any stage.
@@ -179,8 +181,8 @@ def test_the_layer_checks_catch_what_they_forbid(tmp_path, monkeypatch):
         "cca_cli/stages/simulate.py imports cca_cli.stages.reconstruct"]
     assert _violations([borrowing, clean], ("h5py",)) == ["cca_cli/stages/simulate.py imports h5py"]
     assert _upward_imports([borrowing, clean, orchestrator, upward, from_top]) == [
-        "cca_cli/optics/fft.py (layer 1) imports cca_cli.workflows (layer 4)",
-        "cca_cli/optics/fft.py (layer 1) imports cca_cli.workflows.scenes (layer 4)",
+        f"cca_cli/optics/fft.py (layer 1) imports cca_cli.workflows (layer {LAYERS['workflows']})",
+        f"cca_cli/optics/fft.py (layer 1) imports cca_cli.workflows.scenes (layer {LAYERS['workflows']})",
         f"cca_cli/optics/pupil.py (layer 1) imports cca_cli (layer {LAYERS['__init__.py']})",
         f"cca_cli/optics/pupil.py (layer 1) imports cca_cli.__version__ (layer {LAYERS['__init__.py']})"]
 

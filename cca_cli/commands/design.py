@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import copy
 import json
+import math
 from decimal import Decimal
 from pathlib import Path
 from typing import Annotated, Optional
@@ -16,8 +18,16 @@ from cca_cli.io.outputs import atomic_path, check_output, starts_with
 
 #: First line of a config written by --write-config (how --force recognises one).
 WRITTEN_BY = "# Written by `cca design`."
+#: Engines the time estimate and the written config can use, and the reconstruct settings written for each.
+#: ``momentum`` stops once the data misfit falls by less than 1% over 10 passes (a simulation's noise floor,
+#: after tens of passes; on noisy captures its spectrum change often levels off above ``tol``), ``altmin``
+#: after the paper's 1000 iterations at most.
+WRITTEN_RECONSTRUCT = {
+    "momentum": {"tau": 1e-3, "iterations": 200, "tol": 1e-5, "options": {"plateau": 0.01, "plateau_window": 10}},
+    "altmin": {"tau": 1e-3, "iterations": 1000, "tol": 1e-5},
+}
 
-__all__ = ["design_cli", "plan_config"]
+__all__ = ["WRITTEN_RECONSTRUCT", "design_cli", "plan_config"]
 
 
 def _si(value: float | None, unit: str = "m") -> str:
@@ -67,12 +77,45 @@ def _machine_warnings(plan) -> tuple[str, ...]:
     return ()
 
 
-def plan_config(plan, *, iterations: int = 300) -> dict:
-    """A `cca run` config (as a mapping) that simulates and reconstructs ``plan`` with a bar chart."""
+def _measured_cost(plan, engine: str):
+    """The engine's rates on ``plan``'s grids, measured on this machine now."""
+    from cca_cli.engines.timing import measure_iteration_cost
+
+    return measure_iteration_cost(engine, n_images=plan.n_images, pupil_radius_px=plan.pupil_radius_px,
+                                  step_px=plan.step_px, lowres_size=plan.lowres_px, hires_size=plan.output_px)
+
+
+def _time_text(seconds: float | None, cost) -> str:
+    if seconds is None:
+        return "—"
+    threads = "1 thread" if cost.threads == 1 else f"{cost.threads} threads"
+    return f"{seconds:.3g} s ({threads})"
+
+
+def plan_config(plan, *, engine: str = "momentum", iterations: int | None = None) -> dict:
+    """A `cca run` config (as a mapping) that simulates and reconstructs ``plan`` with a bar chart.
+
+    Parameters
+    ----------
+    plan : ArrayPlan
+    engine : {"momentum", "altmin"}
+        Reconstruction engine.
+    iterations : int, optional
+        Iteration cap; default that of :data:`WRITTEN_RECONSTRUCT`, whose stopping rules may end the run sooner.
+
+    Returns
+    -------
+    dict
+        The config's sections: the chart fills the output grid, with the default bar widths
+        and the synthetic spot's width (rounded down to whole pixels) that fit it, finest first
+        to stay.
+    """
     from cca_cli.targets import DEFAULT_WIDTHS, resolution_chart
 
     size = plan.output_px
-    widths = [w for w in DEFAULT_WIDTHS]
+    # Bars as wide as the synthetic spot (rounded down) show whether the recovery reaches it.
+    predicted = math.floor(min(plan.spot_synthetic_px, 1e9))
+    widths = sorted(set(DEFAULT_WIDTHS) | ({predicted} if predicted >= 1 else set()), reverse=True)
     while widths:
         try:
             resolution_chart(size, widths=tuple(widths))
@@ -89,7 +132,8 @@ def plan_config(plan, *, iterations: int = 300) -> dict:
                   "widths_px": widths},
         "array": {"grid": plan.grid, "overlap": plan.overlap},
         "noise": {"model": "gaussian", "snr_db": 30.0, "seed": 0},
-        "reconstruct": {"engine": "altmin", "tau": 1e-3, "iterations": iterations, "tol": 1e-5},
+        "reconstruct": {"engine": engine, **copy.deepcopy(WRITTEN_RECONSTRUCT[engine]),
+                        **({} if iterations is None else {"iterations": iterations})},
         "report": {"mtf_threshold": 0.2,
                    "baselines": [{"kind": "passive_incoherent"},
                                  {"kind": "lens", "aperture_diameter_m": plan.synthetic_aperture_m,
@@ -110,16 +154,21 @@ def design_cli(
     overlap: Annotated[float, typer.Option("--overlap", help="Linear overlap of neighbouring apertures.")] = 0.61,
     field_width_m: Annotated[Optional[float], typer.Option("--field-width-m", help="Object-plane field to capture (m).")] = None,
     sensor_px: Annotated[Optional[int], typer.Option("--sensor-px", help="Pixels across the sensor.")] = None,
-    iterations: Annotated[int, typer.Option("--iterations", help="Iterations in the written config.")] = 300,
+    engine: Annotated[str, typer.Option("--engine", help="Engine of the time estimate and the written config: "
+                                                         "momentum or altmin.")] = "momentum",
+    iterations: Annotated[Optional[int], typer.Option("--iterations", help="Iteration cap in the written config "
+                                                      "(default: 200 for momentum, 1000 for altmin).")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print the plan as JSON.")] = False,
     write_config: Annotated[Optional[Path], typer.Option("--write-config", help="Write a `cca run` YAML of the plan.", dir_okay=False)] = None,
     force: Annotated[bool, typer.Option("--force", "-f", help="Overwrite --write-config's file.")] = False,
-    measure: Annotated[bool, typer.Option("--measure/--no-measure", help="Time FFTs on this machine for the per-iteration estimate.")] = True,
+    measure: Annotated[bool, typer.Option("--measure/--no-measure", help="Time the engine's work on this machine for the per-iteration estimate.")] = True,
 ) -> None:
     """Plan an array: spot sizes, SAR, grid, step, images, data volume, output size, memory and time."""
     from cca_cli.sampling.design import iteration_seconds, plan_array
 
-    if iterations < 1:
+    if engine not in WRITTEN_RECONSTRUCT:
+        raise ConfigError(f"--engine: choose {' or '.join(WRITTEN_RECONSTRUCT)}, got {engine!r}")
+    if iterations is not None and iterations < 1:
         raise ConfigError(f"--iterations: must be at least 1, got {iterations}")
     if write_config is not None:
         check_output(write_config, force=force, owned=starts_with(WRITTEN_BY))
@@ -129,22 +178,22 @@ def design_cli(
                           beat_lens_m=beat_lens_m, overlap=overlap, field_width_m=field_width_m, sensor_px=sensor_px)
     except ValueError as exc:
         raise ConfigError(f"cca design: {_option_names(exc)}") from None
-    seconds = None
-    fft_s = None
-    if measure:
-        from cca_cli.optics.timing import fft_seconds
-
-        fft_s = fft_seconds(plan.lowres_px)
-        seconds = iteration_seconds(plan, fft_s)
+    cost = _measured_cost(plan, engine) if measure else None
+    seconds = None if cost is None else iteration_seconds(plan, capture_seconds=cost.capture_seconds,
+                                                            pixel_seconds=cost.pixel_seconds)
     if write_config is not None:
         import yaml
 
-        text = WRITTEN_BY + "\n" + yaml.safe_dump(plan_config(plan, iterations=iterations), sort_keys=False)
+        config = plan_config(plan, engine=engine, iterations=iterations)
+        text = WRITTEN_BY + "\n" + yaml.safe_dump(config, sort_keys=False)
         with atomic_path(write_config, force=force, owned=starts_with(WRITTEN_BY)) as tmp:
             tmp.write_text(text)
     if as_json:
         data = plan.to_dict()
-        data["fft_seconds"] = fft_s
+        data["engine"] = engine
+        data["threads"] = None if cost is None else cost.threads
+        data["capture_seconds"] = None if cost is None else cost.capture_seconds
+        data["pixel_seconds"] = None if cost is None else cost.pixel_seconds
         data["seconds_per_iteration"] = seconds
         console.print_json(json.dumps(data))
     else:
@@ -157,6 +206,7 @@ def design_cli(
             ("target", target),
             ("spot at object, one lens (2.44 λz/d)", _si(plan.spot_lens_m)),
             ("spot at object, synthetic aperture", _si(plan.spot_synthetic_m)),
+            ("spot on the output image, synthetic", f"{plan.spot_synthetic_px:.3g} px"),
             *([("spot at object, lens to beat", _si(plan.spot_beat_m))] if plan.spot_beat_m else []),
             ("spot at sensor, one lens", _si(plan.spot_sensor_m)),
             ("required SAR", f"{plan.required_sar:.4g}"),
@@ -170,7 +220,7 @@ def design_cli(
             ("output image", f"{_count(plan.output_px)} x {_count(plan.output_px)} px at {_si(plan.output_pixel_m)}"),
             ("per-capture model grid", f"{plan.lowres_px} px (pupil radius {plan.pupil_radius_px:.1f} px)"),
             ("reconstruction memory (est.)", _bytes(plan.memory_bytes)),
-            ("time per iteration (est.)", "—" if seconds is None else f"{seconds:.3g} s"),
+            (f"time per iteration, {engine} (est.)", _time_text(seconds, cost)),
             ("fits the sensor", "yes" if plan.fits_sensor else "NO"),
         ]
         for label, value in rows:

@@ -50,9 +50,30 @@ class IterationRecord:
 
 @dataclass
 class History:
-    """Per-iteration records of one run (kept apart from the engine's options)."""
+    """Per-iteration records of one run (kept apart from the engine's options).
+
+    Reads like a mapping of columns too: ``history["residual"]`` is :meth:`array`.
+    """
 
     records: list[IterationRecord] = field(default_factory=list)
+
+    #: The columns a history holds, besides the iteration number.
+    COLUMNS = ("residual", "change", "seconds")
+
+    @classmethod
+    def from_columns(cls, columns) -> History:
+        """A history from arrays of equal length by column name (a file's /history)."""
+        values = [np.asarray(columns[name], np.float64).ravel() for name in cls.COLUMNS]
+        return cls([IterationRecord(i + 1, *(float(v) for v in row)) for i, row in enumerate(zip(*values))])
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        if name not in self.COLUMNS:
+            raise KeyError(f"{name!r}: a history holds {', '.join(self.COLUMNS)}")
+        return self.array(name)
+
+    def keys(self) -> tuple[str, ...]:
+        """The column names."""
+        return self.COLUMNS
 
     @property
     def iterations(self) -> int:

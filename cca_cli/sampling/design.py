@@ -32,11 +32,8 @@ MIN_OVERLAP = 0.5
 #: Overlap suggested when the requested one is too small.
 SUGGESTED_OVERLAP = 0.6
 
-# Per-iteration cost model of the alternating-minimisation engine: one forward
-# and one inverse FFT of the m x m capture grid per capture, plus elementwise
-# work measured at about as much again as the transforms.
+#: FFTs of the band grid per capture and iteration: the inverse to the sensor field and the forward back.
 _FFTS_PER_CAPTURE = 2
-_ELEMENTWISE_FACTOR = 2.0
 
 
 @dataclass(frozen=True)
@@ -65,6 +62,9 @@ class ArrayPlan:
         ``grid ** 2``.
     spot_lens_m, spot_synthetic_m : float
         Diffraction spot ``2.44 λ z / d`` at the object for one lens and for the synthetic aperture.
+    spot_synthetic_px : float
+        ``spot_synthetic_m`` in pixels of the recovered image: the recovery
+        reaches the plan's resolution when its MTF20 bar width is at most this.
     spot_beat_m : float or None
         The same for the lens to beat (``beat_lens`` target only).
     spot_sensor_m : float
@@ -81,6 +81,8 @@ class ArrayPlan:
         Whether the scene's angular extent fits the sensor (always true without ``sensor_px``).
     pupil_radius_px : float
         Pupil radius in spectrum pixels of the field.
+    step_px : float
+        Distance of neighbouring pupil centres in spectrum pixels.
     output_px : int
         Side of the recovered image (high-resolution grid M).
     lowres_px : int
@@ -92,7 +94,7 @@ class ArrayPlan:
     memory_bytes : int
         Estimated peak memory of a reconstruction.
     fft_count_per_iteration : int
-        m x m complex FFTs per iteration.
+        m x m complex FFTs per iteration (an inverse and a forward one per capture).
     warnings : tuple of str
         Problems with the plan (low overlap, field larger than the sensor, target below one lens).
     """
@@ -113,6 +115,7 @@ class ArrayPlan:
     n_images: int
     spot_lens_m: float
     spot_synthetic_m: float
+    spot_synthetic_px: float
     spot_beat_m: float | None
     spot_sensor_m: float
     object_pixel_m: float
@@ -121,6 +124,7 @@ class ArrayPlan:
     sensor_px: int | None
     fits_sensor: bool
     pupil_radius_px: float
+    step_px: float
     output_px: int
     lowres_px: int
     output_pixel_m: float
@@ -136,21 +140,34 @@ class ArrayPlan:
         return out
 
 
-def iteration_seconds(plan: ArrayPlan, fft_seconds: float) -> float:
+def iteration_seconds(plan: ArrayPlan, *, capture_seconds: float, pixel_seconds: float) -> float:
     """Estimated seconds per reconstruction iteration.
 
     Parameters
     ----------
     plan : ArrayPlan
-    fft_seconds : float
-        Measured time of one ``lowres_px`` x ``lowres_px`` complex64 FFT on this machine.
+    capture_seconds : float
+        Wall time of one capture's share of a pass: its pupil box placed on the
+        ``lowres_px`` band grid, the inverse and forward FFTs (pruned to the
+        box's rows), the magnitude step and the adjoint, on the engine's threads.
+    pixel_seconds : float
+        Wall time per spectrum pixel of the steps that sweep the whole
+        ``output_px`` x ``output_px`` spectrum once per iteration.
+
+    Returns
+    -------
+    float
+        ``n_images * capture_seconds + output_px**2 * pixel_seconds``.
 
     Notes
     -----
-    Model: ``K * 2`` FFTs (forward and adjoint of every capture) plus
-    elementwise work taken as ``_ELEMENTWISE_FACTOR`` times the FFT time.
+    Both engines visit every capture once per iteration; measure the rates with
+    :func:`cca_cli.engines.timing.measure_iteration_cost`.
     """
-    return plan.fft_count_per_iteration * fft_seconds * _ELEMENTWISE_FACTOR
+    try:
+        return float(plan.n_images) * capture_seconds + float(plan.output_px) ** 2 * pixel_seconds
+    except OverflowError:  # more captures than a float holds
+        return math.inf
 
 
 def reconstruction_memory_bytes(k: float, capture_px: float, lowres: float, hires: float, box: float) -> float:
@@ -245,16 +262,20 @@ def plan_array(*, wavelength_m: float, focal_length_m: float, aperture_diameter_
     reach = float(scale.to_pixels((grid - 1) / 2.0 * step))  # the outermost aperture centre (no arrays: grids may be huge)
     layout = band_sizes(reach, radius, sensor_size=max(capture_px, 2))
     k = grid * grid
+    spot_synthetic = spot_size_m(wavelength_m, distance_m, achieved * d)
+    output_pixel = grid_pixel_m(field, layout.hires_size)
     return ArrayPlan(
         wavelength_m=wavelength_m, focal_length_m=focal_length_m, aperture_diameter_m=d,
         pixel_pitch_m=pixel_pitch_m, distance_m=distance_m, target=kind, target_value=value, overlap=overlap,
         required_sar=required, grid=grid, sar=achieved, synthetic_aperture_m=achieved * d, step_m=step,
-        n_images=k, spot_lens_m=spot_lens, spot_synthetic_m=spot_size_m(wavelength_m, distance_m, achieved * d),
+        n_images=k, spot_lens_m=spot_lens, spot_synthetic_m=spot_synthetic,
+        spot_synthetic_px=spot_synthetic / output_pixel,
         spot_beat_m=spot_size_m(wavelength_m, distance_m, beat_lens_m) if kind == "beat_lens" else None,
         spot_sensor_m=spot_size_m(wavelength_m, focal_length_m, d), object_pixel_m=pixel, field_width_m=field,
         capture_px=capture_px, sensor_px=sensor_px, fits_sensor=fits, pupil_radius_px=radius,
+        step_px=float(scale.to_pixels(step)),
         output_px=layout.hires_size, lowres_px=layout.lowres_size,
-        output_pixel_m=grid_pixel_m(field, layout.hires_size),
+        output_pixel_m=output_pixel,
         capture_bytes=k * capture_px * capture_px * 4,
         memory_bytes=int(reconstruction_memory_bytes(k, capture_px, layout.lowres_size, layout.hires_size,
                                                      layout.box_size)),

@@ -21,7 +21,8 @@ from cca_cli.engines.registry import get_engine, resolve
 from cca_cli.errors import CcaError, ConfigError, InputError
 from cca_cli.io.captures import Captures
 from cca_cli.io.checkpoint import read_spectrum
-from cca_cli.io.measurements import INTENSITY, constant_images
+from cca_cli.io.measurements import INTENSITY
+from cca_cli.library.data import constant_images
 from cca_cli.optics.forward import ForwardModel
 from cca_cli.optics.pupil import circular_pupils
 from cca_cli.progress import ProgressEvent, ProgressFn, silent

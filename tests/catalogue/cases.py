@@ -668,6 +668,7 @@ for args, says in ((["--sar", "inf"], "--sar"), (["--sar", "nan"], "--sar"), (["
                    (["--sar", "3", "--field-width-m", "inf"], "--field-width-m"),
                    (["--sar", "3", "--field-width-m", "0"], "--field-width-m"),
                    (["--sar", "3", "--iterations", "0", "--write-config", "p.yaml"], "--iterations"),
+                   (["--sar", "3", "--engine", "pie"], "--engine"),
                    (["--sar", "abc"], "--sar"), (["--beat-lens-m", "nan"], "--beat-lens-m")):
     case("design" + "".join(args).replace("--", "-"), "usage", DESIGN + args, exit=2, says=(says,))
 

@@ -1,6 +1,7 @@
 """cca design, baselines, speckle and the USAF/diffuse report additions."""
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -12,7 +13,7 @@ from cca_cli.config.model import SceneSection
 from cca_cli.metrics import contrast_table, mtf_limit, speckle_contrast
 from cca_cli.optics.baselines import circ_otf, coherent_image, incoherent_otf
 from cca_cli.optics.pupil import centred_disc
-from cca_cli.sampling.design import plan_array
+from cca_cli.sampling.design import iteration_seconds, plan_array
 from cca_cli.sampling.overlap import synthetic_aperture_ratio
 from cca_cli.workflows.scenes import build_scene, surface_phase, table_to_usaf, usaf_to_table
 from cca_cli.targets import resolution_chart
@@ -79,26 +80,102 @@ def test_usaf_table_round_trip():
     assert chart.elements[0].horizontal == scene.usaf[0].horizontal
 
 
-def test_design_cli_json_and_write_config_runs(tmp_path):
+def _design_json(runner, args):
+    result = runner.invoke(app, ["design", *args, "--json"])
+    assert result.exit_code == 0, result.output
+    return json.loads(result.stdout[: result.stdout.rindex("}") + 1])
+
+
+#: Small designs (λ 550 nm, f 0.8 m, d 18 mm, z 50 m): 5 x 5 captures with a 36-px band grid, 9 x 9 with an
+#: 84-px one (pupil radius 20 px), 13 x 13 with a 64-px one.
+SMALL_DESIGNS = {
+    "5x5": ["--pixel-pitch-m", "4e-6", "--sar", "2", "--overlap", "0.6", "--field-width-m", "0.0256"],
+    "9x9": ["--pixel-pitch-m", "9.8e-6", "--sar", "4", "--field-width-m", "0.0611"],
+    "13x13": ["--pixel-pitch-m", "9.8e-6", "--sar", "5.5", "--field-width-m", "0.0458"],
+}
+
+
+@pytest.mark.parametrize("design", ["5x5", "13x13"])
+def test_written_config_resolves_the_bars_the_design_predicts(tmp_path, design):
     runner = CliRunner()
     cfg = tmp_path / "plan.yaml"
-    args = ["design", "--wavelength-m", "550e-9", "--focal-length-m", "0.8", "--aperture-m", "0.018",
-            "--pixel-pitch-m", "4e-6", "--distance-m", "50", "--sar", "2", "--overlap", "0.6",
-            "--field-width-m", "0.0256", "--iterations", "20", "--no-measure", "--json", "--write-config", str(cfg)]
-    result = runner.invoke(app, args)
-    assert result.exit_code == 0, result.output
-    data = json.loads(result.stdout[: result.stdout.rindex("}") + 1])
-    assert data["grid"] == 5 and data["sar"] == pytest.approx(2.6)
+    args = [*SMALL_DESIGNS[design], "--no-measure", "--write-config", str(cfg)]
+    plan = _design_json(runner, args)
     config = yaml.safe_load(cfg.read_text())
-    assert config["array"]["grid"] == data["grid"]
+    assert config["array"]["grid"] == plan["grid"] and config["reconstruct"]["engine"] == "momentum"
+    predicted = plan["spot_synthetic_px"]
+    assert predicted == pytest.approx(plan["spot_synthetic_m"] / plan["output_pixel_m"])
+    # The chart has bars as wide as the predicted spot, and finer ones.
+    widths = config["scene"]["widths_px"]
+    assert math.floor(predicted) in widths and min(widths) <= predicted / 2
     out = tmp_path / "run"
     result = runner.invoke(app, ["run", str(cfg), "--out-dir", str(out), "-q"])
     assert result.exit_code == 0, result.output
     report = json.loads((out / "report" / "report.json").read_text())
-    assert "passive_incoherent" in report["baselines"] and report["mtf20_recovered_px"] is not None
+    # It stops on its own (the misfit's plateau), well before the cap.
+    assert report["engine"] == "momentum" and report["stopped_by"] == "plateau"
+    assert report["iterations"] < config["reconstruct"]["iterations"] / 2
+    assert report["mtf20_recovered_px"] is not None and report["mtf20_recovered_px"] <= predicted
+    assert report["mtf20_observed_px"] is None or report["mtf20_observed_px"] > report["mtf20_recovered_px"]
+    assert "passive_incoherent" in report["baselines"]
     assert (out / "report" / "comparison.png").exists()
-    again = runner.invoke(app, args)
+    again = runner.invoke(app, ["design", *args])
     assert again.exit_code != 0 and "exists" in again.output
+
+
+def test_design_writes_the_engine_asked_for(tmp_path):
+    runner = CliRunner()
+    cfg = tmp_path / "plan.yaml"
+    args = [*SMALL_DESIGNS["5x5"], "--no-measure", "--engine", "altmin", "--write-config", str(cfg)]
+    assert _design_json(runner, args)["engine"] == "altmin"
+    assert yaml.safe_load(cfg.read_text())["reconstruct"] == {"engine": "altmin", "tau": 1e-3, "iterations": 1000,
+                                                               "tol": 1e-5}
+    result = runner.invoke(app, ["design", "--sar", "3", "--no-measure", "--engine", "pie"])
+    assert result.exit_code == 2 and "--engine" in result.output
+
+
+def _simulated(plan):
+    import cca_cli as cca
+
+    geometry = cca.camera_scan(wavelength_m=plan["wavelength_m"], focal_length_m=plan["focal_length_m"],
+                               aperture_diameter_m=plan["aperture_diameter_m"], pixel_pitch_m=plan["pixel_pitch_m"],
+                               distance_m=plan["distance_m"], field_width_m=plan["field_width_m"], grid=plan["grid"],
+                               overlap=plan["overlap"])
+    chart = resolution_chart(plan["output_px"], widths=(6, 4, 3, 2, 1))
+    return cca.CaptureSet(intensity=cca.simulate(chart.image, geometry, snr_db=30), geometry=geometry,
+                          truth={"object": chart.image})
+
+
+def _seconds_per_iteration(captures, engine, iterations=10):
+    """Median time of a real run's iterations (the first two, which plan and warm up, left out)."""
+    import cca_cli as cca
+
+    result = cca.reconstruct(captures, engine=engine, iterations=iterations, tol=0)
+    return float(np.median(np.diff(result.history["seconds"])[1:]))
+
+
+@pytest.mark.parametrize("design", ["9x9", "13x13"])
+def test_time_estimate_is_within_twice_a_measured_run(design):
+    runner = CliRunner()
+    captures = _simulated(_design_json(runner, [*SMALL_DESIGNS[design], "--no-measure"]))
+    for engine in ("momentum", "altmin"):
+        # Shared machines: an estimate and a run in turn, five times, so that bursts of other work that
+        # slow one or the other skew two ratios at most.
+        ratios = []
+        for _ in range(5):
+            plan = _design_json(runner, [*SMALL_DESIGNS[design], "--engine", engine])
+            assert plan["engine"] == engine and plan["threads"] >= 1
+            ratios.append(plan["seconds_per_iteration"] / _seconds_per_iteration(captures, engine))
+        assert 0.5 <= np.median(ratios) <= 2, (engine, ratios)
+
+
+def test_time_estimate_counts_every_capture_and_spectrum_pixel():
+    plan = plan_array(**LENS, distance_m=30, sar=4, field_width_m=0.0128)
+    seconds = iteration_seconds(plan, capture_seconds=1e-4, pixel_seconds=1e-9)
+    assert seconds == pytest.approx(plan.n_images * 1e-4 + plan.output_px ** 2 * 1e-9)
+    assert plan.fft_count_per_iteration == 2 * plan.n_images
+    huge = plan_array(**LENS, distance_m=30, sar=1e300, field_width_m=0.0128)
+    assert iteration_seconds(huge, capture_seconds=1e-4, pixel_seconds=1e-9) == float("inf")
 
 
 def test_design_cli_warns_low_overlap():
