@@ -9,7 +9,7 @@ import numpy as np
 from cca_cli.config.load import load_config
 from cca_cli.engines.problem import PhaseRetrievalProblem
 from cca_cli.optics import fft
-from cca_cli.stages.reconstruct import build_model
+from cca_cli.library.recovery import build_model
 from cca_cli.stages.simulate import simulate
 
 

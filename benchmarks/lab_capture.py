@@ -121,7 +121,8 @@ def edge_leak(iterations: int) -> dict:
     from cca_cli.report.summary import band_limited_truth
     from cca_cli.sampling.capture import with_field_width
     from cca_cli.sampling.region import resolution_cell_px
-    from cca_cli.stages.reconstruct import Captures, embed_region, reconstruct
+    from cca_cli.library.data import CaptureSet
+    from cca_cli.workflows.recovery import reconstruct_captures
     from cca_cli.stages.simulate import simulate
 
     base = {"optics": {"wavelength_m": 550e-9, "focal_length_m": 0.8, "aperture_diameter_m": 45e-3,
@@ -144,14 +145,8 @@ def edge_leak(iterations: int) -> dict:
         section = ReconstructSection(iterations=iterations, tol=0.0, padding=PaddingSection(mode=mode))
         recovered, errors = [], []
         for field, images in ((sim.scene.field, sim.intensity), (mixed, mixed_images)):
-            captures = Captures(path=Path("window"), intensity=images[:, y0:y0 + h, x0:x0 + w], weight=None,
-                                geometry=geometry, truth={}, boundary="open")
-            padded, region = embed_region(captures, section)
-            result = reconstruct(padded, section)
-            obj = np.abs(fft.ifft2c(result.spectrum)) ** 2
-            if region is not None:
-                by, bx, bh, bw = region.hires_box(result.layout.hires_size)
-                obj = obj[by:by + bh, bx:bx + bw]
+            captures = CaptureSet(intensity=images[:, y0:y0 + h, x0:x0 + w], geometry=geometry, boundary="open")
+            obj = reconstruct_captures(captures, section, source=Path("window")).intensity
             recovered.append(on_grid(obj.astype(np.float32), (h, w)))
             truth = band_limited_truth(field, sim.geometry)[y0:y0 + h, x0:x0 + w]
             errors.append(round(float(rmse(recovered[-1], truth)), 4))

@@ -105,7 +105,7 @@ def run_ours(engine_name: str, data: Path, iterations: int) -> dict:
     from cca_cli.engines.problem import PhaseRetrievalProblem
     from cca_cli.engines.registry import get_engine
     from cca_cli.optics import fft
-    from cca_cli.stages.reconstruct import build_model
+    from cca_cli.library.recovery import build_model
     from cca_cli.stages.simulate import simulation_geometry
 
     geometry, _ = simulation_geometry(load_config())

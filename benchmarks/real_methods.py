@@ -60,7 +60,7 @@ def cca_integer_model(data: Prepared, hires: int):
     from cca_cli.io.geometry import read_geometry
     from cca_cli.optics.forward import ForwardModel
     from cca_cli.optics.pupil import circular_pupils
-    from cca_cli.stages.reconstruct import build_model
+    from cca_cli.library.recovery import build_model
 
     with h5py.File(data.raw_h5, "r") as handle:
         geometry = read_geometry(handle)

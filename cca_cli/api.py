@@ -42,16 +42,15 @@ chart and measure the resolution before and after:
 
 from __future__ import annotations
 
-import json
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
 from cca_cli.errors import InputError
+from cca_cli.library.data import CaptureSet, Reconstruction, TiledReconstruction
 from cca_cli.sampling.geometry import CaptureGeometry
-from cca_cli.sampling.region import RegionEmbedding
 
 __all__ = [
     "CaptureGeometry",
@@ -439,147 +438,6 @@ def _noise_settings(snr_db, photons_per_unit, read_noise_e, seed) -> dict:
             "read_noise_e": _number("read_noise_e", read_noise_e, low=0.0)}
 
 
-@dataclass(frozen=True)
-class CaptureSet:
-    """Captured intensities with their geometry (what ``captures.h5`` and its relatives hold).
-
-    Attributes
-    ----------
-    intensity : ndarray, float32, (K, N, N)
-        Images, centred on the optical axis, linear.
-    geometry : CaptureGeometry
-    weight : ndarray, float32, (K, N, N) or None
-        Per-pixel confidence in [0, 1] (0: ignored by the recovery).
-    truth : dict
-        Ground truth of simulations (``object`` and the chart layout tables), else empty.
-    units : str or None
-        Units of ``intensity`` when not the simulation's irradiance (``counts/s`` for recorded data).
-    boundary : {"periodic", "open"}
-        ``open``: the images are windows on a larger scene (recorded frames);
-        :func:`reconstruct` then places them on a larger grid with a guard band,
-        as ``cca reconstruct`` does. ``periodic``: simulated, wrapping images.
-    initial_pupil : ndarray, complex64, (P, P) or None
-        A known pupil on the NA disc (from the manifest's pupil file), the start of pupil recovery.
-    """
-
-    intensity: np.ndarray
-    geometry: CaptureGeometry
-    weight: np.ndarray | None = None
-    truth: dict = field(default_factory=dict)
-    units: str | None = None
-    boundary: str = "periodic"
-    initial_pupil: np.ndarray | None = None
-
-    def __post_init__(self):
-        if self.boundary not in ("periodic", "open"):
-            raise ValueError(f"boundary must be 'periodic' or 'open', got {self.boundary!r}")
-
-
-@dataclass(frozen=True)
-class _GridSizes:
-    """The two grid sizes recon.h5 records (stands in for the engine's band layout when writing)."""
-
-    hires_size: int
-    lowres_size: int
-
-
-@dataclass(frozen=True)
-class Reconstruction:
-    """A recovered object and how it was obtained.
-
-    Attributes
-    ----------
-    object : ndarray, complex64, (M, M) or (H, W)
-        Recovered complex field at the object (``√`` of the intensity units):
-        the whole recovery grid, or the region the captures covered when they
-        were placed on a larger square grid (see ``region``).
-    spectrum : ndarray, complex64, (M, M)
-        Centred spectrum (orthonormal FFT) of the whole recovery grid.
-    history : dict of ndarray
-        ``residual`` (relative data misfit), ``change`` (relative spectrum
-        change) and ``seconds`` (wall time) per iteration.
-    geometry : CaptureGeometry
-    engine : str
-    options : dict
-        The engine's options as run.
-    seconds : float
-        Reconstruction time.
-    stopped_by : str
-        ``tol`` (the change fell below ``tol``) or ``cap`` (the iteration cap came first).
-    observed : ndarray or None
-        The capture nearest the optical axis (what one camera sees).
-    truth : dict
-        Ground truth, when known.
-    units : str or None
-        Intensity units when not irradiance (``counts/s``).
-    band_grid_px : int
-        Side of the per-capture grid the engine worked on.
-    pupil : ndarray, complex64, (P, b, b) or None
-        Recovered pupil of each camera (NA disc × aberration, spectrum grid), for
-        engines that recover it; None otherwise.
-    positions_px : ndarray, (K, 2) or None
-        Pupil centres (spectrum px) the calibrating engine arrived at; None otherwise.
-    calibration : Calibration or None
-        Everything a calibrating engine found (pupils per capture, Zernike
-        coefficients, brightness, global position parameters).
-    fit : FitReport or None
-        Residuals of the final model: per capture and over all / bright-field / dark-field captures.
-    region : RegionEmbedding or None
-        Where ``object`` sits when it is a region of the recovery grid (non-square
-        or recorded captures placed on a square grid with a guard band; ``geometry``
-        then describes the whole grid); None when ``object`` is the whole grid.
-    """
-
-    object: np.ndarray
-    spectrum: np.ndarray
-    history: dict
-    geometry: CaptureGeometry
-    engine: str
-    options: dict
-    seconds: float
-    stopped_by: str
-    observed: np.ndarray | None = None
-    truth: dict = field(default_factory=dict)
-    units: str | None = None
-    band_grid_px: int = 0
-    pupil: np.ndarray | None = None
-    positions_px: np.ndarray | None = None
-    calibration: object | None = None
-    fit: object | None = None
-    region: RegionEmbedding | None = None
-
-    @property
-    def intensity(self) -> np.ndarray:
-        """``|object|²`` (float32)."""
-        return (np.abs(self.object) ** 2).astype(np.float32)
-
-    @property
-    def amplitude(self) -> np.ndarray:
-        """``|object|`` (float32)."""
-        return np.abs(self.object).astype(np.float32)
-
-    @property
-    def phase(self) -> np.ndarray:
-        """``angle(object)`` in radians (float32)."""
-        return np.angle(self.object).astype(np.float32)
-
-    @property
-    def iterations(self) -> int:
-        """Iterations run."""
-        return int(len(self.history["residual"]))
-
-    @property
-    def pixel_size_m(self) -> float:
-        """Object-plane pixel size of the recovery grid (m)."""
-        return self.geometry.field_width_m / self.spectrum.shape[-1]
-
-    @property
-    def field_m(self) -> tuple[float, float]:
-        """``(height, width)`` of ``object`` at the object plane (m)."""
-        rows, cols = self.object.shape[-2:]
-        return rows * self.pixel_size_m, cols * self.pixel_size_m
-
-
 def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine: str = "auto", weight=None,
                 callback: Callable | None = None, init=None, padding: str = "auto", **options) -> Reconstruction:
     """Recover the high-resolution object from captured intensities.
@@ -643,105 +501,35 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
     """
     from cca_cli.engines.registry import resolve
     from cca_cli.library.data import check_intensity, check_weight
-    from cca_cli.optics import fft
-    from cca_cli.stages.reconstruct import Captures, calibrated_pupils, recover
-    from cca_cli.workflows.recovery import without_dead_captures
+    from cca_cli.library.recovery import reconstruct as recover_captures
 
-    truth, units, boundary, initial_pupil = {}, None, "periodic", None
-    if isinstance(intensities, CaptureSet):
-        captures = intensities
+    captures = intensities if isinstance(intensities, CaptureSet) else None
+    if captures is not None:
         geometry = captures.geometry if geometry is None else geometry
         weight = captures.weight if weight is None else weight
-        truth, units = captures.truth, captures.units
-        boundary, initial_pupil = captures.boundary, captures.initial_pupil
         intensities = captures.intensity
-    if padding not in ("auto", "off"):
-        raise ValueError(f"padding must be 'auto' or 'off', got {padding!r}")
     if geometry is None:
         raise ValueError("give the capture geometry (camera_scan, stage_scan or led_array), or a CaptureSet")
     images = _real_images(intensities, "intensities")
     if images.ndim != 3 or len(images) != geometry.n_images:
         raise ValueError(f"intensities must be (K, N, N) or (K, H, W) with K = {geometry.n_images} images of the "
                          f"geometry, got shape {images.shape}")
-    engine, engine_options = resolve(engine, "simulation" if truth else geometry.kind, options)
-    check_intensity(images, "intensities", error=ValueError)
+    kind = captures.kind if captures is not None else geometry.kind
+    engine, engine_options = resolve(engine, kind, options)
+    check_intensity(images, "intensities")
     weights = None if weight is None else _real_images(weight, "weight")
     if weights is not None:
-        check_weight(weights, images.shape, "weight", error=ValueError)
-    live = without_dead_captures(Captures(path=Path("<arrays>"), intensity=images, weight=weights, geometry=geometry,
-                                          truth=dict(truth), units=units, initial_pupil=initial_pupil),
-                                 name="intensities", error=ValueError)
-    images, weights, geometry = live.intensity, live.weight, live.geometry
-    region = None
-    observed = images[geometry.centre_index]
-    if images.shape[-1] != images.shape[-2] or (boundary == "open" and padding == "auto"):
-        from cca_cli.sampling.capture import with_field_width
-        from cca_cli.sampling.region import plan_embedding
+        check_weight(weights, images.shape, "weight")
+    captures = (CaptureSet(images, geometry, weights) if captures is None
+                else replace(captures, intensity=images, weight=weights, geometry=geometry))
+    if isinstance(init, (str, Path)):
+        from cca_cli.io.recon import read_spectrum
 
-        region = plan_embedding(images.shape[-2:], geometry.pupil_radius_px)
-        images, weights = region.embed(images, weights)
-        geometry = with_field_width(geometry, geometry.field_width_m * region.size / observed.shape[-1])
-    captures = replace(live, intensity=images, weight=weights, geometry=geometry)
-    if isinstance(init, Reconstruction):
+        init, _ = read_spectrum(Path(init))
+    elif isinstance(init, Reconstruction):
         init = init.spectrum
-    recovery = recover(captures, engine, engine_options, on_iteration=callback, init=init)
-    calibration = recovery.calibration
-    obj = fft.ifft2c(recovery.spectrum).astype(np.complex64)
-    if region is not None:
-        y0, x0, rows, cols = region.hires_box(recovery.layout.hires_size)
-        obj = np.ascontiguousarray(obj[y0:y0 + rows, x0:x0 + cols])
-    return Reconstruction(
-        object=obj, spectrum=recovery.spectrum,
-        history={name: recovery.history.array(name) for name in ("residual", "change", "seconds")},
-        geometry=geometry, engine=engine, options=engine_options.model_dump(), seconds=recovery.seconds,
-        stopped_by=recovery.stopped_by, observed=observed, truth=dict(truth),
-        units=units, band_grid_px=recovery.layout.lowres_size,
-        pupil=None if calibration is None else calibrated_pupils(calibration, geometry.pupil_radius_px),
-        positions_px=None if calibration is None else calibration.centres_px,
-        calibration=calibration, fit=recovery.fit, region=region)
-
-
-@dataclass(frozen=True)
-class TiledReconstruction:
-    """A wide frame recovered in overlapping tiles, each with its own pupil, and blended.
-
-    Attributes
-    ----------
-    object : ndarray, complex64, (q·H, q·W)
-        The blended field, ``q`` samples per frame pixel (``upsampling``).
-    upsampling : int
-    pixel_size_m : float
-        Object-plane size of one sample of ``object`` (m).
-    boxes_px : ndarray, int, (T, 4)
-        Each tile's ``[y0, x0, height, width]`` in frame pixels, row by row.
-    zernike_waves : ndarray, (T, P, n_modes) or None
-        Each tile's pupil phase in Zernike modes (waves RMS).
-    zernike_modes : list of (n, m)
-    pupils : ndarray, complex64, (T, P, b, b) or None
-        Each tile's recovered pupil(s), NA disc included.
-    residual : ndarray, (T, 3)
-        Each tile's amplitude residual over all, bright-field and dark-field captures.
-    seconds : float
-    engine : str
-    options : dict
-    """
-
-    object: np.ndarray
-    upsampling: int
-    pixel_size_m: float
-    boxes_px: np.ndarray
-    zernike_waves: np.ndarray | None
-    zernike_modes: list
-    pupils: np.ndarray | None
-    residual: np.ndarray
-    seconds: float
-    engine: str
-    options: dict
-
-    @property
-    def intensity(self) -> np.ndarray:
-        """``|object|²`` (float32)."""
-        return (np.abs(self.object) ** 2).astype(np.float32)
+    return recover_captures(captures, engine=engine, options=engine_options, padding=padding, init=init,
+                            on_iteration=callback)
 
 
 def reconstruct_tiles(captures, geometry: CaptureGeometry | None = None, *, size_px: int, overlap_px: int,
@@ -821,9 +609,10 @@ def reconstruct_tiles(captures, geometry: CaptureGeometry | None = None, *, size
         from cca_cli.io.tiles import remove_tile_folder
 
         if output is not None:
-            from cca_cli.io.tiled_recon import write_tiled_recon
+            from cca_cli.io.recon import write_recon
 
-            write_tiled_recon(target, tiled, provenance, force=False)
+            result, tiles = tiled.as_reconstruction()
+            write_recon(target, result, provenance, tiles=tiles)
         remove_tile_folder(target)
     results = tiled.results
     plan = tiled.plan
@@ -869,7 +658,6 @@ def load(path) -> CaptureSet | Reconstruction:
     >>> back.intensity.shape, back.geometry.n_images
     ((9, 96, 96), 9)
     """
-    from cca_cli.io.geometry import read_geometry
     from cca_cli.io.h5 import open_input
 
     with open_input(path) as handle:
@@ -877,52 +665,18 @@ def load(path) -> CaptureSet | Reconstruction:
         if "multiplex" in handle:
             raise InputError(f"{path}: multiplexed captures cannot be loaded as a CaptureSet yet; "
                              "use cca reconstruct on the file")
-        if "reconstruct" in stage.split(","):
-            return _load_recon(handle, read_geometry(handle))
+    if "reconstruct" in stage.split(","):
+        from cca_cli.io.recon import read_recon
+
+        return read_recon(Path(path)).result
     if stage == "ingest":
         with open_input(path) as handle:
             if "/measurements/intensity" not in handle:
                 raise InputError(f"{path}: several exposures per position and no /measurements; "
                                  "merge them first with cca hdr")
-    from cca_cli.stages.reconstruct import read_captures
+    from cca_cli.io.captures import read_captures
 
-    captures = read_captures(Path(path))
-    return CaptureSet(intensity=captures.intensity, geometry=captures.geometry, weight=captures.weight,
-                      truth=captures.truth, units=captures.units, boundary=captures.boundary,
-                      initial_pupil=captures.initial_pupil)
-
-
-def _load_recon(handle, geometry: CaptureGeometry) -> Reconstruction:
-    attrs = handle["recon"].attrs
-
-    def text(value):
-        return value.decode() if isinstance(value, bytes) else str(value)
-
-    units = text(handle["/observed/centre"].attrs.get("units", "")) if "/observed/centre" in handle else ""
-    truth = {name: np.asarray(handle["truth"][name]) for name in handle["truth"]} if "truth" in handle else {}
-    return Reconstruction(
-        object=np.asarray(handle["/recon/object"]), spectrum=np.asarray(handle["/recon/spectrum"]),
-        history={name: np.asarray(handle[f"/history/{name}"]) for name in ("residual", "change", "seconds")},
-        geometry=geometry, engine=text(attrs.get("engine", "")),
-        options=json.loads(text(attrs.get("engine_options", "{}"))), seconds=float(attrs.get("seconds", 0.0)),
-        stopped_by=text(attrs.get("stopped_by", "")),
-        observed=np.asarray(handle["/observed/centre"]) if "/observed/centre" in handle else None, truth=truth,
-        units=None if units in ("", "irradiance") else units, band_grid_px=int(attrs.get("lowres_size", 0)),
-        pupil=np.asarray(handle["/calibration/pupil"]) if "/calibration/pupil" in handle else None,
-        positions_px=(np.asarray(handle["/calibration/spectrum_centres_yx_px"])
-                      if "/calibration/spectrum_centres_yx_px" in handle else None),
-        region=_read_region(handle))
-
-
-def _read_region(handle) -> RegionEmbedding | None:
-    """The embedding /recon/region_px records (row 1: the region on the square sensor grid), or None."""
-    if "/recon/region_px" not in handle:
-        return None
-    dataset = handle["/recon/region_px"]
-    oy, ox, rows, cols = (int(v) for v in dataset[1])
-    attrs = dataset.attrs
-    return RegionEmbedding(size=int(attrs["sensor_grid_px"]), offset_yx=(oy, ox), shape=(rows, cols),
-                           guard_px=int(attrs.get("guard_px", 0)), apodize_px=int(attrs.get("apodize_px", 0)))
+    return read_captures(Path(path))
 
 
 def save(data: CaptureSet | Reconstruction, path, *, force: bool = False) -> Path:
@@ -941,48 +695,23 @@ def save(data: CaptureSet | Reconstruction, path, *, force: bool = False) -> Pat
     OutputExistsError
         ``path`` exists and ``force`` is False.
     """
+    import hashlib
+
+    import yaml
+
+    from cca_cli.io.captures import write_capture_set
     from cca_cli.io.h5 import Provenance, check_output
+    from cca_cli.io.recon import write_recon
 
     path = Path(path)
     check_output(path, force=force)
     if isinstance(data, Reconstruction):
-        import yaml
-
-        from cca_cli.engines.base import History, IterationRecord
-        from cca_cli.stages.reconstruct import Captures, Recovery, write_recon
-
-        section = {"reconstruct": {"engine": data.engine, "options": data.options}}
-        text = yaml.safe_dump(section, sort_keys=False)
-        import hashlib
-
+        text = yaml.safe_dump({"reconstruct": {"engine": data.engine, "options": data.options}}, sort_keys=False)
         provenance = Provenance.make("reconstruct", text, hashlib.sha256(text.encode()).hexdigest())
-        records = [IterationRecord(i + 1, float(r), float(c), float(s)) for i, (r, c, s) in
-                   enumerate(zip(data.history["residual"], data.history["change"], data.history["seconds"]))]
-        recovery = Recovery(spectrum=data.spectrum, layout=_GridSizes(data.spectrum.shape[-1], data.band_grid_px),
-                            history=History(records), engine=data.engine, options=data.options, seconds=data.seconds,
-                            stopped_by=data.stopped_by, calibration=data.calibration, fit=data.fit)
-        observed = data.observed if data.observed is not None else np.abs(data.object) ** 2
-        captures = Captures(path=path, intensity=observed[None].astype(np.float32), weight=None,
-                            geometry=data.geometry, truth=data.truth, units=data.units)
-        write_recon(path, captures, recovery, provenance, force=force, observed=observed.astype(np.float32),
-                    region=data.region)
+        write_recon(path, data, provenance, force=force)
         return path
     if isinstance(data, CaptureSet):
-        from cca_cli.io.geometry import write_geometry
-        from cca_cli.io.h5 import atomic_h5, write_dataset
-
-        provenance = Provenance.make("api", "", "")
-        with atomic_h5(path, provenance, force=force) as handle:
-            images = write_dataset(handle, "/measurements/intensity", np.asarray(data.intensity, np.float32),
-                                   units=data.units)
-            images.attrs["boundary"] = data.boundary
-            if data.initial_pupil is not None:
-                write_dataset(handle, "/calibration/initial_pupil", np.asarray(data.initial_pupil, np.complex64))
-            if data.weight is not None:
-                write_dataset(handle, "/measurements/weight", np.asarray(data.weight, np.float32))
-            write_geometry(handle, data.geometry)
-            for name, value in data.truth.items():
-                write_dataset(handle, f"/truth/{name}", value)
+        write_capture_set(path, data, Provenance.make("api", "", ""), force=force)
         return path
     raise TypeError(f"save takes a CaptureSet or a Reconstruction, got {type(data).__name__}")
 

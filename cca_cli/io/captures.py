@@ -8,37 +8,23 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from cca_cli.errors import InputError
 from cca_cli.hdr.calibration import DarkModel
-from cca_cli.io.geometry import read_geometry
-from cca_cli.io.h5 import describe
-from cca_cli.io.measurements import read_intensity, read_weight
+from cca_cli.io.geometry import read_geometry, write_geometry
+from cca_cli.io.h5 import atomic_h5, describe, open_input, write_dataset
+from cca_cli.io.measurements import INTENSITY, WEIGHT, read_intensity, read_weight
 from cca_cli.io.records import read_sensor_records
 from cca_cli.io.schema import spec_for
-from cca_cli.sampling.geometry import CaptureGeometry
+from cca_cli.library.data import CaptureSet
 
-__all__ = ["BOUNDARY_OPEN", "Captures", "read_measurements", "SensorCalibration", "read_sensor", "write_labels",
-           "read_labels", "write_strings"]
+__all__ = ["BOUNDARY_OPEN", "read_measurements", "read_captures", "write_capture_set", "SensorCalibration",
+           "read_sensor", "write_labels", "read_labels", "write_strings"]
 
 #: /measurements attribute ``boundary`` of recorded images: a window on a larger scene (not periodic).
 BOUNDARY_OPEN = "open"
 
 
-@dataclass(frozen=True)
-class Captures:
-    """Measurements and geometry read from a captures file."""
-
-    path: Path
-    intensity: np.ndarray
-    weight: np.ndarray | None
-    geometry: CaptureGeometry
-    truth: dict
-    units: str | None = None   # units of /measurements/intensity when they are not the schema's (counts/s)
-    boundary: str = "periodic"                 # "open": a window on a larger scene (recorded frames)
-    initial_pupil: np.ndarray | None = None    # (P, P) complex64 on the NA disc, from the manifest
-    dropped: tuple[int, ...] = ()              # images of the file left out as dead (constant) captures
-
-
-def read_measurements(handle, path: Path) -> Captures:
+def read_measurements(handle, path: Path) -> CaptureSet:
     """/measurements, /geometry and /truth of an open captures file, checked except for the image count."""
     intensity = read_intensity(handle, path)
     units = handle["/measurements/intensity"].attrs.get("units")
@@ -51,8 +37,32 @@ def read_measurements(handle, path: Path) -> Captures:
     # Recorded frames say "open"; a file without the attribute is a window on a larger scene unless square.
     boundary = handle["/measurements/intensity"].attrs.get("boundary", "periodic" if h == w else "open")
     pupil = np.asarray(handle["/calibration/initial_pupil"]) if "/calibration/initial_pupil" in handle else None
-    return Captures(path=path, intensity=intensity, weight=weight, geometry=geometry, truth=truth, units=units,
-                    boundary=boundary.decode() if isinstance(boundary, bytes) else str(boundary), initial_pupil=pupil)
+    return CaptureSet(intensity=intensity, weight=weight, geometry=geometry, truth=truth, units=units,
+                      boundary=boundary.decode() if isinstance(boundary, bytes) else str(boundary), initial_pupil=pupil)
+
+
+def read_captures(path: Path) -> CaptureSet:
+    """Read /measurements, /geometry and (if present) /truth of a captures file, checking shapes and values."""
+    with open_input(path) as handle:
+        captures = read_measurements(handle, Path(path))
+    k = captures.intensity.shape[0]
+    if k != captures.geometry.n_images:
+        raise InputError(f"{path}: {k} images but /geometry describes {captures.geometry.n_images} positions")
+    return captures
+
+
+def write_capture_set(path: Path, captures: CaptureSet, provenance, *, force: bool = False) -> None:
+    """Write ``captures`` as a captures file ``cca reconstruct`` reads (atomically)."""
+    with atomic_h5(path, provenance, force=force) as handle:
+        images = write_dataset(handle, INTENSITY, np.asarray(captures.intensity, np.float32), units=captures.units)
+        images.attrs["boundary"] = captures.boundary
+        if captures.initial_pupil is not None:
+            write_dataset(handle, "/calibration/initial_pupil", np.asarray(captures.initial_pupil, np.complex64))
+        if captures.weight is not None:
+            write_dataset(handle, WEIGHT, np.asarray(captures.weight, np.float32))
+        write_geometry(handle, captures.geometry)
+        for name, value in captures.truth.items():
+            write_dataset(handle, f"/truth/{name}", value)
 
 
 @dataclass(frozen=True)

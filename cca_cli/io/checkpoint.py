@@ -16,12 +16,11 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from cca_cli.errors import InputError
-from cca_cli.io.h5 import Provenance, atomic_h5, open_input, write_dataset
+from cca_cli.io.h5 import Provenance, atomic_h5, write_dataset
 from cca_cli.io.outputs import is_cca_hdf5
 
 __all__ = ["Checkpoint", "checkpoint_path", "write_checkpoint", "read_checkpoint", "checkpoint_damage",
-           "remove_checkpoint", "read_spectrum"]
+           "remove_checkpoint"]
 
 _HISTORY = ("residual", "change", "seconds")
 
@@ -117,15 +116,3 @@ def remove_checkpoint(path: Path) -> None:
     if path.is_file() and is_cca_hdf5(path):
         with contextlib.suppress(FileNotFoundError):
             path.unlink()
-
-
-def read_spectrum(path: Path) -> tuple[np.ndarray, dict]:
-    """/recon/spectrum of a recon.h5 and the attributes of /recon (a one-line InputError otherwise)."""
-    with open_input(path) as handle:
-        if "/recon/spectrum" not in handle:
-            raise InputError(f"{path}: has no /recon/spectrum; give a recon.h5 written by cca reconstruct")
-        spectrum = np.asarray(handle["/recon/spectrum"])
-        attrs = dict(handle["recon"].attrs)
-    if spectrum.ndim != 2 or not np.iscomplexobj(spectrum) or not np.all(np.isfinite(spectrum)):
-        raise InputError(f"{path}: /recon/spectrum is not a finite complex (M, M) array")
-    return spectrum.astype(np.complex64), attrs

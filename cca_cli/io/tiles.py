@@ -20,15 +20,16 @@ import h5py
 import numpy as np
 
 from cca_cli.errors import InputError
-from cca_cli.io.captures import BOUNDARY_OPEN, Captures
+from cca_cli.io.captures import BOUNDARY_OPEN
+from cca_cli.library.data import CaptureSet
 from cca_cli.io.geometry import read_geometry
 from cca_cli.io.h5 import Provenance, atomic_h5, open_input, require, write_dataset
 from cca_cli.io.measurements import INTENSITY, WEIGHT
 from cca_cli.io.outputs import is_cca_hdf5
 from cca_cli.io.schema import spec_for
 
-__all__ = ["FrameInfo", "read_frame_info", "read_tile_captures", "TileResult", "tile_folder", "tile_path",
-           "write_tile_result", "read_tile_result", "tile_file_problem", "remove_tile_folder"]
+__all__ = ["FrameInfo", "read_frame_info", "read_frame_centre", "read_tile_captures", "TileResult", "tile_folder",
+           "tile_path", "write_tile_result", "read_tile_result", "tile_file_problem", "remove_tile_folder"]
 
 _HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 
@@ -56,7 +57,15 @@ def read_frame_info(path: Path) -> FrameInfo:
     return FrameInfo(int(k), (int(h), int(w)), _text(boundary), units, has_weight)
 
 
-def read_tile_captures(path: Path, box: tuple[int, int, int, int]) -> Captures:
+def read_frame_centre(path: Path, centre_index: int) -> tuple[np.ndarray, dict]:
+    """The centre capture of a captures file (float32, the whole frame) and its truth (empty for recorded data)."""
+    with open_input(path) as handle:
+        observed = np.asarray(require(handle, INTENSITY, ndim=3)[centre_index], np.float32)
+        truth = {name: np.asarray(handle["truth"][name]) for name in handle["truth"]} if "truth" in handle else {}
+    return observed, truth
+
+
+def read_tile_captures(path: Path, box: tuple[int, int, int, int]) -> CaptureSet:
     """The captures of one tile: every image's ``(y0, x0, h, w)`` box, with the frame's geometry.
 
     The images are checked as :func:`~cca_cli.io.measurements.read_intensity` checks a whole
@@ -86,8 +95,8 @@ def read_tile_captures(path: Path, box: tuple[int, int, int, int]) -> Captures:
     if bad.any():
         raise InputError(f"{path}: image {int(np.argmax(bad))} of {INTENSITY} contains NaN or Inf in the tile at "
                          f"({y0}, {x0}); fix or mask it")
-    return Captures(path=Path(path), intensity=intensity, weight=weight, geometry=geometry, truth={}, units=units,
-                    boundary=BOUNDARY_OPEN, initial_pupil=pupil)
+    return CaptureSet(intensity=intensity, weight=weight, geometry=geometry, truth={}, units=units,
+                      boundary=BOUNDARY_OPEN, initial_pupil=pupil)
 
 
 @dataclass(frozen=True)

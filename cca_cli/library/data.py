@@ -95,7 +95,8 @@ class Reconstruction:
         Centred spectrum (orthonormal FFT) of the whole recovery grid.
     history : History
         ``history["residual"]`` (relative data misfit), ``["change"]``
-        (relative spectrum change) and ``["seconds"]`` (wall time) per iteration.
+        (relative spectrum change) and ``["seconds"]`` (wall time) per
+        iteration (a mapping of those arrays is read as a History).
     geometry : CaptureGeometry
         The captures' geometry on the whole recovery grid.
     engine : str
@@ -150,6 +151,10 @@ class Reconstruction:
     fit: FitReport | None = None
     region: RegionEmbedding | None = None
     dropped: tuple[int, ...] = ()
+
+    def __post_init__(self):
+        if not isinstance(self.history, History):  # columns by name, as a user may write them
+            object.__setattr__(self, "history", History.from_columns(self.history))
 
     @property
     def intensity(self) -> np.ndarray:

@@ -9,32 +9,22 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 
-from cca_cli.version import __version__
 from cca_cli.config.model import ReconstructSection
 from cca_cli.engines.base import History
-from cca_cli.engines.fit import FitReport
-from cca_cli.engines.calibrator import Calibration
 from cca_cli.errors import InputError
-from cca_cli.io.captures import Captures, read_measurements
+from cca_cli.io.captures import read_captures
 from cca_cli.io.checkpoint import (checkpoint_damage, checkpoint_path, read_checkpoint, remove_checkpoint,
                                    write_checkpoint)
-from cca_cli.io.geometry import write_geometry
-from cca_cli.io.h5 import Provenance, atomic_h5, check_output, file_sha256, open_input, write_dataset
+from cca_cli.io.h5 import Provenance, check_output, file_sha256
 from cca_cli.io.outputs import is_cca_hdf5
-from cca_cli.optics import fft
-from cca_cli.sampling.geometry import CaptureGeometry
-from cca_cli.sampling.region import RegionEmbedding
+from cca_cli.io.recon import write_recon
+from cca_cli.library.data import Reconstruction
 from cca_cli.stages.progress import ProgressFn, silent
-from cca_cli.workflows.recovery import (Recovery, build_model, calibrated_pupils, data_kind, embed_region,
-                                        engine_options, initial_spectrum_from, problem_calibration, recover,
-                                        without_dead_captures)
+from cca_cli.version import __version__
+from cca_cli.workflows.recovery import reconstruct_captures
 
-# recover, build_model, embed_region … live in cca_cli.workflows.recovery; they are re-exported here.
-__all__ = ["SECTIONS", "Captures", "Recovery", "Checkpointing", "read_captures", "read_measurements", "build_model",
-           "reconstruct", "recover", "embed_region", "data_kind", "problem_calibration", "initial_spectrum_from",
-           "engine_options", "write_recon", "calibrated_pupils", "run"]
+__all__ = ["SECTIONS", "Checkpointing", "checkpoint_fingerprint", "run", "run_tiled"]
 
 SECTIONS = ("reconstruct",)
 #: Share of the run time checkpoints may take: one is skipped until the time since the last is this many writes.
@@ -124,117 +114,8 @@ def checkpoint_fingerprint(section: ReconstructSection, provenance: Provenance, 
     return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
 
 
-def read_captures(path: Path) -> Captures:
-    """Read /measurements, /geometry and (if present) /truth, checking shapes and values."""
-    with open_input(path) as handle:
-        captures = read_measurements(handle, Path(path))
-    k = captures.intensity.shape[0]
-    if k != captures.geometry.n_images:
-        raise InputError(f"{path}: {k} images but /geometry describes {captures.geometry.n_images} positions")
-    return captures
-
-
-def reconstruct(captures: Captures, section: ReconstructSection, *, progress: ProgressFn = silent,
-                checkpoint: Checkpointing | None = None) -> Recovery:
-    """Run the configured engine on ``captures`` (``engine: auto`` resolved for the kind of data).
-
-    ``section.init`` names a recon.h5 whose spectrum the engine starts from; with
-    ``checkpoint`` the run continues from a matching checkpoint and writes new ones.
-    """
-    name, options = engine_options(section, data_kind(captures))
-    return recover(captures, name, options, progress=progress, init=section.init,
-                   checkpoint=checkpoint)
-
-
-def write_recon(path: Path, captures: Captures, recovery: Recovery, provenance: Provenance, *, force: bool = False,
-                observed: np.ndarray | None = None, extra=None, region: RegionEmbedding | None = None) -> None:
-    """Write ``recon.h5`` atomically: recovery, history, centre capture, truth and geometry.
-
-    ``observed`` replaces the centre capture as /observed/centre; ``extra(handle)``
-    writes further groups (multiplexed runs add /multiplex). Captures left out as
-    dead (``captures.dropped``) are listed in the /recon attribute ``dropped_captures``. With ``region``
-    (padded captures) /recon/object, /recon/intensity and /observed/centre
-    hold the region only and /recon/region_px says where it sits.
-    """
-    obj = fft.ifft2c(recovery.spectrum).astype(np.complex64)
-    layout = recovery.layout
-    units = captures.units   # recorded captures: counts/s instead of the simulation's irradiance
-    if region is not None:
-        y0, x0, hh, ww = region.hires_box(layout.hires_size)
-        obj = np.ascontiguousarray(obj[y0:y0 + hh, x0:x0 + ww])
-        if observed is None:
-            observed = region.crop(captures.intensity[captures.geometry.centre_index])
-    with atomic_h5(path, provenance, force=force) as handle:
-        write_dataset(handle, "/recon/spectrum", recovery.spectrum, units=units and f"√({units}) · px")
-        write_dataset(handle, "/recon/object", obj, units=units and f"√({units})")
-        write_dataset(handle, "/recon/intensity", (np.abs(obj) ** 2).astype(np.float32), units=units)
-        for name in ("residual", "change", "seconds"):
-            write_dataset(handle, f"/history/{name}", recovery.history.array(name))
-        write_dataset(handle, "/observed/centre",
-                      captures.intensity[captures.geometry.centre_index] if observed is None else observed, units=units)
-        for name, data in captures.truth.items():
-            write_dataset(handle, f"/truth/{name}", data)
-        write_geometry(handle, captures.geometry)
-        if region is not None:
-            oy, ox = region.offset_yx
-            write_dataset(handle, "/recon/region_px", np.array([[y0, x0, hh, ww], [oy, ox, *region.shape]], np.int32),
-                          guard_px=region.guard_px, apodize_px=region.apodize_px, sensor_grid_px=region.size)
-        if recovery.fit is not None:
-            write_fit(handle, recovery.fit)
-        if recovery.calibration is not None:
-            write_calibration(handle, recovery.calibration, captures.geometry)
-        if extra is not None:
-            extra(handle)
-        recon = handle["recon"]
-        recon.attrs["engine"] = recovery.engine
-        recon.attrs["engine_options"] = json.dumps(recovery.options)
-        recon.attrs["iterations"] = recovery.history.iterations
-        recon.attrs["stopped_by"] = recovery.stopped_by
-        recon.attrs["seconds"] = recovery.seconds
-        recon.attrs["hires_size"] = layout.hires_size
-        recon.attrs["lowres_size"] = layout.lowres_size
-        recon.attrs["pixel_pitch_object_m"] = captures.geometry.field_width_m / layout.hires_size
-        recon.attrs["fft_backend"] = fft.backend_name()
-        if captures.dropped:
-            recon.attrs["dropped_captures"] = np.asarray(captures.dropped, np.int32)
-
-
-def write_fit(handle, fit: FitReport) -> None:
-    """The residuals of the final model: per capture, and over all / bright-field / dark-field captures."""
-    write_dataset(handle, "/recon/residual_per_image", fit.per_image)
-    write_dataset(handle, "/calibration/bright_field", fit.bright_field_mask)
-    recon = handle["recon"]
-    for name in ("all", "bright_field", "dark_field"):
-        recon.attrs[f"residual_{name}"] = getattr(fit, name)
-        recon.attrs[f"residual_{name}_without_brightness"] = getattr(fit, f"{name}_without_brightness")
-
-
-def write_calibration(handle, calibration: Calibration, geometry: CaptureGeometry) -> None:
-    """Pupils, refined positions and brightness under /calibration, SI next to pixels."""
-    group = handle.require_group("calibration")
-    if calibration.pupil is not None:
-        estimate = calibration.pupil
-        write_dataset(handle, "/calibration/pupil", calibrated_pupils(calibration, geometry.pupil_radius_px))
-        write_dataset(handle, "/calibration/pupil_map", estimate.maps.astype(np.complex64))
-        write_dataset(handle, "/calibration/zernike_waves", estimate.coefficients)
-        write_dataset(handle, "/calibration/zernike_modes", np.asarray(estimate.modes, np.int32))
-        group.attrs["pupil_model"] = estimate.model
-        group.attrs["pupil_radius_px"] = geometry.pupil_radius_px
-        group.attrs["spectrum_pixel_per_m"] = 1.0 / geometry.field_width_m
-    write_dataset(handle, "/calibration/pupil_index", calibration.pupil_index.astype(np.int32))
-    write_dataset(handle, "/calibration/spectrum_centres_yx_px", calibration.centres_px)
-    metres_per_px = geometry.aperture_centres_yx_m / np.where(geometry.spectrum_centres_yx_px == 0, np.nan,
-                                                               geometry.spectrum_centres_yx_px)
-    scale = float(np.nanmedian(metres_per_px)) if np.isfinite(metres_per_px).any() else float("nan")
-    write_dataset(handle, "/calibration/aperture_centres_yx_m", calibration.centres_px * scale)
-    write_dataset(handle, "/calibration/brightness", calibration.brightness)
-    if calibration.position_model is not None:
-        group.attrs["position_model"] = calibration.position_model
-        group.attrs["position_parameters"] = json.dumps(calibration.position_parameters)
-
-
 def run(captures_path: Path, section: ReconstructSection, output: Path, *, provenance: Provenance,
-        force: bool = False, progress: ProgressFn = silent) -> Recovery:
+        force: bool = False, progress: ProgressFn = silent) -> Reconstruction:
     """Read captures, reconstruct, write ``output``.
 
     The reconstruction saves its state to ``<output>.checkpoint`` every ``section.checkpoint_every``
@@ -251,19 +132,16 @@ def run(captures_path: Path, section: ReconstructSection, output: Path, *, prove
         return run_tiled(captures_path, section, output, provenance=provenance, force=force, progress=progress)
     if multiplex.is_multiplexed_file(captures_path):
         return multiplex.run_reconstruct(captures_path, section, output, provenance=provenance, force=force,
-                                         write_recon=write_recon,
                                          progress=progress)
-    captures, region = embed_region(without_dead_captures(read_captures(captures_path), source=captures_path),
-                                    section)
     checkpoint = Checkpointing(checkpoint_path(output), checkpoint_fingerprint(section, provenance, captures_path),
                                section.checkpoint_every, provenance)
-    recovery = reconstruct(captures, section, progress=progress, checkpoint=checkpoint)
+    result = reconstruct_captures(read_captures(captures_path), section, source=captures_path, progress=progress,
+                                  checkpoint=checkpoint)
     from cca_cli.io.capture_info import capture_extras
 
-    write_recon(output, captures, recovery, provenance, force=force, extra=capture_extras(captures_path),
-                region=region)
+    write_recon(output, result, provenance, force=force, extra=capture_extras(captures_path))
     checkpoint.remove()
-    return recovery
+    return result
 
 
 def run_tiled(captures_path: Path, section: ReconstructSection, output: Path, *, provenance: Provenance,
@@ -289,8 +167,8 @@ def run_tiled(captures_path: Path, section: ReconstructSection, output: Path, *,
     tiled = reconstruct_tiled(captures_path, section, output, run_fingerprint=fingerprint, provenance=provenance,
                               client=client, progress=progress)
     from cca_cli.io.capture_info import capture_extras
-    from cca_cli.io.tiled_recon import write_tiled_recon
 
-    write_tiled_recon(output, tiled, provenance, force=force, extra=capture_extras(captures_path))
+    result, tiles = tiled.as_reconstruction()
+    write_recon(output, result, provenance, force=force, extra=capture_extras(captures_path), tiles=tiles)
     remove_tile_folder(output)
     return tiled

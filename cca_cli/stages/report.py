@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 
 from cca_cli.config.model import ReportSection
-from cca_cli.io.geometry import read_geometry
 from cca_cli.errors import InputError
-from cca_cli.io.h5 import Provenance, open_input, read_finite, require, require_attr
+from cca_cli.io.h5 import Provenance
 from cca_cli.io.outputs import atomic_path, check_output, write_marker
+from cca_cli.io.recon import read_recon
 from cca_cli.report.summary import ReportInputs, summarize
 from cca_cli.stages.progress import ProgressEvent, ProgressFn, silent
 from cca_cli.workflows.scenes import table_to_bars
@@ -26,36 +26,19 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
         progress: ProgressFn = silent) -> dict:
     """Compute the report of ``recon_path`` and write it (atomically) as directory ``output``."""
     check_output(output, force=force, kind="folder", inputs=[recon_path])
-    with open_input(recon_path, stage="reconstruct") as handle:
-        geometry = read_geometry(handle)
-        spectrum = read_finite(handle, "/recon/spectrum", ndim=2)
-        obj = read_finite(handle, "/recon/object", ndim=2)
-        recovered = read_finite(handle, "/recon/intensity", ndim=2, dtype=np.float32)
-        observed = read_finite(handle, "/observed/centre", ndim=2, dtype=np.float32)
-        residual = np.asarray(require(handle, "/history/residual", ndim=1))
-        change = np.asarray(require(handle, "/history/change", ndim=1))
-        truth_obj = read_finite(handle, "/truth/object", ndim=2) if "/truth/object" in handle else None
-        bars = _bars(handle) if "/truth/bars" in handle else ()
-        usaf_table = _table(handle, "/truth/usaf", 11) if "/truth/usaf" in handle else None
-        region_px = _region_px(handle)
-        recon = require(handle, "/recon/spectrum").parent
-        attrs = dict(recon.attrs)
-        attrs.update(engine=require_attr(recon, "engine", str), iterations=require_attr(recon, "iterations", int),
-                     seconds=require_attr(recon, "seconds", float), hires_size=require_attr(recon, "hires_size", int),
-                     lowres_size=require_attr(recon, "lowres_size", int))
-        units = _text(handle["/observed/centre"].attrs.get("units", "")) or "irradiance"
-        multiplex = None
-        if "multiplex" in handle:
-            from cca_cli.io.multiplex import read_multiplex
-
-            multiplex = read_multiplex(handle)
-        from cca_cli.io.capture_info import read_capture_summary
-
-        capture_summary = read_capture_summary(handle)
-        calibration = _read_calibration(handle, geometry)
-        tiles = _read_tiles(handle)
+    recon = read_recon(recon_path)
+    result, attrs, region_px = recon.result, recon.attrs, recon.region_px
+    geometry, spectrum, obj, observed = result.geometry, result.spectrum, result.object, result.observed
+    recovered = result.intensity
+    residual, change = result.history["residual"], result.history["change"]
+    truth_obj = _finite(recon_path, "/truth/object", result.truth.get("object"), 2)
+    bars = _bars(recon_path, result.truth["bars"]) if "bars" in result.truth else ()
+    usaf_table = _table(recon_path, "/truth/usaf", result.truth["usaf"], 11) if "usaf" in result.truth else None
+    units = result.units or "irradiance"
+    multiplex, capture_summary = recon.multiplex, recon.capture_summary
+    calibration, tiles = recon.calibration, recon.tiles
     # The spectrum and the truth are square grids; a recovered region (/recon/region_px) may be a rectangle.
-    for name, image in (("/recon/spectrum", spectrum), ("/truth/object", truth_obj)):
+    for name, image in (("/truth/object", truth_obj),):
         if image is not None and image.shape[0] != image.shape[1]:
             raise InputError(f"{recon_path}: {name} has shape {image.shape}, expected a square image")
     if truth_obj is not None:
@@ -139,15 +122,6 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
     return summary
 
 
-def _region_px(handle) -> tuple[tuple[int, ...], tuple[int, ...], int] | None:
-    """/recon/region_px: the recovered box on the recovery grid, the frames' box on the sensor grid, its size."""
-    if "/recon/region_px" not in handle:
-        return None
-    dataset = handle["/recon/region_px"]
-    return (tuple(int(v) for v in dataset[0]), tuple(int(v) for v in dataset[1]),
-            int(dataset.attrs.get("sensor_grid_px", 0)))
-
-
 def _bar_reading(section: ReportSection, geometry, observed, recovered_object, hires_size: int, region_px) -> dict:
     """``report.bar_elements`` read on the recovered and the observed amplitude (boxes in frame pixels)."""
     from cca_cli.report.bar_reading import FrameToRecovery, read_elements
@@ -168,58 +142,6 @@ def _bar_reading(section: ReportSection, geometry, observed, recovered_object, h
     offset = offset_to_observed(recovered, on_grid(observed, recovered.shape[-2:]), 0.4 * min(observed.shape[-2:]))
     readings = read_elements(recovered_object, observed, elements, frame_pixel_m, to_recovery, offset_yx=offset)
     return readings, offset
-
-
-def _read_calibration(handle, geometry) -> dict | None:
-    """What recon.h5 says about the final model: residuals per capture, pupils, positions, brightness."""
-    if "/recon/residual_per_image" not in handle:
-        return None
-    attrs = handle["recon"].attrs
-    out = {
-        "nominal_px": np.asarray(geometry.spectrum_centres_yx_px),
-        "refined_px": (np.asarray(handle["/calibration/spectrum_centres_yx_px"])
-                       if "/calibration/spectrum_centres_yx_px" in handle else np.asarray(geometry.spectrum_centres_yx_px)),
-        "radius_px": geometry.pupil_radius_px,
-        "bright_field": np.asarray(handle["/calibration/bright_field"]),
-        "residual_per_image": np.asarray(handle["/recon/residual_per_image"]),
-        "totals": {name: float(attrs[f"residual_{name}"]) for name in ("all", "bright_field", "dark_field")
-                   if f"residual_{name}" in attrs},
-        "totals_without_brightness": {name: float(attrs[f"residual_{name}_without_brightness"])
-                                      for name in ("all", "bright_field", "dark_field")
-                                      if f"residual_{name}_without_brightness" in attrs},
-        "brightness": np.asarray(handle["/calibration/brightness"]) if "/calibration/brightness" in handle else None,
-        "pupil": np.asarray(handle["/calibration/pupil"]) if "/calibration/pupil" in handle else None,
-        "pixels_per_sine": (geometry.field_width_m / geometry.wavelength_m) if geometry.kind == "led_array" else None,
-    }
-    group = handle["calibration"] if "calibration" in handle else None
-    if group is not None and "/calibration/zernike_waves" in handle:
-        from cca_cli.optics.zernike import zernike_name
-
-        waves = np.asarray(handle["/calibration/zernike_waves"])
-        modes = [tuple(int(v) for v in mode) for mode in np.asarray(handle["/calibration/zernike_modes"])]
-        out["zernike"] = {zernike_name(*mode): float(waves[0, j]) for j, mode in enumerate(modes)}
-        out["zernike_per_pupil"] = waves
-        out["pupil_model"] = _text(group.attrs.get("pupil_model", ""))
-    if group is not None and "position_model" in group.attrs:
-        out["position_model"] = _text(group.attrs["position_model"])
-        out["position_parameters"] = json.loads(_text(group.attrs["position_parameters"]))
-    return out
-
-
-def _read_tiles(handle) -> dict | None:
-    """/tiles of a tiled reconstruction: boxes, residuals and (first pupil's) Zernike coefficients per tile."""
-    if "/tiles/box_px" not in handle:
-        return None
-    group = handle["tiles"]
-    out = {"box_px": np.asarray(group["box_px"]), "residual": np.asarray(group["residual"])[:, 0],
-           "iterations": np.asarray(group["iterations"]), "seconds": np.asarray(group["seconds"]),
-           "attrs": {k: (v.item() if hasattr(v, "item") else _text(v)) for k, v in group.attrs.items()}}
-    if "zernike_waves" in group:
-        from cca_cli.optics.zernike import zernike_name
-
-        out["zernike_waves"] = np.asarray(group["zernike_waves"])[:, 0, :]
-        out["zernike_names"] = [zernike_name(*(int(v) for v in mode)) for mode in np.asarray(group["zernike_modes"])]
-    return out
 
 
 def tiles_summary(tiles: dict) -> dict:
@@ -306,13 +228,13 @@ def _zoom_region(summary: dict, bars, truth, usaf_table, recovered, geometry, hi
     return regions.detail_region(recovered, cutoff)
 
 
-def _bars(handle) -> tuple:
+def _bars(path: Path, table) -> tuple:
     """The bar chart's layout from /truth/bars (one line naming the dataset when it is not a layout)."""
-    table = _table(handle, "/truth/bars", 8)
+    table = _table(path, "/truth/bars", table, 8)
     try:
         return table_to_bars(table)
     except (IndexError, KeyError, ValueError):
-        raise InputError(f"{handle.filename}: /truth/bars is not a chart layout (each group needs its bars, gaps "
+        raise InputError(f"{path}: /truth/bars is not a chart layout (each group needs its bars, gaps "
                          "and box, orientation 0 or 1); re-run simulate and reconstruct") from None
 
 
@@ -329,11 +251,21 @@ def _check_truth(path: Path, truth_obj: np.ndarray, bars) -> None:
                          "re-run simulate and reconstruct")
 
 
-def _table(handle, path: str, columns: int) -> np.ndarray:
+def _finite(path: Path, name: str, values, ndim: int) -> np.ndarray | None:
+    """A truth array, checked: ``ndim`` dimensions of finite numbers (None when the file has none)."""
+    if values is None:
+        return None
+    values = np.asarray(values)
+    if values.ndim != ndim or not np.all(np.isfinite(values)):
+        raise InputError(f"{path}: {name} is not a finite {ndim}-D array; re-run simulate and reconstruct")
+    return values
+
+
+def _table(path: Path, name: str, table, columns: int) -> np.ndarray:
     """A layout table of the truth: (rows, ``columns``) finite numbers."""
-    table = read_finite(handle, path, ndim=2)
+    table = _finite(path, name, table, 2)
     if table.shape[1] != columns:
-        raise InputError(f"{handle.filename}: {path} has shape {table.shape}, expected (rows, {columns})")
+        raise InputError(f"{path}: {name} has shape {table.shape}, expected (rows, {columns})")
     return table
 
 

@@ -19,10 +19,13 @@ import numpy as np
 from cca_cli.config.model import ReconstructSection, RunConfig
 from cca_cli.engines.multiplex import MultiplexedProblem
 from cca_cli.engines.registry import engine_names, get_engine
-from cca_cli.errors import ConfigError, InputError
-from cca_cli.io.captures import Captures, read_measurements
+from cca_cli.errors import CcaError, ConfigError, InputError
+from cca_cli.io.captures import read_measurements
 from cca_cli.io.h5 import Provenance, check_output, open_input, write_dataset
 from cca_cli.io.multiplex import read_multiplex, write_multiplex
+from cca_cli.io.recon import write_recon
+from cca_cli.library.data import CaptureSet, Reconstruction
+from cca_cli.library.recovery import DivergedError, drive_engine
 from cca_cli.optics import fft
 from cca_cli.optics.multiplex import (MultiplexGeometry, MultiplexedForwardModel, coverage_map, design_band,
                                       random_patterns, rect_lattice)
@@ -30,7 +33,7 @@ from cca_cli.sampling.geometry import CaptureGeometry, camera_scan_geometry
 from cca_cli.sampling.grid import BandLayout
 from cca_cli.progress import ProgressFn, silent
 from cca_cli.workflows.recording import record, record_all, stored_grid, write_captures
-from cca_cli.workflows.recovery import Recovery, drive_engine, engine_options
+from cca_cli.workflows.recovery import engine_options
 from cca_cli.workflows.scenes import Scene, build_scene
 from cca_cli.units import FourierScale
 
@@ -56,7 +59,7 @@ class MultiplexSimulation:
 class MultiplexedCaptures:
     """Multiplexed images read from a captures file."""
 
-    captures: Captures                 # intensity (G, N, N), geometry of the virtual captures
+    captures: CaptureSet               # intensity (G, N, N), geometry of the virtual captures
     multiplex: MultiplexGeometry
     reference: np.ndarray | None
 
@@ -207,41 +210,43 @@ def read_multiplexed_captures(path: Path) -> MultiplexedCaptures:
     return MultiplexedCaptures(captures=captures, multiplex=mux, reference=reference)
 
 
-def reconstruct_multiplexed(data: MultiplexedCaptures, section: ReconstructSection, *,
-                            progress: ProgressFn = silent) -> Recovery:
-    """Run the configured engine's multiplexed form on ``data``."""
+def reconstruct_multiplexed(data: MultiplexedCaptures, section: ReconstructSection, *, source: Path,
+                            progress: ProgressFn = silent) -> Reconstruction:
+    """Run the configured engine's multiplexed form on ``data`` (read from ``source``)."""
     captures = data.captures
     name, options = engine_options(section, "simulation")
     engine_class = get_engine(name).multiplexed_class()
     if engine_class is None:
         able = [n for n in engine_names() if get_engine(n).multiplexed is not None]
-        raise ConfigError(f"reconstruct.engine: {section.engine!r} cannot use multiplexed captures ({captures.path}); "
+        raise ConfigError(f"reconstruct.engine: {section.engine!r} cannot use multiplexed captures ({source}); "
                           f"choose one of {', '.join(able)}")
     try:
         model = MultiplexedForwardModel(data.multiplex, sensor_size=captures.intensity.shape[-1])
         problem = MultiplexedProblem.from_sensor_images(model, captures.intensity, captures.weight)
     except ValueError as exc:
-        raise InputError(f"{captures.path}: {exc}") from None
+        raise InputError(f"{source}: {exc}") from None
     engine = engine_class(problem, options)
-    return drive_engine(engine, options, model.layout, name, progress=progress)
+    try:
+        spectrum, history, seconds = drive_engine(engine, options, progress=progress)
+    except DivergedError as exc:
+        raise CcaError(f"reconstruct: the recovery diverged (NaN or Inf after {exc.iterations} iterations), so "
+                       "nothing was written; raise reconstruct.tau or choose other reconstruct.options") from None
+    observed = data.reference if data.reference is not None else captures.intensity[0]
+    return Reconstruction(object=fft.ifft2c(spectrum).astype(np.complex64), spectrum=spectrum, history=history,
+                          geometry=captures.geometry, engine=name, options=options.model_dump(), seconds=seconds,
+                          stopped_by=engine.stop_reason(), observed=observed, truth=dict(captures.truth),
+                          units=captures.units, band_grid_px=model.layout.lowres_size)
 
 
 def run_reconstruct(captures_path: Path, section: ReconstructSection, output: Path, *, provenance: Provenance,
-                    write_recon, force: bool = False, progress: ProgressFn = silent) -> Recovery:
-    """Read multiplexed captures, reconstruct, write ``output`` (with /multiplex and the reference).
-
-    ``write_recon`` is the reconstruct stage's writer of ``recon.h5``
-    (:func:`cca_cli.stages.reconstruct.write_recon`), called with the
-    reference as ``observed`` and an ``extra`` that adds /multiplex.
-    """
+                    force: bool = False, progress: ProgressFn = silent) -> Reconstruction:
+    """Read multiplexed captures, reconstruct, write ``output`` (with /multiplex, and the reference as the
+    observed image)."""
     check_output(output, force=force)
     data = read_multiplexed_captures(captures_path)
-    recovery = reconstruct_multiplexed(data, section, progress=progress)
-    captures = data.captures
-    observed = data.reference if data.reference is not None else captures.intensity[0]
-    write_recon(output, captures, recovery, provenance, force=force, observed=observed,
-                extra=lambda handle: write_multiplex(handle, data.multiplex))
-    return recovery
+    result = reconstruct_multiplexed(data, section, source=captures_path, progress=progress)
+    write_recon(output, result, provenance, force=force, extra=lambda handle: write_multiplex(handle, data.multiplex))
+    return result
 
 
 def coverage_summary(multiplex: MultiplexGeometry, size: int) -> tuple[dict, np.ndarray, np.ndarray]:

@@ -40,23 +40,26 @@ from pathlib import Path
 
 import numpy as np
 
-from cca_cli.version import __version__
 from cca_cli.config.model import ReconstructSection
+from cca_cli.engines.base import History, IterationRecord
 from cca_cli.engines.options import EngineOptions
 from cca_cli.engines.registry import get_engine
 from cca_cli.errors import CcaError, ConfigError, InputError, OutputError
-from cca_cli.io.captures import Captures
 from cca_cli.io.h5 import Provenance
-from cca_cli.io.tiles import (FrameInfo, TileResult, read_frame_info, read_tile_captures, read_tile_result,
-                              tile_file_problem, tile_folder, tile_path, write_tile_result)
+from cca_cli.io.recon import TilesRecord
+from cca_cli.io.tiles import (FrameInfo, TileResult, read_frame_centre, read_frame_info, read_tile_captures,
+                              read_tile_result, tile_file_problem, tile_folder, tile_path, write_tile_result)
+from cca_cli.library.data import CaptureSet, Reconstruction
+from cca_cli.library.recovery import recover
 from cca_cli.optics import fft
 from cca_cli.progress import ProgressEvent, ProgressFn, silent
 from cca_cli.sampling.capture import with_field_width
 from cca_cli.sampling.geometry import CaptureGeometry
 from cca_cli.sampling.grid import band_layout
-from cca_cli.sampling.region import plan_embedding
+from cca_cli.sampling.region import RegionEmbedding, plan_embedding
 from cca_cli.sampling.tiles import Tile, TilePlan, local_illumination, plan_tiles, tile_order
-from cca_cli.workflows.recovery import calibrated_pupils, embed_region, engine_options, recover
+from cca_cli.version import __version__
+from cca_cli.workflows.recovery import embed_region, engine_options
 
 __all__ = ["TiledPlan", "TiledRecovery", "plan_tiled", "tile_geometry", "tile_engine", "run_tile", "stitch",
            "reconstruct_tiled"]
@@ -117,11 +120,22 @@ class TiledRecovery:
     pupil_mode: str = "per_tile"
 
     @property
-    def history(self):
-        """Median residual and change over the tiles per iteration (:func:`~cca_cli.io.tiled_recon.combined_history`)."""
-        from cca_cli.io.tiled_recon import combined_history
+    def history(self) -> History:
+        """One history for the tiles: per iteration the median residual and change over the tiles.
 
-        return combined_history(self.results)
+        A tile that stopped earlier holds its last values; ``seconds`` is the longest tile's time so far.
+        """
+        histories = [r.history for r in self.results if r.history and len(r.history.get("residual", ())) > 0]
+        if not histories:
+            return History()
+        n = max(len(h["residual"]) for h in histories)
+
+        def column(name: str) -> np.ndarray:
+            return np.stack([np.concatenate([h[name], np.full(n - len(h[name]), h[name][-1])]) for h in histories])
+
+        residual, change, seconds = column("residual"), column("change"), column("seconds")
+        return History([IterationRecord(i + 1, float(np.median(residual[:, i])), float(np.median(change[:, i])),
+                                        float(np.max(seconds[:, i]))) for i in range(n)])
 
     @property
     def stopped_by(self) -> str:
@@ -133,6 +147,47 @@ class TiledRecovery:
     def hires_size(self) -> int:
         """Side of the square grid the blended object is written on."""
         return self.plan.upsampling * max(self.plan.frame.frame_shape)
+
+    def as_reconstruction(self) -> tuple[Reconstruction, TilesRecord]:
+        """The blended frame as a Reconstruction (on a square grid, the frame centred) and the tiles' record.
+
+        The square grid holds ``q`` samples per frame pixel; the frame is marked as its region when
+        it is not square. Reads the centre capture and the truth from the captures file.
+        """
+        plan = self.plan
+        h, w = plan.frame.frame_shape
+        q = plan.upsampling
+        side = max(h, w)
+        oy, ox = (side - h) // 2, (side - w) // 2
+        square = np.zeros((q * side, q * side), np.complex64)
+        square[oy * q:(oy + h) * q, ox * q:(ox + w) * q] = self.object
+        spectrum = fft.fft2c(square).astype(np.complex64)
+        del square
+        geometry = with_field_width(plan.geometry, plan.geometry.field_width_m * side / w)
+        observed, truth = read_frame_centre(plan.captures_path, geometry.centre_index)
+        region = None if (h, w) == (side, side) else RegionEmbedding(size=side, offset_yx=(oy, ox), shape=(h, w),
+                                                                     guard_px=0, apodize_px=0)
+        results = self.results
+        result = Reconstruction(
+            object=self.object, spectrum=spectrum, history=self.history,
+            geometry=replace(geometry, pixel_pitch_m=plan.geometry.pixel_pitch_m), engine=self.engine,
+            options=self.options, seconds=self.seconds, stopped_by=self.stopped_by, observed=observed, truth=truth,
+            units=plan.frame.units, band_grid_px=side, region=region)
+        have_pupils = all(r.pupil is not None for r in results)
+        have_waves = all(r.zernike_waves is not None for r in results)
+        tiles = TilesRecord(
+            box_px=np.array([r.box for r in results]), grid_index=np.array([[r.row, r.col] for r in results]),
+            residual=np.array([[r.residual.get(n, np.nan) for n in ("all", "bright_field", "dark_field")]
+                               for r in results], np.float64),
+            iterations=np.array([r.iterations for r in results]), seconds=np.array([r.seconds for r in results]),
+            shift_px=np.array([r.shift_px for r in results], np.float64),
+            pupil=np.stack([r.pupil for r in results]) if have_pupils else None,
+            zernike_waves=np.stack([np.atleast_2d(r.zernike_waves) for r in results]) if have_waves else None,
+            zernike_modes=np.asarray(results[0].zernike_modes, np.int32) if have_waves else None,
+            attrs=dict(size_px=plan.tiles.size, overlap_px=plan.tiles.overlap, rows=plan.tiles.grid_shape[0],
+                       cols=plan.tiles.grid_shape[1], upsampling=plan.upsampling, ran=self.ran,
+                       pupil=self.pupil_mode))
+        return result, tiles
 
 
 def tile_geometry(geometry: CaptureGeometry, frame_shape, tile: Tile) -> CaptureGeometry:
@@ -267,19 +322,22 @@ def _recover_tile(task: TileTask, section: ReconstructSection, parent: TileResul
     plan, tile = task.plan, task.tile
     captures = read_tile_captures(plan.captures_path, tile.box)
     captures = replace(captures, geometry=tile_geometry(plan.geometry, plan.frame.frame_shape, tile))
-    padded, region = embed_region(captures, section)
+    padded, region = embed_region(captures, section, source=plan.captures_path)
     name, options = tile_engine(section, plan.geometry.kind, fixed=fixed)
     start = None
     if parent is not None and parent.zernike_waves is not None:
         start = np.asarray(parent.zernike_waves, np.float64)
-    recovery = recover(padded, name, options, on_iteration=_reporter(task.topic, tile, options.max_iterations),
-                       aberration=start)
+    try:
+        recovery = recover(padded, name, options, on_iteration=_reporter(task.topic, tile, options.max_iterations),
+                           aberration=start)
+    except ValueError as exc:
+        raise InputError(f"{plan.captures_path}: tile at ({tile.y0}, {tile.x0}): {exc}") from None
     obj, shift = _on_blend_grid(recovery, padded, region, plan.upsampling, register=options.recovers_pupil_map)
     pupil = waves = None
     modes: list = []
     if recovery.calibration is not None and recovery.calibration.pupil is not None:
         estimate = recovery.calibration.pupil
-        pupil = calibrated_pupils(recovery.calibration, padded.geometry.pupil_radius_px)
+        pupil = recovery.pupil
         waves, modes = np.asarray(estimate.coefficients, np.float64), [tuple(m) for m in estimate.modes]
     elif start is not None:  # a fixed pupil: the coefficients it was held at
         from cca_cli.optics.zernike import zernike_modes
@@ -295,7 +353,7 @@ def _recover_tile(task: TileTask, section: ReconstructSection, parent: TileResul
     return result
 
 
-def _on_blend_grid(recovery, captures: Captures, region, upsampling: int, *, register: bool):
+def _on_blend_grid(recovery: Reconstruction, captures: CaptureSet, region, upsampling: int, *, register: bool):
     """The tile's region of the recovered field on the blend grid (``q`` samples per frame pixel).
 
     The spectrum is zero-padded from the recovery's ``M`` to ``q·S`` (``S`` the padded tile), which puts

@@ -17,7 +17,7 @@ from typer.testing import CliRunner
 
 from cca_cli.commands.app import app
 from cca_cli.io.images import write_image
-from cca_cli.stages.reconstruct import read_captures
+from cca_cli.io.captures import read_captures
 
 runner = CliRunner()
 OPTICS = {"wavelength_m": 550e-9, "focal_length_m": 0.05, "aperture_diameter_m": 1.5e-3, "pixel_pitch_m": 2.5e-6,

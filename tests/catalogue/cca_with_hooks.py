@@ -95,7 +95,7 @@ def install() -> None:
         outputs._replace = paused
     mark = os.environ.get("CCA_TEST_MARK_ITERATING")
     if mark:
-        from cca_cli.workflows import recovery
+        from cca_cli.library import recovery
 
         run_engine = recovery.run_engine
 

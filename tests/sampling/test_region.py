@@ -14,7 +14,8 @@ from cca_cli.optics.pupil import circular_pupils
 from cca_cli.report.summary import band_limited_truth, on_grid
 from cca_cli.sampling.capture import with_field_width
 from cca_cli.sampling.region import plan_embedding, resolution_cell_px
-from cca_cli.stages.reconstruct import Captures, embed_region, reconstruct
+from cca_cli.library.data import CaptureSet
+from cca_cli.workflows.recovery import embed_region, reconstruct_captures
 from cca_cli.stages.simulate import simulate
 
 
@@ -41,13 +42,12 @@ def test_plan_and_embed():
 def test_square_periodic_images_are_left_alone():
     geometry = simulate(parse_config({"scene": {"kind": "natural", "size_px": 64, "field_width_m": 8e-3}, "array": {"grid": 3},
                                       "optics": {"aperture_diameter_m": 45e-3}, "noise": {"model": "none"}})).geometry
-    captures = Captures(path=Path("x"), intensity=np.ones((9, 64, 64), np.float32), weight=None, geometry=geometry,
-                        truth={})
-    same, region = embed_region(captures, ReconstructSection())
+    captures = CaptureSet(intensity=np.ones((9, 64, 64), np.float32), geometry=geometry)
+    same, region = embed_region(captures, ReconstructSection(), source=Path("x"))
     assert region is None and same is captures
     with pytest.raises(Exception, match="must be square"):
-        embed_region(Captures(path=Path("x"), intensity=np.ones((9, 64, 48), np.float32), weight=None,
-                              geometry=geometry, truth={}), ReconstructSection(padding=PaddingSection(mode="off")))
+        embed_region(CaptureSet(intensity=np.ones((9, 64, 48), np.float32), geometry=geometry),
+                     ReconstructSection(padding=PaddingSection(mode="off")), source=Path("x"))
 
 
 @pytest.fixture(scope="module")
@@ -68,15 +68,9 @@ def _window_recovery(sim, field, window, mode):
     model = ForwardModel(layout, circular_pupils(layout.box_size, layout.box_centres, layout.pupil_radius_px))
     images = fft.fourier_resample(model.sensor_intensity(fft.fft2c(field)), 96)
     geometry = with_field_width(sim.geometry, sim.geometry.field_width_m * w / 96)
-    captures = Captures(path=Path("window"), intensity=images[:, y0:y0 + h, x0:x0 + w], weight=None,
-                        geometry=geometry, truth={}, boundary="open")
+    captures = CaptureSet(intensity=images[:, y0:y0 + h, x0:x0 + w], geometry=geometry, boundary="open")
     section = ReconstructSection(iterations=60, tol=0.0, padding=PaddingSection(mode=mode))
-    padded, region = embed_region(captures, section)
-    result = reconstruct(padded, section)
-    obj = np.abs(fft.ifft2c(result.spectrum)) ** 2
-    if region is not None:
-        by, bx, bh, bw = region.hires_box(result.layout.hires_size)
-        obj = obj[by:by + bh, bx:bx + bw]
+    obj = reconstruct_captures(captures, section, source=Path("window")).intensity
     truth = band_limited_truth(field, sim.geometry)[y0:y0 + h, x0:x0 + w]
     return on_grid(obj.astype(np.float32), (h, w)), truth, resolution_cell_px(w, geometry.pupil_radius_px)
 

@@ -3,6 +3,8 @@
 import json
 import shutil
 
+from pathlib import Path
+
 import h5py
 import numpy as np
 import pytest
@@ -10,10 +12,11 @@ import pytest
 from cca_cli.config.load import apply_overrides
 from cca_cli.errors import OutputExistsError
 from cca_cli.io.schema import SCHEMA_VERSION
-from cca_cli.stages import reconstruct as reconstruct_stage
 from cca_cli.stages import simulate as simulate_stage
 from cca_cli.stages.runner import config_hash, pick_sections, plan_stages, run_pipeline
 from cca_cli.units import spot_size_m
+from cca_cli.library.data import CaptureSet
+from cca_cli.workflows.recovery import reconstruct_captures
 
 REPORT_KEYS = {
     "sar", "grid", "overlap", "n_images", "engine", "iterations", "seconds", "mtf20_observed_px",
@@ -172,9 +175,8 @@ def test_sensor_and_band_storage_give_the_same_recovery(tiny_run_config):
     for store in ("sensor", "band"):
         config = apply_overrides(tiny_run_config, {"simulate.store": store, "noise.model": "none"})
         sims[store] = sim = simulate_stage.simulate(config)
-        captures = reconstruct_stage.Captures(path="x", intensity=sim.intensity, weight=None,
-                                              geometry=sim.geometry, truth={})
-        spectra[store] = reconstruct_stage.reconstruct(captures, config.reconstruct).spectrum
+        captures = CaptureSet(intensity=sim.intensity, geometry=sim.geometry)
+        spectra[store] = reconstruct_captures(captures, config.reconstruct, source=Path("x")).spectrum
     assert sims["sensor"].intensity.shape[-1] == 96
     band_size = sims["band"].intensity.shape[-1]
     assert band_size == sims["band"].layout.lowres_size < 96

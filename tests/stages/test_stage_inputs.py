@@ -3,6 +3,8 @@
 import shutil
 
 import h5py
+from pathlib import Path
+
 import numpy as np
 import pytest
 from pydantic import ValidationError
@@ -11,10 +13,11 @@ from cca_cli.config.load import apply_overrides
 from cca_cli.config.model import ReconstructSection, ReportSection
 from cca_cli.errors import ConfigError, InputError
 from cca_cli.io.h5 import Provenance
-from cca_cli.stages import reconstruct as reconstruct_stage
 from cca_cli.stages import report as report_stage
 from cca_cli.stages import simulate as simulate_stage
 from cca_cli.workflows.scenes import bars_to_table, build_scene, table_to_bars
+from cca_cli.io.captures import read_captures
+from cca_cli.workflows.recovery import embed_region, engine_options
 
 
 def test_chart_scene_on_a_finer_grid_keeps_values_and_scales_boxes(tiny_run_config):
@@ -58,7 +61,7 @@ def _edited_copy(source, tmp_path, edit):
 
 
 def test_read_captures_round_trip(captures_file):
-    captures = reconstruct_stage.read_captures(captures_file)
+    captures = read_captures(captures_file)
     assert captures.intensity.shape == (25, 96, 96)
     assert captures.geometry.n_images == 25 and captures.weight is None
     assert {"object", "bars"} <= set(captures.truth)
@@ -69,7 +72,7 @@ def test_read_captures_rejects_nan_images(captures_file, tmp_path):
         handle["/measurements/intensity"][3, 5, 5] = np.nan
 
     with pytest.raises(InputError, match="image 3 .*NaN"):
-        reconstruct_stage.read_captures(_edited_copy(captures_file, tmp_path, poison))
+        read_captures(_edited_copy(captures_file, tmp_path, poison))
 
 
 def test_read_captures_pads_non_square_and_rejects_mismatched_images(captures_file, tmp_path):
@@ -79,12 +82,12 @@ def test_read_captures_pads_non_square_and_rejects_mismatched_images(captures_fi
         handle["/measurements/intensity"] = data[:, :, :90]
 
     # Non-square images are a window on a larger scene: padded to a square grid, unless padding is off.
-    cropped = reconstruct_stage.read_captures(_edited_copy(captures_file, tmp_path, crop))
+    cropped = read_captures(_edited_copy(captures_file, tmp_path, crop))
     assert cropped.boundary == "open"
-    padded, region = reconstruct_stage.embed_region(cropped, ReconstructSection())
+    padded, region = embed_region(cropped, ReconstructSection(), source=Path("c.h5"))
     assert padded.intensity.shape[1] == padded.intensity.shape[2] > 96 and region.shape == (96, 90)
     with pytest.raises(InputError, match="square"):
-        reconstruct_stage.embed_region(cropped, ReconstructSection(padding={"mode": "off"}))
+        embed_region(cropped, ReconstructSection(padding={"mode": "off"}), source=Path("c.h5"))
 
     def drop(handle):
         data = handle["/measurements/intensity"][()]
@@ -92,13 +95,13 @@ def test_read_captures_pads_non_square_and_rejects_mismatched_images(captures_fi
         handle["/measurements/intensity"] = data[:24]
 
     with pytest.raises(InputError, match="24 images"):
-        reconstruct_stage.read_captures(_edited_copy(captures_file, tmp_path, drop))
+        read_captures(_edited_copy(captures_file, tmp_path, drop))
 
     def no_geometry(handle):
         del handle["geometry"]
 
     with pytest.raises(InputError, match="geometry"):
-        reconstruct_stage.read_captures(_edited_copy(captures_file, tmp_path, no_geometry))
+        read_captures(_edited_copy(captures_file, tmp_path, no_geometry))
 
 
 def test_bad_engine_options_are_refused_when_the_config_is_read(tiny_run_config):
@@ -109,7 +112,7 @@ def test_bad_engine_options_are_refused_when_the_config_is_read(tiny_run_config)
     unchecked = ReconstructSection.model_construct(engine="altmin", tau=1e-3, iterations=5, tol=0.0,
                                                    options={"chunk": 0})
     with pytest.raises(ConfigError, match="reconstruct.options"):  # the stage checks again what it is given
-        reconstruct_stage.engine_options(unchecked)
+        engine_options(unchecked)
 
 
 def test_report_stage_refuses_a_captures_file(captures_file, tmp_path):

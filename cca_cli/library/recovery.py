@@ -1,0 +1,371 @@
+"""Phase retrieval of a :class:`~cca_cli.library.data.CaptureSet` to a :class:`~cca_cli.library.data.Reconstruction`.
+
+:func:`reconstruct` is the whole way from captures to a result, the same for
+the Python interface and the command line: dead captures are left out,
+recorded or non-square images are placed on a square grid with a guard band,
+the engine is chosen and its options read (:func:`cca_cli.engines.registry.resolve`),
+the forward model built on the smallest grids the band allows, the engine run
+and the recovery cut back to the region the captures covered. The pieces are
+public for callers that need one of them (tiles, benchmarks).
+
+Everything here takes arrays and options; data that cannot be used raise
+``ValueError`` naming what is wrong, so a caller can add the file or the key.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import replace
+
+import numpy as np
+
+from cca_cli.engines.base import CalibratingEngine, History, IterationRecord, run_engine
+from cca_cli.engines.calibration import defocus_zernike
+from cca_cli.engines.calibrator import Calibration
+from cca_cli.engines.fit import fit_report
+from cca_cli.engines.illumination import LedArrayModel
+from cca_cli.engines.options import EngineOptions
+from cca_cli.engines.problem import PhaseRetrievalProblem
+from cca_cli.engines.registry import get_engine, resolve
+from cca_cli.errors import CcaError
+from cca_cli.library.data import CaptureSet, Reconstruction, constant_images
+from cca_cli.optics import fft
+from cca_cli.optics.forward import ForwardModel
+from cca_cli.optics.pupil import circular_pupils
+from cca_cli.progress import ProgressEvent, ProgressFn, silent
+from cca_cli.sampling.capture import with_field_width
+from cca_cli.sampling.geometry import CaptureGeometry
+from cca_cli.sampling.grid import BandLayout, band_layout, smallest_fft_size
+from cca_cli.sampling.region import RegionEmbedding, plan_embedding
+
+__all__ = ["MAX_DEAD_FRACTION", "DivergedError", "reconstruct", "without_dead_captures", "embed_region",
+           "build_model", "problem_calibration", "recover", "drive_engine", "calibrated_pupils"]
+
+_log = logging.getLogger("cca")
+#: Share of the captures that may be dead (constant) and left out; more is refused as a broken recording.
+MAX_DEAD_FRACTION = 0.05
+PADDING_MODES = ("auto", "off")
+
+
+class DivergedError(CcaError):
+    """The recovery ran off to NaN or Inf (too small a regularisation for these data)."""
+
+    def __init__(self, iterations: int):
+        super().__init__(f"the recovery diverged (NaN or Inf after {iterations} iterations); raise tau or choose "
+                         "other options")
+        self.iterations = iterations
+
+
+def reconstruct(captures: CaptureSet, *, engine: str = "auto", options: dict | EngineOptions | None = None,
+                padding: str = "auto", guard_px: int | None = None, apodize_px: int | None = None,
+                init: np.ndarray | None = None, init_pixel_m: float | None = None, progress: ProgressFn = silent,
+                on_iteration=None, checkpoint=None, name: str = "intensities", source=None) -> Reconstruction:
+    """Recover the object from captures: the one way the API and the command line both take.
+
+    Parameters
+    ----------
+    captures : CaptureSet
+    engine : str
+        ``auto`` or a registered engine.
+    options : dict or EngineOptions, optional
+        What the user set (``tau``, ``iterations``, ``tol`` and the engine's options), read as a config reads
+        them; or the options of ``engine`` already resolved (:func:`cca_cli.engines.registry.resolve`).
+    padding : {"auto", "off"}
+        ``auto`` places recorded (open-boundary) and non-square images on a square grid with a weight-0
+        guard band of ``guard_px`` (and a taper of ``apodize_px``); ``off`` keeps square images as they are.
+    init : ndarray, complex64, (M, M), optional
+        A spectrum to start from, on this reconstruction's grid.
+    init_pixel_m : float, optional
+        The object pixel of ``init`` (m), when known: it must be this reconstruction's.
+    progress, on_iteration, checkpoint
+        As in :func:`recover`.
+    name, source
+        How messages name the images and their file.
+
+    Returns
+    -------
+    Reconstruction
+
+    Raises
+    ------
+    ValueError
+        Options the engine does not take, dead captures beyond what may be left out, or images and a
+        geometry no recovery grid can hold.
+    DivergedError
+    """
+    if isinstance(options, EngineOptions):
+        engine_options = options
+    else:
+        engine, engine_options = resolve(engine, captures.kind, options or {})
+    live = without_dead_captures(captures, name=name, source=source)
+    padded, region = embed_region(live, padding=padding, guard_px=guard_px, apodize_px=apodize_px)
+    if init is not None and init_pixel_m is not None:
+        pixel = padded.geometry.field_width_m / np.shape(init)[-1]
+        if not np.isclose(float(init_pixel_m), pixel, rtol=1e-6):
+            raise ValueError(f"init: its object pixels are {float(init_pixel_m):.6g} m but this reconstruction's are "
+                             f"{pixel:.6g} m; start from a result of the same geometry")
+    result = recover(padded, engine, engine_options, progress=progress, on_iteration=on_iteration, init=init,
+                     checkpoint=checkpoint)
+    observed = live.centre_image
+    obj = result.object
+    if region is not None:
+        y0, x0, rows, cols = region.hires_box(result.hires_size)
+        obj = np.ascontiguousarray(obj[y0:y0 + rows, x0:x0 + cols])
+    return replace(result, object=obj, observed=observed, region=region, dropped=live.dropped)
+
+
+def _listed(indices, grid: np.ndarray, limit: int = 6) -> str:
+    """``image 3 (row 0, col 3), image 7 (row 1, col 2)`` for the first ``limit`` indices."""
+    items = [f"image {int(i)} (row {int(grid[i, 0])}, col {int(grid[i, 1])})" for i in indices[:limit]]
+    return ", ".join(items) + (", …" if len(indices) > limit else "")
+
+
+def without_dead_captures(captures: CaptureSet, *, name: str = "intensities", source=None,
+                          error: type[Exception] = ValueError) -> CaptureSet:
+    """Leave out the captures whose images hold one value only (a camera that recorded nothing).
+
+    Such an image carries no information, and fitting it would pull the recovery
+    towards a dark (or flat) patch of spectrum. Up to :data:`MAX_DEAD_FRACTION` of
+    the captures are left out with one warning naming them and their grid
+    positions. More, or a dead centre capture (the one that holds the object's
+    lowest frequencies, and the single-camera image the report compares with),
+    are refused.
+
+    Parameters
+    ----------
+    captures : CaptureSet
+    name, source, error
+        How messages name the images and their file, and the exception a refusal raises.
+
+    Returns
+    -------
+    CaptureSet
+        ``captures`` itself, or the live captures with their weights and geometry
+        (``dropped`` lists the indices left out).
+    """
+    dead = constant_images(captures.intensity)
+    if dead.size == 0:
+        return captures
+    where = f"{source}: " if source else ""
+    geometry = captures.geometry
+    grid = np.asarray(geometry.grid_indices)
+    k = captures.intensity.shape[0]
+    centre = geometry.centre_index
+    holds = "holds" if dead.size == 1 else "hold"
+    if centre in dead:
+        value = float(captures.intensity[centre].flat[0])
+        raise error(f"{where}image {centre} of {name}, the centre capture (row {int(grid[centre, 0])}, col "
+                    f"{int(grid[centre, 1])}), holds one value (every pixel {value:g}): nothing was recorded there, "
+                    "and the recovery needs it for the object's lowest frequencies; re-take it")
+    allowed = int(MAX_DEAD_FRACTION * k)
+    if dead.size > allowed:
+        each = "" if dead.size == 1 else " each"
+        raise error(f"{where}{dead.size} of {k} images of {name} {holds} one value{each}, so nothing was recorded "
+                    f"there ({_listed(dead, grid)}); at most {MAX_DEAD_FRACTION:.0%} of the captures ({allowed} "
+                    f"here) may be left out: check the camera and re-take them")
+    values = ", ".join(f"{float(captures.intensity[i].flat[0]):g}" for i in dead[:6])
+    _log.warning("%sleft out %s of %d images of %s: %s %s one value (%s), nothing was recorded there; the "
+                 "recovery uses the other %d", where, dead.size, k, name, _listed(dead, grid), holds, values,
+                 k - dead.size)
+    keep = np.setdiff1d(np.arange(k), dead)
+    weight = None if captures.weight is None else captures.weight[keep]
+    return replace(captures, intensity=captures.intensity[keep], weight=weight, geometry=geometry.select(keep),
+                   dropped=tuple(int(i) for i in dead))
+
+
+def embed_region(captures: CaptureSet, *, padding: str = "auto", guard_px: int | None = None,
+                 apodize_px: int | None = None) -> tuple[CaptureSet, RegionEmbedding | None]:
+    """Place recorded (open-boundary) or non-square images in the middle of a square grid with a guard band.
+
+    Returns the captures on the square grid (geometry widened to it, weights
+    0 in the guard band) and the embedding, or the captures unchanged and
+    None for periodic square images or ``padding="off"``.
+    See :mod:`cca_cli.sampling.region`.
+
+    Raises
+    ------
+    ValueError
+        Non-square images that may not be padded (``padding="off"``, or periodic simulated images).
+    """
+    if padding not in PADDING_MODES:
+        raise ValueError(f"padding must be 'auto' or 'off', got {padding!r}")
+    k, h, w = captures.intensity.shape
+    if padding == "off" or (captures.boundary != "open" and h == w):
+        if h != w:
+            why = "with padding off" if captures.boundary == "open" else "simulated (periodic) captures"
+            raise ValueError(f"the images are {w}x{h} px; {why} must be square (crop them, e.g. register.crop_xywh)")
+        return captures, None
+    region = plan_embedding((h, w), captures.geometry.pupil_radius_px, guard_px=guard_px, apodize_px=apodize_px)
+    images, weights = region.embed(captures.intensity, captures.weight)
+    geometry = with_field_width(captures.geometry, captures.geometry.field_width_m * region.size / w)
+    return replace(captures, intensity=images, weight=weights, geometry=geometry), region
+
+
+def build_model(geometry: CaptureGeometry, sensor_pixels: int, *, hires_size: int | None = None,
+                margin_px: int = 0) -> ForwardModel:
+    """The forward model of a capture set on the smallest grids its band allows.
+
+    ``margin_px`` widens the high-resolution grid so that pupils may move that
+    far outwards (position calibration).
+    """
+    layout = band_layout(geometry.spectrum_centres_yx_px, geometry.pupil_radius_px,
+                         sensor_size=sensor_pixels, hires_size=hires_size)
+    if margin_px > 0 and hires_size is None:
+        layout = band_layout(geometry.spectrum_centres_yx_px, geometry.pupil_radius_px, sensor_size=sensor_pixels,
+                             hires_size=smallest_fft_size(layout.hires_size + 2 * margin_px))
+    return ForwardModel.unaberrated(layout)
+
+
+def problem_calibration(geometry: CaptureGeometry, layout: BandLayout, initial_pupil=None) -> dict:
+    """What the captures tell a calibrating engine: cameras, how positions may move, a known pupil or defocus."""
+    out = {} if initial_pupil is None else {"initial_pupil": np.asarray(initial_pupil, np.complex64)}
+    if geometry.camera_index is not None:
+        out["pupil_index"] = np.asarray(geometry.camera_index, np.int64)
+    if geometry.kind == "led_array":
+        out["position_model"] = LedArrayModel(layout.centres_px, geometry.field_width_m / geometry.wavelength_m)
+    if np.isfinite(geometry.defocus_m) and geometry.defocus_m != 0 and geometry.kind == "led_array":
+        out["aberration"] = defocus_zernike(geometry.defocus_m, wavelength_m=geometry.wavelength_m,
+                                            numerical_aperture=geometry.numerical_aperture)
+    return out
+
+
+def drive_engine(engine, options: EngineOptions, *, progress: ProgressFn = silent, on_iteration=None,
+                 history: History | None = None, checkpoint=None) -> tuple[np.ndarray, History, float]:
+    """Run ``engine`` to completion, reporting every iteration as a progress event (and to ``on_iteration``).
+
+    ``history`` holds the iterations a restored engine already ran; ``checkpoint`` (an object with
+    ``start()`` and ``after_iteration(engine, history)``, e.g. the reconstruct stage's
+    ``Checkpointing``) saves the state as it goes.
+
+    Returns
+    -------
+    spectrum : ndarray
+    history : History
+    seconds : float
+
+    Raises
+    ------
+    DivergedError
+        The spectrum holds NaN or Inf at the end.
+    """
+    total = options.max_iterations
+    history = History() if history is None else history
+
+    def report(record: IterationRecord) -> None:
+        progress(ProgressEvent("reconstruct", "iterations", record.iteration, total,
+                               {"residual": record.residual, "change": record.change}))
+        if on_iteration is not None:
+            on_iteration(record)
+        if checkpoint is not None:
+            checkpoint.after_iteration(engine, history)
+
+    start = time.perf_counter()
+    if checkpoint is not None:
+        checkpoint.start()
+    spectrum, history = run_engine(engine, on_iteration=report, history=history)
+    if not np.all(np.isfinite(spectrum)):
+        raise DivergedError(history.iterations)
+    return spectrum, history, time.perf_counter() - start
+
+
+def recover(captures: CaptureSet, engine: str, options: EngineOptions, *, progress: ProgressFn = silent,
+            on_iteration=None, init: np.ndarray | None = None, checkpoint=None,
+            aberration=None) -> Reconstruction:
+    """Phase retrieval of ``captures`` (square, on the grid they are recovered on) with a named engine.
+
+    Builds the forward model on the smallest grids the band allows (wider when
+    positions are calibrated), tells the engine what the geometry knows (cameras,
+    how positions may move, a known defocus), runs it, and evaluates the final
+    model's residuals.
+
+    Parameters
+    ----------
+    captures : CaptureSet
+    engine : str
+        Registered engine name.
+    options : EngineOptions
+        The engine's options.
+    progress : callable, optional
+        Receives a progress event per iteration.
+    on_iteration : callable, optional
+        Also called with each :class:`~cca_cli.engines.base.IterationRecord`.
+    init : ndarray, complex64, (M, M), optional
+        A spectrum to start from instead of the upsampled centre capture.
+    checkpoint : optional
+        The reconstruct stage's ``Checkpointing``: continue from its checkpoint when one matches and is
+        sound (finite, of this engine's shapes); write new ones as the run goes.
+    aberration : ndarray, (n_modes,) or (P, n_modes), optional
+        Zernike coefficients (waves) the pupil starts from, in place of what the captures know
+        (a tiled reconstruction passes a neighbour tile's).
+
+    Returns
+    -------
+    Reconstruction
+        Of the whole grid (``object`` is the grid's field).
+
+    Raises
+    ------
+    ValueError
+        A geometry no grid can hold, or ``init`` of another grid.
+    """
+    margin = 0
+    if options.refines_positions:
+        margin = int(np.ceil(captures.geometry.pupil_radius_px / 8)) + 2
+    model = build_model(captures.geometry, captures.intensity.shape[-1], margin_px=margin)
+    calibration = problem_calibration(captures.geometry, model.layout, captures.initial_pupil)
+    if aberration is not None:
+        calibration["aberration"] = np.asarray(aberration, np.float64)
+    problem = PhaseRetrievalProblem.from_sensor_images(model, captures.intensity, captures.weight, **calibration)
+    start = None
+    if init is not None:
+        start = np.asarray(init, np.complex64)
+        if start.shape != model.spectrum_shape:
+            raise ValueError(f"init: the spectrum is {start.shape[0]}x{start.shape[-1]} but this reconstruction's "
+                             f"grid is {model.spectrum_shape[0]}x{model.spectrum_shape[1]}; start from a result of "
+                             "the same captures (and padding)")
+    engine_class = get_engine(engine).engine_class()
+    runner = engine_class(problem, options, spectrum=start)
+    history = None
+    saved = checkpoint.load(_state_of(runner)) if checkpoint is not None else None
+    if saved is not None:
+        try:
+            runner.restore(saved.state)
+            history = History.from_columns(saved.history)
+            _log.warning("note: resuming from iteration %d (checkpoint %s)", history.iterations, checkpoint.path)
+        except (KeyError, ValueError, TypeError, NotImplementedError) as exc:
+            _log.warning("%s cannot be resumed (%s): starting afresh", checkpoint.path, exc)
+            runner.close()
+            runner, history = engine_class(problem, options, spectrum=start), None
+    spectrum, history, seconds = drive_engine(runner, options, progress=progress, on_iteration=on_iteration,
+                                              history=history, checkpoint=checkpoint)
+    found = runner.calibration() if isinstance(runner, CalibratingEngine) else None
+    return Reconstruction(
+        object=fft.ifft2c(spectrum).astype(np.complex64), spectrum=spectrum, history=history,
+        geometry=captures.geometry, engine=engine, options=options.model_dump(), seconds=seconds,
+        stopped_by=runner.stop_reason(), observed=captures.centre_image, truth=dict(captures.truth),
+        units=captures.units, band_grid_px=model.layout.lowres_size,
+        pupil=None if found is None else calibrated_pupils(found, captures.geometry.pupil_radius_px),
+        positions_px=None if found is None else found.centres_px, calibration=found,
+        fit=fit_report(problem, spectrum, found), dropped=captures.dropped)
+
+
+def _state_of(engine) -> dict | None:
+    """The engine's state as it starts (what a checkpoint must match), or None for an engine without one."""
+    try:
+        return engine.state()
+    except NotImplementedError:
+        return None
+
+
+def calibrated_pupils(calibration: Calibration, radius_px: float) -> np.ndarray | None:
+    """Each recovered pupil on its box with its NA disc, complex64 (P, b, b).
+
+    The disc is centred on box pixel ``b // 2``, where the box centre of a capture whose pupil
+    centre falls on a whole spectrum pixel lies (:func:`~cca_cli.sampling.grid.band_layout`).
+    """
+    if calibration.pupil is None:
+        return None
+    b = calibration.pupils.shape[-1]
+    disc = circular_pupils(b, np.full((1, 2), float(b // 2)), radius_px)[0]
+    return (disc[None] * calibration.pupil.maps).astype(np.complex64)
