@@ -328,27 +328,6 @@ def usaf_chart(size_px: int, *, pixel_pitch_m: float, groups=(-1, 0, 1, 2, 3)):
 # -------------------------------------------------------------------------------------------- imaging, recovery
 
 
-def _sensor_pixels(geometry: CaptureGeometry) -> int:
-    from cca_cli.sampling.capture import object_pixel_m
-
-    return int(round(geometry.field_width_m / object_pixel_m(geometry)))
-
-
-def _layout(geometry: CaptureGeometry, sensor_pixels: int):
-    from cca_cli.sampling.grid import band_layout
-
-    return band_layout(geometry.spectrum_centres_yx_px, geometry.pupil_radius_px, sensor_size=sensor_pixels)
-
-
-def _spectrum_on(field: np.ndarray, size: int) -> np.ndarray:
-    """Centred spectrum of a square field, cropped or zero-padded to ``size`` (field values kept)."""
-    from cca_cli.optics import fft
-
-    n = field.shape[-1]
-    spectrum = fft.fft2c(field.astype(np.complex64))
-    return spectrum if n == size else fft.resize_spectrum(spectrum, (size, size)) * np.float32(size / n)
-
-
 def simulate(obj, geometry: CaptureGeometry, *, snr_db: float | None = 30.0, photons_per_unit: float | None = None,
              read_noise_e: float = 0.0, seed: int = 0) -> np.ndarray:
     """Images the geometry's cameras record of an object.
@@ -390,24 +369,9 @@ def simulate(obj, geometry: CaptureGeometry, *, snr_db: float | None = 30.0, pho
     >>> flat.shape, bool(np.allclose(flat[g.centre_index], 1.0, atol=1e-3))
     ((9, 96, 96), True)
     """
-    from cca_cli.optics import fft
-    from cca_cli.optics.forward import ForwardModel
-    from cca_cli.optics.noise import add_gaussian_noise, add_shot_and_read_noise
+    from cca_cli.library.simulation import simulate as simulate_images
 
-    field_in = _object_field(obj)
-    noise = _noise_settings(snr_db, photons_per_unit, read_noise_e, seed)
-    sensor = _sensor_pixels(geometry)
-    layout = _layout(geometry, sensor)
-    model = ForwardModel.unaberrated(layout)
-    band = model.sensor_intensity(_spectrum_on(field_in, layout.hires_size))
-    images = fft.fourier_resample(band, sensor)
-    rng = np.random.default_rng(noise["seed"])
-    if noise["photons_per_unit"] is not None:
-        return add_shot_and_read_noise(images, photons_per_unit=noise["photons_per_unit"],
-                                       read_noise_e=noise["read_noise_e"], rng=rng)
-    if noise["snr_db"] is not None:
-        return add_gaussian_noise(images, noise["snr_db"], rng)
-    return images.astype(np.float32)
+    return simulate_images(_object_field(obj), geometry, noise=_noise(snr_db, photons_per_unit, read_noise_e, seed))
 
 
 def _object_field(obj) -> np.ndarray:
@@ -423,8 +387,9 @@ def _object_field(obj) -> np.ndarray:
     return field_in
 
 
-def _noise_settings(snr_db, photons_per_unit, read_noise_e, seed) -> dict:
+def _noise(snr_db, photons_per_unit, read_noise_e, seed):
     """The noise arguments of :func:`simulate`, checked as the config's noise section is."""
+    from cca_cli.library.simulation import Noise
     from cca_cli.optics.noise import MIN_SNR_DB
 
     if snr_db is not None and _number("snr_db", snr_db) < MIN_SNR_DB:
@@ -434,8 +399,12 @@ def _noise_settings(snr_db, photons_per_unit, read_noise_e, seed) -> dict:
         raise ValueError(f"photons_per_unit must be in (0, 1e12] (electrons at irradiance 1), got {photons_per_unit!r}")
     if not (_is_number(seed) and isinstance(seed, (int, np.integer)) and seed >= 0):
         raise ValueError(f"seed must be a whole number ≥ 0, got {seed!r}")
-    return {"snr_db": snr_db, "photons_per_unit": photons_per_unit, "seed": seed,
-            "read_noise_e": _number("read_noise_e", read_noise_e, low=0.0)}
+    read_noise = _number("read_noise_e", read_noise_e, low=0.0)
+    if photons_per_unit is not None:
+        return Noise("poisson", photons_per_unit=photons_per_unit, read_noise_e=read_noise, seed=seed)
+    if snr_db is not None:
+        return Noise("gaussian", snr_db=snr_db, seed=seed)
+    return Noise("none", seed=seed)
 
 
 def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine: str = "auto", weight=None,

@@ -10,17 +10,17 @@ import numpy as np
 from cca_cli.config.model import RunConfig
 from cca_cli.errors import ConfigError
 from cca_cli.io.h5 import Provenance, check_output
-from cca_cli.optics import fft
-from cca_cli.optics.field_aberration import field_varying_intensity, node_positions, seidel_waves
-from cca_cli.optics.forward import ForwardModel
+from cca_cli.library.simulation import simulate as simulate_images
+from cca_cli.library.simulation import simulation_layout
+from cca_cli.optics.field_aberration import node_positions, seidel_waves
 from cca_cli.sampling.geometry import CaptureGeometry, camera_scan_geometry
-from cca_cli.sampling.grid import BandLayout, band_layout
+from cca_cli.sampling.grid import BandLayout
 from cca_cli.sampling.overlap import grid_for_sar
 from cca_cli.stages.progress import ProgressFn, silent
-from cca_cli.workflows.recording import record, record_all, stored_grid, write_captures
+from cca_cli.workflows.recording import noise_settings, simulation_error, stored_grid, write_captures
 from cca_cli.workflows.scenes import Scene, build_scene
 
-__all__ = ["SECTIONS", "Simulation", "simulate", "stored_grid", "record", "record_all", "write_captures", "run"]
+__all__ = ["SECTIONS", "Simulation", "simulate", "run"]
 
 #: Config sections this stage depends on.
 SECTIONS = ("optics", "scene", "array", "noise", "simulate", "multiplex", "aberration")
@@ -63,21 +63,17 @@ def simulate(config: RunConfig, *, progress: ProgressFn = silent) -> Simulation:
     """
     geometry, sensor_pixels = simulation_geometry(config)
     try:
-        layout = band_layout(geometry.spectrum_centres_yx_px, geometry.pupil_radius_px, sensor_size=sensor_pixels)
+        layout = simulation_layout(geometry)
     except ValueError as exc:
         raise ConfigError(f"optics/array: {exc}") from None
     scene = build_scene(config.scene, layout.hires_size)
-    model = ForwardModel.unaberrated(layout)
-    spectrum = fft.fft2c(scene.field).astype(np.complex64)
     store_size, pitch = stored_grid(config, sensor_pixels, layout.lowres_size)
-    aberration = None
-    if config.aberration is None:
-        band = model.sensor_intensity(spectrum)
-    else:
-        aberration = field_aberration_truth(config.aberration, store_size)
-        band = field_varying_intensity(spectrum, layout, aberration["waves"], store_size)
-    rng = np.random.default_rng(config.noise.seed)
-    intensity = record_all(band, store_size, config.noise, rng, progress=progress)
+    aberration = None if config.aberration is None else field_aberration_truth(config.aberration, store_size)
+    try:
+        intensity = simulate_images(scene.field, geometry, noise=noise_settings(config.noise), store_size=store_size,
+                                    aberration=None if aberration is None else aberration["waves"], progress=progress)
+    except ValueError as exc:
+        raise simulation_error(exc) from None
     return Simulation(geometry=geometry, layout=layout, scene=scene, intensity=intensity, pixel_pitch_m=pitch,
                       aberration=aberration)
 

@@ -32,7 +32,7 @@ from cca_cli.optics.multiplex import (MultiplexGeometry, MultiplexedForwardModel
 from cca_cli.sampling.geometry import CaptureGeometry, camera_scan_geometry
 from cca_cli.sampling.grid import BandLayout
 from cca_cli.progress import ProgressFn, silent
-from cca_cli.workflows.recording import record, record_all, stored_grid, write_captures
+from cca_cli.workflows.recording import noise_settings, recorded, stored_grid, write_captures
 from cca_cli.workflows.recovery import engine_options
 from cca_cli.workflows.scenes import Scene, build_scene
 from cca_cli.units import FourierScale
@@ -161,9 +161,10 @@ def simulate_multiplexed(config: RunConfig, *, progress: ProgressFn = silent) ->
                                              hires_size=layout.hires_size).sensor_intensity(spectrum)
 
     store_size, pitch = stored_grid(config, sensor_pixels, layout.lowres_size)
-    rng = np.random.default_rng(config.noise.seed)
-    intensity = record_all(band, store_size, config.noise, rng, progress=progress)
-    reference = record(reference_band, store_size, config.noise, rng)[0]
+    noise = noise_settings(config.noise)
+    rng = np.random.default_rng(noise.seed)
+    intensity = recorded(band, store_size, noise, rng=rng, progress=progress)
+    reference = recorded(reference_band, store_size, noise, rng=rng)[0]
     return MultiplexSimulation(geometry=virtual, multiplex=mux, layout=layout, scene=scene, intensity=intensity,
                                reference=reference, pixel_pitch_m=pitch)
 

@@ -1,4 +1,4 @@
-"""Simulated recording: band-grid images → noisy images on the stored grid, and the captures file."""
+"""Simulated recording from a config: the stored grid, the noise settings, and the captures file."""
 
 from __future__ import annotations
 
@@ -10,12 +10,10 @@ from cca_cli.config.model import NoiseSection, RunConfig
 from cca_cli.errors import ConfigError
 from cca_cli.io.geometry import write_geometry
 from cca_cli.io.h5 import Provenance, atomic_h5, write_dataset
-from cca_cli.optics import fft
-from cca_cli.optics.noise import add_gaussian_noise, add_shot_and_read_noise
-from cca_cli.progress import ProgressEvent, ProgressFn, silent
+from cca_cli.library.simulation import Noise, record
 from cca_cli.workflows.scenes import bars_to_table, usaf_to_table
 
-__all__ = ["stored_grid", "record", "record_all", "write_captures"]
+__all__ = ["stored_grid", "noise_settings", "simulation_error", "recorded", "write_captures"]
 
 
 def stored_grid(config: RunConfig, sensor_pixels: int, lowres_size: int) -> tuple[int, float]:
@@ -24,33 +22,24 @@ def stored_grid(config: RunConfig, sensor_pixels: int, lowres_size: int) -> tupl
     return size, config.optics.pixel_pitch_m * sensor_pixels / size
 
 
-def record(band: np.ndarray, size: int, noise: NoiseSection, rng: np.random.Generator) -> np.ndarray:
-    """Band-grid images (K, m, m) → float32 images (K, size, size) with ``noise`` added."""
-    block = fft.fourier_resample(band, size)
-    if noise.model == "gaussian":
-        return add_gaussian_noise(block, noise.snr_db, rng)
-    if noise.model == "poisson":
-        return add_shot_and_read_noise(block, photons_per_unit=noise.photons_per_unit,
-                                       read_noise_e=noise.read_noise_e, rng=rng)
-    return block
+def noise_settings(section: NoiseSection) -> Noise:
+    """The library's noise settings from a config's noise section."""
+    return Noise(model=section.model, snr_db=section.snr_db, photons_per_unit=section.photons_per_unit,
+                 read_noise_e=section.read_noise_e, seed=section.seed)
 
 
-def record_all(band: np.ndarray, size: int, noise: NoiseSection, rng: np.random.Generator, *,
-               progress: ProgressFn = silent, step: int = 16) -> np.ndarray:
-    """:func:`record` in blocks of ``step`` images, reporting ``simulate/captures`` progress after each."""
-    k = band.shape[0]
-    if noise.model == "poisson" and float(band.max(initial=0.0)) * noise.photons_per_unit < 1:
-        raise ConfigError(f"noise.photons_per_unit: the brightest pixel would collect "
-                          f"{float(band.max(initial=0.0)) * noise.photons_per_unit:.2g} photo-electrons, so the images "
-                          "would hold noise only; raise noise.photons_per_unit")
-    intensity = np.empty((k, size, size), np.float32)
-    for start in range(0, k, step):
-        intensity[start:start + step] = record(band[start:start + step], size, noise, rng)
-        progress(ProgressEvent("simulate", "captures", min(start + step, k), k))
-    if not intensity.any():
-        raise ConfigError("simulate: every simulated image is zero (a black scene, or too few photons: "
-                          "noise.photons_per_unit); nothing could be recovered from it")
-    return intensity
+def simulation_error(exc: ValueError) -> ConfigError:
+    """A refusal of :mod:`cca_cli.library.simulation` as one line naming the config key."""
+    text = str(exc).replace("raise photons_per_unit", "raise noise.photons_per_unit")
+    return ConfigError(("noise." if text.startswith("photons_per_unit") else "simulate: ") + text)
+
+
+def recorded(band: np.ndarray, size: int, noise: Noise, **kwargs) -> np.ndarray:
+    """:func:`cca_cli.library.simulation.record` with its refusals as one line naming the config key."""
+    try:
+        return record(band, size, noise, **kwargs)
+    except ValueError as exc:
+        raise simulation_error(exc) from None
 
 
 def write_captures(path: Path, simulation, provenance: Provenance, *, force: bool = False,

@@ -993,16 +993,16 @@ for value in (0.25, -0.25):  # a dead frame less a scalar black level holds one 
 def _camera_dies(index: int):
     """The simulated camera records nothing (all zero) at capture ``index``: a dead capture in captures.h5."""
     def patch(monkeypatch, folder: Path) -> None:
-        from cca_cli.stages import simulate
+        from cca_cli.library import simulation
 
-        record_all = simulate.record_all
+        record = simulation.record
 
         def dead(*args, **kwargs):
-            images = record_all(*args, **kwargs)
+            images = record(*args, **kwargs)
             images[index] = 0
             return images
 
-        monkeypatch.setattr(simulate, "record_all", dead)
+        monkeypatch.setattr(simulation, "record", dead)
     return patch
 
 
