@@ -12,6 +12,7 @@ from cca_cli.commands.info import derived_lines
 from cca_cli.commands.options import ConfigArg, Force, Quiet, Scheduler, Workers, cluster_options, section_from_options
 from cca_cli.commands.stage_run import run_stage
 from cca_cli.config.load import load_config
+from cca_cli.engines.registry import engine_help
 from cca_cli.config.model import ReconstructSection, ReportSection
 from cca_cli.stages import reconstruct as reconstruct_stage
 from cca_cli.stages import report as report_stage
@@ -52,7 +53,7 @@ def reconstruct_cli(
     captures: Annotated[Path, typer.Argument(help="captures.h5 (from simulate, hdr or register).", show_default=False)],
     output: Annotated[Path, typer.Option("--output", "-o", help="recon file to write.")] = Path("recon.h5"),
     config: Annotated[Optional[Path], typer.Option("--config", "-c", help="Take the reconstruct section from this YAML.")] = None,
-    engine: Annotated[Optional[str], typer.Option(help="Engine: auto (by the data), altmin or momentum.")] = None,
+    engine: Annotated[Optional[str], typer.Option(help=f"Engine: {engine_help()}.")] = None,
     tau: Annotated[Optional[float], typer.Option(help="Tikhonov weight τ.")] = None,
     iterations: Annotated[Optional[int], typer.Option(help="Maximum iterations.")] = None,
     tol: Annotated[Optional[float], typer.Option(help="Relative-change stopping tolerance.")] = None,

@@ -30,6 +30,7 @@ import numpy as np
 
 from cca_cli.errors import CcaError, ConfigError, InputError
 from cca_cli.io.h5 import atomic_path, open_input, require
+from cca_cli.io.schema import OBJECT, RECON_INTENSITY
 
 __all__ = ["QUANTITIES", "FORMATS", "ExportedImage", "export_format", "file_format", "recon_quantity", "export_image",
            "export_recon", "read_exported"]
@@ -118,11 +119,11 @@ def recon_quantity(recon_path: str | Path, quantity: str = "amplitude") -> tuple
     _check_quantity(quantity)
     with open_input(recon_path, stage="reconstruct") as handle:
         if quantity == "intensity":
-            dataset = require(handle, "/recon/intensity", ndim=2)
+            dataset = require(handle, RECON_INTENSITY, ndim=2)
             values = np.asarray(dataset, np.float32)
             units = _text(dataset.attrs.get("units", ""))
         else:
-            dataset = require(handle, "/recon/object", ndim=2)
+            dataset = require(handle, OBJECT, ndim=2)
             field = np.asarray(dataset, np.complex64)
             values = (np.abs(field) if quantity == "amplitude" else np.angle(field)).astype(np.float32)
             units = _text(dataset.attrs.get("units", "")) if quantity == "amplitude" else "rad"

@@ -19,12 +19,11 @@ import numpy as np
 
 from cca_cli.errors import InputError
 from cca_cli.io.h5 import require
+from cca_cli.io.schema import INTENSITY, WEIGHT
 from cca_cli.library.data import check_intensity, check_weight
 
 __all__ = ["INTENSITY", "WEIGHT", "read_intensity", "read_weight"]
 
-INTENSITY = "/measurements/intensity"
-WEIGHT = "/measurements/weight"
 
 
 def _real(handle: h5py.File, name: str, ndim: int) -> h5py.Dataset:

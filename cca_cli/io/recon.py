@@ -26,6 +26,7 @@ from cca_cli.io.capture_info import read_capture_summary
 from cca_cli.io.geometry import read_geometry, write_geometry
 from cca_cli.io.h5 import Provenance, atomic_h5, open_input, read_finite, require, require_attr, write_dataset
 from cca_cli.io.multiplex import read_multiplex
+from cca_cli.io.schema import OBJECT, OBSERVED, RECON_INTENSITY, REGION, SPECTRUM
 from cca_cli.library.data import Reconstruction
 from cca_cli.library.recovery import calibrated_pupils
 from cca_cli.optics import fft
@@ -33,14 +34,8 @@ from cca_cli.optics.zernike import zernike_name
 from cca_cli.sampling.geometry import CaptureGeometry
 from cca_cli.sampling.region import RegionEmbedding
 
-__all__ = ["SPECTRUM", "OBJECT", "RECON_INTENSITY", "OBSERVED", "REGION", "TilesRecord", "ReconFile", "write_recon",
-           "read_recon", "read_spectrum"]
+__all__ = ["TilesRecord", "ReconFile", "write_recon", "read_recon", "read_spectrum"]
 
-SPECTRUM = "/recon/spectrum"
-OBJECT = "/recon/object"
-RECON_INTENSITY = "/recon/intensity"
-OBSERVED = "/observed/centre"
-REGION = "/recon/region_px"
 _RESIDUALS = ("all", "bright_field", "dark_field")
 
 

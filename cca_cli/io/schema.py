@@ -8,9 +8,19 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-__all__ = ["SCHEMA_VERSION", "DatasetSpec", "DATASETS", "spec_for", "GEOMETRY_ATTRS", "markdown_table"]
+__all__ = ["SCHEMA_VERSION", "INTENSITY", "WEIGHT", "SPECTRUM", "OBJECT", "RECON_INTENSITY", "OBSERVED", "REGION",
+           "DatasetSpec", "DATASETS", "spec_for", "GEOMETRY_ATTRS", "markdown_table"]
 
 SCHEMA_VERSION = "cca/1"
+
+#: The datasets the code names most (every one is in :data:`DATASETS`).
+INTENSITY = "/measurements/intensity"
+WEIGHT = "/measurements/weight"
+SPECTRUM = "/recon/spectrum"
+OBJECT = "/recon/object"
+RECON_INTENSITY = "/recon/intensity"
+OBSERVED = "/observed/centre"
+REGION = "/recon/region_px"
 
 
 @dataclass(frozen=True)

@@ -754,16 +754,15 @@ def _contrast(out_dir: Path) -> dict | None:
 
 
 def _crops(out_dir: Path) -> dict | None:
-    from cca_cli.io.h5 import open_input
+    from cca_cli.io.recon import read_recon
     from cca_cli.optics import fft
 
     try:
-        with open_input(out_dir / "recon.h5", stage="reconstruct") as handle:
-            recovered = np.asarray(handle["/recon/intensity"], np.float32)
-            observed = np.asarray(handle["/observed/centre"], np.float32)
-            truth = np.abs(np.asarray(handle["/truth/object"])) ** 2 if "/truth/object" in handle else None
+        result = read_recon(out_dir / "recon.h5").result
     except (CcaError, OSError, KeyError):
         return None
+    recovered, observed = result.intensity, result.observed
+    truth = np.abs(result.truth["object"]) ** 2 if "object" in result.truth else None
     size = truth.shape[-1] if truth is not None else recovered.shape[-1]
 
     def fit(image):

@@ -24,6 +24,7 @@ from cca_cli.io.captures import read_measurements
 from cca_cli.io.h5 import Provenance, check_output, open_input, write_dataset
 from cca_cli.io.multiplex import read_multiplex, write_multiplex
 from cca_cli.io.recon import write_recon
+from cca_cli.io.schema import OBSERVED
 from cca_cli.library.data import CaptureSet, Reconstruction
 from cca_cli.library.recovery import DivergedError, drive_engine
 from cca_cli.optics import fft
@@ -175,7 +176,7 @@ def write_multiplexed_captures(path: Path, simulation: MultiplexSimulation, prov
 
     def extra(handle) -> None:
         write_multiplex(handle, simulation.multiplex)
-        write_dataset(handle, "/observed/centre", simulation.reference)
+        write_dataset(handle, OBSERVED, simulation.reference)
 
     write_captures(path, simulation, provenance, force=force, extra=extra)
 
@@ -200,7 +201,7 @@ def read_multiplexed_captures(path: Path) -> MultiplexedCaptures:
     with open_input(path) as handle:
         captures = read_measurements(handle, Path(path))
         mux = read_multiplex(handle)
-        reference = np.asarray(handle["/observed/centre"], np.float32) if "/observed/centre" in handle else None
+        reference = np.asarray(handle[OBSERVED], np.float32) if OBSERVED in handle else None
     g = captures.intensity.shape[0]
     if g != mux.n_measurements:
         raise InputError(f"{path}: {g} images but /multiplex describes {mux.n_cameras} cameras x "
