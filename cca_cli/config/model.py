@@ -14,6 +14,7 @@ from pydantic import Field, NonNegativeInt, PositiveFloat, PositiveInt, field_va
 
 from cca_cli.config.section import Section
 from cca_cli.engines import presets, registry
+from cca_cli.sampling.tiles import MIN_TILE_PX
 from cca_cli.optics.noise import MIN_SNR_DB
 
 __all__ = [
@@ -182,7 +183,7 @@ class PaddingSection(Section):
 class TilesSection(Section):
     """Overlapping tiles of the frame, each recovered with its own pupil (and LED angles), then blended."""
 
-    size_px: PositiveInt = Field(..., ge=32, description="Tile side in frame (sensor) pixels.")
+    size_px: PositiveInt = Field(..., ge=MIN_TILE_PX, description="Tile side in frame (sensor) pixels.")
     overlap_px: NonNegativeInt = Field(
         ..., description="Least overlap between neighbouring tiles (px), below half the tile; the blend runs "
                          "across the middle half of each overlap.")

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Tile", "TilePlan", "plan_tiles", "axis_starts", "local_illumination", "tile_order"]
+__all__ = ["MIN_TILE_PX", "Tile", "TilePlan", "plan_tiles", "axis_starts", "local_illumination", "tile_order"]
 
 
 @dataclass(frozen=True)
@@ -143,6 +143,10 @@ class TilePlan:
         return self.tiles[row * len(self.col_starts) + col]
 
 
+#: The smallest tile: its guard band and pupil fit need room (configs and the API refuse smaller ones alike).
+MIN_TILE_PX = 32
+
+
 def plan_tiles(frame_shape, size_px: int, overlap_px: int) -> TilePlan:
     """Tiles of ``size_px`` overlapping by at least ``overlap_px`` that cover an ``(H, W)`` frame.
 
@@ -155,8 +159,9 @@ def plan_tiles(frame_shape, size_px: int, overlap_px: int) -> TilePlan:
     """
     h, w = (int(v) for v in frame_shape)
     size, overlap = int(size_px), int(overlap_px)
-    if size < 1 or overlap < 0:
-        raise ValueError(f"tile size {size} and overlap {overlap} must be positive")
+    if size < MIN_TILE_PX or overlap < 0:
+        raise ValueError(f"tiles must be at least {MIN_TILE_PX} px (a guard band and a pupil fit in them) with an "
+                         f"overlap ≥ 0; got {size} and {overlap}")
     if 2 * overlap >= size:
         raise ValueError(f"an overlap of {overlap} px is half the {size}-px tile or more; give an overlap below "
                          f"{size // 2} px")
