@@ -40,12 +40,15 @@ class IterationRecord:
         Relative change of the spectrum ``‖S_new − S‖ / ‖S‖``.
     seconds : float
         Wall time since the run started.
+    held_back : float
+        Relative misfit of the captures held back from the updates (NaN when none are).
     """
 
     iteration: int
     residual: float
     change: float
     seconds: float
+    held_back: float = float("nan")
 
 
 @dataclass
@@ -57,23 +60,29 @@ class History:
 
     records: list[IterationRecord] = field(default_factory=list)
 
-    #: The columns a history holds, besides the iteration number.
+    #: The columns every history holds, besides the iteration number.
     COLUMNS = ("residual", "change", "seconds")
+    #: Columns a run may add: the misfit of the captures held back from the updates.
+    OPTIONAL = ("held_back",)
 
     @classmethod
     def from_columns(cls, columns) -> History:
-        """A history from arrays of equal length by column name (a file's /history)."""
+        """A history from arrays of equal length by column name (a file's /history; optional columns may lack)."""
         values = [np.asarray(columns[name], np.float64).ravel() for name in cls.COLUMNS]
+        n = len(values[0])
+        values += [np.asarray(columns[name], np.float64).ravel() if name in columns else np.full(n, np.nan)
+                   for name in cls.OPTIONAL]
         return cls([IterationRecord(i + 1, *(float(v) for v in row)) for i, row in enumerate(zip(*values))])
 
     def __getitem__(self, name: str) -> np.ndarray:
-        if name not in self.COLUMNS:
-            raise KeyError(f"{name!r}: a history holds {', '.join(self.COLUMNS)}")
+        if name not in self.COLUMNS + self.OPTIONAL:
+            raise KeyError(f"{name!r}: a history holds {', '.join(self.COLUMNS + self.OPTIONAL)}")
         return self.array(name)
 
     def keys(self) -> tuple[str, ...]:
-        """The column names."""
-        return self.COLUMNS
+        """The column names (``held_back`` only when the run held captures back)."""
+        held = self.records and np.isfinite(self.array("held_back")).any()
+        return self.COLUMNS + (self.OPTIONAL if held else ())
 
     @property
     def iterations(self) -> int:
@@ -95,6 +104,8 @@ class IterativeEngine(ABC):
     #: Name used in configs and on the command line.
     name: str = ""
     stopping: StoppingPolicy
+    #: Relative misfit of the captures held back from the updates after the last iteration (NaN: none held back).
+    held_back_residual: float = float("nan")
 
     @abstractmethod
     def update(self) -> tuple[float, float]:
@@ -160,7 +171,7 @@ def run_engine(engine: IterativeEngine, *, on_iteration: Callable[[IterationReco
         while not engine.done():
             residual, change = engine.update()
             record = IterationRecord(history.iterations + 1, float(residual), float(change),
-                                     time.perf_counter() - start)
+                                     time.perf_counter() - start, float(engine.held_back_residual))
             history.records.append(record)
             if on_iteration is not None:
                 on_iteration(record)

@@ -53,6 +53,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from cca_cli.engines import illumination as ill
 from cca_cli.engines.base import CalibratingEngine
 from cca_cli.engines.calibrator import Calibration, Calibrator, subset_layout
 from cca_cli.engines.options import MomentumOptions
@@ -63,7 +64,33 @@ from cca_cli.engines.stopping import StoppingPolicy
 from cca_cli.optics import fft, kernels
 from cca_cli.optics.forward import ForwardModel
 
-__all__ = ["MomentumOptions", "Calibration", "SequentialMomentum"]
+__all__ = ["MomentumOptions", "Calibration", "SequentialMomentum", "held_back_captures"]
+
+
+def held_back_captures(centres_px: np.ndarray, radius_px: float, share: float) -> np.ndarray:
+    """Which captures to hold back from the updates: ``share`` of them, spread from the bright field outwards.
+
+    The captures are ranked by the distance of their pupil from DC; the picks are spread evenly over the
+    ranks of the dark field and of the bright field in proportion (at least one bright-field capture when
+    there are more than two). The capture on the axis is never held back: the recovery starts from it.
+
+    Returns
+    -------
+    ndarray, int64
+        Capture indices, ascending (empty for ``share`` 0).
+    """
+    k = len(centres_px)
+    count = min(int(round(share * k)) if share > 0 else 0, k - 2)
+    if count <= 0:
+        return np.zeros(0, np.int64)
+    distance = np.hypot(centres_px[:, 0], centres_px[:, 1])
+    ranked = np.argsort(distance, kind="stable")[1:]     # the axis capture stays
+    bright = ranked[distance[ranked] < radius_px]
+    dark = ranked[distance[ranked] >= radius_px]
+    from_bright = min(len(bright), max(1 if len(bright) > 1 else 0, int(round(count * len(bright) / (k - 1)))))
+    picks = [group[np.unique(np.round(np.linspace(0, len(group) - 1, n)).astype(int))]
+             for group, n in ((bright, from_bright), (dark, count - from_bright)) if n > 0 and len(group)]
+    return np.sort(np.concatenate(picks)).astype(np.int64) if picks else np.zeros(0, np.int64)
 
 
 class SequentialMomentum(CalibratingEngine):
@@ -93,10 +120,19 @@ class SequentialMomentum(CalibratingEngine):
         self._previous_misfit = np.inf
         self._coverage = np.zeros(problem.model.spectrum_shape, np.float32)  # work array of the update factors
         self._batch = options.batch
+        layout = problem.model.layout
+        self.held_back = held_back_captures(layout.centres_px, layout.pupil_radius_px, options.hold_back)
+        self._trained = np.setdiff1d(np.arange(k), self.held_back)
+        if self.held_back.size:
+            self._data_norm = float(np.sum(np.square(problem.amplitudes[self._trained], dtype=np.float64)))
+            self._held_norm = float(np.sum(np.square(problem.amplitudes[self.held_back], dtype=np.float64)))
+        self._best = None   # the state at the best held-back misfit
+        self._held_workspace = None
         self.calibrator = Calibrator(problem, options, threads)
         self.stopping = StoppingPolicy(max_iterations=options.max_iterations, tol=options.tol,
                                        plateau=options.plateau, plateau_window=options.plateau_window,
-                                       can_grow=self._can_grow)
+                                       can_grow=self._can_grow,
+                                       held_back_patience=options.hold_back_patience if self.held_back.size else 0)
         self.passes = SequentialPass(problem.model, threads)
         self._arrange()
 
@@ -105,8 +141,10 @@ class SequentialMomentum(CalibratingEngine):
         """Lay out the captures at their current centres and (re)build the visiting order and the model."""
         layout = self.calibrator.layout_for(self.calibrator.centres())
         distances = np.hypot(layout.centres_px[:, 0], layout.centres_px[:, 1])
-        self._schedule = build_schedule(layout.box_origins, layout.box_size, distances, self._batch)
-        self._order = order = self._schedule.order
+        trained = self._trained
+        self._schedule = build_schedule(layout.box_origins[trained], layout.box_size, distances[trained], self._batch)
+        self._order = order = trained[self._schedule.order]
+        self._all_layout = layout
         self._layout = subset_layout(layout, order)
         self._origins = np.ascontiguousarray(self._layout.box_origins, dtype=np.int64)
         self._amplitudes = np.ascontiguousarray(self.problem.amplitudes[order], dtype=np.float32)
@@ -205,17 +243,46 @@ class SequentialMomentum(CalibratingEngine):
         change = self._momentum(misfit)
         self._pupil_step(misfit)
         self._previous_misfit = misfit
-        if self.stopping.record(misfit, change):
+        self.held_back_residual = self._held_back_misfit()
+        if self.stopping.record(misfit, change, self.held_back_residual):
             self._grow_batch()
+        if self.held_back.size:
+            self._keep_best()
         return float(np.sqrt(misfit / max(self._data_norm, 1e-30))), change
+
+    # ------------------------------------------------------------ captures held back
+    def _held_back_misfit(self) -> float:
+        """Relative misfit of the held-back captures under the current spectrum and calibration (NaN: none)."""
+        held = self.held_back
+        if not held.size:
+            return float("nan")
+        calibrator = self.calibrator
+        layout = subset_layout(self._all_layout, held)
+        model = ForwardModel(layout, calibrator.pupils_for(layout, calibrator.pupil_index[held]))
+        if self._held_workspace is None:
+            self._held_workspace = model.workspace(held.size, threads=1)
+        weights = None if self.problem.weights is None else self.problem.weights[held]
+        statistics = ill.capture_statistics(model, self._spectrum, self.problem.amplitudes[held], weights,
+                                            workspace=self._held_workspace, scale=calibrator.target_scale(held))
+        return float(np.sqrt(statistics.misfit.sum() / max(self._held_norm, 1e-30)))
+
+    def _keep_best(self) -> None:
+        """Remember the state of a new best held-back misfit; at the end of the run, return to it."""
+        if self.stopping.improved:
+            self._best = (self._spectrum.copy(), {k: np.copy(v) for k, v in self.calibrator.state().items()})
+        if self.stopping.done() and self._best is not None and self.stopping.best_iteration < self.stopping.iteration:
+            spectrum, calibration = self._best
+            self._spectrum[...] = spectrum
+            self.calibrator.restore(calibration)
+            self._arrange()
 
     # ------------------------------------------------------------ growing batches
     def _can_grow(self) -> bool:
-        return self.options.batch_growth > 1 and self._batch < self.problem.model.n_images
+        return self.options.batch_growth > 1 and self._batch < self._trained.size
 
     def _grow_batch(self) -> None:
         """Take larger batches from the next pass on; the plateau test starts afresh."""
-        self._batch = min(self._batch * self.options.batch_growth, self.problem.model.n_images)
+        self._batch = min(self._batch * self.options.batch_growth, self._trained.size)
         self.stopping.grew()
         self._velocity[:] = 0
         self._arrange()
@@ -232,6 +299,9 @@ class SequentialMomentum(CalibratingEngine):
 
     def calibration(self) -> Calibration:
         """The current positions, pupils and brightness, in the problem's capture order."""
+        if self.held_back.size:  # the model holds the trained captures' pupils only
+            calibrator = self.calibrator
+            return calibrator.calibration(calibrator.pupils_for(self._all_layout, calibrator.pupil_index))
         inverse = np.empty_like(self._order)
         inverse[self._order] = np.arange(self._order.size)
         return self.calibrator.calibration(np.asarray(self._model.pupils)[inverse].copy())

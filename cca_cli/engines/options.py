@@ -21,8 +21,9 @@ __all__ = ["COSTS", "PUPIL_RECOVERIES", "PUPIL_MODELS", "POSITION_MODES", "ITERA
 
 COSTS = ("amplitude", "poisson")
 PUPIL_RECOVERIES = ("none", "shared", "per_camera")
-#: ``full``: the complex map inside the NA (EPRY); ``zernike``: the phase in Zernike modes.
-PUPIL_MODELS = ("full", "zernike")
+#: ``full``: the complex map inside the NA (EPRY); ``smooth``: that map held to Zernike modes plus a smooth remainder;
+#: ``zernike``: the phase in Zernike modes.
+PUPIL_MODELS = ("full", "smooth", "zernike")
 #: What position refinement fits: nothing, a global model of the array or stage, each capture's own offset, or both.
 POSITION_MODES = ("none", "global", "per_image", "both")
 #: The friendly name of ``max_iterations`` (configs' ``reconstruct.iterations``, the API's ``iterations=``).
@@ -148,9 +149,17 @@ class MomentumOptions(EngineOptions):
         No pupil recovery, one pupil for all captures (a scanned camera or an
         LED-array microscope), or one per camera of a camera array (the same as
         ``shared`` when the captures name no cameras).
-    pupil_model : {"full", "zernike"}
-        The complex map inside the NA (amplitude and phase), or the phase in
-        Zernike modes up to ``pupil_order``.
+    pupil_model : {"full", "smooth", "zernike"}
+        The complex map inside the NA (amplitude and phase); that map held after
+        each step to Zernike modes up to ``pupil_order`` plus a remainder smoothed
+        over ``pupil_smoothing`` pupil radii (so the object's detail cannot settle
+        in it); or the phase in Zernike modes up to ``pupil_order``.
+    pupil_smoothing : float
+        ``smooth`` model: width of the remainder's smoothing, in pupil radii.
+    pupil_tilt : {"object", "pinned"}
+        Map models: a phase tilt the pupil step finds is handed to the object
+        (which then moves with it), or dropped, so that the object stays
+        registered to the captures.
     pupil_order : {2, 3, 4}
         Highest Zernike radial order fitted (``zernike``) or reported (``full``).
     pupil_amplitude : bool
@@ -173,6 +182,13 @@ class MomentumOptions(EngineOptions):
         Passes before the first position / brightness round.
     calibration_every : int
         Passes between position / brightness rounds.
+    hold_back : float
+        Share of the captures held back from the updates, spread from the
+        bright field to the outermost dark field (0: none). Their misfit says how
+        well the recovery predicts data it never fitted: see ``hold_back_patience``.
+    hold_back_patience : int
+        With captures held back: stop when their misfit has reached no new best
+        for this many passes, and return to the state of the best one.
     threads : int or None
         Worker threads; None uses every core (at most 2 are used). The result
         does not depend on it beyond float rounding.
@@ -190,7 +206,9 @@ class MomentumOptions(EngineOptions):
     cost: Literal["amplitude", "poisson"] = "amplitude"
     poisson_step: float = 0.5
     pupil_recovery: Literal["none", "shared", "per_camera"] = "none"
-    pupil_model: Literal["full", "zernike"] = "zernike"
+    pupil_model: Literal["full", "smooth", "zernike"] = "zernike"
+    pupil_smoothing: float = 0.25
+    pupil_tilt: Literal["object", "pinned"] = "object"
     pupil_order: Literal[2, 3, 4] = 4
     pupil_amplitude: bool = True
     pupil_start: int = 1
@@ -200,6 +218,8 @@ class MomentumOptions(EngineOptions):
     brightness: bool = False
     calibration_start: int = 3
     calibration_every: int = 2
+    hold_back: float = 0.0
+    hold_back_patience: int = 10
 
     @property
     def refines_positions(self) -> bool:
@@ -207,7 +227,7 @@ class MomentumOptions(EngineOptions):
 
     @property
     def recovers_pupil_map(self) -> bool:
-        return self.pupil_recovery != "none" and self.pupil_model == "full"
+        return self.pupil_recovery != "none" and self.pupil_model != "zernike" and self.pupil_tilt == "object"
 
     @model_validator(mode="before")
     @classmethod
@@ -230,7 +250,10 @@ class MomentumOptions(EngineOptions):
             (0 < self.poisson_step <= 1, f"poisson_step must be in (0, 1], got {self.poisson_step}"),
             (self.pupil_start >= 0, f"pupil_start must be ≥ 0, got {self.pupil_start}"),
             (0 < self.pupil_step <= 1, f"pupil_step must be in (0, 1], got {self.pupil_step}"),
+            (0 < self.pupil_smoothing <= 2, f"pupil_smoothing must be in (0, 2], got {self.pupil_smoothing}"),
             (self.calibration_start >= 0, f"calibration_start must be ≥ 0, got {self.calibration_start}"),
             (self.calibration_every >= 1, f"calibration_every must be ≥ 1, got {self.calibration_every}"),
+            (0 <= self.hold_back <= 0.25, f"hold_back must be in [0, 0.25], got {self.hold_back}"),
+            (self.hold_back_patience >= 1, f"hold_back_patience must be ≥ 1, got {self.hold_back_patience}"),
         ])
         return self

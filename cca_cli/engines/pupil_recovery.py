@@ -130,7 +130,7 @@ class PupilRecovery:
         Pupil boxes in the engine's capture order.
     pupil_index : ndarray, int, (K,)
         Pupil used by each capture (engine order), ``0 … P-1``.
-    model : {"full", "zernike"}
+    model : {"full", "smooth", "zernike"}
     order : int
         Highest Zernike radial order (2, 3 or 4).
     coefficients : ndarray, (P, n_modes), optional
@@ -146,14 +146,23 @@ class PupilRecovery:
     maps : ndarray, complex, (b, b) or (P, b, b), optional
         Starting aberration maps on the box grid (``full``); for ``zernike`` their
         phase is projected on the modes.
+    tilt : {"object", "pinned"}
+        Map models: a phase tilt the step finds is handed to the object (which then
+        moves), or removed (the object stays registered to the captures).
+    smoothing : float
+        ``smooth`` model: width (in pupil radii) of the Gaussian the phase left over by
+        the Zernike modes is smoothed with.
     """
 
     def __init__(self, layout: BandLayout, pupil_index: np.ndarray, *, model: str = "full", order: int = 4,
                  coefficients: np.ndarray | None = None, amplitude: bool = True, step: float = 1.0,
-                 threads: int = 1, offsets: np.ndarray | None = None, maps: np.ndarray | None = None):
+                 threads: int = 1, offsets: np.ndarray | None = None, maps: np.ndarray | None = None,
+                 tilt: str = "object", smoothing: float = 0.25):
         if model not in PUPIL_MODELS:
             raise ValueError(f"pupil model must be one of {', '.join(PUPIL_MODELS)}, got {model!r}")
         self.model = model
+        self.tilt = tilt
+        self.smoothing = float(smoothing)
         self.order = order
         self.modes = zernike_modes(order)
         self.amplitude = amplitude
@@ -176,7 +185,7 @@ class PupilRecovery:
             if model == "zernike":
                 self.coefficients = self.project_zernike()
                 self.maps = np.ones((self.n_pupils, b, b), np.complex64)
-        elif model == "full" and np.any(self.coefficients):  # the map starts from the given aberration
+        elif model != "zernike" and np.any(self.coefficients):  # the map starts from the given aberration
             self.maps = self._zernike_maps(self.coefficients)
             self.coefficients[:] = 0
 
@@ -227,7 +236,7 @@ class PupilRecovery:
         return self._pupils(discs, basis, np.asarray(pupil_index, np.int64))
 
     def _pupils(self, discs: np.ndarray, basis: np.ndarray | None, index: np.ndarray) -> np.ndarray:
-        if self.model == "full":
+        if self.model != "zernike":
             return discs * self.maps[index]
         coefficients = self.coefficients[index].astype(np.float32)  # (K, n_modes)
         phase = np.einsum("kn,nkyx->kyx", coefficients, basis)
@@ -253,7 +262,7 @@ class PupilRecovery:
             The pupils the fields were computed with.
         """
         m = fields.shape[-1]
-        if self.model == "full":
+        if self.model != "zernike":
             kernels.accumulate_pupil(spectrum, origins, self._discs, fields, images.start, self.index,
                                      self._num[thread], self._den[thread], 1.0 / m)
             return
@@ -309,6 +318,48 @@ class PupilRecovery:
         self._previous = _Step(maps, coefficients, misfit, scale, tilt)
         return scale, tilt
 
+    def _smooth_maps(self, maps: np.ndarray, light: np.ndarray) -> np.ndarray:
+        """Each map's phase as Zernike modes plus a smooth remainder, its amplitude 1 (or smoothed too).
+
+        The phase is fitted, weighted by the light each pixel saw, with the modes up to ``order``
+        and piston and tilt; what the modes leave is smoothed with a Gaussian of ``smoothing`` pupil
+        radii (normalised over the disc), so detail finer than that (the object's, or noise) cannot
+        settle in the pupil. Piston and tilt are dropped: the object keeps them.
+        """
+        from scipy import ndimage
+
+        b = maps.shape[-1]
+        grid = np.arange(b, dtype=np.float64)
+        sigma = max(self.smoothing * self.layout.pupil_radius_px, 0.5)
+        out = np.ones_like(maps)
+        for p in range(self.n_pupils):
+            members = self.index == p
+            centre = self._centres[members].mean(axis=0) if np.any(members) else self._centres.mean(axis=0)
+            disc = circular_pupils(b, centre[None], self.layout.pupil_radius_px)[0] > 0
+            weight = light[p] * disc
+            if not weight.any():
+                continue
+            phase = np.angle(maps[p] * np.conj(np.sum(maps[p] * weight)))
+            modes = [self._box_basis[p, j] for j in range(len(self.modes))]
+            columns = np.stack([m[disc] for m in modes] + [np.ones(disc.sum()), (grid[:, None] * np.ones(b))[disc],
+                                                         (np.ones(b)[:, None] * grid)[disc]], axis=1)
+            root = np.sqrt(weight[disc] / weight.max())
+            solution, *_ = np.linalg.lstsq(columns * root[:, None], phase[disc] * root, rcond=None)
+            low_order = np.einsum("n,nyx->yx", solution[:len(modes)], np.stack(modes))
+            fitted = np.zeros((b, b))
+            fitted[disc] = columns @ solution
+            mask = disc.astype(np.float64)
+            remainder = ndimage.gaussian_filter((phase - fitted) * mask, sigma) / \
+                np.maximum(ndimage.gaussian_filter(mask, sigma), 1e-6)
+            amplitude = np.abs(maps[p])
+            if self.amplitude:
+                amplitude = ndimage.gaussian_filter(amplitude * mask, sigma) / \
+                    np.maximum(ndimage.gaussian_filter(mask, sigma), 1e-6)
+            else:
+                amplitude = np.ones_like(amplitude)
+            out[p] = np.where(disc, amplitude * np.exp(1j * (low_order + remainder)), 1)
+        return out.astype(np.complex64)
+
     def _zernike_step(self, rhs: np.ndarray, denominator: np.ndarray) -> None:
         for p in range(self.n_pupils):
             basis = self._box_basis[p].reshape(len(self.modes), -1)
@@ -330,13 +381,18 @@ class PupilRecovery:
         if not self.amplitude:
             maps = np.where(seen, np.exp(1j * np.angle(maps)), maps)
         maps = np.where(seen, maps, 1).astype(np.complex64)
-        # The object absorbs a common scale, piston and tilt of the pupils; keep them in the object.
+        if self.model == "smooth":
+            maps = self._smooth_maps(maps, denominator)
+        # The object absorbs a common scale, piston and tilt of the pupils; keep them in the object, or (pinned)
+        # drop the tilt so that the object stays where the captures put it.
         weights = denominator.sum(axis=0)
         tilt = tilt_of(np.sum(maps * denominator, axis=0), np.sqrt(weights / weights.max()))
         b = maps.shape[-1]
         grid = np.arange(b, dtype=np.float64)
         ramp = np.exp(-1j * (tilt[0] * grid[:, None] + tilt[1] * grid[None, :]))
         maps = maps * ramp[None]
+        if self.tilt == "pinned":
+            tilt = np.zeros(2)
         mean = np.sum(maps * denominator) / np.sum(denominator)
         scale = mean / abs(mean) * np.sum(np.abs(maps) * denominator) / np.sum(denominator)
         self.maps = (maps / scale).astype(np.complex64)

@@ -6,6 +6,12 @@ data misfit may also stop on a *plateau*: the misfit fell by less than
 ``plateau`` (relative) over the last ``plateau_window`` iterations. An engine
 that can enlarge its batches first grows them at a plateau; only a plateau it
 can no longer grow out of ends the run.
+
+An engine that holds some captures back from its updates reports their misfit
+too: it measures how well the recovery predicts data it never fitted. When
+that misfit has not reached a new best for ``held_back_patience`` iterations,
+the run is fitting the noise and the model's errors rather than the object,
+and it stops (``held_back``); the engine then returns to its best state.
 """
 
 from __future__ import annotations
@@ -32,10 +38,13 @@ class StoppingPolicy:
     can_grow : callable, optional
         Whether the engine can still enlarge its batches; while it can, a flat
         misfit asks for growth (:meth:`record` returns True) instead of ending the run.
+    held_back_patience : int
+        Iterations without a new best held-back misfit that end the run (0: the held-back misfit
+        never ends it).
     """
 
     def __init__(self, *, max_iterations: int, tol: float, plateau: float = 0.0, plateau_window: int = 1,
-                 can_grow: Callable[[], bool] = lambda: False):
+                 can_grow: Callable[[], bool] = lambda: False, held_back_patience: int = 0):
         self.max_iterations = int(max_iterations)
         self.tol = float(tol)
         self.plateau = float(plateau)
@@ -45,13 +54,29 @@ class StoppingPolicy:
         self.change = np.inf
         self.misfits: list[float] = []
         self.plateau_from = 0   # first misfit of the current batch size: the plateau test looks no further back
+        self.patience = int(held_back_patience)
+        self.best_held_back = np.inf
+        self.best_iteration = 0
+        self.improved = False
 
-    def record(self, misfit: float, change: float) -> bool:
-        """Count one iteration; True when the misfit is flat and the engine should grow its batches now."""
+    def record(self, misfit: float, change: float, held_back: float = np.nan) -> bool:
+        """Count one iteration; True when the misfit is flat and the engine should grow its batches now.
+
+        ``held_back`` is the misfit of the captures held back from the updates (NaN: none are);
+        :attr:`improved` then says whether it reached a new best.
+        """
         self.misfits.append(float(misfit))
         self.change = float(change)
         self.iteration += 1
+        self.improved = bool(held_back < self.best_held_back)
+        if self.improved:
+            self.best_held_back, self.best_iteration = float(held_back), self.iteration
         return self._can_grow() and self.flat()
+
+    def held_back_stale(self) -> bool:
+        """Whether the held-back misfit has reached no new best for ``held_back_patience`` iterations."""
+        return self.patience > 0 and np.isfinite(self.best_held_back) and \
+            self.iteration - self.best_iteration >= self.patience
 
     def grew(self) -> None:
         """The engine enlarged its batches: the plateau test starts afresh from the next iteration."""
@@ -69,13 +94,16 @@ class StoppingPolicy:
         return not self._can_grow() and self.flat()
 
     def done(self) -> bool:
-        """Whether the run ends now: the cap, a change below ``tol``, or the plateau."""
-        return self.iteration >= self.max_iterations or self.change < self.tol or self.on_plateau()
+        """Whether the run ends now: the cap, a change below ``tol``, the plateau, or a stale held-back misfit."""
+        return (self.iteration >= self.max_iterations or self.change < self.tol or self.on_plateau()
+                or self.held_back_stale())
 
     def reason(self) -> str:
-        """Why the run ended (or would end now): ``tol``, ``plateau`` or ``cap``."""
+        """Why the run ended (or would end now): ``tol``, ``plateau``, ``held_back`` or ``cap``."""
         if self.change < self.tol:
             return "tol"
+        if self.held_back_stale():
+            return "held_back"
         if self.on_plateau():
             return "plateau"
         return "cap" if self.iteration >= self.max_iterations else "tol"
@@ -83,7 +111,8 @@ class StoppingPolicy:
     def state(self) -> dict:
         """The counters a restored run continues from."""
         return {"iteration": self.iteration, "change": self.change, "misfits": np.asarray(self.misfits, np.float64),
-                "plateau_from": self.plateau_from}
+                "plateau_from": self.plateau_from, "best_held_back": self.best_held_back,
+                "best_iteration": self.best_iteration}
 
     def restore(self, state: dict) -> None:
         """Continue from :meth:`state`."""
@@ -91,3 +120,5 @@ class StoppingPolicy:
         self.change = float(state["change"])
         self.misfits = [float(v) for v in state.get("misfits", ())]
         self.plateau_from = int(state.get("plateau_from", 0))
+        self.best_held_back = float(state.get("best_held_back", np.inf))
+        self.best_iteration = int(state.get("best_iteration", 0))
