@@ -92,6 +92,10 @@ def forward_check(data: Prepared, families: list[str], workdir: Path, timeout: f
     pupil = circle_pupils(n, [[0.0, 0.0]], data.radius)[0]
     model = cca_integer_model(data, m)
     reference = model.sensor_intensity(spectrum)
+    if reference.shape[-1] != n:  # oversampled frames: cca models them on the intensity band's grid (exact)
+        from cca_cli.optics.fft import fourier_resample
+
+        reference = fourier_resample(reference, n)
     common = Recovery(spectrum, pupil[None], np.zeros(len(data.windows), int), data.windows)
     from real_model import predicted_fields
 
@@ -131,10 +135,13 @@ def forward_check(data: Prepared, families: list[str], workdir: Path, timeout: f
 # ----------------------------------------------------------------------------- peers
 
 def run_peer(method: str, options: dict, iterations: int, data: Prepared, workdir: Path, timeout: float,
-             *, reuse: bool = False) -> dict:
+             *, reuse: bool = False, input_key: str | None = None) -> dict:
     """Run one peer configuration; returns its curve of common-representation snapshots.
 
-    With ``reuse`` an output file left by an earlier run is read instead of running the peer again.
+    With ``reuse`` an output file left by an earlier run is read instead of running the peer again;
+    with ``input_key`` too, only if that run recorded the same key (a digest of its inputs).
+    The result's ``startup_s`` is the time from launching the worker to its first iteration
+    (interpreter, imports, problem build), when the worker reports it.
     """
     workdir = workdir.resolve()
     family = method.split(":")[0]
@@ -143,14 +150,21 @@ def run_peer(method: str, options: dict, iterations: int, data: Prepared, workdi
         return {"status": "skipped", "reason": python}
     out = workdir / f"{method.replace(':', '_')}_{options.get('label', 'default')}.npz"
     opts = {k: v for k, v in options.items() if k != "label"}
+    record = out.with_suffix(".run.json")
+    previous = json.loads(record.read_text()) if record.exists() else {}
+    reused = reuse and out.exists() and (input_key is None or previous.get("input_key") == input_key)
     start = time.perf_counter()
+    launch = time.time()
     try:
-        if not (reuse and out.exists()):
+        if not reused:
+            record.unlink(missing_ok=True)
             _worker(python, ["run", method, str(data.peer_data), str(out), "--iterations", str(iterations),
                              "--options", json.dumps(opts)], timeout, out.with_suffix(".log"))
+            previous = {"input_key": input_key, "launch_epoch": launch, "wall_s": time.perf_counter() - start}
+            record.write_text(json.dumps(previous))
     except (RuntimeError, subprocess.TimeoutExpired) as exc:
         return {"status": "failed", "reason": str(exc)[-400:]}
-    wall = time.perf_counter() - start
+    wall = previous.get("wall_s", time.perf_counter() - start)
     with np.load(out) as res:
         raw = {k: res[k] for k in res.files}
     n = data.intensity.shape[-1]
@@ -160,8 +174,11 @@ def run_peer(method: str, options: dict, iterations: int, data: Prepared, workdi
         snaps.append((int(i), float(raw["seconds"][int(i) - 1]),
                       Recovery(spectrum, pupil[None], np.zeros(k, int), data.windows)))
     assert all(s[2].n == n for s in snaps)
+    startup = None
+    if "clock_start_epoch" in raw and "launch_epoch" in previous:
+        startup = float(raw["clock_start_epoch"]) - float(previous["launch_epoch"])
     return {"status": "ok", "seconds": raw["seconds"].tolist(), "snaps": snaps, "notes": str(raw["notes"]),
-            "python": str(raw["python"]), "wall_s": wall,
+            "python": str(raw["python"]), "wall_s": wall, "startup_s": startup, "reused": reused,
             "own_intensity": raw.get("own_intensity"), "own_loss": float(raw["own_loss"]) if "own_loss" in raw else None}
 
 

@@ -15,15 +15,32 @@ Capture k's field is ``ifft2c(S[window_k] · P[pupil_index[k]])``; sub-pixel
 pupil centres live in the pupils themselves (one pupil per capture, drawn at
 its fractional offset from the window centre). Numpy only, so the peer
 workers (other virtual environments) can use it too.
+
+The *common reading* (:func:`common_reading`, used by ``real_corpus.py``) judges
+every tool's object the same way, whatever pupil the tool recovered with it:
+
+1. the object on an integer upsampling of the frame grid (the whole, possibly
+   padded, periodic grid Fourier-resampled, then the frame region cut:
+   :func:`object_on_frame_grid`);
+2. shifted by the sub-pixel offset (phase correlation, 1/20 px) that aligns its
+   predicted centre capture (nominal pupil) with the measured one
+   (:func:`phase_correlation`); a pupil tilt is an object shift;
+3. one common complex pupil map A refitted on the pupil support with the object
+   fixed: 40 averaged EPRY steps from A = 1 (:func:`refit_pupil`), the object first
+   scaled by the least-squares factor of its A = 1 predictions (tools scale their
+   objects as they like; without it A spends its steps on the scale);
+4. the amplitude residual after one global scale over each frame's interior.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-__all__ = ["Recovery", "circle_pupils", "predicted_fields", "embed_centred", "ifft2c", "fft2c"]
+__all__ = ["Recovery", "circle_pupils", "predicted_fields", "embed_centred", "ifft2c", "fft2c",
+           "object_on_frame_grid", "phase_correlation", "shift_spectrum", "FrameModel", "refit_pupil",
+           "common_reading", "Reading"]
 
 
 def fft2c(x: np.ndarray) -> np.ndarray:
@@ -132,3 +149,296 @@ def predicted_fields(rec: Recovery, *, brightness: bool = False, chunk: int = 64
         y0, x0, h, w = rec.crop_yxhw
         out = np.ascontiguousarray(out[:, y0:y0 + h, x0:x0 + w])
     return out
+
+
+# ----------------------------------------------------------------------------- the common reading
+
+def _fft(x: np.ndarray, inverse: bool = False) -> np.ndarray:
+    """Centred orthonormal 2-D FFT of the last two axes (scipy's threaded FFT where it is installed)."""
+    try:
+        import scipy.fft as sfft
+
+        func = sfft.ifft2 if inverse else sfft.fft2
+        return sfft.fftshift(func(sfft.ifftshift(x, axes=(-2, -1)), norm="ortho", workers=-1), axes=(-2, -1))
+    except ImportError:  # pragma: no cover - the peer environments
+        return ifft2c(x) if inverse else fft2c(x)
+
+
+def _plain_fft(x: np.ndarray, inverse: bool = False) -> np.ndarray:
+    """Orthonormal 2-D FFT of the last two axes, no shifts (scipy's threaded FFT where installed)."""
+    try:
+        import scipy.fft as sfft
+
+        return (sfft.ifft2 if inverse else sfft.fft2)(x, norm="ortho", workers=-1)
+    except ImportError:  # pragma: no cover - the peer environments
+        return (np.fft.ifft2 if inverse else np.fft.fft2)(x, norm="ortho")
+
+
+def object_on_frame_grid(rec: Recovery, factor: int) -> np.ndarray:
+    """A recovery's object on a ``factor``-times upsampling of the frame grid (frame region only).
+
+    The whole recovered grid (for a padded recovery: the periodic padded grid, of
+    ``rec.n`` frame pixels) is Fourier-resampled to ``factor·rec.n`` samples (its
+    centred spectrum zero-padded or cropped about DC), and then the frame region
+    is cut; a cut region is never resampled.
+
+    Parameters
+    ----------
+    rec : Recovery
+    factor : int
+        Samples per frame pixel.
+
+    Returns
+    -------
+    ndarray, complex128, (factor·h, factor·w)
+        The object, scaled so that a flat object keeps its amplitude.
+    """
+    spectrum = np.asarray(rec.spectrum, np.complex128)
+    m = spectrum.shape[-1]
+    size = factor * rec.n
+    grid = np.zeros((size, size), np.complex128)
+    if m <= size:
+        lo = size // 2 - m // 2
+        grid[lo:lo + m, lo:lo + m] = spectrum
+    else:
+        lo = m // 2 - size // 2
+        grid[:] = spectrum[lo:lo + size, lo:lo + size]
+    obj = _fft(grid, inverse=True) * (size / m)
+    if rec.crop_yxhw is not None:
+        y0, x0, h, w = rec.crop_yxhw
+        obj = obj[factor * y0:factor * (y0 + h), factor * x0:factor * (x0 + w)]
+    return obj
+
+
+def _upsampled_dft(data: np.ndarray, size: int, factor: int, offsets) -> np.ndarray:
+    """Cross-correlation near ``offsets`` sampled ``factor`` times finer (Guizar-Sicairos' matrix DFT)."""
+    rows, cols = data.shape
+    kc = np.fft.ifftshift(np.arange(cols)) - cols // 2
+    kr = np.fft.ifftshift(np.arange(rows)) - rows // 2
+    col_kernel = np.exp(-2j * np.pi / (cols * factor) * np.outer(kc, np.arange(size) - offsets[1]))
+    row_kernel = np.exp(-2j * np.pi / (rows * factor) * np.outer(np.arange(size) - offsets[0], kr))
+    return row_kernel @ data @ col_kernel
+
+
+def phase_correlation(reference: np.ndarray, moving: np.ndarray, upsample: int = 20) -> np.ndarray:
+    """Shift [dy, dx] (frame pixels, to 1/``upsample`` px) with ``moving(r − d) ≈ reference(r)``.
+
+    Phase correlation (whitened cross-power spectrum), the integer peak refined by
+    an upsampled matrix DFT over ±1.5 px around it.
+
+    Parameters
+    ----------
+    reference, moving : ndarray, (H, W)
+        Real images of one size.
+    upsample : int, optional
+        Subdivisions of a pixel.
+
+    Returns
+    -------
+    ndarray, float64, (2,)
+    """
+    a = np.fft.fft2(np.asarray(reference, np.float64) - np.mean(reference))
+    b = np.fft.fft2(np.asarray(moving, np.float64) - np.mean(moving))
+    cross = a * np.conj(b)
+    cross /= np.maximum(np.abs(cross), 1e-30)
+    corr = np.abs(np.fft.ifft2(cross))
+    peak = np.array(np.unravel_index(int(np.argmax(corr)), corr.shape), np.float64)
+    shape = np.array(corr.shape)
+    peak = np.where(peak > shape // 2, peak - shape, peak)
+    size = int(np.ceil(upsample * 1.5))
+    centre = size // 2
+    fine = np.abs(_upsampled_dft(np.conj(cross), size, upsample, centre - peak * upsample))
+    top = np.array(np.unravel_index(int(np.argmax(fine)), fine.shape), np.float64)
+    return peak + (top - centre) / upsample
+
+
+def shift_spectrum(spectrum: np.ndarray, shift_yx, pixels: int) -> np.ndarray:
+    """Centred spectrum of the object moved by ``shift_yx`` pixels (a grid of ``pixels`` pixels per period)."""
+    m = spectrum.shape[-1]
+    k = np.arange(m) - m // 2
+    ramp_y = np.exp(-2j * np.pi * k * float(shift_yx[0]) / pixels)
+    ramp_x = np.exp(-2j * np.pi * k * float(shift_yx[1]) / pixels)
+    return spectrum * ramp_y[:, None] * ramp_x[None, :]
+
+
+@dataclass
+class FrameModel:
+    """The measured frames and their geometry, as the common reading uses them.
+
+    Attributes
+    ----------
+    intensity : ndarray, (K, n, n)
+        Measured intensities.
+    weight : ndarray of bool, (K, n, n) or None
+        False where a pixel is not to be fitted (clipped); None: every pixel.
+    centres : ndarray, (K, 2)
+        Fractional pupil centres [y, x] in frame-spectrum pixels relative to DC.
+    radius : float
+        Pupil radius (frame-spectrum pixels).
+    bright_field : ndarray of bool, (K,)
+    centre_index : int
+        The capture nearest to normal incidence.
+    margin : int
+        Pixels left out at each frame edge when replacing magnitudes and in the residual.
+    """
+
+    intensity: np.ndarray
+    weight: np.ndarray | None
+    centres: np.ndarray
+    radius: float
+    bright_field: np.ndarray
+    centre_index: int
+    margin: int
+
+    @property
+    def n(self) -> int:
+        return int(self.intensity.shape[-1])
+
+    def interior(self) -> np.ndarray:
+        """(K, n, n) bool: the pixels the reading fits (interior, and weight > 0)."""
+        n, m = self.n, self.margin
+        mask = np.zeros(self.intensity.shape, bool)
+        mask[:, m:n - m, m:n - m] = True
+        if self.weight is not None:
+            mask &= np.asarray(self.weight, bool)
+        return mask
+
+    def discs(self) -> np.ndarray:
+        """(K, n, n) each capture's disc (anti-aliased edge) at its fractional offset from its window centre."""
+        windows = np.rint(self.centres)
+        return circle_pupils(self.n, self.centres - windows, self.radius, edge_px=1.0)
+
+
+def _windows(spectrum: np.ndarray, frames: FrameModel) -> np.ndarray:
+    """W_j = the object spectrum's n × n window at capture j × its disc (complex64, (K, n, n))."""
+    discs = frames.discs()
+    rec = Recovery(spectrum, discs, np.arange(len(discs)), np.rint(frames.centres).astype(np.int64))
+    m, n = spectrum.shape[-1], frames.n
+    pad = n
+    padded = np.zeros((m + 2 * pad, m + 2 * pad), np.complex64)
+    padded[pad:pad + m, pad:pad + m] = spectrum
+    origins = rec.windows + m // 2 - n // 2 + pad
+    out = np.empty((len(discs), n, n), np.complex64)
+    for j, (y, x) in enumerate(origins):
+        out[j] = padded[y:y + n, x:x + n] * discs[j]
+    return out
+
+
+def refit_pupil(windows: np.ndarray, frames: FrameModel, steps: int = 40) -> np.ndarray:
+    """One common complex pupil map A fitted to the frames with the object fixed.
+
+    Starting from A = 1, ``steps`` averaged EPRY steps
+    ``A += Σ_j conj(W_j)(F ψ'_j − W_j A) / (Σ_j |W_j|² + 1e-3 max Σ_j |W_j|²)``,
+    ψ'_j the field ``F⁻¹(W_j A)`` with its magnitude replaced by the measured one
+    (on the frame interior and unclipped pixels; elsewhere it keeps its own).
+
+    Parameters
+    ----------
+    windows : ndarray, complex, (K, n, n)
+        W_j: the object's window times capture j's disc at its fractional centre.
+    frames : FrameModel
+    steps : int, optional
+
+    Returns
+    -------
+    ndarray, complex64, (n, n)
+    """
+    # the loop runs in the FFTs' own (unshifted) layout: every array is ifftshifted once
+    def native(x):
+        return np.ascontiguousarray(np.fft.ifftshift(x, axes=(-2, -1)))
+
+    amplitude = native(np.sqrt(np.clip(frames.intensity, 0, None)).astype(np.float32))
+    mask = native(frames.interior())
+    w = native(np.asarray(windows, np.complex64))
+    conj = np.conj(w)
+    power = np.sum((w * conj).real, axis=0)
+    denominator = (power + 1e-3 * power.max()).astype(np.float32)
+    pupil = np.ones(w.shape[-2:], np.complex64)
+    for _ in range(steps):
+        field = _plain_fft(w * pupil, inverse=True)
+        magnitude = np.abs(field)
+        ratio = np.divide(amplitude, magnitude, out=np.ones_like(magnitude), where=mask & (magnitude > 0))
+        field *= ratio
+        back = _plain_fft(field)
+        back *= conj
+        update = back.sum(axis=0) - pupil * power
+        pupil = (pupil + update / denominator).astype(np.complex64)
+    pupil = np.fft.fftshift(pupil)
+    return pupil
+
+
+@dataclass
+class Reading:
+    """One object read the common way.
+
+    Attributes
+    ----------
+    obj : ndarray, complex128, (f·n, f·n)
+        The aligned object on the upsampled frame grid, in units of √(measured intensity).
+    shift_px : ndarray, (2,)
+        The sub-pixel shift applied (frame pixels).
+    pupil : ndarray, complex64, (n, n)
+        The refitted common pupil map A.
+    residual : dict
+        ``all``, ``bright_field``, ``dark_field``, ``scale`` over the frames' interiors.
+    """
+
+    obj: np.ndarray
+    shift_px: np.ndarray
+    pupil: np.ndarray
+    residual: dict
+
+
+def common_reading(rec: Recovery, frames: FrameModel, factor: int, *, steps: int = 40) -> Reading:
+    """Read one recovery the common way (see the module notes).
+
+    Parameters
+    ----------
+    rec : Recovery
+        Any tool's result.
+    frames : FrameModel
+    factor : int
+        Samples per frame pixel of the object grid (``factor·n`` must hold the
+        synthetic band for the reading to keep all of it).
+    steps : int, optional
+        EPRY steps of the pupil refit.
+
+    Returns
+    -------
+    Reading
+    """
+    obj = object_on_frame_grid(rec, factor)
+    size = obj.shape[-1]
+    if obj.shape != (factor * frames.n, factor * frames.n):
+        raise ValueError(f"object region {obj.shape} is not {factor}× the {frames.n}² frames")
+    m = frames.margin
+    n = frames.n
+    c = frames.centre_index
+    centre = FrameModel(frames.intensity[c:c + 1], None, frames.centres[c:c + 1], frames.radius,
+                        frames.bright_field[c:c + 1], 0, m)
+    predicted = np.abs(_fft(_windows(_fft(obj), centre), inverse=True)[0]) ** 2
+    shift = phase_correlation(frames.intensity[c, m:n - m, m:n - m], predicted[m:n - m, m:n - m])
+    # the shift moves the whole (padded, periodic) grid; the frame region is cut again afterwards
+    moved = replace(rec, spectrum=shift_spectrum(np.asarray(rec.spectrum, np.complex128), shift, rec.n))
+    spectrum = _fft(object_on_frame_grid(moved, factor))
+    windows = _windows(spectrum, frames)
+    mask = frames.interior()
+    measured = np.sqrt(np.clip(frames.intensity, 0, None)) * mask
+    # tools scale their objects as they like: one least-squares scale first, so that A = 1 starts at the data's level
+    start = np.abs(_fft(windows, inverse=True)) * mask
+    level = float(np.sum(start * measured) / np.sum(start * start))
+    windows *= np.float32(level)
+    spectrum = spectrum * level
+    pupil = refit_pupil(windows, frames, steps)
+    model = np.abs(_fft(windows * pupil, inverse=True))
+    from cca_cli.metrics import split_amplitude_residual  # the project's metric (main environment only)
+
+    split = split_amplitude_residual(model * mask, measured, frames.bright_field)
+    from_split = {"all": split.all, "bright_field": split.bright_field, "dark_field": split.dark_field,
+                  "scale": split.scale}
+    # display units: |ψ| = |object|·|A|·size/n for a flat object under orthonormal transforms
+    disc = np.hypot(*np.mgrid[:n, :n] - n // 2) <= frames.radius
+    gain = float(np.mean(np.abs(pupil[disc])))
+    aligned = _fft(spectrum, inverse=True) * from_split["scale"] * gain * size / n
+    return Reading(aligned, shift, pupil, from_split)
+

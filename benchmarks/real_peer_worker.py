@@ -22,7 +22,8 @@ writes ``intensity`` (K, n, n); also ``default_pupil`` (the peer's own initial
 pupil, common convention) and ``default_intensity`` (its forward with it).
 
 ``run`` reconstructs and writes ``seconds`` (cumulative, snapshot copies
-excluded), ``snap_iterations``, ``snap_spectra`` (S, M, M), ``snap_pupils``
+excluded, from ``clock_start_epoch``: the wall-clock time, ``time.time()``, at which
+the first iteration starts, so a caller can add the start-up before it), ``snap_iterations``, ``snap_spectra`` (S, M, M), ``snap_pupils``
 (S, n, n) in the common convention, ``own_check`` (the peer's own figure for
 its final state: PtyLab's predicted intensities, fpm-rs's loss), ``notes``.
 """
@@ -57,9 +58,11 @@ class Recorder:
         self.snaps: list[tuple[int, np.ndarray, np.ndarray]] = []
         self._excluded = 0.0
         self._start = time.perf_counter()
+        self.start_epoch = time.time()
 
     def restart(self) -> None:
         self._start, self._excluded = time.perf_counter(), 0.0
+        self.start_epoch = time.time()
 
     def iteration_done(self, get_state) -> None:
         now = time.perf_counter()
@@ -259,6 +262,7 @@ def fpmrs_run(algorithm: str, data: dict, iterations: int, options: dict, workdi
 
     # fpm-rs runs a whole schedule in one call: the clock comes from a run without callbacks,
     # per-iteration states from its checkpoints, resumed for one step each.
+    start_epoch = time.time()
     clean = make(iterations=iterations, **options).run(problem)
     stamps = np.array([t for _, _, t in clean.history], np.float64)
     checkpoints = workdir / f"fpmrs_{algorithm}_checkpoints"
@@ -269,6 +273,7 @@ def fpmrs_run(algorithm: str, data: dict, iterations: int, options: dict, workdi
     wanted = sorted(recorder.wanted)
     make(iterations=iterations, **options).run(problem, callbacks=[fpm_rs.CheckpointEvery(1, str(checkpoints))])
     recorder.seconds = [float(t) for t in stamps]
+    recorder.start_epoch = start_epoch
     zero = dict(options, object_step=1e-12)
     if algorithm == "epry":
         zero["pupil_step"] = 1e-12
@@ -327,7 +332,7 @@ def main() -> None:
         extra["own_loss"] = result["own_loss"]
     np.savez(args.out, seconds=np.array(rec.seconds), snap_iterations=np.array([s[0] for s in rec.snaps]),
              snap_spectra=np.stack([s[1] for s in rec.snaps]), snap_pupils=np.stack([s[2] for s in rec.snaps]),
-             notes=result["notes"], python=sys.version.split()[0], **extra)
+             notes=result["notes"], python=sys.version.split()[0], clock_start_epoch=rec.start_epoch, **extra)
 
 
 if __name__ == "__main__":
