@@ -246,8 +246,13 @@ def _nested_rows(summary: dict) -> list[tuple[str, str]]:
     """Rows for the report's nested entries: stop reason, USAF reading, baselines and speckle contrast."""
     rows = []
     if summary.get("stopped_by"):
-        reasons = {"tol": "tol", "plateau": "misfit plateau", "cap": "iteration cap (before tol)"}
+        reasons = {"tol": "tol", "plateau": "misfit plateau", "cap": "iteration cap (before tol)",
+                   "held_back": "held-back captures stopped improving"}
         rows.append(("stopped by", reasons.get(summary["stopped_by"], summary["stopped_by"])))
+    if summary.get("held_back_captures"):
+        rows.append(("held-back captures: residual (best, at iteration)",
+                     f"{summary['residual_held_back']:.4f} ({summary['held_back_captures']} images, "
+                     f"iteration {summary['held_back_best_iteration']})"))
     if summary.get("dropped_captures"):
         rows.append(("dead captures left out (images)", ", ".join(str(i) for i in summary["dropped_captures"])))
     zernike = summary.get("zernike_waves") or {}

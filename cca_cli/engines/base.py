@@ -106,6 +106,8 @@ class IterativeEngine(ABC):
     stopping: StoppingPolicy
     #: Relative misfit of the captures held back from the updates after the last iteration (NaN: none held back).
     held_back_residual: float = float("nan")
+    #: Indices (problem order) of the captures the engine holds back from its updates.
+    held_back: np.ndarray = np.zeros(0, np.int64)
 
     @abstractmethod
     def update(self) -> tuple[float, float]:

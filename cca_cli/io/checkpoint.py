@@ -51,7 +51,7 @@ def write_checkpoint(path: Path, provenance: Provenance, fingerprint: str, state
                 write_dataset(handle, f"/checkpoint/{name}", value)
             else:
                 group.attrs[name] = value
-        for name in _HISTORY:
+        for name in history:
             write_dataset(handle, f"/history/{name}", np.asarray(history[name], np.float64))
 
 
@@ -65,7 +65,9 @@ def read_checkpoint(path: Path) -> Checkpoint | None:
             state = {name: np.asarray(group[name]) for name in group}
             state.update({name: value for name, value in group.attrs.items() if name != "fingerprint"})
             fingerprint = group.attrs["fingerprint"]
-            history = {name: np.asarray(handle[f"/history/{name}"], np.float64) for name in _HISTORY}
+            history = {name: np.asarray(handle[f"/history/{name}"], np.float64) for name in handle["history"]}
+            if not set(_HISTORY) <= set(history):
+                return None
     except (OSError, KeyError, ValueError):
         return None
     fingerprint = fingerprint.decode() if isinstance(fingerprint, bytes) else str(fingerprint)

@@ -133,7 +133,8 @@ def write_recon(path: Path, result: Reconstruction, provenance: Provenance, *, f
         write_dataset(handle, SPECTRUM, result.spectrum, units=units and f"√({units}) · px")
         write_dataset(handle, OBJECT, obj, units=units and f"√({units})")
         write_dataset(handle, RECON_INTENSITY, (np.abs(obj) ** 2).astype(np.float32), units=units)
-        for name in History.COLUMNS:
+        columns = result.history.keys()
+        for name in columns:
             described = {} if tiles is None else {"description": f"Median over the tiles of the {name} per "
                                                                  "iteration (seconds: the longest tile's); a tile "
                                                                  "that stopped earlier holds its last value."}
@@ -164,6 +165,9 @@ def write_recon(path: Path, result: Reconstruction, provenance: Provenance, *, f
         recon.attrs["fft_backend"] = fft.backend_name()
         if result.dropped:
             recon.attrs["dropped_captures"] = np.asarray(result.dropped, np.int32)
+        if result.held_back:
+            write_dataset(handle, "/recon/held_back_captures", np.asarray(result.held_back, np.int32))
+            recon.attrs["residual_held_back"] = float(np.nanmin(result.history["held_back"]))
         if tiles is not None:
             for j, name in enumerate(_RESIDUALS):
                 values = tiles.residual[:, j][np.isfinite(tiles.residual[:, j])]
@@ -244,6 +248,10 @@ def read_recon(path: Path) -> ReconFile:
         read_finite(handle, RECON_INTENSITY, ndim=2, dtype=np.float32)   # checked: what export and viewers read
         observed = read_finite(handle, OBSERVED, ndim=2, dtype=np.float32)
         columns = {name: np.asarray(require(handle, f"/history/{name}", ndim=1)) for name in History.COLUMNS}
+        columns.update({name: np.asarray(handle[f"/history/{name}"]) for name in History.OPTIONAL
+                        if f"/history/{name}" in handle})
+        held_back = (tuple(int(i) for i in handle["/recon/held_back_captures"][()])
+                     if "/recon/held_back_captures" in handle else ())
         recon = require(handle, SPECTRUM).parent
         attrs = dict(recon.attrs)
         attrs.update(engine=require_attr(recon, "engine", str), iterations=require_attr(recon, "iterations", int),
@@ -273,7 +281,7 @@ def read_recon(path: Path) -> ReconFile:
         engine=str(attrs["engine"]), options=json.loads(_text(attrs.get("engine_options", "{}"))),
         seconds=float(attrs["seconds"]), stopped_by=_text(attrs.get("stopped_by", "")), observed=observed,
         truth=truth, units=None if units in ("", "irradiance") else units, band_grid_px=int(attrs["lowres_size"]),
-        pupil=pupil, positions_px=positions, region=region, dropped=dropped)
+        pupil=pupil, positions_px=positions, region=region, dropped=dropped, held_back=held_back)
     return ReconFile(result=result, attrs=attrs, calibration=calibration, tiles=tiles, region_px=region_px,
                      multiplex=multiplex, capture_summary=capture_summary)
 

@@ -99,6 +99,12 @@ DATASETS: tuple[DatasetSpec, ...] = (
                 "Relative data misfit ‖w(|ψ| − √I)‖ / ‖w √I‖ per iteration."),
     DatasetSpec("/history/change", "float64", "(iterations,)", "1", "Relative spectrum change per iteration."),
     DatasetSpec("/history/seconds", "float64", "(iterations,)", "s", "Wall time at the end of each iteration."),
+    DatasetSpec("/history/held_back", "float64", "(iterations,)", "1",
+                "Runs that held captures back from the updates (reconstruct.options.hold_back): their relative "
+                "amplitude misfit after each iteration, which ends the run when it stops improving."),
+    DatasetSpec("/recon/held_back_captures", "int32", "(H,)", "1",
+                "Captures (indices of the recovered set) held back from the updates to judge when to stop; "
+                "attribute residual_held_back of /recon: their best misfit."),
     DatasetSpec("/checkpoint/spectrum", "complex64", "(M, M)", "√irradiance · px",
                 "<output>.checkpoint only (written by reconstruct every reconstruct.checkpoint_every iterations, "
                 "removed once the output is written): the spectrum so far. Attributes of /checkpoint: fingerprint "

@@ -131,6 +131,9 @@ class Reconstruction:
         when ``object`` is the whole grid.
     dropped : tuple of int
         Captures left out as dead (constant images).
+    held_back : tuple of int
+        Captures (of those recovered) the engine held back from its updates to judge when to stop;
+        ``history["held_back"]`` is their misfit.
     """
 
     object: np.ndarray
@@ -151,6 +154,7 @@ class Reconstruction:
     fit: FitReport | None = None
     region: RegionEmbedding | None = None
     dropped: tuple[int, ...] = ()
+    held_back: tuple[int, ...] = ()
 
     def __post_init__(self):
         if not isinstance(self.history, History):  # columns by name, as a user may write them

@@ -282,7 +282,7 @@ def write_figures(directory: Path, *, observed: np.ndarray, recovered_object: np
                   pupil_centres_px: np.ndarray, pupil_radius_px: float, field_width_m: float,
                   residual: np.ndarray, change: np.ndarray, summary: dict, truth: np.ndarray | None = None,
                   units: str = "irradiance", region=None, grid_indices: np.ndarray | None = None,
-                  spectrum_field_width_m: float | None = None) -> list[Path]:
+                  spectrum_field_width_m: float | None = None, held_back: np.ndarray | None = None) -> list[Path]:
     """Write the report's PNGs into ``directory`` and return their paths.
 
     Parameters
@@ -303,6 +303,8 @@ def write_figures(directory: Path, *, observed: np.ndarray, recovered_object: np
         ``field_width_m · H/W``.
     residual, change : ndarray
         Convergence history.
+    held_back : ndarray, optional
+        Misfit of the captures held back from the updates, per iteration.
     summary : dict
         The report (titles, contrast tables, ``tol``, ``stopped_by``).
     truth : ndarray, optional
@@ -366,7 +368,7 @@ def write_figures(directory: Path, *, observed: np.ndarray, recovered_object: np
     if "contrast_observed" in summary:
         paths.append(_contrast(plt, directory / "contrast.png", summary))
     if len(residual):
-        paths.append(_convergence(plt, directory / "convergence.png", residual, change, summary))
+        paths.append(_convergence(plt, directory / "convergence.png", residual, change, summary, held_back))
     return paths
 
 
@@ -493,15 +495,21 @@ def _contrast(plt, path: Path, summary: dict) -> Path:
     return _save(plt, fig, path)
 
 
-def _convergence(plt, path: Path, residual, change, summary: dict) -> Path:
+def _convergence(plt, path: Path, residual, change, summary: dict, held_back=None) -> Path:
     fig, ax = plt.subplots(figsize=(6.4, 4.2), dpi=_DPI)
     it = np.arange(1, len(residual) + 1)
     ax.semilogy(it, residual, label="data residual")
+    if held_back is not None:
+        ax.semilogy(it, held_back, label="held-back captures' residual")
+        best = summary.get("held_back_best_iteration")
+        if best:
+            ax.axvline(best, color="gray", lw=0.8, ls="--", label=f"best held-back fit (iteration {best})")
     ax.semilogy(it, np.maximum(change, 1e-12), label="relative change")
     tol = summary.get("tol")
     if tol:
         ax.axhline(tol, color="gray", lw=0.8, ls=":", label=f"tol {tol:g}")
     stopped = {"tol": "change fell below tol", "plateau": "misfit stopped falling (plateau)",
+               "held_back": "held-back captures stopped improving",
                "cap": "iteration cap reached before tol"}.get(summary.get("stopped_by"))
     ax.set_xlabel("iteration")
     ax.set_ylabel("relative value")

@@ -87,7 +87,7 @@ class Checkpointing:
         now = time.perf_counter()
         if now - self._last < _CHECKPOINT_SPACING * self._cost:
             return
-        columns = {name: history.array(name) for name in ("residual", "change", "seconds")}
+        columns = {name: history.array(name) for name in history.keys()}
         write_checkpoint(self.path, self.provenance, self.fingerprint, engine.state(), columns)
         self._last = time.perf_counter()
         self._cost, self._since = self._last - now, 0

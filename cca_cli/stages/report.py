@@ -52,6 +52,11 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
     summary.update(_stopping(attrs, change))
     if "dropped_captures" in attrs:
         summary["dropped_captures"] = [int(i) for i in np.atleast_1d(attrs["dropped_captures"])]
+    held_back = result.history["held_back"] if result.held_back else None
+    if held_back is not None:
+        best = int(np.nanargmin(held_back))
+        summary.update(held_back_captures=len(result.held_back), residual_held_back=round(float(held_back[best]), 5),
+                       held_back_best_iteration=best + 1)
     summary["intensity_units"] = units
     summary.update(capture_summary)
     if calibration is not None:
@@ -91,7 +96,8 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
                                     pupil_radius_px=geometry.pupil_radius_px,
                                     field_width_m=geometry.field_width_m * obj.shape[-1] / int(attrs.get("hires_size")),
                                     spectrum_field_width_m=geometry.field_width_m,
-                                    residual=residual, change=change, summary=summary, truth=truth, units=units,
+                                    residual=residual, change=change, held_back=held_back, summary=summary,
+                                    truth=truth, units=units,
                                     region=region, grid_indices=geometry.grid_indices)
             if comparison:
                 from cca_cli.report.figures import write_comparison_figures

@@ -180,3 +180,32 @@ def test_batch_growth_survives_a_checkpoint_restore():
 def test_batch_growth_is_checked():
     with pytest.raises(ValueError, match="batch_growth must be ≥ 1"):
         MomentumOptions(batch_growth=0)
+
+
+def test_the_captures_held_back_spread_from_the_bright_field_outwards_and_spare_the_axis():
+    from cca_cli.engines.momentum import held_back_captures
+
+    centres = square_scan(9, 5.0).centres_yx_m
+    radius = 8.0
+    held = held_back_captures(centres, radius, 0.1)
+    distance = np.hypot(*centres.T)
+    assert held.size == 8 and int(np.argmin(distance)) not in held
+    assert np.any(distance[held] < radius) and np.any(distance[held] >= radius)
+    assert distance[held].max() == distance.max()                      # the outermost dark field too
+    assert held_back_captures(centres, radius, 0.0).size == 0
+
+
+def test_captures_held_back_end_the_run_and_it_returns_to_their_best_fit():
+    problem = make_case(position_error=1.0, seed=3)[0]   # positions off: the model cannot fit every capture
+    options = MomentumOptions(max_iterations=300, tol=0, batch=4, eta=0.7, hold_back=0.1, hold_back_patience=4)
+    engine = SequentialMomentum(problem, options)
+    spectra, held = [], []
+    while not engine.done():
+        engine.update()
+        spectra.append(engine.spectrum().copy())
+        held.append(engine.held_back_residual)
+    engine.close()
+    best = int(np.argmin(held))
+    assert engine.stop_reason() == "held_back" and len(held) - 1 - best == 4
+    np.testing.assert_array_equal(engine.spectrum(), spectra[best])   # the run returned to its best state
+    assert 0 < held[best] < held[0]
