@@ -52,7 +52,8 @@ class AlternatingMinimization(IterativeEngine):
         self._pass = ChunkedPass(model, chunk=options.chunk, threads=options.threads, slices=self._pass_slices())
         self._data_norm = problem.energy
         self._eps = problem.amplitude_floor
-        self.stopping = StoppingPolicy(max_iterations=options.max_iterations, tol=options.tol)
+        self.stopping = StoppingPolicy(max_iterations=options.max_iterations, tol=options.tol, plateau=options.plateau,
+                                       plateau_window=options.plateau_window)
 
     def _pass_slices(self) -> list[slice] | None:
         """Capture ranges processed together (None: plain chunks); subclasses keep groups whole."""

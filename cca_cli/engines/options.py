@@ -92,15 +92,24 @@ class AltMinOptions(EngineOptions):
         Stop when the relative spectrum change ``‖ΔS‖/‖S‖`` falls below it (paper: 1e-5).
     chunk : int
         Captures processed together (cache-sized).
+    plateau : float
+        Also stop when the data misfit fell by less than this fraction over the
+        last ``plateau_window`` iterations (0: never; the paper stops on ``tol``).
+    plateau_window : int
+        Iterations the plateau test looks back.
     threads : int or None
         Worker threads; None uses every core.
     """
 
     chunk: int = 16
+    plateau: float = 0.0
+    plateau_window: int = 50
 
     @model_validator(mode="after")
     def _ranges(self):
-        _checked([(self.chunk >= 1, f"chunk must be an integer ≥ 1, got {self.chunk}")])
+        _checked([(self.chunk >= 1, f"chunk must be an integer ≥ 1, got {self.chunk}"),
+                  (0 <= self.plateau < 1, f"plateau must be in [0, 1), got {self.plateau}"),
+                  (self.plateau_window >= 1, f"plateau_window must be ≥ 1, got {self.plateau_window}")])
         return self
 
 

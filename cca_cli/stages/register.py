@@ -35,6 +35,9 @@ __all__ = ["SECTIONS", "Registration", "register_views", "run"]
 SECTIONS = ("registration",)
 
 _log = logging.getLogger(__name__)
+#: Estimated registration error (frame px) beyond which extrapolating outside the board is worth a warning:
+#: about where it starts to blur what a recovery resolves.
+EXTRAPOLATION_LIMIT_PX = 0.5
 
 
 @dataclass(frozen=True)
@@ -111,10 +114,13 @@ def register_views(intensity: np.ndarray, weight: np.ndarray | None, pattern: tu
     errors = [object_error(pts, ref, f.matrix, where, inliers=f.inlier_mask) for pts, f in zip(corners, fits)]
     hull = np.array([e.hull_fraction for e in errors])
     if (hull < 1).any():
-        _log.warning("the object region lies %.0f%% outside the board corners' hull (worst view %s): the "
-                     "homographies extrapolate there (estimated error up to %.3f px); photograph the board over the "
-                     "object region", 100 * (1 - hull.min()), labels[kept[int(np.argmin(hull))]],
-                     max(e.max_px for e in errors))
+        worst_px = max(e.max_px for e in errors)
+        serious = worst_px > EXTRAPOLATION_LIMIT_PX
+        _log.warning("%sthe object region lies %.0f%% outside the board corners' hull (worst view %s): the "
+                     "homographies extrapolate there (estimated error up to %.3f px%s)", "" if serious else "note: ",
+                     100 * (1 - hull.min()), labels[kept[int(np.argmin(hull))]], worst_px,
+                     "; photograph the board over the object region" if serious else
+                     f", below the {EXTRAPOLATION_LIMIT_PX} px that would matter")
     views, masks = warp_views(intensity[kept], mats, (h, w), interpolation=interpolation, with_mask=True)
     if weight is not None:
         warped_w = warp_views(weight[kept], mats, (h, w), interpolation="linear")

@@ -111,7 +111,7 @@ def test_headline_preset_is_the_figure_5_case():
     assert config.noise.model == "gaussian" and config.noise.snr_db == pytest.approx(30.0)
     assert config.reconstruct.engine == "altmin"
     assert config.reconstruct.tau == pytest.approx(1e-3) and config.reconstruct.tol == pytest.approx(1e-5)
-    assert config.reconstruct.iterations == 1000
+    assert config.reconstruct.iterations == 1500
     assert config.report.mtf_threshold == pytest.approx(0.2)
 
 
