@@ -11,6 +11,8 @@ from cca_cli.commands.console import (console, err_console, handle_errors, print
                                      recovery_stop_note, stop_note, summary_table)
 from cca_cli.commands.options import Force, OptionalConfigArg, Quiet, Scheduler, Workers, cluster_options
 from cca_cli.config.load import load_config
+from cca_cli.io.outputs import disk_usage
+from cca_cli.stages.footprint import size_text
 from cca_cli.stages.runner import default_out_dir, run_pipeline
 
 
@@ -48,7 +50,8 @@ def run_cli(
             summary = json.loads((report.output / "report.json").read_text())
         console.print(summary_table(summary, title=f"cca run → {directory}"))
     for outcome in outcomes:
-        console.print(f"{outcome.name:12s} {outcome.status:8s} {outcome.output}  ({outcome.seconds:.1f} s)")
+        console.print(f"{outcome.name:12s} {outcome.status:8s} {outcome.output}  ({outcome.seconds:.1f} s, "
+                      f"{size_text(disk_usage(outcome.output))})")
     recon = next((o for o in outcomes if o.name == "reconstruct"), None)
     if recon is not None and recon.result is not None:
         note = recovery_stop_note(recon.result)

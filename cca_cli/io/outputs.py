@@ -32,7 +32,7 @@ from typing import Callable, Iterable, Iterator
 
 from cca_cli.errors import OutputError, OutputExistsError, ResourceError, check_interrupt
 
-__all__ = [
+__all__ = ["disk_usage", 
     "MARKER",
     "KNOWN_OUTPUTS",
     "Owned",
@@ -366,3 +366,13 @@ def atomic_path(path: str | Path, *, force: bool = False, kind: str = "file", in
         raise
     finally:
         _remove(tmp)
+
+
+def disk_usage(path: Path) -> int:
+    """Bytes a file, or the files under a folder, take (0 for what is missing)."""
+    path = Path(path)
+    if path.is_file():
+        return path.stat().st_size
+    if path.is_dir():
+        return sum(p.stat().st_size for p in path.rglob("*") if p.is_file() and not p.is_symlink())
+    return 0
