@@ -270,7 +270,7 @@ class SequentialMomentum(CalibratingEngine):
         """Remember the state of a new best held-back misfit; at the end of the run, return to it."""
         if self.stopping.improved:
             self._best = (self._spectrum.copy(), {k: np.copy(v) for k, v in self.calibrator.state().items()})
-        if self.stopping.done() and self._best is not None and self.stopping.best_iteration < self.stopping.iteration:
+        if self.stopping.done() and self._best is not None and self.stopping.held_back_above_best():
             spectrum, calibration = self._best
             self._spectrum[...] = spectrum
             self.calibrator.restore(calibration)

@@ -196,8 +196,10 @@ class MomentumOptions(EngineOptions):
         bright field to the outermost dark field (0: none). Their misfit says how
         well the recovery predicts data it never fitted: see ``hold_back_patience``.
     hold_back_patience : int
-        With captures held back: stop when their misfit has reached no new best
-        for this many passes, and return to the state of the best one.
+        With captures held back: stop when their misfit has stayed more than 1%
+        above its best for this many passes in a row, and return to the state of
+        the best one (as also at the end of a run that stops otherwise while
+        their misfit is above the best).
     threads : int or None
         Worker threads; None uses every core (at most 2 are used). The result
         does not depend on it beyond float rounding.

@@ -9,9 +9,11 @@ can no longer grow out of ends the run.
 
 An engine that holds some captures back from its updates reports their misfit
 too: it measures how well the recovery predicts data it never fitted. When
-that misfit has not reached a new best for ``held_back_patience`` iterations,
-the run is fitting the noise and the model's errors rather than the object,
-and it stops (``held_back``); the engine then returns to its best state.
+that misfit has stayed more than :data:`HELD_BACK_RISE` above its best for
+``held_back_patience`` iterations, the run is fitting the noise and the
+model's errors rather than the object, and it stops (``held_back``); the
+engine then returns to its best state. Small ups and downs (a batch that grew,
+a pupil step undone) end nothing.
 """
 
 from __future__ import annotations
@@ -20,7 +22,10 @@ from typing import Callable
 
 import numpy as np
 
-__all__ = ["StoppingPolicy"]
+__all__ = ["HELD_BACK_RISE", "StoppingPolicy"]
+
+#: How far above its best the held-back misfit must stay (relative) before it counts as rising.
+HELD_BACK_RISE = 0.01
 
 
 class StoppingPolicy:
@@ -39,8 +44,8 @@ class StoppingPolicy:
         Whether the engine can still enlarge its batches; while it can, a flat
         misfit asks for growth (:meth:`record` returns True) instead of ending the run.
     held_back_patience : int
-        Iterations without a new best held-back misfit that end the run (0: the held-back misfit
-        never ends it).
+        Iterations in a row with the held-back misfit more than :data:`HELD_BACK_RISE` above its
+        best that end the run (0: the held-back misfit never ends it).
     """
 
     def __init__(self, *, max_iterations: int, tol: float, plateau: float = 0.0, plateau_window: int = 1,
@@ -58,6 +63,7 @@ class StoppingPolicy:
         self.best_held_back = np.inf
         self.best_iteration = 0
         self.improved = False
+        self.rising_since: int | None = None   # first iteration of the current run above the best by the margin
 
     def record(self, misfit: float, change: float, held_back: float = np.nan) -> bool:
         """Count one iteration; True when the misfit is flat and the engine should grow its batches now.
@@ -71,12 +77,20 @@ class StoppingPolicy:
         self.improved = bool(held_back < self.best_held_back)
         if self.improved:
             self.best_held_back, self.best_iteration = float(held_back), self.iteration
+        if held_back > (1 + HELD_BACK_RISE) * self.best_held_back:
+            self.rising_since = self.iteration if self.rising_since is None else self.rising_since
+        else:
+            self.rising_since = None
         return self._can_grow() and self.flat()
 
-    def held_back_stale(self) -> bool:
-        """Whether the held-back misfit has reached no new best for ``held_back_patience`` iterations."""
-        return self.patience > 0 and np.isfinite(self.best_held_back) and \
-            self.iteration - self.best_iteration >= self.patience
+    def held_back_rose(self) -> bool:
+        """Whether the held-back misfit has stayed clearly above its best for ``held_back_patience`` iterations."""
+        return self.patience > 0 and self.rising_since is not None and \
+            self.iteration - self.rising_since + 1 >= self.patience
+
+    def held_back_above_best(self) -> bool:
+        """Whether the held-back misfit now is clearly above its best (the engine then returns to the best state)."""
+        return self.rising_since is not None
 
     def grew(self) -> None:
         """The engine enlarged its batches: the plateau test starts afresh from the next iteration."""
@@ -96,13 +110,13 @@ class StoppingPolicy:
     def done(self) -> bool:
         """Whether the run ends now: the cap, a change below ``tol``, the plateau, or a stale held-back misfit."""
         return (self.iteration >= self.max_iterations or self.change < self.tol or self.on_plateau()
-                or self.held_back_stale())
+                or self.held_back_rose())
 
     def reason(self) -> str:
         """Why the run ended (or would end now): ``tol``, ``plateau``, ``held_back`` or ``cap``."""
         if self.change < self.tol:
             return "tol"
-        if self.held_back_stale():
+        if self.held_back_rose():
             return "held_back"
         if self.on_plateau():
             return "plateau"
@@ -112,7 +126,8 @@ class StoppingPolicy:
         """The counters a restored run continues from."""
         return {"iteration": self.iteration, "change": self.change, "misfits": np.asarray(self.misfits, np.float64),
                 "plateau_from": self.plateau_from, "best_held_back": self.best_held_back,
-                "best_iteration": self.best_iteration}
+                "best_iteration": self.best_iteration,
+                "rising_since": -1 if self.rising_since is None else self.rising_since}
 
     def restore(self, state: dict) -> None:
         """Continue from :meth:`state`."""
@@ -122,3 +137,5 @@ class StoppingPolicy:
         self.plateau_from = int(state.get("plateau_from", 0))
         self.best_held_back = float(state.get("best_held_back", np.inf))
         self.best_iteration = int(state.get("best_iteration", 0))
+        rising = int(state.get("rising_since", -1))
+        self.rising_since = None if rising < 0 else rising

@@ -206,6 +206,6 @@ def test_captures_held_back_end_the_run_and_it_returns_to_their_best_fit():
         held.append(engine.held_back_residual)
     engine.close()
     best = int(np.argmin(held))
-    assert engine.stop_reason() == "held_back" and len(held) - 1 - best == 4
+    assert engine.stop_reason() == "held_back" and held[-1] > 1.01 * held[best]
     np.testing.assert_array_equal(engine.spectrum(), spectra[best])   # the run returned to its best state
     assert 0 < held[best] < held[0]
