@@ -64,7 +64,10 @@ from cca_cli.engines.stopping import StoppingPolicy
 from cca_cli.optics import fft, kernels
 from cca_cli.optics.forward import ForwardModel
 
-__all__ = ["MomentumOptions", "Calibration", "SequentialMomentum", "held_back_captures"]
+__all__ = ["MAX_THREADS", "MomentumOptions", "Calibration", "SequentialMomentum", "held_back_captures"]
+
+#: Most threads a pass uses: lanes of a phase are at most eight (three splits of the spectrum).
+MAX_THREADS = 8
 
 
 def held_back_captures(centres_px: np.ndarray, radius_px: float, share: float) -> np.ndarray:
@@ -111,8 +114,8 @@ class SequentialMomentum(CalibratingEngine):
         self.problem = problem
         self.options = options
         k = problem.model.n_images
-        cores = options.threads or fft.default_threads()
-        threads = 2 if cores > 1 and k > 1 else 1
+        threads = max(1, min(options.threads or fft.default_threads(), MAX_THREADS, k))
+        self._lanes = max(2, 1 << (threads.bit_length() - 1))   # 1 and 2 threads visit in the same order
         self._data_norm = problem.energy
         self._spectrum = (initial_spectrum(problem) if spectrum is None else spectrum).astype(np.complex64)
         self._velocity = np.zeros_like(self._spectrum)
@@ -142,7 +145,8 @@ class SequentialMomentum(CalibratingEngine):
         layout = self.calibrator.layout_for(self.calibrator.centres())
         distances = np.hypot(layout.centres_px[:, 0], layout.centres_px[:, 1])
         trained = self._trained
-        self._schedule = build_schedule(layout.box_origins[trained], layout.box_size, distances[trained], self._batch)
+        self._schedule = build_schedule(layout.box_origins[trained], layout.box_size, distances[trained], self._batch,
+                                        lanes=self._lanes)
         self._order = order = trained[self._schedule.order]
         self._all_layout = layout
         self._layout = subset_layout(layout, order)

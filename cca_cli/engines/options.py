@@ -201,8 +201,11 @@ class MomentumOptions(EngineOptions):
         the best one (as also at the end of a run that stops otherwise while
         their misfit is above the best).
     threads : int or None
-        Worker threads; None uses every core (at most 2 are used). The result
-        does not depend on it beyond float rounding.
+        Worker threads; None uses the cores the process may use (at most 8).
+        One and two threads visit the captures in the same order and agree to
+        float rounding; more threads split the spectrum further, so the
+        visiting order (and the result, slightly) depends on their number. The
+        same inputs and thread count give the same result.
     """
 
     max_iterations: int = 200

@@ -130,7 +130,9 @@ class SequentialPass:
     model : ForwardModel
         Any model of the captures' grids (makes the workspaces).
     threads : int
-        1, or 2: lanes run side by side, and batches no line separates are split in halves.
+        Threads: a phase's lanes run side by side (lane ``i`` on thread ``i mod threads``), and a
+        batch of a phase with one lane is split in ``threads`` parts computed side by side and
+        scattered in order.
     """
 
     def __init__(self, model: ForwardModel, threads: int):
@@ -177,12 +179,11 @@ class SequentialPass:
                     misfit += runner.shared_batch(sl)
             else:
                 # Lanes touch disjoint parts of the spectrum: running them together equals running them in turn.
-                # The calling thread takes the longer lane: it waits least for the interpreter between kernels.
-                own, other = phase.lanes
-                if _lane_size(other) > _lane_size(own):
-                    own, other = other, own
-                future = self._pool.submit(runner.lane, 1, other)
-                misfit += runner.lane(0, own) + future.result()
+                # The calling thread takes the longest lanes: it waits least for the interpreter between kernels.
+                lanes = sorted(phase.lanes, key=_lane_size, reverse=True)
+                shares = [lanes[t::self.threads] for t in range(min(self.threads, len(lanes)))]
+                futures = [self._pool.submit(runner.lanes, t, share) for t, share in enumerate(shares) if t > 0]
+                misfit += runner.lanes(0, shares[0]) + sum(f.result() for f in futures)
         return misfit
 
     def close(self) -> None:
@@ -224,6 +225,10 @@ class _PassRun:
             kernels.scatter_boxes(self.owner._workspaces[t].fields[:k], self.targets.origins, self.targets.factors,
                                   self.spectrum, images.start)
 
+    def lanes(self, t: int, lanes: list[tuple[slice, ...]]) -> float:
+        """Run ``lanes`` one after the other on thread ``t``; returns their summed misfit."""
+        return sum(self.lane(t, lane) for lane in lanes)
+
     def lane(self, t: int, batches: tuple[slice, ...]) -> float:
         """Run ``batches`` one after the other on thread ``t``; returns their summed misfit."""
         raw = self.owner._fused[t]
@@ -239,12 +244,15 @@ class _PassRun:
         return misfit
 
     def shared_batch(self, sl: slice) -> float:
-        """One batch computed by both threads (half each), then scattered in order."""
-        middle = sl.start + (sl.stop - sl.start + 1) // 2
-        first, second = slice(sl.start, middle), slice(middle, sl.stop)
-        future = self.owner._pool.submit(self.half_batch, 1, second)
-        misfit = self.half_batch(0, first)
-        misfit += future.result()
-        self.scatter(0, first)
-        self.scatter(1, second)
+        """One batch computed by every thread (a part each), then scattered in order."""
+        threads = self.owner.threads
+        size = sl.stop - sl.start
+        cuts = [sl.start + (size * t + threads - 1) // threads for t in range(threads)] + [sl.stop]
+        if threads == 2:   # halves as before: the first the larger
+            cuts = [sl.start, sl.start + (size + 1) // 2, sl.stop]
+        parts = [slice(a, b) for a, b in zip(cuts[:-1], cuts[1:])]
+        futures = [self.owner._pool.submit(self.half_batch, t, part) for t, part in enumerate(parts) if t > 0]
+        misfit = self.half_batch(0, parts[0]) + sum(f.result() for f in futures)
+        for t, part in enumerate(parts):
+            self.scatter(t, part)
         return misfit

@@ -1,4 +1,4 @@
-"""Visiting order of a sequential engine: centre-out, in groups two threads can update at once.
+"""Visiting order of a sequential engine: centre-out, in groups threads can update at once.
 
 A sequential engine updates the spectrum one batch of captures at a time, and
 each batch reads what the previous one wrote. Two batches may still run at the
@@ -10,6 +10,12 @@ straddles it; the seam is split likewise by a column. The pass then runs in
 phases: the core (the seam of the seam, around DC), the left and right arms
 side by side, and the upper and lower halves side by side, each group
 centre-out. Only the core needs threads to share batches.
+
+For more threads the split goes deeper (``lanes`` 4, 8): each half is split
+again by a line across the other axis, and an arm (whose boxes all straddle
+the first line) by another line along its own, so a phase holds up to
+``lanes`` groups that never touch. Two lanes give the schedule above, so one
+and two threads visit the captures in the same order.
 """
 
 from __future__ import annotations
@@ -105,7 +111,7 @@ def shell_sizes(count: int, batch: int) -> list[int]:
 
 
 def build_schedule(box_origins: np.ndarray, box_size: int, distances: np.ndarray, batch: int,
-                   shells: list[int] | None = None) -> Schedule:
+                   shells: list[int] | None = None, lanes: int = 2) -> Schedule:
     """Centre-out visiting order of captures, split into phases of non-overlapping lanes.
 
     Parameters
@@ -121,11 +127,16 @@ def build_schedule(box_origins: np.ndarray, box_size: int, distances: np.ndarray
         Captures per shell, centre-out (default :func:`shell_sizes`). Each shell
         is split and visited before the next; small shells near DC keep the
         order close to strictly centre-out, large ones far out need fewer phases.
+    lanes : int
+        Most lanes a phase may hold (1, 2, 4 or 8: the threads that run them side by side).
 
     Returns
     -------
     Schedule
     """
+    if lanes not in (1, 2, 4, 8):
+        raise ValueError(f"lanes must be 1, 2, 4 or 8, got {lanes}")
+    depth = int(np.log2(lanes))
     everything = np.argsort(distances, kind="stable")
     groups = []
     sizes = shell_sizes(everything.size, batch) if shells is None else shells
@@ -134,18 +145,36 @@ def build_schedule(box_origins: np.ndarray, box_size: int, distances: np.ndarray
         if stop == start:
             continue
         members = everything[start:stop]
-        upper, lower, seam = split_disjoint(box_origins[:, 0], box_size, members)
-        left, right, core = split_disjoint(box_origins[:, 1], box_size, seam)
-        groups += [(core,), (left, right), (upper, lower)]
+        groups += _phases(box_origins, box_size, members, (0, 1), max(depth, 1)) if depth else [[members]]
     order, phases, start = [], [], 0
     for group in groups:
-        lanes = []
+        phase_lanes = []
         for members in group:
             if members.size == 0:
                 continue
-            lanes.append(tuple(slice(start + s.start, start + s.stop) for s in _full_batches(members.size, batch)))
+            phase_lanes.append(tuple(slice(start + s.start, start + s.stop)
+                                     for s in _full_batches(members.size, batch)))
             order.append(members)
             start += members.size
-        if lanes:
-            phases.append(Phase(tuple(lanes)))
+        if phase_lanes:
+            phases.append(Phase(tuple(phase_lanes)))
     return Schedule(np.concatenate(order).astype(np.int64), tuple(phases))
+
+
+def _phases(box_origins: np.ndarray, box_size: int, members: np.ndarray, axes: tuple[int, ...],
+            depth: int) -> list[list[np.ndarray]]:
+    """Phases (run in turn) of lanes (run side by side) of ``members``, split ``depth`` more times.
+
+    ``axes`` are the axes along which the members may still be told apart: a seam's boxes all straddle
+    its line, so only the other axis can split it further. The seam runs first (it lies nearer DC),
+    then the two sides side by side, each split the same way.
+    """
+    if depth == 0 or members.size < 2 or not axes:
+        return [[members]]
+    axis, other = axes[0], tuple(a for a in axes if a != axes[0])
+    before, after, seam = split_disjoint(box_origins[:, axis], box_size, members)
+    seam_phases = _phases(box_origins, box_size, seam, other, depth) if seam.size else []
+    turned = other + (axis,)
+    sides = [_phases(box_origins, box_size, part, turned, depth - 1) for part in (before, after) if part.size]
+    merged = [sum((side[i] for side in sides if i < len(side)), []) for i in range(max(map(len, sides), default=0))]
+    return seam_phases + merged
