@@ -157,7 +157,8 @@ class SequentialMomentum(CalibratingEngine):
         self._set_targets()
         recovery = self.calibrator.recovery
         capacity = max(sl.stop - sl.start for sl in self._schedule.batches)
-        self.passes.reserve(capacity, fusable=self.options.cost == "amplitude" and recovery is None)
+        self.passes.reserve(capacity, fusable=self.options.cost == "amplitude"
+                            and (recovery is None or recovery.model != "zernike"))
         if recovery is not None:
             recovery.set_geometry(self._layout, self.calibrator.pupil_index[order])
         self._set_model(self.calibrator.pupils_for(self._layout, self.calibrator.pupil_index[order]))
@@ -240,8 +241,10 @@ class SequentialMomentum(CalibratingEngine):
     def update(self) -> tuple[float, float]:
         """One pass over all captures (with a calibration round first when one is due)."""
         self._calibrate()
+        recovery = self.calibrator.recovery
         targets = BatchTargets(self._model, self._origins, self._factors, self._targets, self._weights,
-                               self.problem.amplitude_floor)
+                               self.problem.amplitude_floor,
+                               pupil_sums=None if recovery is None else recovery.lane_sums)
         after = self._accumulate_pupil if self.calibrator.recovery is not None else None
         misfit = self.passes.run(self._schedule, self._spectrum, targets, self._difference, after)
         change = self._momentum(misfit)

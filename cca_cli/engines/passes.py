@@ -106,6 +106,9 @@ class BatchTargets:
     weights : ndarray, float32, (K, m, m) or None
     eps : float
         Amplitude floor of the magnitude step.
+    pupil_sums : callable, optional
+        ``pupil_sums(thread)`` gives the arrays a fused lane adds the pupil fit's sums to (see
+        :func:`~cca_cli.optics.kernels.sequential_lane`); None: nothing is summed in the lane.
     """
 
     model: ForwardModel
@@ -114,6 +117,7 @@ class BatchTargets:
     amplitudes: np.ndarray
     weights: np.ndarray | None
     eps: float
+    pupil_sums: Callable[[int], tuple] | None = None
 
 
 #: data_step(fields, images, scratch) replaces ``fields`` by the data step ψ' − ψ and returns the squared misfit.
@@ -147,8 +151,8 @@ class SequentialPass:
     def reserve(self, capacity: int, *, fusable: bool) -> None:
         """Make room for batches of ``capacity`` captures; ``fusable``: lanes may run as one compiled call.
 
-        The fused lane does the magnitude step only, so engines with another data step or with
-        pupil sums pass ``fusable=False``. Nothing changes while the capacity suffices.
+        The fused lane does the magnitude step (and the map models' pupil sums) only, so engines with
+        another data step pass ``fusable=False``. Nothing changes while the capacity suffices.
         """
         if capacity <= self._capacity:
             return
@@ -235,8 +239,10 @@ class _PassRun:
         if raw is not None:  # one compiled call for the whole lane: the threads never wait for the interpreter
             bounds = np.array([[sl.start, sl.stop] for sl in batches], dtype=np.int64).reshape(-1, 2)
             tg = self.targets
+            sums = None if tg.pupil_sums is None else tg.pupil_sums(t)
             return kernels.sequential_lane(raw, bounds, self.spectrum, tg.origins, tg.model.pupil_boxes, tg.factors,
-                                           self.owner._workspaces[t].fields, tg.amplitudes, tg.weights, tg.eps)
+                                           self.owner._workspaces[t].fields, tg.amplitudes, tg.weights, tg.eps,
+                                           pupil_sums=sums)
         misfit = 0.0
         for sl in batches:
             misfit += self.half_batch(t, sl)

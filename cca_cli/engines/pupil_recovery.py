@@ -243,6 +243,13 @@ class PupilRecovery:
         return (discs * np.exp(1j * phase)).astype(np.complex64)
 
     # --------------------------------------------------------------- accumulate
+    def lane_sums(self, thread: int) -> tuple | None:
+        """What a fused lane adds this thread's pupil sums with (map models), or None (Zernike: step by step)."""
+        if self.model == "zernike":
+            return None
+        return (np.ascontiguousarray(self._discs, np.float32), np.ascontiguousarray(self.index, np.int64),
+                self._num[thread], self._den[thread])
+
     def accumulate(self, thread: int, images: slice, spectrum: np.ndarray, origins: np.ndarray,
                    fields: np.ndarray, pupils: np.ndarray) -> None:
         """Add one batch's terms of the pupil fit.

@@ -362,7 +362,8 @@ def warm_up() -> None:
     _tikhonov_numba(spectrum, np.ones((8, 8), np.float32), spectrum.copy())
     no_batches = np.zeros((0, 2), np.int64)  # compiles (or loads) the fused lane without running an FFT
     _lane_numba(0, np.ones(1, np.int64), np.zeros((1, 4), np.int64), no_batches, spectrum, origins, pupils, pupils,
-                fields, real, real, False, np.float32(1e-6))
+                fields, real, real, False, np.float32(1e-6), False, *_checked_pupil_sums("warm_up", None, 1, 4),
+                np.float32(1.0))
 
 
 def place_boxes(spectrum: np.ndarray, origins: np.ndarray, pupils: np.ndarray, fields: np.ndarray,
@@ -566,7 +567,7 @@ if _HAVE_NUMBA:  # pragma: no branch
 
     @_jit
     def _lane_numba(execute, counts, plans, batches, spectrum, origins, pupils, factors, fields, amplitudes, weights,
-                    weighted, eps):  # pragma: no cover - compiled
+                    weighted, eps, summed, discs, index, numerator, denominator, sum_scale):  # pragma: no cover
         """Returns the lane's misfit, a status and the largest batch.
 
         The status is -1, or the first capture whose box leaves the spectrum, or ``-2 - i`` for
@@ -596,6 +597,9 @@ if _HAVE_NUMBA:  # pragma: no branch
             total += _magnitude_numba(fields[:k], amplitudes[start:stop], weights[start:stop], eps, zero, weighted)
             _call_address(execute, plans[j, 2])
             _call_address(execute, plans[j, 3])
+            if summed:  # the pupil fit's sums, from the spectrum the batch saw (before its update)
+                _accumulate_pupil_numba(spectrum, origins, discs, fields[:k], start, index, numerator, denominator,
+                                        sum_scale)
             _scatter_numba(fields[:k], origins, factors, spectrum, start)
         return total, -1, largest
 
@@ -607,7 +611,7 @@ def can_fuse_lanes(raw_plans) -> bool:
 
 def sequential_lane(raw_plans, batches: np.ndarray, spectrum: np.ndarray, origins: np.ndarray, pupils: np.ndarray,
                     factors: np.ndarray, fields: np.ndarray, amplitudes: np.ndarray, weights: np.ndarray | None,
-                    eps: float) -> float:
+                    eps: float, pupil_sums: tuple | None = None) -> float:
     """Run batches one after the other in one GIL-free call: place, inverse FFT, magnitude step, FFT, scatter.
 
     Each batch does what :meth:`~cca_cli.optics.forward.ForwardModel.forward_into`,
@@ -635,6 +639,9 @@ def sequential_lane(raw_plans, batches: np.ndarray, spectrum: np.ndarray, origin
     weights : ndarray, float32, (K, m, m), optional
     eps : float
         Floor on ``|ψ|``.
+    pupil_sums : tuple, optional
+        ``(discs, index, numerator, denominator)``: also add each batch's terms of the pupil
+        fit (:func:`accumulate_pupil`) before its update is scattered.
 
     Returns
     -------
@@ -670,10 +677,12 @@ def sequential_lane(raw_plans, batches: np.ndarray, spectrum: np.ndarray, origin
                              f"got {_describe(array)}")
     if batches.ndim != 2 or batches.shape[1] != 2:
         raise ValueError(f"sequential_lane: batches must be (n, 2) [start, stop) rows, got {batches.shape}")
+    sums = _checked_pupil_sums("sequential_lane", pupil_sums, n, pupils.shape[1])
     with raw_plans.executing(fields) as held:
         total, status, held.largest = _lane_numba(held.execute, held.counts, held.plans, batches, spectrum, origins,
                                                   pupils, factors, fields, amplitudes, confidence,
-                                                  weights is not None, np.float32(eps))
+                                                  weights is not None, np.float32(eps), pupil_sums is not None,
+                                                  *sums, np.float32(1.0 / m))
     if status >= 0:
         raise _bad_box("sequential_lane", origins, status, spectrum.shape, pupils.shape[1])
     if status < -1:
@@ -681,6 +690,34 @@ def sequential_lane(raw_plans, batches: np.ndarray, spectrum: np.ndarray, origin
         raise ValueError(f"sequential_lane: batch {-2 - status} [{start}, {stop}) must lie within the {n} captures "
                          f"and hold at most {int(raw_plans.counts[-1])} (the workspace's capacity)")
     return float(total)
+
+
+_NO_SUMS = None
+
+
+def _checked_pupil_sums(where: str, pupil_sums, n: int, b: int) -> tuple:
+    """The pupil-fit arrays a fused lane adds to, checked (placeholders when there are none)."""
+    global _NO_SUMS
+    if pupil_sums is None:
+        if _NO_SUMS is None:
+            _NO_SUMS = (np.zeros((1, 1, 1), _F32), np.zeros(1, _I64), np.zeros((1, 1, 1), np.complex128),
+                        np.zeros((1, 1, 1), np.float64))
+        return _NO_SUMS
+    discs, index, numerator, denominator = pupil_sums
+    for name, array, dtype, shape in (("discs", discs, _F32, (n, b, b)), ("index", index, _I64, (n,)),
+                                      ("numerator", numerator, np.complex128, None),
+                                      ("denominator", denominator, np.float64, None)):
+        if not (isinstance(array, _ndarray) and array.dtype == dtype and array.flags.c_contiguous
+                and (shape is None or array.shape == shape)):
+            raise ValueError(f"{where}: {name} must be a C-contiguous {np.dtype(dtype)} array"
+                             f"{'' if shape is None else f' {shape}'}, got {_describe(array)}")
+    pupils = numerator.shape[0]
+    if numerator.shape != (pupils, b, b) or denominator.shape != numerator.shape:
+        raise ValueError(f"{where}: numerator and denominator must both be (P, {b}, {b}), got {numerator.shape} "
+                         f"and {denominator.shape}")
+    if index.size and (int(index.min()) < 0 or int(index.max()) >= pupils):
+        raise ValueError(f"{where}: index must name pupils 0 … {pupils - 1}")
+    return discs, index, numerator, denominator
 
 
 # ----------------------------------------------------------------------------- calibration support

@@ -114,6 +114,25 @@ CHILD = textwrap.dedent('''
         def lane_on_another_buffer_than_the_planned_one():
             lane([[0, 2]], lane_fields=fft.zeros((4, m, m)))
 
+        def lane_with_sums(sums):
+            return kernels.sequential_lane(raw, np.array([[0, 2]], np.int64), spectrum, origins, pupils, pupils,
+                                           workspace.fields, lane_amplitudes, None, 1e-6, pupil_sums=sums)
+
+        discs = np.ones((K, b, b), np.float32)
+
+        @case
+        def lane_pupil_sums_of_too_few_discs():
+            lane_with_sums((discs[:2], np.zeros(K, np.int64), np.zeros((1, b, b), np.complex128),
+                            np.zeros((1, b, b))))
+
+        @case
+        def lane_pupil_sums_naming_a_pupil_that_does_not_exist():
+            lane_with_sums((discs, np.full(K, 3, np.int64), np.zeros((1, b, b), np.complex128), np.zeros((1, b, b))))
+
+        @case
+        def lane_pupil_sums_in_single_precision():
+            lane_with_sums((discs, np.zeros(K, np.int64), np.zeros((1, b, b), np.complex64), np.zeros((1, b, b))))
+
         @case
         def raw_plans_of_a_collected_transform_still_run():
             plans = fft.BandedFFT2(fft.zeros((2, m, m)), 4, 12, threads=1).raw_plans()
@@ -188,6 +207,9 @@ RAISES = {
     "lane_batch_beyond_the_last_capture": ("ValueError", "batch 0 [4, 7) must lie within the 6 captures"),
     "lane_box_outside_the_spectrum_runs_nothing": ("ValueError", "capture 3 at origin (32, 32)"),
     "lane_on_another_buffer_than_the_planned_one": ("ValueError", "buffer these FFTW plans were made for"),
+    "lane_pupil_sums_of_too_few_discs": ("ValueError", "discs must be a C-contiguous float32 array (6, 8, 8)"),
+    "lane_pupil_sums_naming_a_pupil_that_does_not_exist": ("ValueError", "index must name pupils 0 … 0"),
+    "lane_pupil_sums_in_single_precision": ("ValueError", "numerator must be a C-contiguous complex128 array"),
     "raw_plans_of_a_collected_transform_still_run": ("none", ""),
     "raw_plans_released_refuse_to_run": ("RuntimeError", "released"),
     "lane_after_the_workspace_was_closed": ("RuntimeError", "released"),
