@@ -181,12 +181,16 @@ def brightness_check(data: Prepared) -> dict:
     return out
 
 
-def load_set(entry: CorpusSet, workdir: Path) -> tuple[Prepared, FrameModel, int]:
+def load_set(entry: CorpusSet, workdir: Path, reuse: bool = False) -> tuple[Prepared, FrameModel, int]:
     """Ingest one set (rebuilding a converted copy first if needed); its frame model and object upsampling."""
-    rebuild.ensure(entry.name)
+    try:
+        rebuild.ensure(entry.name)
+    except (FileNotFoundError, RuntimeError):
+        if not (reuse and (workdir / "raw.h5").is_file()):
+            raise
     spec = DatasetSpec(entry.name, entry.manifest, entry.readme, peer_hires=0, analysis_grid=0,
                        usaf=entry.elements_file.exists())
-    data = prepare(spec, workdir)
+    data = prepare(spec, workdir, reuse_ingest=reuse)
     data.spec = replace(spec, peer_hires=peer_grid(data))
     with np.load(data.peer_data) as handle:
         values = {k: handle[k] for k in handle.files}
@@ -376,7 +380,7 @@ def _centre_on_grid(centre: np.ndarray, factor: int) -> np.ndarray:
 def run_set(entry: CorpusSet, args, cca_cfg: dict | None) -> dict:
     workdir = (args.out / "work" / entry.name).resolve()
     print(f"== {entry.name} ({entry.half}): cca ingest ...", flush=True)
-    data, frames, factor = load_set(entry, workdir)
+    data, frames, factor = load_set(entry, workdir, args.reuse)
     summary = {"set": entry.name, "half": entry.half, "manifest": str(entry.manifest.relative_to(HERE.parent)),
                "frames": list(data.intensity.shape), "bright_field_frames": int(bright_field(data).sum()),
                "pupil_radius_px": data.radius, "upsampling": factor, "margin_px": frames.margin,
@@ -526,7 +530,7 @@ def main() -> None:
                         help="comma list of: cca, " + ", ".join(PEERS) + "; 'ptylab' / 'fpmrs' name a family")
     parser.add_argument("--reuse", action="store_true",
                         help="reuse peer results whose inputs are unchanged instead of running them again "
-                             "(cca always runs)")
+                             "(cca always runs), and an earlier ingest of a set whose source files are gone")
     parser.add_argument("--cca-options", default=None, help="YAML mapping passed as reconstruct.options")
     parser.add_argument("--cca-config", type=Path, default=None, help="YAML file with a `reconstruct:` section")
     parser.add_argument("--ptylab-iterations", type=int, default=100)

@@ -152,13 +152,23 @@ def usable_manifest(spec: DatasetSpec, workdir: Path) -> tuple[Path, str]:
     return out, "; ".join(notes)
 
 
-def prepare(spec: DatasetSpec, workdir: Path) -> Prepared:
-    """Ingest one set with `cca ingest` and write the peers' input file."""
+def prepare(spec: DatasetSpec, workdir: Path, *, reuse_ingest: bool = False) -> Prepared:
+    """Ingest one set with `cca ingest` and write the peers' input file.
+
+    With ``reuse_ingest`` a set whose source files are no longer there (a
+    dataset folder removed since) is read from the ``raw.h5`` an earlier run
+    ingested into ``workdir``, with a note saying so.
+    """
     workdir = workdir.resolve()
     workdir.mkdir(parents=True, exist_ok=True)
-    manifest, note = usable_manifest(spec, workdir)
     raw = workdir / "raw.h5"
-    run_cca(["ingest", str(manifest), "-o", str(raw), "--force"], log=workdir / "ingest.log")
+    try:
+        manifest, note = usable_manifest(spec, workdir)
+        run_cca(["ingest", str(manifest), "-o", str(raw), "--force"], log=workdir / "ingest.log")
+    except (FileNotFoundError, RuntimeError) as missing:
+        if not (reuse_ingest and raw.is_file()):
+            raise
+        manifest, note = spec.manifest, f"source files missing ({missing}); read the earlier ingest {raw}"
     with h5py.File(raw, "r") as handle:
         intensity = np.asarray(handle["/measurements/intensity"], np.float32)
         g = handle["geometry"]

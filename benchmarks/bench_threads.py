@@ -1,0 +1,74 @@
+"""How reconstruction time scales with threads, on recorded captures.
+
+Runs ``cca.reconstruct`` on one capture set with 1, 2, 4, ... threads (up to
+the cores this process may use), several times each, and prints the median
+whole-call time, the passes run and the median time per pass, with the speed-up
+over one thread. Per-pass time is the fair comparison: with more than two
+threads the spectrum is split further, so a run may stop a few passes earlier
+or later.
+
+Usage::
+
+    cca ingest configs/bloodsmear_green_manifest.yaml -o blood_raw.h5
+    python benchmarks/bench_threads.py blood_raw.h5 --repeats 3
+    python benchmarks/bench_threads.py blood_raw.h5 --threads 1,2 --json threads.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+from pathlib import Path
+
+import cca_cli as cca
+from cca_cli.optics.fft import cpu_count
+
+
+def thread_counts(cores: int) -> list[int]:
+    """1, 2, 4, ... up to ``cores``, and ``cores`` itself."""
+    counts, n = [], 1
+    while n < cores:
+        counts.append(n)
+        n *= 2
+    return counts + [cores]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("captures", type=Path, help="captures.h5 (from cca ingest or cca simulate)")
+    parser.add_argument("--threads", default=None, help="comma-separated thread counts (default 1, 2, 4, ... cores)")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--engine", default="auto")
+    parser.add_argument("--json", type=Path, default=None, help="also write the table here")
+    args = parser.parse_args()
+
+    counts = [int(t) for t in args.threads.split(",")] if args.threads else thread_counts(cpu_count())
+    captures = cca.load(args.captures)
+    cca.reconstruct(captures, engine=args.engine, iterations=2)  # compile and warm the caches once
+    runs: dict[int, list[tuple[float, int]]] = {n: [] for n in counts}
+    for _ in range(args.repeats):
+        for n in counts:  # interleaved, so a slow spell of the machine hits every count
+            start = time.perf_counter()
+            result = cca.reconstruct(captures, engine=args.engine, threads=n)
+            runs[n].append((time.perf_counter() - start, result.iterations))
+
+    rows = []
+    for n in counts:
+        seconds = statistics.median(s for s, _ in runs[n])
+        per_pass = statistics.median(s / max(i, 1) for s, i in runs[n])
+        rows.append({"threads": n, "median_s": seconds, "passes": [i for _, i in runs[n]], "s_per_pass": per_pass})
+    base = rows[0]["s_per_pass"]
+    print(f"{args.captures} on {cpu_count()} cores, engine {args.engine}, {args.repeats} runs each")
+    print(f"{'threads':>7} {'median s':>9} {'s/pass':>8} {'speed-up/pass':>14}  passes")
+    for row in rows:
+        row["speedup_per_pass"] = base / row["s_per_pass"]
+        print(f"{row['threads']:>7} {row['median_s']:>9.2f} {row['s_per_pass']:>8.4f} {row['speedup_per_pass']:>13.2f}×  "
+              f"{row['passes']}")
+    if args.json:
+        args.json.write_text(json.dumps({"captures": str(args.captures), "cores": cpu_count(), "rows": rows}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
