@@ -108,8 +108,9 @@ def section_yaml(sections: dict[str, BaseModel]) -> str:
 
 
 def config_hash(sections: dict[str, BaseModel]) -> str:
-    """SHA-256 of the JSON form of config sections."""
-    data = {k: v.model_dump(mode="json") for k, v in sections.items()}
+    """SHA-256 of the JSON form of config sections (without the keys that say only where a run computes,
+    a section's ``NOT_RECIPE``, such as ``reconstruct.device``)."""
+    data = {k: v.model_dump(mode="json", exclude=set(getattr(v, "NOT_RECIPE", ()))) for k, v in sections.items()}
     return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
 
 
