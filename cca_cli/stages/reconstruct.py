@@ -12,7 +12,7 @@ from pathlib import Path
 
 from cca_cli.config.model import ReconstructSection
 from cca_cli.engines.base import History
-from cca_cli.errors import InputError
+from cca_cli.errors import ConfigError, InputError
 from cca_cli.io.captures import read_captures
 from cca_cli.io.checkpoint import (checkpoint_damage, checkpoint_path, read_checkpoint, remove_checkpoint,
                                    write_checkpoint)
@@ -22,7 +22,7 @@ from cca_cli.io.recon import write_recon
 from cca_cli.library.data import Reconstruction
 from cca_cli.stages.progress import ProgressFn, silent
 from cca_cli.version import __version__
-from cca_cli.workflows.recovery import reconstruct_captures
+from cca_cli.workflows.recovery import check_device, reconstruct_captures
 
 __all__ = ["SECTIONS", "Checkpointing", "checkpoint_fingerprint", "run", "run_tiled"]
 
@@ -124,8 +124,13 @@ def run(captures_path: Path, section: ReconstructSection, output: Path, *, prove
     (:func:`run_tiled`).
     """
     check_output(output, force=force)
+    check_device(section)
     from cca_cli.workflows import multiplex
 
+    if section.device == "cuda" and (section.tiles is not None or multiplex.is_multiplexed_file(captures_path)):
+        what = "tiled (reconstruct.tiles)" if section.tiles is not None else "multiplexed"
+        raise ConfigError(f"reconstruct.device: cuda runs whole-frame reconstructions of plain captures; {what} "
+                          "reconstructions run on the CPU: use device cpu or auto")
     if section.tiles is not None:
         if multiplex.is_multiplexed_file(captures_path):
             raise InputError(f"{captures_path}: multiplexed captures are recovered whole; leave out reconstruct.tiles")

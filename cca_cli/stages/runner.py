@@ -225,6 +225,10 @@ def _check_before_running(config: RunConfig, plans: list[StagePlan], *, force: b
         rewritten.add(plan.output)
         if plan.name == "simulate":
             simulate = plan
+        if plan.name == "reconstruct":
+            from cca_cli.workflows.recovery import check_device
+
+            check_device(config.reconstruct)
     if simulate is not None:
         check_footprint(simulate_footprint(config), simulate.output, source=source)
 
