@@ -8,9 +8,9 @@ Prints, on a machine with CuPy and a CUDA GPU (``pip install 'cca[gpu]'``), in a
 1. the GPU FFT floor: one batched ``fft2`` + ``ifft2`` of 441 x 128², 225 x 128², 441 x 84² and
    441 x 32² complex64 fields (the headline sensor grid, the blood smear's, the headline band grid and a
    small one);
-2. the headline simulation (``configs/headline.yaml``: 441 captures, 84² band grid, 512² output): the time
-   per pass of the GPU engines (``altmin``, ``momentum``) against the floor of their FFTs, and whole runs
-   to the config's stopping rule on the GPU and the CPU;
+2. the headline simulation (``configs/headline.yaml``: 441 captures; it prints their band grid and the
+   output grid): the time per pass of the GPU engines (``altmin``, ``momentum``) against the floor of the
+   FFTs of one pass on that grid, and whole runs to the config's stopping rule on the GPU and the CPU;
 3. the blood smear (``configs/bloodsmear_green.yaml``, 225 LED-array captures, pupil recovered), when
    ``../shared/datasets/fpm-zheng-bloodsmear`` is there (skipped with a note when not);
 4. the wide field (``configs/widefield.yaml``: a 2048² frame, 25 captures), recovered whole (the GPU path
@@ -59,14 +59,19 @@ def gpu_seconds(func, *, repeats: int = 10, warmup: int = 2) -> float:
     return float(np.median(times))
 
 
+def random_fields(count: int, side: int) -> np.ndarray:
+    """``count`` random complex64 fields of ``side`` x ``side`` (on the host)."""
+    rng = np.random.default_rng(0)
+    shape = (count, side, side)
+    return (rng.standard_normal(shape, np.float32) + 1j * rng.standard_normal(shape, np.float32)).astype(np.complex64)
+
+
 def fft_floor() -> dict:
     """Seconds of one batched fft2 + ifft2 per stack of :data:`FLOOR_SHAPES`."""
     cupy = backend.cupy_module()
     out = {}
     for count, side in FLOOR_SHAPES:
-        rng = cupy.random.default_rng(0)
-        fields = (rng.standard_normal((count, side, side), dtype=cupy.float32)
-                  + 1j * rng.standard_normal((count, side, side), dtype=cupy.float32)).astype(cupy.complex64)
+        fields = backend.to_device(random_fields(count, side), cupy)
 
         def round_trip(fields=fields):
             backend.ifft2(cupy, backend.fft2(cupy, fields))
@@ -115,8 +120,7 @@ def headline(iterations: int, skip_cpu: bool, whole_runs: bool = True) -> dict:
     problem, simulation = headline_problem()
     m = problem.model.layout.lowres_size
     k = problem.model.n_images
-    rng = cupy.random.default_rng(0)
-    fields = (rng.standard_normal((k, m, m), dtype=cupy.float32) * (1 + 0j)).astype(cupy.complex64)
+    fields = backend.to_device(random_fields(k, m), cupy)
     floor = gpu_seconds(lambda: backend.ifft2(cupy, backend.fft2(cupy, fields)))
     del fields
     out = {"captures": k, "band_grid": m, "output_grid": problem.model.layout.hires_size, "fft_floor_s": floor}
