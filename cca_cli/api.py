@@ -464,7 +464,7 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
         than can be left out, or a dead centre image. Up to 5% dead images are
         left out with a warning, as ``cca reconstruct`` does. ``device="cuda"`` where CuPy or a GPU
         is missing, or with options the GPU engines do not run (position refinement, brightness,
-        held-back captures, the ``zernike`` pupil model): one line naming them and the fix.
+        held-back captures): one line naming them and the fix.
 
     Examples
     --------

@@ -26,10 +26,9 @@ spectra agree to float32 rounding). :class:`BatchedMomentum` visits the
 batches of :class:`~cca_cli.engines.momentum.SequentialMomentum`'s schedule
 and runs the lanes of a phase, whose boxes never overlap, in one call; with
 ``lanes=2`` it visits the captures in the CPU engine's order with one or two
-threads. It recovers pupils with the map models (``full``, ``smooth``);
-position refinement, brightness, held-back captures and the ``zernike`` pupil
-model stay on the CPU, and asking for them here is an error naming the option
-(:func:`unsupported_options`).
+threads. It recovers pupils (``shared`` or ``per_camera``, every pupil model);
+position refinement, brightness and held-back captures stay on the CPU, and
+asking for them here is an error naming the option (:func:`unsupported_options`).
 """
 
 from __future__ import annotations
@@ -73,8 +72,6 @@ def unsupported_options(options: EngineOptions) -> list[str]:
         found.append("brightness: true (set false)")
     if options.hold_back > 0:
         found.append(f"hold_back: {options.hold_back:g} (set 0)")
-    if options.pupil_recovery != "none" and options.pupil_model == "zernike":
-        found.append("pupil_model: zernike with pupil recovery (set full or smooth, or pupil_recovery: none)")
     return found
 
 
@@ -332,14 +329,29 @@ class BatchedMomentum(CalibratingEngine):
         recovery = calibrator.recovery
         if recovery is not None:
             recovery.set_geometry(self._layout, calibrator.pupil_index[order])
-            discs, index, _, _ = recovery.lane_sums(0)
-            b = layout.box_size
-            self._discs = backend.to_device(discs, xp)
-            self._pupil_sums = (xp.zeros((recovery.n_pupils, b, b), xp.complex128),
-                                xp.zeros((recovery.n_pupils, b, b), xp.float64))
-            pixels = np.arange(b * b, dtype=np.int64).reshape(b, b)
-            self._pupil_index = backend.to_device(index[:, None, None] * (b * b) + pixels, xp)
+            self._prepare_pupil_sums(recovery)
         self._set_model(calibrator.pupils_for(self._layout, calibrator.pupil_index[order]))
+
+    def _prepare_pupil_sums(self, recovery) -> None:
+        """The pupil fit's sums on the device, and what forming them needs (discs, modes, pupil of each capture)."""
+        xp, b = self.xp, self._layout.box_size
+        zernike = recovery.zernike_sums(0)
+        if zernike is None:
+            discs, index, _, _ = recovery.lane_sums(0)
+            first = xp.zeros((recovery.n_pupils, b, b), xp.complex128)   # Σ conj(D S) · residual
+            self._basis = None
+        else:
+            discs, basis, index, rhs, _ = zernike
+            n_modes = basis.shape[0]
+            first = xp.zeros(rhs.shape, xp.float64)                     # Σ modes · phase gradient
+            self._basis = backend.to_device(np.ascontiguousarray(basis.reshape(n_modes, len(index), b * b)
+                                                                 .transpose(1, 0, 2)), xp)
+            modes = np.arange(n_modes, dtype=np.int64)
+            self._mode_index = backend.to_device(index[:, None] * n_modes + modes, xp)
+        self._discs = backend.to_device(discs, xp)
+        self._pupil_sums = (first, xp.zeros((recovery.n_pupils, b, b), xp.float64))
+        pixels = np.arange(b * b, dtype=np.int64).reshape(b, b)
+        self._pupil_index = backend.to_device(index[:, None, None] * (b * b) + pixels, xp)
 
     def _set_model(self, pupils: np.ndarray) -> None:
         """Use ``pupils`` (engine order): the forward pupils and each capture's rPIE factor, on the device."""
@@ -353,6 +365,9 @@ class BatchedMomentum(CalibratingEngine):
                              coverage=coverage, out=factors)
         self._pupil_boxes = backend.to_device(model.pupil_boxes, self.xp)
         self._factors = backend.to_device(factors, self.xp)
+        recovery = self.calibrator.recovery
+        self._pupils = None if recovery is None or recovery.model != "zernike" else backend.to_device(model.pupils,
+                                                                                                     self.xp)
 
     # ------------------------------------------------------------ the update rule
     def _data_step(self, fields, step):
@@ -377,19 +392,28 @@ class BatchedMomentum(CalibratingEngine):
         return squared
 
     def _accumulate_pupil(self, step, seen, residuals) -> None:
-        """Add a call's terms of the map-model pupil fit (as :func:`~cca_cli.optics.kernels.accumulate_pupil`)."""
+        """Add a call's terms of the pupil fit (as :meth:`~cca_cli.engines.pupil_recovery.PupilRecovery.accumulate`).
+
+        Map models: ``Σ conj(D S) · r`` and ``Σ |D S|²`` per pupil pixel; Zernike: the phase gradient
+        ``Im(conj(P S) · r)`` on each capture's modes, and ``Σ |D S|²``.
+        """
         xp = self.xp
+        residuals = residuals * xp.float32(1.0 / self._layout.lowres_size)
         lit = self._discs[step] * seen
-        numerator = xp.conj(lit) * residuals * xp.float32(1.0 / self._layout.lowres_size)
         power = xp.square(xp.abs(lit))
-        sums_numerator, sums_power = self._pupil_sums
-        if sums_numerator.shape[0] == 1:
-            sums_numerator[0] += numerator.sum(axis=0, dtype=xp.complex128)
+        if self._basis is None:
+            first, index = xp.conj(lit) * residuals, self._pupil_index[step]
+        else:
+            gradient = xp.imag(xp.conj(self._pupils[step] * seen) * residuals)
+            first = xp.einsum("knp,kp->kn", self._basis[step], gradient.reshape(gradient.shape[0], -1))
+            index = self._mode_index[step]
+        sums_first, sums_power = self._pupil_sums
+        if sums_first.shape[0] == 1:
+            sums_first[0] += first.sum(axis=0, dtype=sums_first.dtype)
             sums_power[0] += power.sum(axis=0, dtype=xp.float64)
         else:
-            index = self._pupil_index[step]
-            backend.scatter_add(xp, sums_numerator, index, numerator.astype(xp.complex128))
-            backend.scatter_add(xp, sums_power, index, power.astype(xp.float64))
+            backend.scatter_add(xp, sums_first, index, first.astype(sums_first.dtype))
+            backend.scatter_add(xp, sums_power, self._pupil_index[step], power.astype(xp.float64))
 
     def _pass(self) -> float:
         """One pass over every call of the schedule, updating the spectrum in place; returns the misfit."""
@@ -405,8 +429,9 @@ class BatchedMomentum(CalibratingEngine):
                 self._accumulate_pupil(step, seen, residuals)
             operator.scatter(residuals * self._factors[step], step, spectrum)
         if recovery is not None:   # the pass's sums join the recovery's own (host) sums
-            _, _, numerator, power = recovery.lane_sums(0)
-            numerator += backend.to_host(self._pupil_sums[0])
+            zernike = recovery.zernike_sums(0)
+            first, power = (recovery.lane_sums(0)[2:] if zernike is None else zernike[3:])
+            first += backend.to_host(self._pupil_sums[0])
             power += backend.to_host(self._pupil_sums[1])
             for sums in self._pupil_sums:
                 sums.fill(0)
