@@ -408,7 +408,8 @@ def _noise(snr_db, photons_per_unit, read_noise_e, seed):
 
 
 def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine: str = "auto", weight=None,
-                callback: Callable | None = None, init=None, padding: str = "auto", **options) -> Reconstruction:
+                callback: Callable | None = None, init=None, padding: str = "auto", device: str = "cpu",
+                **options) -> Reconstruction:
     """Recover the high-resolution object from captured intensities.
 
     Parameters
@@ -439,6 +440,10 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
     padding : {"auto", "off"}
         ``off`` recovers square recorded images as they are (periodic), like
         ``reconstruct.padding.mode: off``.
+    device : {"cpu", "cuda", "auto"}
+        Where the engine runs, like ``reconstruct.device``: ``cpu``; ``cuda``, the engine's batched
+        form on a CUDA GPU through CuPy (``pip install 'cca[gpu]'``); ``auto``, ``cuda`` when CuPy finds
+        a GPU and the options run there, else ``cpu``. The result's ``device`` says which ran.
     **options
         The engine's options: ``tau``, ``iterations`` (alias of
         ``max_iterations``), ``tol`` and the engine's own (see
@@ -457,7 +462,9 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
         with a negative mean, every image flat, weights outside [0, 1]), each
         naming ``intensities`` or ``weight``; or more dead (constant) images
         than can be left out, or a dead centre image. Up to 5% dead images are
-        left out with a warning, as ``cca reconstruct`` does.
+        left out with a warning, as ``cca reconstruct`` does. ``device="cuda"`` where CuPy or a GPU
+        is missing, or with options the GPU engines do not run (position refinement, brightness,
+        held-back captures): one line naming them and the fix.
 
     Examples
     --------
@@ -498,7 +505,7 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
     elif isinstance(init, Reconstruction):
         init = init.spectrum
     return recover_captures(captures, engine=engine, options=engine_options, padding=padding, init=init,
-                            on_iteration=callback)
+                            on_iteration=callback, device=device)
 
 
 def reconstruct_tiles(captures, geometry: CaptureGeometry | None = None, *, size_px: int, overlap_px: int,

@@ -1,9 +1,13 @@
-"""`cca info FILE.h5`: what a pipeline file holds, with units, and the quantities its geometry implies."""
+"""`cca info FILE.h5`: what a pipeline file holds, with units, and the quantities its geometry implies.
+
+`cca info` without a file: what this machine computes with (cca's version, the FFT backend and threads, and
+the devices ``reconstruct.device`` can use).
+"""
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Optional
 
 import numpy as np
 import typer
@@ -13,7 +17,7 @@ from cca_cli.errors import InputError
 from cca_cli.io.browse import is_group, open_hdf5, visit_datasets
 from cca_cli.io.h5 import check_input_file
 
-__all__ = ["info_cli", "derived_lines"]
+__all__ = ["info_cli", "derived_lines", "machine_lines"]
 
 
 def _text(value) -> str:
@@ -76,9 +80,31 @@ def _derived(handle) -> dict | None:
     return derived_quantities(geometry, sensor_pixels=sensor)
 
 
+def machine_lines() -> list[str]:
+    """What `cca info` prints without a file: version, FFT backend and threads, and the compute devices."""
+    from cca_cli.optics import fft
+    from cca_cli.optics.backend import device_status
+    from cca_cli.version import __version__
+
+    status = device_status()
+    devices = f"cpu, cuda ({status.summary})" if status.cuda else status.summary
+    return [f"cca {__version__}",
+            f"  FFT backend     {fft.backend_name()}, {fft.default_threads()} threads",
+            f"  devices         {devices}"]
+
+
 @handle_errors
-def info_cli(path: Annotated[Path, typer.Argument(help="An HDF5 file written by cca.", show_default=False)]) -> None:
-    """List the datasets of PATH with dtype, shape, units and meaning, its provenance and derived quantities."""
+def info_cli(path: Annotated[Optional[Path], typer.Argument(
+        help="An HDF5 file written by cca; omit it for this machine's FFT backend and devices (CPU, GPU).",
+        show_default=False)] = None) -> None:
+    """List the datasets of PATH with dtype, shape, units and meaning, its provenance and derived quantities.
+
+    Without PATH: cca's version, the FFT backend and the devices reconstructions can run on (reconstruct.device).
+    """
+    if path is None:
+        for line in machine_lines():
+            console.print(line, markup=False, highlight=False, soft_wrap=True)
+        return
     check_input_file(path)
     handle = open_hdf5(path)
     out = lambda text="": console.print(text, markup=False, highlight=False, soft_wrap=True)  # noqa: E731

@@ -11,8 +11,8 @@ from pydantic import BaseModel, ValidationError
 from cca_cli.config.messages import error_message
 from cca_cli.errors import ConfigError, short
 
-__all__ = ["ConfigArg", "OptionalConfigArg", "Force", "Output", "Quiet", "Workers", "Scheduler", "cluster_options",
-           "section_from_options"]
+__all__ = ["ConfigArg", "OptionalConfigArg", "Force", "Output", "Quiet", "Workers", "Scheduler", "Device",
+           "cluster_options", "section_from_options"]
 
 SectionT = TypeVar("SectionT", bound=BaseModel)
 
@@ -27,6 +27,10 @@ Workers = Annotated[Optional[int], typer.Option("--workers", "-w", help="Local D
                                                                         "per core).")]
 Scheduler = Annotated[Optional[str], typer.Option("--scheduler", help="Address of an existing Dask scheduler, e.g. "
                                                                       "tcp://host:8786.")]
+Device = Annotated[Optional[str], typer.Option(
+    "--device", help="Where the engine runs: cpu, cuda (a GPU through CuPy: pip install 'cca\\[gpu]') or auto "
+                     "(cuda when a GPU can run it, else cpu); overrides reconstruct.device \\[default: cpu].",
+    show_default=False)]
 
 
 def cluster_options(workers: int | None, scheduler: str | None, *, used: bool):

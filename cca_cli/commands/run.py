@@ -9,8 +9,9 @@ import typer
 
 from cca_cli.commands.console import (console, err_console, handle_errors, print_note, progress_reporter,
                                      recovery_stop_note, stop_note, summary_table)
-from cca_cli.commands.options import Force, OptionalConfigArg, Quiet, Scheduler, Workers, cluster_options
+from cca_cli.commands.options import Device, Force, OptionalConfigArg, Quiet, Scheduler, Workers, cluster_options
 from cca_cli.config.load import load_config
+from cca_cli.config.model import ReconstructSection
 from cca_cli.io.outputs import disk_usage
 from cca_cli.stages.footprint import size_text
 from cca_cli.stages.runner import default_out_dir, run_pipeline
@@ -22,14 +23,18 @@ def run_cli(
     out_dir: Annotated[Optional[Path], typer.Option("--out-dir", help="Override run.out_dir.")] = None,
     workers: Workers = None,
     scheduler: Scheduler = None,
+    device: Device = None,
     force: Force = False,
     quiet: Quiet = False,
 ) -> None:
     """Run the pipeline of CONFIG (default: the paper's headline simulation) into ./cca-runs/.
 
-    --workers / --scheduler say where a tiled reconstruction (reconstruct.tiles) runs its tiles.
+    --workers / --scheduler say where a tiled reconstruction (reconstruct.tiles) runs its tiles; --device where
+    the engine runs (reconstruct.device). Outputs a run already made stay current whichever device made them.
     """
     cfg = load_config(config)
+    if device is not None:
+        cfg = with_device(cfg, device)
     directory = out_dir or cfg.run.out_dir or default_out_dir(config)
 
     def on_stage(plan, status):
@@ -62,3 +67,11 @@ def run_cli(
         note = None
     if note:
         print_note(note)
+
+
+def with_device(cfg, device: str):
+    """``cfg`` with ``reconstruct.device`` set from ``--device`` (one line naming the option when it is not one)."""
+    from cca_cli.commands.options import section_from_options
+
+    section = section_from_options(ReconstructSection, cfg.reconstruct, device=device)
+    return cfg.model_copy(update={"reconstruct": section})

@@ -9,7 +9,8 @@ import typer
 
 from cca_cli.commands.console import console, handle_errors, print_note, recovery_stop_note, summary_table
 from cca_cli.commands.info import derived_lines
-from cca_cli.commands.options import ConfigArg, Force, Quiet, Scheduler, Workers, cluster_options, section_from_options
+from cca_cli.commands.options import (ConfigArg, Device, Force, Quiet, Scheduler, Workers, cluster_options,
+                                     section_from_options)
 from cca_cli.commands.stage_run import run_stage
 from cca_cli.config.load import load_config
 from cca_cli.engines.registry import engine_help
@@ -58,6 +59,7 @@ def reconstruct_cli(
     iterations: Annotated[Optional[int], typer.Option(help="Maximum iterations.")] = None,
     tol: Annotated[Optional[float], typer.Option(help="Relative-change stopping tolerance.")] = None,
     init: Annotated[Optional[Path], typer.Option(help="Start from the spectrum of this recon.h5 (same grid).")] = None,
+    device: Device = None,
     checkpoint_every: Annotated[Optional[int], typer.Option(help="Iterations between checkpoints "
                                                             "(<output>.checkpoint; 0: none) [default: 50].")] = None,
     workers: Workers = None,
@@ -73,7 +75,7 @@ def reconstruct_cli(
     """
     base = load_config(config).reconstruct if config else None
     section = section_from_options(ReconstructSection, base, engine=engine, tau=tau, iterations=iterations, tol=tol,
-                                   init=init, checkpoint_every=checkpoint_every)
+                                   init=init, checkpoint_every=checkpoint_every, device=device)
     inputs = [captures] + ([section.init] if section.init is not None else [])
     with cluster_options(workers, scheduler, used=section.tiles is not None):
         recovery = run_stage("reconstruct", reconstruct_stage.run, captures, section, output=output,
@@ -81,7 +83,8 @@ def reconstruct_cli(
                              protect=[config] if config else [],
                              footprint=lambda: reconstruct_footprint(captures, section))
     tiles = f"{len(recovery.results)} tiles, " if hasattr(recovery, "results") else ""
-    console.print(f"{output}: {recovery.engine}, {tiles}{recovery.history.iterations} iterations in "
+    on_gpu = " on the GPU" if getattr(recovery, "device", "cpu") == "cuda" else ""
+    console.print(f"{output}: {recovery.engine}{on_gpu}, {tiles}{recovery.history.iterations} iterations in "
                   f"{recovery.seconds:.1f} s, {recovery.hires_size}² output")
     note = recovery_stop_note(recovery)
     if note:

@@ -8,7 +8,7 @@ integers and finite numbers are read strictly (:mod:`cca_cli.values`).
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 from pydantic import Field, NonNegativeInt, PositiveFloat, PositiveInt, field_validator, model_validator
 
@@ -217,6 +217,14 @@ class ReconstructSection(Section):
     tiles: TilesSection | None = Field(
         None, description="Recover the frame in overlapping tiles on Dask (a local cluster, or --scheduler), each "
                           "with its own pupil; none: the whole frame at once.")
+    device: Literal["auto", "cpu", "cuda"] = Field(
+        "cpu", description="Where the engine runs: cpu; cuda (the batched engines on a CUDA GPU through CuPy: pip "
+                           "install 'cca[gpu]'); auto: cuda when CuPy finds a GPU and the engine's options run there, "
+                           "else cpu. Not part of the recipe: a run's outputs stay current whichever device made them.")
+
+    #: Keys that say where a run computes, not what: left out of the config hash that decides whether an
+    #: output is up to date, and of the checkpoint's fingerprint (a run stopped on one device resumes on another).
+    NOT_RECIPE: ClassVar[frozenset[str]] = frozenset({"device"})
 
     # Field validators (not a model validator) so that errors point at reconstruct.engine / .options.
     @field_validator("engine")

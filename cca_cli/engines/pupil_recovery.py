@@ -250,6 +250,26 @@ class PupilRecovery:
         return (np.ascontiguousarray(self._discs, np.float32), np.ascontiguousarray(self.index, np.int64),
                 self._num[thread], self._den[thread])
 
+    def zernike_sums(self, thread: int) -> tuple | None:
+        """What a batched engine adds the Zernike model's sums with, or None (the map models: :meth:`lane_sums`).
+
+        Returns
+        -------
+        discs : ndarray, float32, (K, b, b)
+            Every capture's NA disc on its box (engine order).
+        basis : ndarray, float32, (n_modes, K, b, b)
+            Every capture's Zernike modes on its box.
+        index : ndarray, int64, (K,)
+            The pupil each capture uses.
+        rhs : ndarray, float64, (P, n_modes)
+            This thread's sums of the phase gradient on the modes (added to in place).
+        denominator : ndarray, float64, (P, b, b)
+            This thread's sums of the light through each pupil pixel (added to in place).
+        """
+        if self.model != "zernike":
+            return None
+        return self._discs, self._basis, self.index, self._rhs[thread], self._den[thread]
+
     def accumulate(self, thread: int, images: slice, spectrum: np.ndarray, origins: np.ndarray,
                    fields: np.ndarray, pupils: np.ndarray) -> None:
         """Add one batch's terms of the pupil fit.

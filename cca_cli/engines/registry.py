@@ -43,6 +43,9 @@ class EngineSpec:
     calibrates : bool
         Whether it can recover pupils, positions and brightness (a
         :class:`~cca_cli.engines.base.CalibratingEngine`).
+    batched : str or None
+        ``module:Class`` of its batched form, written against an array module (numpy or CuPy), which
+        ``device: cuda`` runs (:mod:`cca_cli.engines.batched`); None: the engine runs on the CPU only.
     """
 
     name: str
@@ -51,6 +54,7 @@ class EngineSpec:
     engine: str
     multiplexed: str | None = None
     calibrates: bool = False
+    batched: str | None = None
 
     def engine_class(self) -> type:
         """The engine class (imported now)."""
@@ -59,6 +63,10 @@ class EngineSpec:
     def multiplexed_class(self) -> type | None:
         """The engine's form for multiplexed captures (imported now), or None."""
         return None if self.multiplexed is None else _load(self.multiplexed)
+
+    def batched_class(self) -> type | None:
+        """The engine's batched form for GPUs (imported now), or None."""
+        return None if self.batched is None else _load(self.batched)
 
     def option_names(self) -> list[str]:
         """Names of the options the engine accepts (``max_iterations`` included)."""
@@ -73,9 +81,11 @@ def _load(path: str) -> type:
 ENGINES: dict[str, EngineSpec] = {
     "altmin": EngineSpec("altmin", "the paper's alternating minimization", AltMinOptions,
                          "cca_cli.engines.altmin:AlternatingMinimization",
-                         multiplexed="cca_cli.engines.multiplex:MultiplexedAlternatingMinimization"),
+                         multiplexed="cca_cli.engines.multiplex:MultiplexedAlternatingMinimization",
+                         batched="cca_cli.engines.batched:BatchedAlternatingMinimization"),
     "momentum": EngineSpec("momentum", "sequential rPIE with mPIE momentum and calibration", MomentumOptions,
-                           "cca_cli.engines.momentum:SequentialMomentum", calibrates=True),
+                           "cca_cli.engines.momentum:SequentialMomentum", calibrates=True,
+                           batched="cca_cli.engines.batched:BatchedMomentum"),
 }
 
 

@@ -163,6 +163,7 @@ def write_recon(path: Path, result: Reconstruction, provenance: Provenance, *, f
         recon.attrs["lowres_size"] = result.band_grid_px
         recon.attrs["pixel_pitch_object_m"] = result.pixel_size_m
         recon.attrs["fft_backend"] = fft.backend_name()
+        recon.attrs["device"] = result.device
         if result.dropped:
             recon.attrs["dropped_captures"] = np.asarray(result.dropped, np.int32)
         if result.held_back:
@@ -281,7 +282,8 @@ def read_recon(path: Path) -> ReconFile:
         engine=str(attrs["engine"]), options=json.loads(_text(attrs.get("engine_options", "{}"))),
         seconds=float(attrs["seconds"]), stopped_by=_text(attrs.get("stopped_by", "")), observed=observed,
         truth=truth, units=None if units in ("", "irradiance") else units, band_grid_px=int(attrs["lowres_size"]),
-        pupil=pupil, positions_px=positions, region=region, dropped=dropped, held_back=held_back)
+        pupil=pupil, positions_px=positions, region=region, dropped=dropped, held_back=held_back,
+        device=_text(attrs.get("device", "cpu")))
     return ReconFile(result=result, attrs=attrs, calibration=calibration, tiles=tiles, region_px=region_px,
                      multiplex=multiplex, capture_summary=capture_summary)
 

@@ -134,6 +134,8 @@ class Reconstruction:
     held_back : tuple of int
         Captures (of those recovered) the engine held back from its updates to judge when to stop;
         ``history["held_back"]`` is their misfit.
+    device : str
+        Where the engine ran: ``cpu``, or ``cuda`` (a GPU through CuPy).
     """
 
     object: np.ndarray
@@ -155,6 +157,7 @@ class Reconstruction:
     region: RegionEmbedding | None = None
     dropped: tuple[int, ...] = ()
     held_back: tuple[int, ...] = ()
+    device: str = "cpu"
 
     def __post_init__(self):
         if not isinstance(self.history, History):  # columns by name, as a user may write them

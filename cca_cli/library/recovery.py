@@ -30,7 +30,8 @@ from cca_cli.engines.problem import PhaseRetrievalProblem
 from cca_cli.engines.registry import get_engine, resolve
 from cca_cli.errors import CcaError
 from cca_cli.library.data import CaptureSet, Reconstruction, constant_images
-from cca_cli.optics import fft
+from cca_cli.optics import backend, fft
+from cca_cli.optics.backend import DeviceUnavailable
 from cca_cli.optics.forward import ForwardModel
 from cca_cli.optics.pupil import circular_pupils
 from cca_cli.progress import ProgressEvent, ProgressFn, silent
@@ -39,8 +40,9 @@ from cca_cli.sampling.geometry import CaptureGeometry
 from cca_cli.sampling.grid import BandLayout, band_layout, smallest_fft_size
 from cca_cli.sampling.region import RegionEmbedding, plan_embedding
 
-__all__ = ["MAX_DEAD_FRACTION", "DivergedError", "reconstruct", "without_dead_captures", "embed_region",
-           "build_model", "problem_calibration", "recover", "drive_engine", "calibrated_pupils"]
+__all__ = ["MAX_DEAD_FRACTION", "DivergedError", "DeviceUnavailable", "reconstruct", "engine_device",
+           "without_dead_captures", "embed_region", "build_model", "problem_calibration", "recover", "drive_engine",
+           "calibrated_pupils"]
 
 _log = logging.getLogger("cca")
 #: Share of the captures that may be dead (constant) and left out; more is refused as a broken recording.
@@ -60,7 +62,8 @@ class DivergedError(CcaError):
 def reconstruct(captures: CaptureSet, *, engine: str = "auto", options: dict | EngineOptions | None = None,
                 padding: str = "auto", guard_px: int | None = None, apodize_px: int | None = None,
                 init: np.ndarray | None = None, init_pixel_m: float | None = None, progress: ProgressFn = silent,
-                on_iteration=None, checkpoint=None, name: str = "intensities", source=None) -> Reconstruction:
+                on_iteration=None, checkpoint=None, name: str = "intensities", source=None,
+                device: str = "cpu") -> Reconstruction:
     """Recover the object from captures: the one way the API and the command line both take.
 
     Parameters
@@ -82,6 +85,8 @@ def reconstruct(captures: CaptureSet, *, engine: str = "auto", options: dict | E
         As in :func:`recover`.
     name, source
         How messages name the images and their file.
+    device : {"cpu", "cuda", "auto"}
+        Where the engine runs (:func:`engine_device`).
 
     Returns
     -------
@@ -92,12 +97,15 @@ def reconstruct(captures: CaptureSet, *, engine: str = "auto", options: dict | E
     ValueError
         Options the engine does not take, dead captures beyond what may be left out, or images and a
         geometry no recovery grid can hold.
+    DeviceUnavailable
+        ``device="cuda"`` without CuPy or a GPU, or with options the GPU engines do not run (a ValueError).
     DivergedError
     """
     if isinstance(options, EngineOptions):
         engine_options = options
     else:
         engine, engine_options = resolve(engine, captures.kind, options or {})
+    device = engine_device(device, engine, engine_options)
     live = without_dead_captures(captures, name=name, source=source)
     padded, region = embed_region(live, padding=padding, guard_px=guard_px, apodize_px=apodize_px)
     if init is not None and init_pixel_m is not None:
@@ -106,13 +114,50 @@ def reconstruct(captures: CaptureSet, *, engine: str = "auto", options: dict | E
             raise ValueError(f"init: its object pixels are {float(init_pixel_m):.6g} m but this reconstruction's are "
                              f"{pixel:.6g} m; start from a result of the same geometry")
     result = recover(padded, engine, engine_options, progress=progress, on_iteration=on_iteration, init=init,
-                     checkpoint=checkpoint)
+                     checkpoint=checkpoint, device=device)
     observed = live.centre_image
     obj = result.object
     if region is not None:
         y0, x0, rows, cols = region.hires_box(result.hires_size)
         obj = np.ascontiguousarray(obj[y0:y0 + rows, x0:x0 + cols])
     return replace(result, object=obj, observed=observed, region=region, dropped=live.dropped)
+
+
+def engine_device(device: str, engine: str, options: EngineOptions) -> str:
+    """The device an engine runs on: ``cpu`` (the CPU engines, as always) or ``cuda`` (their batched forms on a GPU).
+
+    Parameters
+    ----------
+    device : {"cpu", "cuda", "auto"}
+        ``auto`` is ``cuda`` when CuPy finds a GPU and the engine's batched form runs these options
+        (:func:`cca_cli.engines.batched.unsupported_options`), else ``cpu``.
+    engine : str
+        A registered engine name.
+    options : EngineOptions
+
+    Raises
+    ------
+    DeviceUnavailable
+        ``cuda`` without CuPy or a GPU, or for options (or an engine) the GPU does not run: one line
+        naming them and the fix.
+    ValueError
+        An unknown device name.
+    """
+    if device == "cpu":
+        return "cpu"
+    from cca_cli.engines.batched import check_options, unsupported_options
+
+    spec = get_engine(engine)
+    usable = spec.batched is not None and not unsupported_options(options)
+    resolved = backend.resolve_device(device, usable=usable)
+    if resolved == "cuda":
+        if spec.batched is None:
+            raise DeviceUnavailable(f"engine {engine} runs on the CPU only; use device cpu")
+        check_options(options)
+    elif device == "auto" and backend.device_status().cuda:
+        _log.warning("note: device auto runs this reconstruction on the CPU: the GPU engine does not run %s",
+                     "; ".join(unsupported_options(options)) or f"engine {engine}")
+    return resolved
 
 
 def _listed(indices, grid: np.ndarray, limit: int = 6) -> str:
@@ -271,7 +316,7 @@ def drive_engine(engine, options: EngineOptions, *, progress: ProgressFn = silen
 
 def recover(captures: CaptureSet, engine: str, options: EngineOptions, *, progress: ProgressFn = silent,
             on_iteration=None, init: np.ndarray | None = None, checkpoint=None,
-            aberration=None) -> Reconstruction:
+            aberration=None, device: str = "cpu") -> Reconstruction:
     """Phase retrieval of ``captures`` (square, on the grid they are recovered on) with a named engine.
 
     Builds the forward model on the smallest grids the band allows (wider when
@@ -298,6 +343,9 @@ def recover(captures: CaptureSet, engine: str, options: EngineOptions, *, progre
     aberration : ndarray, (n_modes,) or (P, n_modes), optional
         Zernike coefficients (waves) the pupil starts from, in place of what the captures know
         (a tiled reconstruction passes a neighbour tile's).
+    device : {"cpu", "cuda", "auto"}
+        Where the engine runs (:func:`engine_device`): ``cuda`` runs the engine's batched form
+        (:mod:`cca_cli.engines.batched`) on CuPy arrays.
 
     Returns
     -------
@@ -324,7 +372,8 @@ def recover(captures: CaptureSet, engine: str, options: EngineOptions, *, progre
             raise ValueError(f"init: the spectrum is {start.shape[0]}x{start.shape[-1]} but this reconstruction's "
                              f"grid is {model.spectrum_shape[0]}x{model.spectrum_shape[1]}; start from a result of "
                              "the same captures (and padding)")
-    engine_class = get_engine(engine).engine_class()
+    device = engine_device(device, engine, options)
+    engine_class = _engine_factory(engine, device)
     runner = engine_class(problem, options, spectrum=start)
     history = None
     saved = checkpoint.load(_state_of(runner)) if checkpoint is not None else None
@@ -348,7 +397,16 @@ def recover(captures: CaptureSet, engine: str, options: EngineOptions, *, progre
         pupil=None if found is None else calibrated_pupils(found, captures.geometry.pupil_radius_px),
         positions_px=None if found is None else found.centres_px, calibration=found,
         fit=fit_report(problem, spectrum, found), dropped=captures.dropped,
-        held_back=tuple(int(i) for i in runner.held_back))
+        held_back=tuple(int(i) for i in runner.held_back), device=device)
+
+
+def _engine_factory(engine: str, device: str):
+    """What builds the engine: its CPU class, or its batched form bound to CuPy."""
+    spec = get_engine(engine)
+    if device == "cpu":
+        return spec.engine_class()
+    batched, xp = spec.batched_class(), backend.array_module(device)
+    return lambda problem, options, spectrum=None: batched(problem, options, spectrum=spectrum, xp=xp)
 
 
 def _state_of(engine) -> dict | None:

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from cca_cli.config.model import ReconstructSection
 from cca_cli.engines.base import History
-from cca_cli.errors import InputError
+from cca_cli.errors import ConfigError, InputError
 from cca_cli.io.captures import read_captures
 from cca_cli.io.checkpoint import (checkpoint_damage, checkpoint_path, read_checkpoint, remove_checkpoint,
                                    write_checkpoint)
@@ -22,7 +22,7 @@ from cca_cli.io.recon import write_recon
 from cca_cli.library.data import Reconstruction
 from cca_cli.stages.progress import ProgressFn, silent
 from cca_cli.version import __version__
-from cca_cli.workflows.recovery import reconstruct_captures
+from cca_cli.workflows.recovery import check_device, reconstruct_captures
 
 __all__ = ["SECTIONS", "Checkpointing", "checkpoint_fingerprint", "run", "run_tiled"]
 
@@ -100,7 +100,7 @@ class Checkpointing:
 
 def checkpoint_fingerprint(section: ReconstructSection, provenance: Provenance, captures_path: Path) -> str:
     """SHA-256 of what a reconstruction's result depends on: the captures' bytes, the section (without
-    ``checkpoint_every``), the starting spectrum's file (size and time) and the cca version."""
+    ``checkpoint_every`` and ``device``), the starting spectrum's file (size and time) and the cca version."""
     try:
         inputs = [item["sha256"] for item in json.loads(provenance.get("inputs", "[]"))]
     except (ValueError, KeyError, TypeError):
@@ -110,7 +110,7 @@ def checkpoint_fingerprint(section: ReconstructSection, provenance: Provenance, 
         stat = Path(section.init).stat()
         init = [str(section.init), stat.st_size, stat.st_mtime_ns]
     data = {"inputs": inputs or [file_sha256(captures_path)], "init": init, "version": __version__,
-            "section": section.model_dump(mode="json", exclude={"checkpoint_every"})}
+            "section": section.model_dump(mode="json", exclude={"checkpoint_every", *section.NOT_RECIPE})}
     return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
 
 
@@ -124,8 +124,13 @@ def run(captures_path: Path, section: ReconstructSection, output: Path, *, prove
     (:func:`run_tiled`).
     """
     check_output(output, force=force)
+    check_device(section)
     from cca_cli.workflows import multiplex
 
+    if section.device == "cuda" and (section.tiles is not None or multiplex.is_multiplexed_file(captures_path)):
+        what = "tiled (reconstruct.tiles)" if section.tiles is not None else "multiplexed"
+        raise ConfigError(f"reconstruct.device: cuda runs whole-frame reconstructions of plain captures; {what} "
+                          "reconstructions run on the CPU: use device cpu or auto")
     if section.tiles is not None:
         if multiplex.is_multiplexed_file(captures_path):
             raise InputError(f"{captures_path}: multiplexed captures are recovered whole; leave out reconstruct.tiles")

@@ -50,6 +50,7 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
                           lowres_size=int(attrs.get("lowres_size")), truth_field=truth_obj)
     summary = summarize(inputs, threshold=section.mtf_threshold)
     summary.update(_stopping(attrs, change))
+    summary["device"] = str(attrs.get("device", "cpu"))
     if "dropped_captures" in attrs:
         summary["dropped_captures"] = [int(i) for i in np.atleast_1d(attrs["dropped_captures"])]
     held_back = result.history["held_back"] if result.held_back else None

@@ -108,8 +108,9 @@ def section_yaml(sections: dict[str, BaseModel]) -> str:
 
 
 def config_hash(sections: dict[str, BaseModel]) -> str:
-    """SHA-256 of the JSON form of config sections."""
-    data = {k: v.model_dump(mode="json") for k, v in sections.items()}
+    """SHA-256 of the JSON form of config sections (without the keys that say only where a run computes,
+    a section's ``NOT_RECIPE``, such as ``reconstruct.device``)."""
+    data = {k: v.model_dump(mode="json", exclude=set(getattr(v, "NOT_RECIPE", ()))) for k, v in sections.items()}
     return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
 
 
@@ -224,6 +225,10 @@ def _check_before_running(config: RunConfig, plans: list[StagePlan], *, force: b
         rewritten.add(plan.output)
         if plan.name == "simulate":
             simulate = plan
+        if plan.name == "reconstruct":
+            from cca_cli.workflows.recovery import check_device
+
+            check_device(config.reconstruct)
     if simulate is not None:
         check_footprint(simulate_footprint(config), simulate.output, source=source)
 

@@ -17,10 +17,11 @@ from cca_cli.io.measurements import INTENSITY
 from cca_cli.io.recon import read_spectrum
 from cca_cli.library import recovery as library
 from cca_cli.library.data import CaptureSet, Reconstruction
+from cca_cli.optics.backend import DeviceUnavailable, resolve_device
 from cca_cli.progress import ProgressFn, silent
 from cca_cli.sampling.region import RegionEmbedding
 
-__all__ = ["engine_options", "reconstruct_captures", "embed_region", "without_dead_captures"]
+__all__ = ["engine_options", "check_device", "reconstruct_captures", "embed_region", "without_dead_captures"]
 
 
 def engine_options(section: ReconstructSection, kind: str = "simulation", **overrides) -> tuple[str, EngineOptions]:
@@ -36,12 +37,29 @@ def engine_options(section: ReconstructSection, kind: str = "simulation", **over
         raise ConfigError(f"reconstruct.options: {exc}") from None
 
 
+def check_device(section: ReconstructSection) -> None:
+    """Refuse ``reconstruct.device: cuda`` where CuPy or a GPU is missing, before anything is read or run.
+
+    Raises
+    ------
+    ConfigError
+        One line naming ``reconstruct.device``, what is missing and the fix.
+    """
+    if section.device != "cuda":
+        return
+    try:
+        resolve_device(section.device)
+    except DeviceUnavailable as exc:
+        raise ConfigError(f"reconstruct.device: {exc}") from None
+
+
 def reconstruct_captures(captures: CaptureSet, section: ReconstructSection, *, source: Path,
                          progress: ProgressFn = silent, checkpoint=None) -> Reconstruction:
     """Recover ``captures`` (read from ``source``) as ``section`` says (:func:`cca_cli.library.recovery.reconstruct`).
 
     ``section.init`` names a recon.h5 whose spectrum the engine starts from; with
-    ``checkpoint`` the run continues from a matching checkpoint and writes new ones.
+    ``checkpoint`` the run continues from a matching checkpoint and writes new ones. ``section.device``
+    says where the engine runs; a device that cannot run it is a ConfigError naming ``reconstruct.device``.
     """
     name, options = engine_options(section, captures.kind)
     init = init_pixel = None
@@ -53,7 +71,9 @@ def reconstruct_captures(captures: CaptureSet, section: ReconstructSection, *, s
         return library.reconstruct(captures, engine=name, options=options, padding=padding.mode,
                                    guard_px=padding.guard_px, apodize_px=padding.apodize_px, init=init,
                                    init_pixel_m=init_pixel, progress=progress, checkpoint=checkpoint,
-                                   name=INTENSITY, source=source)
+                                   name=INTENSITY, source=source, device=section.device)
+    except library.DeviceUnavailable as exc:
+        raise ConfigError(f"reconstruct.device: {exc}") from None
     except library.DivergedError as exc:
         raise CcaError(f"reconstruct: the recovery diverged (NaN or Inf after {exc.iterations} iterations), so "
                        "nothing was written; raise reconstruct.tau or choose other reconstruct.options") from None

@@ -626,5 +626,5 @@ def run_fingerprint(section: ReconstructSection, inputs: list[str], captures_pat
     from cca_cli.io.h5 import file_sha256
 
     data = {"inputs": inputs or [file_sha256(captures_path)], "version": __version__,
-            "section": section.model_dump(mode="json", exclude={"checkpoint_every"})}
+            "section": section.model_dump(mode="json", exclude={"checkpoint_every", *section.NOT_RECIPE})}
     return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()

@@ -1,0 +1,251 @@
+"""What the GPU backend does on this machine's GPU: the FFT floor, time per pass, whole runs, CPU agreement.
+
+    python benchmarks/gpu_check.py [--iterations N] [--only PART] [--no-whole-runs] [--skip-cpu] [--json FILE]
+                                   [--require-gpu]
+
+Prints, on a machine with CuPy and a CUDA GPU (``pip install 'cca[gpu]'``), in about 3-5 minutes:
+
+1. the GPU FFT floor: one batched ``fft2`` + ``ifft2`` of 441 x 128², 225 x 128², 441 x 84² and
+   441 x 32² complex64 fields (the headline sensor grid, the blood smear's, the headline band grid and a
+   small one);
+2. the headline simulation (``configs/headline.yaml``: 441 captures; it prints their band grid and the
+   output grid): the time per pass of the GPU engines (``altmin``, ``momentum``) against the floor of the
+   FFTs of one pass on that grid, and whole runs to the config's stopping rule on the GPU and the CPU;
+3. the blood smear (``configs/bloodsmear_green.yaml``, 225 LED-array captures, pupil recovered), when
+   ``../shared/datasets/fpm-zheng-bloodsmear`` is there (skipped with a note when not);
+4. the wide field (``configs/widefield.yaml``: a 2048² frame, 25 captures), recovered whole (the GPU path
+   runs no tiles) for ``--iterations`` passes on both devices.
+
+Each comparison runs the CPU engine (``device: cpu``) and the GPU engine on the same captures and options
+for ``--iterations`` passes (default 50, ``tol`` 0) and prints ``max |I_gpu − I_cpu| / max I_cpu`` of the
+recovered intensities. Without CuPy or without a GPU it prints why on one line and exits 0 (2 with
+``--require-gpu``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from cca_cli.optics import backend  # noqa: E402
+
+#: Field stacks whose batched fft2 + ifft2 make the floor: (captures, side).
+FLOOR_SHAPES = ((441, 128), (225, 128), (441, 84), (441, 32))
+BLOODSMEAR = ROOT.parent / "shared" / "datasets" / "fpm-zheng-bloodsmear"
+
+
+def gpu_seconds(func, *, repeats: int = 10, warmup: int = 2) -> float:
+    """Median wall time of ``func()`` on the GPU (synchronised before and after each call)."""
+    cupy = backend.cupy_module()
+    for _ in range(warmup):
+        func()
+    cupy.cuda.Device().synchronize()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        func()
+        cupy.cuda.Device().synchronize()
+        times.append(time.perf_counter() - start)
+    return float(np.median(times))
+
+
+def random_fields(count: int, side: int) -> np.ndarray:
+    """``count`` random complex64 fields of ``side`` x ``side`` (on the host)."""
+    rng = np.random.default_rng(0)
+    shape = (count, side, side)
+    return (rng.standard_normal(shape, np.float32) + 1j * rng.standard_normal(shape, np.float32)).astype(np.complex64)
+
+
+def fft_floor() -> dict:
+    """Seconds of one batched fft2 + ifft2 per stack of :data:`FLOOR_SHAPES`."""
+    cupy = backend.cupy_module()
+    out = {}
+    for count, side in FLOOR_SHAPES:
+        fields = backend.to_device(random_fields(count, side), cupy)
+
+        def round_trip(fields=fields):
+            backend.ifft2(cupy, backend.fft2(cupy, fields))
+
+        out[f"{count}x{side}^2"] = gpu_seconds(round_trip)
+        del fields
+    return out
+
+
+def time_per_pass(engine, passes: int = 5) -> float:
+    """Median seconds of one ``engine.update()`` (after two warm-up passes)."""
+    return gpu_seconds(engine.update, repeats=passes, warmup=2)
+
+
+def peak_difference(cpu_object: np.ndarray, gpu_object: np.ndarray) -> float:
+    """``max |I_gpu − I_cpu| / max I_cpu`` of two recovered fields' intensities."""
+    cpu, gpu = np.abs(cpu_object) ** 2, np.abs(gpu_object) ** 2
+    return float(np.abs(gpu - cpu).max() / max(cpu.max(), 1e-30))
+
+
+def run_both(recover, iterations: int, skip_cpu: bool) -> dict:
+    """The same recovery on the CPU and the GPU for ``iterations`` passes: times and agreement."""
+    out = {}
+    start = time.perf_counter()
+    gpu = recover("cuda", iterations)
+    out["gpu_seconds"] = time.perf_counter() - start
+    out["iterations"] = gpu.history.iterations
+    if not skip_cpu:
+        start = time.perf_counter()
+        cpu = recover("cpu", iterations)
+        out["cpu_seconds"] = time.perf_counter() - start
+        out["max_diff_over_peak"] = peak_difference(cpu.object, gpu.object)
+    return out
+
+
+def headline(iterations: int, skip_cpu: bool, whole_runs: bool = True) -> dict:
+    """Per-pass times against the FFT floor, capped runs on both devices and whole runs, on the headline case."""
+    from common import headline_problem
+
+    from cca_cli.engines.batched import BatchedAlternatingMinimization, BatchedMomentum
+    from cca_cli.engines.registry import resolve
+    from cca_cli.library.data import CaptureSet
+    from cca_cli.library.recovery import reconstruct
+
+    cupy = backend.cupy_module()
+    problem, simulation = headline_problem()
+    m = problem.model.layout.lowres_size
+    k = problem.model.n_images
+    fields = backend.to_device(random_fields(k, m), cupy)
+    floor = gpu_seconds(lambda: backend.ifft2(cupy, backend.fft2(cupy, fields)))
+    del fields
+    out = {"captures": k, "band_grid": m, "output_grid": problem.model.layout.hires_size, "fft_floor_s": floor}
+    for name, engine in (("altmin", BatchedAlternatingMinimization), ("momentum", BatchedMomentum)):
+        _, options = resolve(name, "simulation", {"tol": 0.0})
+        seconds = time_per_pass(engine(problem, options, xp=cupy))
+        out[f"{name}_pass_s"] = seconds
+        out[f"{name}_pass_over_floor"] = seconds / floor
+    captures = CaptureSet(simulation.intensity, simulation.geometry)
+    given = {"tau": 1e-3, "iterations": 1500, "tol": 1e-5}     # configs/headline.yaml's reconstruct section
+
+    def capped(device, passes):
+        return reconstruct(captures, engine="altmin", options={**given, "iterations": passes, "tol": 0.0},
+                           device=device)
+
+    def whole(device, _):
+        return reconstruct(captures, engine="altmin", options=given, device=device)
+
+    out["capped"] = run_both(capped, iterations, skip_cpu)
+    if whole_runs:
+        out["whole_run"] = run_both(whole, 0, skip_cpu)
+    return out
+
+
+def bloodsmear(iterations: int, skip_cpu: bool, whole_runs: bool = True) -> dict:
+    """The blood smear (ingested once) recovered on both devices: capped runs and whole GPU run."""
+    if not BLOODSMEAR.is_dir():
+        return {"skipped": f"{BLOODSMEAR} is not there (the blood smear lives in ../shared/datasets)"}
+    from cca_cli.config.load import load_config
+    from cca_cli.io.captures import read_captures
+    from cca_cli.stages.runner import run_pipeline
+    from cca_cli.workflows.recovery import reconstruct_captures
+
+    config = load_config(ROOT / "configs" / "bloodsmear_green.yaml")
+    folder = Path(tempfile.mkdtemp(prefix="cca-gpu-check-"))
+    config = config.model_copy(update={"run": config.run.model_copy(update={"stages": ["ingest"]})})
+    run_pipeline(config, folder)
+    path = folder / "captures.h5"
+    captures = read_captures(path)
+    section = config.reconstruct
+
+    def capped(device, passes):
+        options = {**section.options, "plateau": 0.0}
+        capped_section = section.model_copy(update={"device": device, "iterations": passes, "tol": 0.0,
+                                                    "options": options})
+        return reconstruct_captures(captures, capped_section, source=path)
+
+    def whole(device, _):
+        return reconstruct_captures(captures, section.model_copy(update={"device": device}), source=path)
+
+    out = {"captures": int(captures.intensity.shape[0]), "capped": run_both(capped, iterations, skip_cpu)}
+    if whole_runs:
+        out["whole_run"] = run_both(whole, 0, skip_cpu=True)
+    return out
+
+
+def widefield(iterations: int, skip_cpu: bool) -> dict:
+    """The wide-field frame recovered whole (no tiles) for ``iterations`` passes on both devices."""
+    from cca_cli.config.load import load_config
+    from cca_cli.library.data import CaptureSet
+    from cca_cli.library.recovery import reconstruct
+    from cca_cli.stages.simulate import simulate
+
+    config = load_config(ROOT / "configs" / "widefield.yaml")
+    simulation = simulate(config)
+    captures = CaptureSet(simulation.intensity, simulation.geometry)
+
+    def capped(device, passes):
+        return reconstruct(captures, engine="altmin", options={"iterations": passes, "tol": 0.0}, device=device)
+
+    return {"captures": int(captures.intensity.shape[0]), "frame": int(captures.intensity.shape[-1]),
+            "capped": run_both(capped, iterations, skip_cpu)}
+
+
+def _print_section(name: str, result: dict) -> None:
+    print(f"\n{name}")
+    for key, value in result.items():
+        if isinstance(value, dict):
+            print(f"  {key}: " + ", ".join(f"{k} {_text(v)}" for k, v in value.items()))
+        else:
+            print(f"  {key}: {_text(value)}")
+
+
+def _text(value) -> str:
+    return f"{value:.4g}" if isinstance(value, float) else str(value)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--iterations", type=int, default=50, help="Passes of the capped CPU/GPU comparisons.")
+    parser.add_argument("--json", type=Path, help="Also write the results to this JSON file.")
+    parser.add_argument("--skip-cpu", action="store_true", help="GPU runs only (no CPU runs, no agreement).")
+    parser.add_argument("--no-whole-runs", action="store_true", help="Capped comparisons only (no whole runs).")
+    parser.add_argument("--require-gpu", action="store_true", help="Exit 2 (not 0) when there is no GPU.")
+    parser.add_argument("--only", choices=("floor", "headline", "bloodsmear", "widefield"), action="append",
+                        help="Run only these parts (repeatable).")
+    args = parser.parse_args(argv)
+    status = backend.device_status()
+    if not status.cuda:
+        print(f"no GPU: {status.summary.removeprefix('cpu only: ')}; nothing measured "
+              f"({backend.GPU_INSTALL} on a machine with an NVIDIA GPU)")
+        return 2 if args.require_gpu else 0
+    from cca_cli.optics import fft
+
+    print(f"device: {status.summary}; CPU: {fft.cpu_count()} cores, FFT backend {fft.backend_name()}")
+    whole = not args.no_whole_runs
+    parts = {"floor": lambda: fft_floor(), "headline": lambda: headline(args.iterations, args.skip_cpu, whole),
+             "bloodsmear": lambda: bloodsmear(args.iterations, args.skip_cpu, whole),
+             "widefield": lambda: widefield(args.iterations, args.skip_cpu)}
+    results = {"device": status.summary}
+    for name, part in parts.items():
+        if args.only and name not in args.only:
+            continue
+        start = time.perf_counter()
+        try:
+            results[name] = part()
+        except Exception as exc:  # noqa: BLE001 - one part failing must not hide the others' numbers
+            results[name] = {"failed": f"{type(exc).__name__}: {exc}"}
+        results[name]["part_seconds"] = time.perf_counter() - start
+        _print_section(name, results[name])
+        sys.stdout.flush()
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=2, default=float))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,521 @@
+"""The engines in batched form, written against an array module: numpy on the CPU, CuPy on a GPU.
+
+The CPU engines (:mod:`~cca_cli.engines.altmin`, :mod:`~cca_cli.engines.momentum`)
+keep a few captures in cache at a time and run compiled loops over them. A GPU
+wants the opposite: as many captures per call as memory allows, and no Python
+loop over captures. The engines here do every step for a whole batch of
+captures at once, in complex64, with the array module ``xp`` they are given
+(:mod:`cca_cli.optics.backend`):
+
+* gather each capture's pupil box from the spectrum by fancy indexing, multiply
+  by its pupil, place it in the middle of an m x m field, batched inverse FFT;
+* the data step (magnitude projection or Poisson step) on all fields at once;
+* batched forward FFT, multiply by the adjoint pupil (or the rPIE factor), and
+  scatter-add the boxes back into the spectrum.
+
+They read the same problem (:class:`~cca_cli.engines.problem.PhaseRetrievalProblem`),
+take the same options, stop by the same :class:`~cca_cli.engines.stopping.StoppingPolicy`
+and keep the engine interface (update / spectrum / state / restore / close), so
+:func:`~cca_cli.library.recovery.drive_engine`, checkpoints and the report work
+unchanged; their states are those of the CPU engines, so a run checkpointed on
+one device continues on the other.
+
+:class:`BatchedAlternatingMinimization` is the paper's update, the same
+arithmetic as :class:`~cca_cli.engines.altmin.AlternatingMinimization` (the
+spectra agree to float32 rounding). :class:`BatchedMomentum` visits the
+batches of :class:`~cca_cli.engines.momentum.SequentialMomentum`'s schedule
+and runs the lanes of a phase, whose boxes never overlap, in one call; with
+``lanes=2`` it visits the captures in the CPU engine's order with one or two
+threads. It recovers pupils (``shared`` or ``per_camera``, every pupil model);
+position refinement, brightness and held-back captures stay on the CPU, and
+asking for them here is an error naming the option (:func:`unsupported_options`).
+"""
+
+from __future__ import annotations
+
+from types import ModuleType
+
+import numpy as np
+
+from cca_cli.engines.base import CalibratingEngine, IterativeEngine
+from cca_cli.engines.calibrator import Calibration, Calibrator, subset_layout
+from cca_cli.engines.options import AltMinOptions, EngineOptions, MomentumOptions
+from cca_cli.engines.problem import PhaseRetrievalProblem, initial_spectrum
+from cca_cli.engines.schedule import Schedule, build_schedule
+from cca_cli.engines.stopping import StoppingPolicy
+from cca_cli.optics import backend, kernels
+from cca_cli.optics.backend import DeviceUnavailable
+from cca_cli.optics.forward import ForwardModel
+from cca_cli.sampling.grid import BandLayout
+
+__all__ = ["FIELD_BYTES", "BoxOperator", "unsupported_options", "check_options", "merged_steps",
+           "BatchedAlternatingMinimization", "BatchedMomentum"]
+
+#: Most bytes of complex64 fields one batched call holds (the FFTs need about as much again).
+FIELD_BYTES = 1 << 29
+
+
+def unsupported_options(options: EngineOptions) -> list[str]:
+    """The options (``name: value``) the batched engines cannot run, with what to set instead.
+
+    Returns
+    -------
+    list of str
+        Empty when everything in ``options`` runs batched.
+    """
+    if not isinstance(options, MomentumOptions):
+        return []
+    found = []
+    if options.position_refinement != "none":
+        found.append(f"position_refinement: {options.position_refinement} (set none)")
+    if options.brightness:
+        found.append("brightness: true (set false)")
+    if options.hold_back > 0:
+        found.append(f"hold_back: {options.hold_back:g} (set 0)")
+    return found
+
+
+def check_options(options: EngineOptions) -> None:
+    """Raise :class:`~cca_cli.optics.backend.DeviceUnavailable` (one line) for options the GPU engines lack."""
+    found = unsupported_options(options)
+    if found:
+        raise DeviceUnavailable(f"the GPU engine does not run {'; '.join(found)}; or use device cpu")
+
+
+def _squared_norm(xp: ModuleType, array) -> float:
+    """``‖array‖²`` summed in float64."""
+    return float(xp.sum(xp.square(xp.abs(array)), dtype=xp.float64))
+
+
+def _capture_groups(count: int, size: int) -> list[slice]:
+    """``range(count)`` in contiguous groups whose m x m complex64 fields fit :data:`FIELD_BYTES`."""
+    per_call = max(1, FIELD_BYTES // (size * size * 8))
+    return [slice(start, min(start + per_call, count)) for start in range(0, count, per_call)]
+
+
+class BoxOperator:
+    """The forward operator and its adjoint for batches of captures, on the device of ``xp``.
+
+    Capture ``i`` sees the spectrum's ``b x b`` box at ``layout.box_origins[i]``; its field is that box
+    times the pupil, placed on an ``m x m`` grid centred at ``m // 2`` and inverse transformed (raw,
+    unnormalised FFTs: the scaling lives in the pupils, as in :class:`~cca_cli.optics.forward.ForwardModel`).
+
+    Parameters
+    ----------
+    xp : module
+        numpy or CuPy.
+    layout : BandLayout
+        Grids and boxes of the captures, in the order the engine indexes them.
+    """
+
+    def __init__(self, xp: ModuleType, layout: BandLayout):
+        self.xp = xp
+        self.m, self.b, self.size = layout.lowres_size, layout.box_size, layout.hires_size
+        self.start = self.m // 2 - self.b // 2
+        origins = np.asarray(layout.box_origins, np.int64)
+        offsets = np.arange(self.b, dtype=np.int64)
+        rows = origins[:, 0, None, None] + offsets[None, :, None]
+        cols = origins[:, 1, None, None] + offsets[None, None, :]
+        if origins.size and (rows.min() < 0 or cols.min() < 0 or rows.max() >= self.size or cols.max() >= self.size):
+            raise ValueError(f"a pupil box leaves the {self.size} x {self.size} spectrum")
+        #: Flat spectrum index of every box pixel, (K, b, b).
+        self.index = backend.to_device(rows * self.size + cols, xp)
+
+    def boxes(self, spectrum, captures):
+        """The spectrum's boxes of ``captures`` (a slice or an index array), complex64 (k, b, b)."""
+        return spectrum.reshape(-1)[self.index[captures]]
+
+    def fields(self, boxes, pupils):
+        """Fields ``F⁻¹{pupil · box}`` of a batch, complex64 (k, m, m) (field layout, see ForwardModel)."""
+        xp, s, b = self.xp, self.start, self.b
+        fields = xp.zeros((boxes.shape[0], self.m, self.m), xp.complex64)
+        fields[:, s:s + b, s:s + b] = boxes * pupils
+        return backend.ifft2(xp, fields)
+
+    def spectra(self, fields):
+        """The boxes of the raw forward FFTs of ``fields`` (destroyed), complex64 (k, b, b)."""
+        s, b = self.start, self.b
+        return backend.fft2(self.xp, fields)[:, s:s + b, s:s + b]
+
+    def scatter(self, boxes, captures, out) -> None:
+        """Add ``boxes`` (k, b, b) into the spectrum ``out`` at the boxes of ``captures``."""
+        backend.scatter_add(self.xp, out, self.index[captures], boxes)
+
+
+def project(xp: ModuleType, fields, amplitudes, weights, eps: float, *, keep: bool):
+    """``ψ ← (w (A/max(|ψ|, ε) − 1) + keep) ψ`` in place; returns ``Σ w (|ψ| − A)²`` (a float64 device scalar).
+
+    ``keep`` True is the magnitude projection ``w A ψ/|ψ| + (1 − w) ψ``; False the data step ``ψ' − ψ``.
+    """
+    magnitude = xp.abs(fields)
+    misfit = magnitude - amplitudes
+    if weights is not None:
+        misfit *= xp.sqrt(weights)
+    squared = xp.sum(xp.square(misfit), dtype=xp.float64)
+    xp.maximum(magnitude, xp.float32(eps), out=magnitude)
+    factor = xp.divide(amplitudes, magnitude, out=magnitude)
+    if keep:
+        if weights is not None:
+            factor *= weights
+            factor += 1.0 - weights
+    else:
+        factor -= 1.0
+        if weights is not None:
+            factor *= weights
+    fields *= factor
+    return squared
+
+
+class BatchedAlternatingMinimization(IterativeEngine):
+    """The paper's alternating minimization, whole batches of captures per call.
+
+    Parameters
+    ----------
+    problem : PhaseRetrievalProblem
+    options : AltMinOptions
+        ``chunk`` and ``threads`` are the CPU engine's business and are not read.
+    spectrum : ndarray, complex64, (M, M), optional
+        Starting spectrum; default :func:`~cca_cli.engines.problem.initial_spectrum`.
+    xp : module
+        numpy or CuPy: where the arrays live and the work runs.
+    """
+
+    name = "altmin"
+
+    def __init__(self, problem: PhaseRetrievalProblem, options: AltMinOptions = AltMinOptions(),
+                 spectrum: np.ndarray | None = None, *, xp: ModuleType = np):
+        check_options(options)
+        self.problem, self.options, self.xp = problem, options, xp
+        model = problem.model
+        start = initial_spectrum(problem) if spectrum is None else spectrum
+        self._spectrum = backend.to_device(np.asarray(start, np.complex64), xp)
+        self._operator = BoxOperator(xp, model.layout)
+        self._pupils = backend.to_device(model.pupil_boxes, xp)
+        self._adjoint = xp.conj(self._pupils)
+        inverse_normal = (1.0 / (model.normal_diagonal() + np.float32(options.tau + 1e-30))).astype(np.float32)
+        self._inverse_normal = backend.to_device(inverse_normal, xp)
+        self._amplitudes = backend.to_device(problem.amplitudes, xp, xp.float32)
+        self._weights = None if problem.weights is None else backend.to_device(problem.weights, xp, xp.float32)
+        self._groups = _capture_groups(model.n_images, model.layout.lowres_size)
+        self._data_norm = problem.energy
+        self._eps = problem.amplitude_floor
+        self.stopping = StoppingPolicy(max_iterations=options.max_iterations, tol=options.tol, plateau=options.plateau,
+                                       plateau_window=options.plateau_window)
+
+    def update(self) -> tuple[float, float]:
+        """One iteration: project every capture, then the closed-form Fourier update."""
+        xp, operator = self.xp, self._operator
+        numerator = xp.zeros_like(self._spectrum)
+        misfit = 0.0
+        for group in self._groups:
+            fields = operator.fields(operator.boxes(self._spectrum, group), self._pupils[group])
+            weights = None if self._weights is None else self._weights[group]
+            misfit = misfit + project(xp, fields, self._amplitudes[group], weights, self._eps, keep=True)
+            operator.scatter(operator.spectra(fields) * self._adjoint[group], group, numerator)
+        numerator *= self._inverse_normal
+        change = float(np.sqrt(_squared_norm(xp, numerator - self._spectrum)
+                               / max(_squared_norm(xp, self._spectrum), 1e-30)))
+        self._spectrum = numerator
+        misfit = float(misfit)
+        self.stopping.record(misfit, change)
+        return float(np.sqrt(misfit / max(self._data_norm, 1e-30))), change
+
+    def spectrum(self) -> np.ndarray:
+        """Current spectrum estimate (complex64, M x M), on the host."""
+        return backend.to_host(self._spectrum)
+
+    def state(self) -> dict:
+        """The spectrum (on the host) and the stopping counters, as the CPU engine's state."""
+        return {"spectrum": self.spectrum(), **self.stopping.state()}
+
+    def restore(self, state: dict) -> None:
+        """Continue from :meth:`state` (this engine's, or the CPU engine's)."""
+        self._spectrum[...] = backend.to_device(np.asarray(state["spectrum"], np.complex64), self.xp)
+        self.stopping.restore(state)
+
+
+def merged_steps(schedule: Schedule) -> list[np.ndarray]:
+    """The schedule's batches as calls: the ``j``-th batch of every lane of a phase in one, phase by phase.
+
+    Lanes of a phase touch disjoint parts of the spectrum, so one call for their ``j``-th batches gives
+    what running them in turn gives.
+
+    Returns
+    -------
+    list of ndarray, int64
+        Positions in the schedule's order, one array per call.
+    """
+    steps = []
+    for phase in schedule.phases:
+        for j in range(max(len(lane) for lane in phase.lanes)):
+            parts = [np.arange(lane[j].start, lane[j].stop) for lane in phase.lanes if j < len(lane)]
+            steps.append(np.concatenate(parts).astype(np.int64))
+    return steps
+
+
+def _as_slice(positions: np.ndarray) -> slice | np.ndarray:
+    """A run of consecutive positions as a slice (views instead of copies), anything else as it is."""
+    if positions.size and np.array_equal(positions, np.arange(positions[0], positions[0] + positions.size)):
+        return slice(int(positions[0]), int(positions[0]) + positions.size)
+    return positions
+
+
+class BatchedMomentum(CalibratingEngine):
+    """Batched rPIE with mPIE momentum (and map-model pupil recovery), the lanes of a phase in one call.
+
+    Parameters
+    ----------
+    problem : PhaseRetrievalProblem
+    options : MomentumOptions
+        As :class:`~cca_cli.engines.momentum.SequentialMomentum` reads them, except those
+        :func:`unsupported_options` names (refused) and ``threads`` (not read).
+    spectrum : ndarray, complex64, (M, M), optional
+        Starting spectrum; default :func:`~cca_cli.engines.problem.initial_spectrum`.
+    xp : module
+        numpy or CuPy.
+    lanes : {1, 2, 4, 8}
+        How far the schedule splits the spectrum (:func:`~cca_cli.engines.schedule.build_schedule`): more
+        lanes put more captures in one call. 2 visits the captures as the CPU engine with one or two
+        threads does.
+    """
+
+    name = "momentum"
+
+    def __init__(self, problem: PhaseRetrievalProblem, options: MomentumOptions = MomentumOptions(),
+                 spectrum: np.ndarray | None = None, *, xp: ModuleType = np, lanes: int = 8):
+        check_options(options)
+        self.problem, self.options, self.xp = problem, options, xp
+        self._lanes = lanes
+        self._data_norm = problem.energy
+        start = initial_spectrum(problem) if spectrum is None else spectrum
+        self._spectrum = backend.to_device(np.asarray(start, np.complex64), xp)
+        self._velocity = xp.zeros_like(self._spectrum)
+        self._anchor = self._spectrum.copy()
+        self._previous_misfit = np.inf
+        self._batch = options.batch
+        k = problem.model.n_images
+        self._trained = np.arange(k)
+        self.calibrator = Calibrator(problem, options, 1)
+        self.stopping = StoppingPolicy(max_iterations=options.max_iterations, tol=options.tol,
+                                       plateau=options.plateau, plateau_window=options.plateau_window,
+                                       can_grow=self._can_grow)
+        self._arrange()
+
+    # ------------------------------------------------------------ the model of a pass
+    def _arrange(self) -> None:
+        """Lay out the captures, build the visiting order and calls, and move the pass's data to the device."""
+        xp, problem, calibrator = self.xp, self.problem, self.calibrator
+        layout = calibrator.layout_for(calibrator.centres())
+        distances = np.hypot(layout.centres_px[:, 0], layout.centres_px[:, 1])
+        self._schedule = build_schedule(layout.box_origins, layout.box_size, distances, self._batch,
+                                        lanes=self._lanes)
+        self._order = order = self._schedule.order
+        self._layout = subset_layout(layout, order)
+        self._operator = BoxOperator(xp, self._layout)
+        self._steps = [_as_slice(step) for step in merged_steps(self._schedule)]
+        self._steps = [step if isinstance(step, slice) else backend.to_device(step, xp) for step in self._steps]
+        targets = problem.amplitudes[order] * calibrator.target_scale(order)[:, None, None]
+        self._targets = backend.to_device(targets, xp, xp.float32)
+        self._weights = None if problem.weights is None else backend.to_device(problem.weights[order], xp, xp.float32)
+        self._intensities = self._floors = None
+        if self.options.cost == "poisson":
+            intensities = np.square(targets, dtype=np.float32)
+            eps = problem.amplitude_floor
+            floors = np.empty(order.size, np.float32)
+            for batch in self._schedule.batches:   # the floor on |ψ|² of a capture is its batch's, as on the CPU
+                floors[batch] = eps * eps + 1e-3 * intensities[batch].mean()
+            self._intensities = backend.to_device(intensities, xp)
+            self._floors = backend.to_device(floors[:, None, None], xp)
+        recovery = calibrator.recovery
+        if recovery is not None:
+            recovery.set_geometry(self._layout, calibrator.pupil_index[order])
+            self._prepare_pupil_sums(recovery)
+        self._set_model(calibrator.pupils_for(self._layout, calibrator.pupil_index[order]))
+
+    def _prepare_pupil_sums(self, recovery) -> None:
+        """The pupil fit's sums on the device, and what forming them needs (discs, modes, pupil of each capture)."""
+        xp, b = self.xp, self._layout.box_size
+        zernike = recovery.zernike_sums(0)
+        if zernike is None:
+            discs, index, _, _ = recovery.lane_sums(0)
+            first = xp.zeros((recovery.n_pupils, b, b), xp.complex128)   # Σ conj(D S) · residual
+            self._basis = None
+        else:
+            discs, basis, index, rhs, _ = zernike
+            n_modes = basis.shape[0]
+            first = xp.zeros(rhs.shape, xp.float64)                     # Σ modes · phase gradient
+            self._basis = backend.to_device(np.ascontiguousarray(basis.reshape(n_modes, len(index), b * b)
+                                                                 .transpose(1, 0, 2)), xp)
+            modes = np.arange(n_modes, dtype=np.int64)
+            self._mode_index = backend.to_device(index[:, None] * n_modes + modes, xp)
+        self._discs = backend.to_device(discs, xp)
+        self._pupil_sums = (first, xp.zeros((recovery.n_pupils, b, b), xp.float64))
+        pixels = np.arange(b * b, dtype=np.int64).reshape(b, b)
+        self._pupil_index = backend.to_device(index[:, None, None] * (b * b) + pixels, xp)
+
+    def _set_model(self, pupils: np.ndarray) -> None:
+        """Use ``pupils`` (engine order): the forward pupils and each capture's rPIE factor, on the device."""
+        self._model = model = ForwardModel(self._layout, pupils)
+        opts = self.options
+        bounds = np.array([[sl.start, sl.stop] for sl in self._schedule.batches], np.int64)
+        factors = np.empty(model.pupils.shape, np.complex64)
+        coverage = np.zeros(model.spectrum_shape, np.float32)
+        kernels.rpie_factors(model.pupils, np.ascontiguousarray(self._layout.box_origins, np.int64), bounds,
+                             alpha=opts.alpha, tau=opts.tau, scale=opts.beta / self._layout.lowres_size,
+                             coverage=coverage, out=factors)
+        self._pupil_boxes = backend.to_device(model.pupil_boxes, self.xp)
+        self._factors = backend.to_device(factors, self.xp)
+        recovery = self.calibrator.recovery
+        self._pupils = None if recovery is None or recovery.model != "zernike" else backend.to_device(model.pupils,
+                                                                                                     self.xp)
+
+    # ------------------------------------------------------------ the update rule
+    def _data_step(self, fields, step):
+        """Replace ``fields`` by the data step ``ψ' − ψ``; return the squared misfit (a device scalar)."""
+        xp = self.xp
+        weights = None if self._weights is None else self._weights[step]
+        if self.options.cost == "amplitude":
+            return project(xp, fields, self._targets[step], weights, self.problem.amplitude_floor, keep=False)
+        magnitude = xp.abs(fields)
+        misfit = magnitude - self._targets[step]
+        if weights is not None:
+            misfit *= xp.sqrt(weights)
+        squared = xp.sum(xp.square(misfit), dtype=xp.float64)
+        # Poisson cost: ψ' − ψ = −μ ψ (1 − I/|ψ|²), |ψ|² floored as the CPU engine does.
+        power = xp.maximum(xp.square(magnitude), self._floors[step])
+        factor = xp.divide(self._intensities[step], power, out=power)
+        factor -= 1.0
+        factor *= xp.float32(self.options.poisson_step)
+        if weights is not None:
+            factor *= weights
+        fields *= factor
+        return squared
+
+    def _accumulate_pupil(self, step, seen, residuals) -> None:
+        """Add a call's terms of the pupil fit (as :meth:`~cca_cli.engines.pupil_recovery.PupilRecovery.accumulate`).
+
+        Map models: ``Σ conj(D S) · r`` and ``Σ |D S|²`` per pupil pixel; Zernike: the phase gradient
+        ``Im(conj(P S) · r)`` on each capture's modes, and ``Σ |D S|²``.
+        """
+        xp = self.xp
+        residuals = residuals * xp.float32(1.0 / self._layout.lowres_size)
+        lit = self._discs[step] * seen
+        power = xp.square(xp.abs(lit))
+        if self._basis is None:
+            first, index = xp.conj(lit) * residuals, self._pupil_index[step]
+        else:
+            gradient = xp.imag(xp.conj(self._pupils[step] * seen) * residuals)
+            first = xp.einsum("knp,kp->kn", self._basis[step], gradient.reshape(gradient.shape[0], -1))
+            index = self._mode_index[step]
+        sums_first, sums_power = self._pupil_sums
+        if sums_first.shape[0] == 1:
+            sums_first[0] += first.sum(axis=0, dtype=sums_first.dtype)
+            sums_power[0] += power.sum(axis=0, dtype=xp.float64)
+        else:
+            backend.scatter_add(xp, sums_first, index, first.astype(sums_first.dtype))
+            backend.scatter_add(xp, sums_power, self._pupil_index[step], power.astype(xp.float64))
+
+    def _pass(self) -> float:
+        """One pass over every call of the schedule, updating the spectrum in place; returns the misfit."""
+        operator, spectrum = self._operator, self._spectrum
+        recovery = self.calibrator.recovery
+        misfit = 0.0
+        for step in self._steps:
+            seen = operator.boxes(spectrum, step)
+            fields = operator.fields(seen, self._pupil_boxes[step])
+            misfit = misfit + self._data_step(fields, step)
+            residuals = operator.spectra(fields)
+            if recovery is not None:
+                self._accumulate_pupil(step, seen, residuals)
+            operator.scatter(residuals * self._factors[step], step, spectrum)
+        if recovery is not None:   # the pass's sums join the recovery's own (host) sums
+            zernike = recovery.zernike_sums(0)
+            first, power = (recovery.lane_sums(0)[2:] if zernike is None else zernike[3:])
+            first += backend.to_host(self._pupil_sums[0])
+            power += backend.to_host(self._pupil_sums[1])
+            for sums in self._pupil_sums:
+                sums.fill(0)
+        return float(misfit)
+
+    def _momentum(self, misfit: float) -> float:
+        """The end-of-pass momentum step (after a restart check); returns the pass's relative change."""
+        xp = self.xp
+        eta = self.options.eta
+        if self.options.restart and misfit > self._previous_misfit:
+            self._velocity.fill(0)
+            eta = 0.0
+        norm = _squared_norm(xp, self._anchor)
+        self._velocity *= xp.float32(eta)
+        self._velocity += self._spectrum - self._anchor
+        self._spectrum += xp.float32(eta) * self._velocity
+        change = _squared_norm(xp, self._spectrum - self._anchor)
+        self._anchor[...] = self._spectrum
+        return float(np.sqrt(change / max(norm, 1e-30)))
+
+    def _pupil_step(self, misfit: float) -> None:
+        """End-of-pass pupil update; the spectrum takes over the pupils' common scale and tilt."""
+        normalisation = self.calibrator.pupil_step(misfit, self.stopping.iteration)
+        if normalisation is None:
+            return
+        scale, tilt = normalisation
+        if scale != 1 or np.any(tilt):
+            grid = np.arange(self._layout.hires_size, dtype=np.float64)
+            factor = np.outer(scale * np.exp(1j * tilt[0] * grid), np.exp(1j * tilt[1] * grid)).astype(np.complex64)
+            factor = backend.to_device(factor, self.xp)
+            for array in (self._spectrum, self._anchor, self._velocity):
+                array *= factor
+        self._set_model(self.calibrator.recovery.pupils())
+
+    def update(self) -> tuple[float, float]:
+        """One pass over all captures, the momentum step and the pupil step."""
+        misfit = self._pass()
+        change = self._momentum(misfit)
+        self._pupil_step(misfit)
+        self._previous_misfit = misfit
+        if self.stopping.record(misfit, change):
+            self._grow_batch()
+        return float(np.sqrt(misfit / max(self._data_norm, 1e-30))), change
+
+    # ------------------------------------------------------------ growing batches
+    def _can_grow(self) -> bool:
+        return self.options.batch_growth > 1 and self._batch < self._trained.size
+
+    def _grow_batch(self) -> None:
+        """Take larger batches from the next pass on; the plateau test starts afresh."""
+        self._batch = min(self._batch * self.options.batch_growth, self._trained.size)
+        self.stopping.grew()
+        self._velocity.fill(0)
+        self._arrange()
+
+    @property
+    def batch(self) -> int:
+        """Captures per batch now (``batch``, grown by ``batch_growth`` at each plateau)."""
+        return self._batch
+
+    # ------------------------------------------------------------ results and checkpoints
+    def spectrum(self) -> np.ndarray:
+        """Current spectrum estimate (complex64, M x M), on the host."""
+        return backend.to_host(self._spectrum)
+
+    def calibration(self) -> Calibration:
+        """The pupils in use (and the rest of the calibration, unchanged here), in the problem's capture order."""
+        inverse = np.empty_like(self._order)
+        inverse[self._order] = np.arange(self._order.size)
+        return self.calibrator.calibration(np.asarray(self._model.pupils)[inverse].copy())
+
+    def state(self) -> dict:
+        """Spectrum, momentum, calibration and stopping state (on the host), as the CPU engine's."""
+        host = backend.to_host
+        return {"spectrum": host(self._spectrum), "velocity": host(self._velocity), "anchor": host(self._anchor),
+                "previous_misfit": self._previous_misfit, "batch": self._batch, **self.stopping.state(),
+                **self.calibrator.state()}
+
+    def restore(self, state: dict) -> None:
+        """Continue from :meth:`state` (this engine's, or the CPU engine's)."""
+        for name in ("spectrum", "velocity", "anchor"):
+            getattr(self, f"_{name}")[...] = backend.to_device(np.asarray(state[name], np.complex64), self.xp)
+        self.stopping.restore(state)
+        self._previous_misfit = float(state["previous_misfit"])
+        self._batch = int(state.get("batch", self.options.batch))
+        self.calibrator.restore(state)
+        self._arrange()

@@ -1,0 +1,221 @@
+"""Where the batched engines' arrays live: numpy on the CPU, CuPy on a CUDA GPU.
+
+The batched engines (:mod:`cca_cli.engines.batched`) are written against an
+array module ``xp`` and take it from here; nothing else in cca needs CuPy, and
+CuPy is imported only when a device other than ``cpu`` is asked for. As in
+SigPy's backend, :func:`get_array_module` tells from an array which module owns
+it, :func:`to_device` and :func:`to_host` move arrays, and the few calls whose
+spelling differs between numpy and CuPy (batched FFTs, scatter-add) are
+written once here.
+
+Devices
+-------
+``cpu``: the CPU engines, exactly as without this module. ``cuda``: the
+batched engines on the first CUDA GPU; an error naming the fix when CuPy or a
+GPU is missing. ``auto``: ``cuda`` when CuPy and a GPU are there, else ``cpu``.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+from types import ModuleType
+
+import numpy as np
+import scipy.fft
+
+__all__ = ["DEVICES", "GPU_INSTALL", "DeviceStatus", "DeviceUnavailable", "cupy_module", "device_status",
+           "resolve_device", "array_module", "get_array_module", "to_device", "to_host", "fft2", "ifft2",
+           "scatter_add", "synchronize"]
+
+#: What ``reconstruct.device`` (``--device``, ``device=``) takes.
+DEVICES = ("auto", "cpu", "cuda")
+#: How to get CuPy for cca.
+GPU_INSTALL = "pip install 'cca[gpu]'"
+
+
+class DeviceUnavailable(ValueError):
+    """``device: cuda`` was asked for where CuPy or a CUDA GPU is missing (the message says which and the fix)."""
+
+
+@dataclass(frozen=True)
+class DeviceStatus:
+    """What this process can compute on.
+
+    Attributes
+    ----------
+    cuda : bool
+        Whether CuPy imports and sees at least one CUDA GPU.
+    summary : str
+        One line: ``CuPy 13.3.0, GPU 0: NVIDIA H100 80GB HBM3 (79.1 GiB)``, or why there is none
+        (``cpu only: CuPy not installed``).
+    """
+
+    cuda: bool
+    summary: str
+
+
+@functools.lru_cache(maxsize=1)
+def cupy_module() -> ModuleType | None:
+    """CuPy, imported on first use, or None when it is not installed (or fails to import)."""
+    try:
+        import cupy
+    except Exception:  # noqa: BLE001 - a broken CUDA install raises all sorts; the status says why
+        return None
+    return cupy
+
+
+@functools.lru_cache(maxsize=1)
+def device_status() -> DeviceStatus:
+    """Whether a CUDA GPU can be used, with CuPy's version and the GPU's name (asked once per process)."""
+    cupy = cupy_module()
+    if cupy is None:
+        return DeviceStatus(False, "cpu only: CuPy not installed")
+    try:
+        count = cupy.cuda.runtime.getDeviceCount()
+    except Exception as exc:  # noqa: BLE001 - no driver, no device: CuPy raises its own CUDA errors
+        return DeviceStatus(False, f"cpu only: CuPy {cupy.__version__} is installed but finds no CUDA GPU "
+                                   f"({_first_line(exc)})")
+    if count < 1:
+        return DeviceStatus(False, f"cpu only: CuPy {cupy.__version__} is installed but finds no CUDA GPU")
+    try:
+        properties = cupy.cuda.runtime.getDeviceProperties(0)
+        name = properties["name"].decode() if isinstance(properties["name"], bytes) else str(properties["name"])
+        memory = properties["totalGlobalMem"] / 2 ** 30
+    except Exception as exc:  # noqa: BLE001
+        return DeviceStatus(False, f"cpu only: CuPy {cupy.__version__} cannot use GPU 0 ({_first_line(exc)})")
+    more = f" (+{count - 1} more)" if count > 1 else ""
+    return DeviceStatus(True, f"CuPy {cupy.__version__}, GPU 0: {name} ({memory:.1f} GiB){more}")
+
+
+def _first_line(exc: Exception) -> str:
+    text = str(exc).strip().splitlines()
+    return text[0] if text else type(exc).__name__
+
+
+def resolve_device(device: str, *, usable: bool = True) -> str:
+    """The device a run uses: ``cpu`` or ``cuda``.
+
+    Parameters
+    ----------
+    device : {"auto", "cpu", "cuda"}
+    usable : bool
+        Whether the run's engine and options can run on the GPU at all; ``auto`` then stays on
+        the CPU (``cuda`` is refused by the engine itself, naming the option).
+
+    Returns
+    -------
+    str
+        ``cpu`` for ``cpu``; ``cuda`` for ``cuda``; for ``auto``, ``cuda`` when CuPy and a GPU are
+        there (and ``usable``), else ``cpu``.
+
+    Raises
+    ------
+    DeviceUnavailable
+        ``cuda`` without CuPy or without a GPU (one line, with the fix).
+    ValueError
+        An unknown device name.
+    """
+    if device not in DEVICES:
+        raise ValueError(f"device must be one of {', '.join(DEVICES)}, got {device!r}")
+    if device == "cpu":
+        return "cpu"
+    status = device_status()
+    if device == "auto":
+        return "cuda" if status.cuda and usable else "cpu"
+    if not status.cuda:
+        reason = status.summary.removeprefix("cpu only: ")
+        raise DeviceUnavailable(f"device cuda needs CuPy and a CUDA GPU, but {reason}: install CuPy with "
+                                f"{GPU_INSTALL} on a machine with an NVIDIA GPU, or use device cpu")
+    return "cuda"
+
+
+def array_module(device: str) -> ModuleType:
+    """numpy for ``cpu``, CuPy for ``cuda`` (a resolved device, see :func:`resolve_device`)."""
+    if device == "cpu":
+        return np
+    if device == "cuda":
+        cupy = cupy_module()
+        if cupy is None:
+            raise DeviceUnavailable(f"device cuda needs CuPy, which is not installed: {GPU_INSTALL}, or use device cpu")
+        return cupy
+    raise ValueError(f"device must be cpu or cuda here, got {device!r}")
+
+
+def get_array_module(array) -> ModuleType:
+    """The module that owns ``array``: CuPy for a CuPy array, numpy for anything else."""
+    cupy = cupy_module() if type(array).__module__.startswith("cupy") else None
+    return cupy if cupy is not None else np
+
+
+def to_device(array, xp: ModuleType, dtype=None):
+    """``array`` as an array of ``xp`` (copied to the GPU for CuPy; not copied when it is one already)."""
+    return xp.asarray(array, dtype=dtype)
+
+
+def to_host(array) -> np.ndarray:
+    """``array`` as a numpy array (copied from the GPU for a CuPy array)."""
+    if get_array_module(array) is np:
+        return np.asarray(array)
+    return array.get()
+
+
+def fft2(xp: ModuleType, array):
+    """Unnormalised forward 2-D FFT over the last two axes, batched over the leading ones; keeps complex64.
+
+    numpy arrays go through ``scipy.fft`` (single precision, all cores), CuPy arrays through cuFFT.
+    """
+    if xp is np:
+        return scipy.fft.fft2(array, norm="backward", overwrite_x=True, workers=_workers())
+    return xp.fft.fft2(array, norm="backward")
+
+
+def ifft2(xp: ModuleType, array):
+    """Unnormalised inverse 2-D FFT over the last two axes (``Σ X exp(+2πi k n / m)``), batched; keeps complex64."""
+    if xp is np:
+        return scipy.fft.ifft2(array, norm="forward", overwrite_x=True, workers=_workers())
+    return xp.fft.ifft2(array, norm="forward")
+
+
+def _workers() -> int:
+    from cca_cli.optics.fft import default_threads
+
+    return default_threads()
+
+
+def scatter_add(xp: ModuleType, target, flat_index, values) -> None:
+    """``target.flat[flat_index] += values``, adding repeated indices up (an unbuffered scatter-add).
+
+    Parameters
+    ----------
+    xp : module
+    target : array, complex64 or float32, C-contiguous
+        Receives the sums, in place.
+    flat_index : array, int, any shape
+        Indices into ``target.ravel()``.
+    values : array, shaped as ``flat_index``
+    """
+    flat = target.reshape(-1)
+    index = flat_index.reshape(-1)
+    values = values.reshape(-1)
+    if xp is np:
+        if np.iscomplexobj(flat):
+            flat.real += np.bincount(index, weights=values.real, minlength=flat.size).astype(flat.real.dtype)
+            flat.imag += np.bincount(index, weights=values.imag, minlength=flat.size).astype(flat.real.dtype)
+        else:
+            flat += np.bincount(index, weights=values, minlength=flat.size).astype(flat.dtype)
+        return
+    import cupyx
+
+    if xp.iscomplexobj(flat):  # atomics on the real and imaginary parts
+        pairs = flat.view(flat.real.dtype).reshape(-1, 2)
+        cupyx.scatter_add(pairs, (index, 0), values.real)
+        cupyx.scatter_add(pairs, (index, 1), values.imag)
+    else:
+        cupyx.scatter_add(flat, index, values)
+
+
+def synchronize(xp: ModuleType) -> None:
+    """Wait for the GPU to finish its queued work (timings); nothing on the CPU."""
+    if xp is not np:
+        xp.cuda.get_current_stream().synchronize()

@@ -1,0 +1,199 @@
+"""The batched engines (numpy here, CuPy on a GPU) against the CPU engines on a small simulated problem."""
+
+import numpy as np
+import pytest
+
+from cca_cli.engines.altmin import AlternatingMinimization, AltMinOptions
+from cca_cli.engines.base import run_engine
+from cca_cli.engines.batched import (BatchedAlternatingMinimization, BatchedMomentum, BoxOperator, merged_steps,
+                                     unsupported_options)
+from cca_cli.engines.momentum import MomentumOptions, SequentialMomentum
+from cca_cli.engines.problem import PhaseRetrievalProblem
+from cca_cli.engines.schedule import build_schedule
+from cca_cli.metrics import rmse
+from cca_cli.optics import backend, fft
+from cca_cli.optics.backend import DeviceUnavailable
+from cca_cli.optics.forward import ForwardModel
+from cca_cli.optics.pupil import circular_pupils
+from cca_cli.sampling.grid import band_layout, square_scan
+from cca_cli.targets import resolution_chart
+
+SIZE = 64
+RADIUS = 6.0
+
+
+@pytest.fixture(scope="module")
+def simulated():
+    """A 5 x 5 scan of a resolution chart: model, band-grid captures, truth and the centre capture's index."""
+    scan = square_scan(5, 2 * RADIUS * (1 - 0.61))
+    layout = band_layout(scan.centres_yx_m, RADIUS, sensor_size=SIZE)
+    model = ForwardModel(layout, circular_pupils(layout.box_size, layout.box_centres, RADIUS))
+    truth = np.asarray(resolution_chart(SIZE, widths=(4, 3, 2, 1)).image, np.complex64)
+    images = model.sensor_intensity(fft.fft2c(truth).astype(np.complex64))
+    weights = np.random.default_rng(0).uniform(0.5, 1.0, images.shape).astype(np.float32)
+    return model, images, weights, truth, scan.centre_index
+
+
+def _relative(a, b) -> float:
+    return float(np.abs(np.asarray(a) - np.asarray(b)).max() / np.abs(np.asarray(a)).max())
+
+
+@pytest.mark.parametrize("weighted", [False, True])
+def test_batched_altmin_is_the_cpu_engine_to_float32_rounding(simulated, weighted):
+    model, images, weights, _, _ = simulated
+    problem = PhaseRetrievalProblem.from_sensor_images(model, images, weights if weighted else None)
+    options = AltMinOptions(max_iterations=10, tol=0.0, threads=1)
+    cpu, cpu_history = run_engine(AlternatingMinimization(problem, options))
+    batched, history = run_engine(BatchedAlternatingMinimization(problem, options, xp=np))
+    assert batched.dtype == np.complex64 and batched.shape == model.spectrum_shape
+    assert _relative(cpu, batched) < 1e-5
+    np.testing.assert_allclose(history["residual"], cpu_history["residual"], rtol=1e-4)
+    np.testing.assert_allclose(history["change"], cpu_history["change"], rtol=1e-3)
+
+
+@pytest.mark.parametrize("options", [{}, {"cost": "poisson"}, {"pupil_recovery": "shared", "pupil_model": "full"},
+                                     {"pupil_recovery": "shared", "pupil_model": "smooth", "eta": 0.3},
+                                     {"pupil_recovery": "shared", "pupil_model": "zernike"}])
+def test_batched_momentum_in_the_cpu_order_is_the_cpu_engine(simulated, options):
+    """Two lanes visit the captures as the CPU engine with one thread does: the same passes, to rounding."""
+    model, images, _, _, _ = simulated
+    problem = PhaseRetrievalProblem.from_sensor_images(model, images)
+    opts = MomentumOptions(max_iterations=6, tol=0.0, threads=1, **options)
+    cpu_engine = SequentialMomentum(problem, opts)
+    cpu, cpu_history = run_engine(cpu_engine)
+    engine = BatchedMomentum(problem, opts, xp=np, lanes=2)
+    batched, history = run_engine(engine)
+    assert _relative(cpu, batched) < 1e-5
+    np.testing.assert_allclose(history["residual"], cpu_history["residual"], rtol=1e-4)
+    if opts.pupil_recovery != "none":
+        np.testing.assert_allclose(engine.calibration().pupils, cpu_engine.calibration().pupils, atol=1e-5)
+
+
+@pytest.mark.parametrize("pupil_model", ["full", "zernike"])
+def test_batched_momentum_recovers_one_pupil_per_camera(simulated, pupil_model):
+    model, images, _, _, _ = simulated
+    cameras = np.arange(model.n_images) % 3     # three cameras: the pupil sums are scattered per camera
+    problem = PhaseRetrievalProblem.from_sensor_images(model, images, pupil_index=cameras)
+    opts = MomentumOptions(max_iterations=4, tol=0.0, threads=1, pupil_recovery="per_camera",
+                           pupil_model=pupil_model)
+    cpu_engine = SequentialMomentum(problem, opts)
+    cpu, _ = run_engine(cpu_engine)
+    engine = BatchedMomentum(problem, opts, xp=np, lanes=2)
+    batched, _ = run_engine(engine)
+    assert _relative(cpu, batched) < 1e-5
+    found, expected = engine.calibration().pupil, cpu_engine.calibration().pupil
+    assert found.maps.shape[0] == 3
+    np.testing.assert_allclose(found.maps, expected.maps, atol=1e-5)
+    np.testing.assert_allclose(found.coefficients, expected.coefficients, atol=1e-6)
+
+
+def test_batched_momentum_with_every_lane_in_one_call_recovers_as_well(simulated):
+    """Eight lanes (a GPU's calls) change the visiting order, not what the recovery reaches."""
+    model, images, _, truth, centre = simulated
+    problem = PhaseRetrievalProblem.from_sensor_images(model, images)
+    opts = MomentumOptions(max_iterations=25, tol=0.0, threads=1)
+    cpu, cpu_history = run_engine(SequentialMomentum(problem, opts))
+    batched, history = run_engine(BatchedMomentum(problem, opts, xp=np, lanes=8))
+    truth_intensity = np.abs(truth) ** 2
+    errors = [rmse((np.abs(fft.ifft2c(s)) ** 2).astype(np.float32), truth_intensity) for s in (cpu, batched)]
+    observed = rmse(fft.fourier_resample(images[centre:centre + 1], SIZE)[0], truth_intensity)
+    assert errors[1] < 0.7 * observed
+    assert errors[1] < 1.05 * errors[0]
+    assert history["residual"][-1] < 1.5 * cpu_history["residual"][-1]
+    assert history["residual"][-1] < 1e-2 * history["residual"][0]
+
+
+def test_merged_steps_visit_every_capture_once_with_disjoint_boxes(simulated):
+    model, _, _, _, _ = simulated
+    layout = model.layout
+    distances = np.hypot(*layout.centres_px.T)
+    schedule = build_schedule(layout.box_origins, layout.box_size, distances, 2, lanes=8)
+    steps = merged_steps(schedule)
+    assert np.array_equal(np.sort(np.concatenate(steps)), np.arange(model.n_images))
+    b = layout.box_size
+    origins = layout.box_origins[schedule.order]
+    for phase in schedule.phases:   # boxes of different lanes never overlap: one call equals running them in turn
+        cover = [np.zeros(model.spectrum_shape, bool) for _ in phase.lanes]
+        for lane, seen in zip(phase.lanes, cover):
+            for batch in lane:
+                for y0, x0 in origins[batch]:
+                    seen[y0:y0 + b, x0:x0 + b] = True
+        assert np.sum(cover, axis=0).max() <= 1
+
+
+def test_the_box_operator_is_the_forward_model(simulated):
+    model, _, _, truth, _ = simulated
+    spectrum = fft.fft2c(truth).astype(np.complex64)
+    operator = BoxOperator(np, model.layout)
+    everything = slice(0, model.n_images)
+    fields = operator.fields(operator.boxes(spectrum, everything), model.pupil_boxes)
+    np.testing.assert_allclose(fields, model.forward(spectrum), atol=1e-5 * np.abs(fields).max())
+    adjoint = np.zeros(model.spectrum_shape, np.complex64)
+    operator.scatter(operator.spectra(fields.copy()) * np.conj(model.pupil_boxes), everything, adjoint)
+    expected = model.adjoint(model.forward(spectrum))
+    np.testing.assert_allclose(adjoint, expected, atol=1e-5 * np.abs(expected).max())
+
+
+def test_checkpoints_move_between_the_cpu_and_the_batched_engine(simulated):
+    model, images, _, _, _ = simulated
+    problem = PhaseRetrievalProblem.from_sensor_images(model, images)
+    opts = MomentumOptions(max_iterations=6, tol=0.0, threads=1, pupil_recovery="shared", pupil_model="full")
+    straight, _ = run_engine(BatchedMomentum(problem, opts, xp=np, lanes=2))
+    first = SequentialMomentum(problem, opts)
+    for _ in range(3):
+        first.update()
+    state = first.state()
+    resumed = BatchedMomentum(problem, opts, xp=np, lanes=2)
+    assert set(resumed.state()) == set(state)
+    resumed.restore(state)
+    spectrum, _ = run_engine(resumed)
+    assert resumed.stopping.iteration == 6
+    # The restored pupil step cannot be undone (as on the CPU), so the runs may part slightly.
+    assert _relative(straight, spectrum) < 1e-2
+
+
+@pytest.mark.parametrize("option, value", [("position_refinement", "per_image"), ("brightness", True),
+                                           ("hold_back", 0.1)])
+def test_options_the_gpu_engine_lacks_are_named(simulated, option, value):
+    model, images, _, _, _ = simulated
+    problem = PhaseRetrievalProblem.from_sensor_images(model, images)
+    opts = MomentumOptions(**{option: value})
+    assert unsupported_options(opts)
+    with pytest.raises(DeviceUnavailable, match=f"{option}: .*device cpu"):
+        BatchedMomentum(problem, opts, xp=np)
+    assert unsupported_options(AltMinOptions()) == []
+    for pupil_model in ("full", "smooth", "zernike"):
+        assert unsupported_options(MomentumOptions(pupil_recovery="per_camera", pupil_model=pupil_model,
+                                                   batch_growth=2)) == []
+
+
+# ----------------------------------------------------------------------------- on a GPU (skipped without one)
+def _cupy():
+    if not backend.device_status().cuda:
+        pytest.skip(f"needs CuPy and a CUDA GPU ({backend.device_status().summary})")
+    return backend.cupy_module()
+
+
+@pytest.mark.gpu
+def test_gpu_altmin_agrees_with_the_cpu_engine(simulated):
+    cupy = _cupy()
+    model, images, weights, _, _ = simulated
+    problem = PhaseRetrievalProblem.from_sensor_images(model, images, weights)
+    options = AltMinOptions(max_iterations=10, tol=0.0, threads=1)
+    cpu, _ = run_engine(AlternatingMinimization(problem, options))
+    gpu, _ = run_engine(BatchedAlternatingMinimization(problem, options, xp=cupy))
+    assert isinstance(gpu, np.ndarray)
+    assert _relative(cpu, gpu) <= 1e-4
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("options", [{}, {"pupil_recovery": "shared", "pupil_model": "full"},
+                                     {"pupil_recovery": "shared", "pupil_model": "zernike"}])
+def test_gpu_momentum_agrees_with_the_cpu_engine(simulated, options):
+    cupy = _cupy()
+    model, images, _, _, _ = simulated
+    problem = PhaseRetrievalProblem.from_sensor_images(model, images)
+    opts = MomentumOptions(max_iterations=6, tol=0.0, threads=1, **options)
+    cpu, _ = run_engine(SequentialMomentum(problem, opts))
+    gpu, _ = run_engine(BatchedMomentum(problem, opts, xp=cupy, lanes=2))
+    assert _relative(cpu, gpu) <= 1e-4
