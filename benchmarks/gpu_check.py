@@ -145,20 +145,24 @@ def headline(iterations: int, skip_cpu: bool, whole_runs: bool = True) -> dict:
     return out
 
 
-def bloodsmear(iterations: int, skip_cpu: bool, whole_runs: bool = True) -> dict:
-    """The blood smear (ingested once) recovered on both devices: capped runs and whole GPU run."""
-    if not BLOODSMEAR.is_dir():
-        return {"skipped": f"{BLOODSMEAR} is not there (the blood smear lives in ../shared/datasets)"}
+def bloodsmear(iterations: int, skip_cpu: bool, whole_runs: bool = True, captures_file: Path | None = None) -> dict:
+    """The blood smear (ingested once, or read from ``captures_file``) on both devices: capped and whole runs."""
     from cca_cli.config.load import load_config
     from cca_cli.io.captures import read_captures
     from cca_cli.stages.runner import run_pipeline
     from cca_cli.workflows.recovery import reconstruct_captures
 
     config = load_config(ROOT / "configs" / "bloodsmear_green.yaml")
-    folder = Path(tempfile.mkdtemp(prefix="cca-gpu-check-"))
-    config = config.model_copy(update={"run": config.run.model_copy(update={"stages": ["ingest"]})})
-    run_pipeline(config, folder)
-    path = folder / "captures.h5"
+    if captures_file is not None:
+        path = captures_file
+    elif not BLOODSMEAR.is_dir():
+        return {"skipped": f"{BLOODSMEAR} is not there (the blood smear lives in ../shared/datasets; or give "
+                           f"--bloodsmear-captures FILE from `cca ingest configs/bloodsmear_green_manifest.yaml`)"}
+    else:
+        folder = Path(tempfile.mkdtemp(prefix="cca-gpu-check-"))
+        config = config.model_copy(update={"run": config.run.model_copy(update={"stages": ["ingest"]})})
+        run_pipeline(config, folder)
+        path = folder / "captures.h5"
     captures = read_captures(path)
     section = config.reconstruct
 
@@ -215,6 +219,8 @@ def main(argv=None) -> int:
     parser.add_argument("--skip-cpu", action="store_true", help="GPU runs only (no CPU runs, no agreement).")
     parser.add_argument("--no-whole-runs", action="store_true", help="Capped comparisons only (no whole runs).")
     parser.add_argument("--require-gpu", action="store_true", help="Exit 2 (not 0) when there is no GPU.")
+    parser.add_argument("--bloodsmear-captures", type=Path, default=None,
+                        help="The blood smear already ingested (cca ingest configs/bloodsmear_green_manifest.yaml).")
     parser.add_argument("--only", choices=("floor", "headline", "bloodsmear", "widefield"), action="append",
                         help="Run only these parts (repeatable).")
     args = parser.parse_args(argv)
@@ -228,7 +234,7 @@ def main(argv=None) -> int:
     print(f"device: {status.summary}; CPU: {fft.cpu_count()} cores, FFT backend {fft.backend_name()}")
     whole = not args.no_whole_runs
     parts = {"floor": lambda: fft_floor(), "headline": lambda: headline(args.iterations, args.skip_cpu, whole),
-             "bloodsmear": lambda: bloodsmear(args.iterations, args.skip_cpu, whole),
+             "bloodsmear": lambda: bloodsmear(args.iterations, args.skip_cpu, whole, args.bloodsmear_captures),
              "widefield": lambda: widefield(args.iterations, args.skip_cpu)}
     results = {"device": status.summary}
     for name, part in parts.items():

@@ -27,8 +27,10 @@ batches of :class:`~cca_cli.engines.momentum.SequentialMomentum`'s schedule
 and runs the lanes of a phase, whose boxes never overlap, in one call; with
 ``lanes=2`` it visits the captures in the CPU engine's order with one or two
 threads. It recovers pupils (``shared`` or ``per_camera``, every pupil model);
-position refinement, brightness and held-back captures stay on the CPU, and
-asking for them here is an error naming the option (:func:`unsupported_options`).
+it holds captures back (``hold_back``) as the CPU engine does, their misfit
+formed on the host once a pass; position refinement and brightness stay on
+the CPU, and asking for them here is an error naming the option
+(:func:`unsupported_options`).
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ import numpy as np
 
 from cca_cli.engines.base import CalibratingEngine, IterativeEngine
 from cca_cli.engines.calibrator import Calibration, Calibrator, subset_layout
+from cca_cli.engines.held_back import HeldBack
 from cca_cli.engines.options import AltMinOptions, EngineOptions, MomentumOptions
 from cca_cli.engines.problem import PhaseRetrievalProblem, initial_spectrum
 from cca_cli.engines.schedule import Schedule, build_schedule
@@ -70,8 +73,6 @@ def unsupported_options(options: EngineOptions) -> list[str]:
         found.append(f"position_refinement: {options.position_refinement} (set none)")
     if options.brightness:
         found.append("brightness: true (set false)")
-    if options.hold_back > 0:
-        found.append(f"hold_back: {options.hold_back:g} (set 0)")
     return found
 
 
@@ -286,19 +287,20 @@ class BatchedMomentum(CalibratingEngine):
         check_options(options)
         self.problem, self.options, self.xp = problem, options, xp
         self._lanes = lanes
-        self._data_norm = problem.energy
         start = initial_spectrum(problem) if spectrum is None else spectrum
         self._spectrum = backend.to_device(np.asarray(start, np.complex64), xp)
         self._velocity = xp.zeros_like(self._spectrum)
         self._anchor = self._spectrum.copy()
         self._previous_misfit = np.inf
         self._batch = options.batch
-        k = problem.model.n_images
-        self._trained = np.arange(k)
+        self._held = HeldBack(problem, options.hold_back)
+        self.held_back, self._trained = self._held.captures, self._held.trained
+        self._data_norm = self._held.trained_norm
         self.calibrator = Calibrator(problem, options, 1)
         self.stopping = StoppingPolicy(max_iterations=options.max_iterations, tol=options.tol,
                                        plateau=options.plateau, plateau_window=options.plateau_window,
-                                       can_grow=self._can_grow)
+                                       can_grow=self._can_grow,
+                                       held_back_patience=options.hold_back_patience if len(self._held) else 0)
         self._arrange()
 
     # ------------------------------------------------------------ the model of a pass
@@ -307,9 +309,11 @@ class BatchedMomentum(CalibratingEngine):
         xp, problem, calibrator = self.xp, self.problem, self.calibrator
         layout = calibrator.layout_for(calibrator.centres())
         distances = np.hypot(layout.centres_px[:, 0], layout.centres_px[:, 1])
-        self._schedule = build_schedule(layout.box_origins, layout.box_size, distances, self._batch,
+        trained = self._trained
+        self._schedule = build_schedule(layout.box_origins[trained], layout.box_size, distances[trained], self._batch,
                                         lanes=self._lanes)
-        self._order = order = self._schedule.order
+        self._order = order = trained[self._schedule.order]
+        self._all_layout = layout
         self._layout = subset_layout(layout, order)
         self._operator = BoxOperator(xp, self._layout)
         self._steps = [_as_slice(step) for step in merged_steps(self._schedule)]
@@ -472,8 +476,14 @@ class BatchedMomentum(CalibratingEngine):
         change = self._momentum(misfit)
         self._pupil_step(misfit)
         self._previous_misfit = misfit
-        if self.stopping.record(misfit, change):
+        if len(self._held):
+            self.held_back_residual = self._held.misfit(self.spectrum(), self.calibrator, self._all_layout)
+        if self.stopping.record(misfit, change, self.held_back_residual):
             self._grow_batch()
+        best = self._held.keep_best(self.stopping, self.spectrum, self.calibrator)
+        if best is not None:
+            self._spectrum[...] = backend.to_device(best, self.xp)
+            self._arrange()
         return float(np.sqrt(misfit / max(self._data_norm, 1e-30))), change
 
     # ------------------------------------------------------------ growing batches
@@ -499,6 +509,9 @@ class BatchedMomentum(CalibratingEngine):
 
     def calibration(self) -> Calibration:
         """The pupils in use (and the rest of the calibration, unchanged here), in the problem's capture order."""
+        if len(self._held):  # the model holds the trained captures' pupils only
+            calibrator = self.calibrator
+            return calibrator.calibration(calibrator.pupils_for(self._all_layout, calibrator.pupil_index))
         inverse = np.empty_like(self._order)
         inverse[self._order] = np.arange(self._order.size)
         return self.calibrator.calibration(np.asarray(self._model.pupils)[inverse].copy())

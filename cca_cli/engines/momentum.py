@@ -53,9 +53,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from cca_cli.engines import illumination as ill
 from cca_cli.engines.base import CalibratingEngine
 from cca_cli.engines.calibrator import Calibration, Calibrator, subset_layout
+from cca_cli.engines.held_back import HeldBack, held_back_captures
 from cca_cli.engines.options import MomentumOptions
 from cca_cli.engines.passes import BatchTargets, SequentialPass
 from cca_cli.engines.problem import PhaseRetrievalProblem, initial_spectrum
@@ -68,32 +68,6 @@ __all__ = ["MAX_THREADS", "MomentumOptions", "Calibration", "SequentialMomentum"
 
 #: Most threads a pass uses: lanes of a phase are at most eight (three splits of the spectrum).
 MAX_THREADS = 8
-
-
-def held_back_captures(centres_px: np.ndarray, radius_px: float, share: float) -> np.ndarray:
-    """Which captures to hold back from the updates: ``share`` of them, spread from the bright field outwards.
-
-    The captures are ranked by the distance of their pupil from DC; the picks are spread evenly over the
-    ranks of the dark field and of the bright field in proportion (at least one bright-field capture when
-    there are more than two). The capture on the axis is never held back: the recovery starts from it.
-
-    Returns
-    -------
-    ndarray, int64
-        Capture indices, ascending (empty for ``share`` 0).
-    """
-    k = len(centres_px)
-    count = min(int(round(share * k)) if share > 0 else 0, k - 2)
-    if count <= 0:
-        return np.zeros(0, np.int64)
-    distance = np.hypot(centres_px[:, 0], centres_px[:, 1])
-    ranked = np.argsort(distance, kind="stable")[1:]     # the axis capture stays
-    bright = ranked[distance[ranked] < radius_px]
-    dark = ranked[distance[ranked] >= radius_px]
-    from_bright = min(len(bright), max(1 if len(bright) > 1 else 0, int(round(count * len(bright) / (k - 1)))))
-    picks = [group[np.unique(np.round(np.linspace(0, len(group) - 1, n)).astype(int))]
-             for group, n in ((bright, from_bright), (dark, count - from_bright)) if n > 0 and len(group)]
-    return np.sort(np.concatenate(picks)).astype(np.int64) if picks else np.zeros(0, np.int64)
 
 
 class SequentialMomentum(CalibratingEngine):
@@ -123,14 +97,9 @@ class SequentialMomentum(CalibratingEngine):
         self._previous_misfit = np.inf
         self._coverage = np.zeros(problem.model.spectrum_shape, np.float32)  # work array of the update factors
         self._batch = options.batch
-        layout = problem.model.layout
-        self.held_back = held_back_captures(layout.centres_px, layout.pupil_radius_px, options.hold_back)
-        self._trained = np.setdiff1d(np.arange(k), self.held_back)
-        if self.held_back.size:
-            self._data_norm = float(np.sum(np.square(problem.amplitudes[self._trained], dtype=np.float64)))
-            self._held_norm = float(np.sum(np.square(problem.amplitudes[self.held_back], dtype=np.float64)))
-        self._best = None   # the state at the best held-back misfit
-        self._held_workspace = None
+        self._held = HeldBack(problem, options.hold_back)
+        self.held_back, self._trained = self._held.captures, self._held.trained
+        self._data_norm = self._held.trained_norm
         self.calibrator = Calibrator(problem, options, threads)
         self.stopping = StoppingPolicy(max_iterations=options.max_iterations, tol=options.tol,
                                        plateau=options.plateau, plateau_window=options.plateau_window,
@@ -250,38 +219,14 @@ class SequentialMomentum(CalibratingEngine):
         change = self._momentum(misfit)
         self._pupil_step(misfit)
         self._previous_misfit = misfit
-        self.held_back_residual = self._held_back_misfit()
+        self.held_back_residual = self._held.misfit(self._spectrum, self.calibrator, self._all_layout)
         if self.stopping.record(misfit, change, self.held_back_residual):
             self._grow_batch()
-        if self.held_back.size:
-            self._keep_best()
-        return float(np.sqrt(misfit / max(self._data_norm, 1e-30))), change
-
-    # ------------------------------------------------------------ captures held back
-    def _held_back_misfit(self) -> float:
-        """Relative misfit of the held-back captures under the current spectrum and calibration (NaN: none)."""
-        held = self.held_back
-        if not held.size:
-            return float("nan")
-        calibrator = self.calibrator
-        layout = subset_layout(self._all_layout, held)
-        model = ForwardModel(layout, calibrator.pupils_for(layout, calibrator.pupil_index[held]))
-        if self._held_workspace is None:
-            self._held_workspace = model.workspace(held.size, threads=1)
-        weights = None if self.problem.weights is None else self.problem.weights[held]
-        statistics = ill.capture_statistics(model, self._spectrum, self.problem.amplitudes[held], weights,
-                                            workspace=self._held_workspace, scale=calibrator.target_scale(held))
-        return float(np.sqrt(statistics.misfit.sum() / max(self._held_norm, 1e-30)))
-
-    def _keep_best(self) -> None:
-        """Remember the state of a new best held-back misfit; at the end of the run, return to it."""
-        if self.stopping.improved:
-            self._best = (self._spectrum.copy(), {k: np.copy(v) for k, v in self.calibrator.state().items()})
-        if self.stopping.done() and self._best is not None and self.stopping.held_back_above_best():
-            spectrum, calibration = self._best
-            self._spectrum[...] = spectrum
-            self.calibrator.restore(calibration)
+        best = self._held.keep_best(self.stopping, lambda: self._spectrum, self.calibrator)
+        if best is not None:
+            self._spectrum[...] = best
             self._arrange()
+        return float(np.sqrt(misfit / max(self._data_norm, 1e-30))), change
 
     # ------------------------------------------------------------ growing batches
     def _can_grow(self) -> bool:

@@ -15,7 +15,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import OpenImageIO as oiio
 
 from cca_cli.errors import CcaError, InputError
 
@@ -26,6 +25,13 @@ _log = logging.getLogger(__name__)
 _REEXPORT = "re-export it as TIFF/PNG/EXR"
 _INT_BITS = {"uint8": 8, "uint16": 16, "uint32": 32, "int8": 8, "int16": 16, "int32": 32}
 _WRITE_EXTS = (".tif", ".tiff", ".png", ".exr")
+
+
+def _oiio():
+    """OpenImageIO, imported on first use: reading captures.h5 alone never needs it."""
+    import OpenImageIO
+
+    return OpenImageIO
 
 
 @dataclass(frozen=True)
@@ -142,6 +148,7 @@ def read_stored(path) -> StoredImage:
         raise InputError(f"{name}: file not found; check the path and the capture folder")
     if os.path.isdir(name):
         raise InputError(f"{name}: is a directory, not an image file; give the image file path")
+    oiio = _oiio()
     inp = oiio.ImageInput.open(name)
     if inp is None:
         _log.debug("OpenImageIO could not open %s: %s", name, _one_line(oiio.geterror()))
@@ -353,6 +360,7 @@ def write_image(path, pixels, *, bit_depth: int = 16) -> None:
         raise CcaError(f"{name}: cannot write image ({exc.strerror}); check the folder exists and is writable") from exc
     os.close(fd)
     try:
+        oiio = _oiio()
         out = oiio.ImageOutput.create(tmp)
         if out is None:
             raise CcaError(f"{name}: cannot write image ({_one_line(oiio.geterror())})")
