@@ -207,6 +207,7 @@ class PupilRecovery:
         centres = layout.box_centres if offsets is None else layout.box_centres + np.asarray(offsets, np.float64)
         self._centres = centres
         self._discs = circular_pupils(layout.box_size, centres, layout.pupil_radius_px)
+        self._smooth_designs = {}   # per pupil: what the smooth model's fit needs that only the geometry sets
         self._basis = None
         if self.model == "zernike":
             self._basis = zernike_basis(layout.box_size, centres, layout.pupil_radius_px, order=self.order)
@@ -355,37 +356,45 @@ class PupilRecovery:
         """
         from scipy import ndimage
 
-        b = maps.shape[-1]
-        grid = np.arange(b, dtype=np.float64)
         sigma = max(self.smoothing * self.layout.pupil_radius_px, 0.5)
         out = np.ones_like(maps)
         for p in range(self.n_pupils):
-            members = self.index == p
-            centre = self._centres[members].mean(axis=0) if np.any(members) else self._centres.mean(axis=0)
-            disc = circular_pupils(b, centre[None], self.layout.pupil_radius_px)[0] > 0
+            disc, columns, cover, modes = self._smooth_design(p, sigma)
             weight = light[p] * disc
             if not weight.any():
                 continue
             phase = np.angle(maps[p] * np.conj(np.sum(maps[p] * weight)))
-            modes = [self._box_basis[p, j] for j in range(len(self.modes))]
-            columns = np.stack([m[disc] for m in modes] + [np.ones(disc.sum()), (grid[:, None] * np.ones(b))[disc],
-                                                         (np.ones(b)[:, None] * grid)[disc]], axis=1)
-            root = np.sqrt(weight[disc] / weight.max())
-            solution, *_ = np.linalg.lstsq(columns * root[:, None], phase[disc] * root, rcond=None)
-            low_order = np.einsum("n,nyx->yx", solution[:len(modes)], np.stack(modes))
-            fitted = np.zeros((b, b))
+            # Weighted least squares by its normal equations: the design is fixed, only the weights change.
+            weighted = columns * (weight[disc] / weight.max())[:, None]
+            solution, *_ = np.linalg.lstsq(weighted.T @ columns, weighted.T @ phase[disc], rcond=None)
+            low_order = np.einsum("n,nyx->yx", solution[:len(modes)], modes)
+            fitted = np.zeros(disc.shape)
             fitted[disc] = columns @ solution
             mask = disc.astype(np.float64)
-            remainder = ndimage.gaussian_filter((phase - fitted) * mask, sigma) / \
-                np.maximum(ndimage.gaussian_filter(mask, sigma), 1e-6)
-            amplitude = np.abs(maps[p])
+            remainder = ndimage.gaussian_filter((phase - fitted) * mask, sigma) / cover
             if self.amplitude:
-                amplitude = ndimage.gaussian_filter(amplitude * mask, sigma) / \
-                    np.maximum(ndimage.gaussian_filter(mask, sigma), 1e-6)
+                amplitude = ndimage.gaussian_filter(np.abs(maps[p]) * mask, sigma) / cover
             else:
-                amplitude = np.ones_like(amplitude)
+                amplitude = 1.0
             out[p] = np.where(disc, amplitude * np.exp(1j * (low_order + remainder)), 1)
         return out.astype(np.complex64)
+
+    def _smooth_design(self, p: int, sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Pupil ``p``'s disc, the fit's columns (modes, piston, tilts) on it, the smoothing's cover, the modes."""
+        if p not in self._smooth_designs:
+            from scipy import ndimage
+
+            b = self.layout.box_size
+            members = self.index == p
+            centre = self._centres[members].mean(axis=0) if np.any(members) else self._centres.mean(axis=0)
+            disc = circular_pupils(b, centre[None], self.layout.pupil_radius_px)[0] > 0
+            modes = self._box_basis[p].astype(np.float64)
+            grid = np.arange(b, dtype=np.float64)
+            columns = np.stack([m[disc] for m in modes] + [np.ones(disc.sum()), (grid[:, None] * np.ones(b))[disc],
+                                                         (np.ones(b)[:, None] * grid)[disc]], axis=1)
+            cover = np.maximum(ndimage.gaussian_filter(disc.astype(np.float64), sigma), 1e-6)
+            self._smooth_designs[p] = (disc, columns, cover, modes)
+        return self._smooth_designs[p]
 
     def _zernike_step(self, rhs: np.ndarray, denominator: np.ndarray) -> None:
         for p in range(self.n_pupils):
