@@ -95,7 +95,6 @@ class SequentialMomentum(CalibratingEngine):
         self._velocity = np.zeros_like(self._spectrum)
         self._anchor = self._spectrum.copy()
         self._previous_misfit = np.inf
-        self._coverage = np.zeros(problem.model.spectrum_shape, np.float32)  # work array of the update factors
         self._batch = options.batch
         self._held = HeldBack(problem, options.hold_back)
         self.held_back, self._trained = self._held.captures, self._held.trained
@@ -106,6 +105,7 @@ class SequentialMomentum(CalibratingEngine):
                                        can_grow=self._can_grow,
                                        held_back_patience=options.hold_back_patience if self.held_back.size else 0)
         self.passes = SequentialPass(problem.model, threads)
+        self._coverages = [np.zeros(problem.model.spectrum_shape, np.float32) for _ in range(threads)]  # work arrays
         self._arrange()
 
     # ------------------------------------------------------------ the model of a pass
@@ -143,9 +143,16 @@ class SequentialMomentum(CalibratingEngine):
         self._model = model = ForwardModel(self._layout, pupils)
         opts = self.options
         bounds = np.array([[sl.start, sl.stop] for sl in self._schedule.batches], np.int64)
-        self._factors = np.empty(model.pupils.shape, np.complex64)
-        kernels.rpie_factors(model.pupils, self._origins, bounds, alpha=opts.alpha, tau=opts.tau,
-                             scale=opts.beta / self._layout.lowres_size, coverage=self._coverage, out=self._factors)
+        self._factors = factors = np.empty(model.pupils.shape, np.complex64)
+        # Batches are independent: each thread takes a contiguous share of them, with its own work array.
+        shares = np.array_split(bounds, self.passes.threads)
+
+        def factors_of_share(t: int) -> None:
+            kernels.rpie_factors(model.pupils, self._origins, np.ascontiguousarray(shares[t]), alpha=opts.alpha,
+                                 tau=opts.tau, scale=opts.beta / self._layout.lowres_size,
+                                 coverage=self._coverages[t], out=factors)
+
+        self.passes.on_every_thread(factors_of_share)
 
     # ------------------------------------------------------------ the update rule
     def _difference(self, fields: np.ndarray, images: slice, scratch: np.ndarray) -> float:

@@ -190,6 +190,13 @@ class SequentialPass:
                 misfit += runner.lanes(0, shares[0]) + sum(f.result() for f in futures)
         return misfit
 
+    def on_every_thread(self, work: Callable[[int], None]) -> None:
+        """Run ``work(t)`` for every thread ``t`` side by side (``t = 0`` on the calling thread)."""
+        futures = [self._pool.submit(work, t) for t in range(1, self.threads)] if self._pool is not None else []
+        work(0)
+        for future in futures:
+            future.result()
+
     def close(self) -> None:
         """Stop the worker thread."""
         if self._pool is not None:

@@ -101,7 +101,7 @@ DATASETS: tuple[DatasetSpec, ...] = (
     DatasetSpec("/history/seconds", "float64", "(iterations,)", "s", "Wall time at the end of each iteration."),
     DatasetSpec("/history/held_back", "float64", "(iterations,)", "1",
                 "Runs that held captures back from the updates (reconstruct.options.hold_back): their relative "
-                "amplitude misfit after each iteration, which ends the run when it stops improving."),
+                "amplitude misfit after each iteration, which ends the run when it stays more than 1% above its best."),
     DatasetSpec("/recon/held_back_captures", "int32", "(H,)", "1",
                 "Captures (indices of the recovered set) held back from the updates to judge when to stop; "
                 "attribute residual_held_back of /recon: their best misfit."),
