@@ -14,8 +14,7 @@ def resolve_engine(section: ReconstructSection, kind: str):
 def test_auto_on_led_arrays_runs_momentum_with_pupil_recovery_and_growing_batches():
     name, options = resolve_engine(ReconstructSection(), "led_array")
     assert name == "momentum"
-    assert options.pupil_recovery == "shared" and options.pupil_model == "smooth" and options.pupil_tilt == "pinned"
-    assert 0 < options.hold_back <= 0.1
+    assert options.pupil_recovery == "shared" and options.pupil_model == "full"
     assert options.batch_growth > 1 and options.plateau > 0 and options.max_iterations <= 300
 
 
