@@ -44,7 +44,7 @@ def main() -> None:
     engines = {}
     for name in args.engines:
         entry = get_engine(name)
-        engines[name] = entry.engine(problem, entry.options(max_iterations=10**6, tol=0))
+        engines[name] = entry.engine_class()(problem, entry.options(max_iterations=10**6, tol=0))
         engines[name].update()
     # Rounds of back-to-back blocks (floor, then each engine) keep the machine's slow drifts
     # out of each round's ratio without disturbing either side's caches mid-block.

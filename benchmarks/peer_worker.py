@@ -118,7 +118,7 @@ def run_ours(engine_name: str, data: Path, iterations: int) -> dict:
     del images
     names = entry.option_names()
     options = entry.options(**{k: v for k, v in (("max_iterations", 10**6), ("tol", 0.0)) if k in names})
-    engine = entry.engine(problem, options)
+    engine = entry.engine_class()(problem, options)
     recorder = Recorder(iterations)
     try:
         for _ in range(iterations):
