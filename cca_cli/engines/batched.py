@@ -39,9 +39,10 @@ from types import ModuleType
 
 import numpy as np
 
-from cca_cli.engines.base import CalibratingEngine, IterativeEngine
-from cca_cli.engines.calibrator import Calibration, Calibrator, subset_layout
+from cca_cli.engines.base import IterativeEngine
+from cca_cli.engines.calibrator import Calibrator, subset_layout
 from cca_cli.engines.held_back import HeldBack
+from cca_cli.engines.momentum import MomentumBase
 from cca_cli.engines.options import AltMinOptions, EngineOptions, MomentumOptions
 from cca_cli.engines.problem import PhaseRetrievalProblem, initial_spectrum
 from cca_cli.engines.schedule import Schedule, build_schedule
@@ -261,7 +262,7 @@ def _as_slice(positions: np.ndarray) -> slice | np.ndarray:
     return positions
 
 
-class BatchedMomentum(CalibratingEngine):
+class BatchedMomentum(MomentumBase):
     """Batched rPIE with mPIE momentum (and map-model pupil recovery), the lanes of a phase in one call.
 
     Parameters
@@ -456,79 +457,12 @@ class BatchedMomentum(CalibratingEngine):
         self._anchor[...] = self._spectrum
         return float(np.sqrt(change / max(norm, 1e-30)))
 
-    def _pupil_step(self, misfit: float) -> None:
-        """End-of-pass pupil update; the spectrum takes over the pupils' common scale and tilt."""
-        normalisation = self.calibrator.pupil_step(misfit, self.stopping.iteration)
-        if normalisation is None:
-            return
-        scale, tilt = normalisation
-        if scale != 1 or np.any(tilt):
-            grid = np.arange(self._layout.hires_size, dtype=np.float64)
-            factor = np.outer(scale * np.exp(1j * tilt[0] * grid), np.exp(1j * tilt[1] * grid)).astype(np.complex64)
-            factor = backend.to_device(factor, self.xp)
-            for array in (self._spectrum, self._anchor, self._velocity):
-                array *= factor
-        self._set_model(self.calibrator.recovery.pupils())
+    def _to_host(self, array):
+        return backend.to_host(array)
+
+    def _to_device(self, array: np.ndarray):
+        return backend.to_device(array, self.xp)
 
     def update(self) -> tuple[float, float]:
         """One pass over all captures, the momentum step and the pupil step."""
-        misfit = self._pass()
-        change = self._momentum(misfit)
-        self._pupil_step(misfit)
-        self._previous_misfit = misfit
-        if len(self._held):
-            self.held_back_residual = self._held.misfit(self.spectrum(), self.calibrator, self._all_layout)
-        if self.stopping.record(misfit, change, self.held_back_residual):
-            self._grow_batch()
-        best = self._held.keep_best(self.stopping, self.spectrum, self.calibrator)
-        if best is not None:
-            self._spectrum[...] = backend.to_device(best, self.xp)
-            self._arrange()
-        return float(np.sqrt(misfit / max(self._data_norm, 1e-30))), change
-
-    # ------------------------------------------------------------ growing batches
-    def _can_grow(self) -> bool:
-        return self.options.batch_growth > 1 and self._batch < self._trained.size
-
-    def _grow_batch(self) -> None:
-        """Take larger batches from the next pass on; the plateau test starts afresh."""
-        self._batch = min(self._batch * self.options.batch_growth, self._trained.size)
-        self.stopping.grew()
-        self._velocity.fill(0)
-        self._arrange()
-
-    @property
-    def batch(self) -> int:
-        """Captures per batch now (``batch``, grown by ``batch_growth`` at each plateau)."""
-        return self._batch
-
-    # ------------------------------------------------------------ results and checkpoints
-    def spectrum(self) -> np.ndarray:
-        """Current spectrum estimate (complex64, M x M), on the host."""
-        return backend.to_host(self._spectrum)
-
-    def calibration(self) -> Calibration:
-        """The pupils in use (and the rest of the calibration, unchanged here), in the problem's capture order."""
-        if len(self._held):  # the model holds the trained captures' pupils only
-            calibrator = self.calibrator
-            return calibrator.calibration(calibrator.pupils_for(self._all_layout, calibrator.pupil_index))
-        inverse = np.empty_like(self._order)
-        inverse[self._order] = np.arange(self._order.size)
-        return self.calibrator.calibration(np.asarray(self._model.pupils)[inverse].copy())
-
-    def state(self) -> dict:
-        """Spectrum, momentum, calibration and stopping state (on the host), as the CPU engine's."""
-        host = backend.to_host
-        return {"spectrum": host(self._spectrum), "velocity": host(self._velocity), "anchor": host(self._anchor),
-                "previous_misfit": self._previous_misfit, "batch": self._batch, **self.stopping.state(),
-                **self.calibrator.state()}
-
-    def restore(self, state: dict) -> None:
-        """Continue from :meth:`state` (this engine's, or the CPU engine's)."""
-        for name in ("spectrum", "velocity", "anchor"):
-            getattr(self, f"_{name}")[...] = backend.to_device(np.asarray(state[name], np.complex64), self.xp)
-        self.stopping.restore(state)
-        self._previous_misfit = float(state["previous_misfit"])
-        self._batch = int(state.get("batch", self.options.batch))
-        self.calibrator.restore(state)
-        self._arrange()
+        return self._end_pass(self._pass())

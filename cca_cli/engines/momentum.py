@@ -64,13 +64,107 @@ from cca_cli.engines.stopping import StoppingPolicy
 from cca_cli.optics import fft, kernels
 from cca_cli.optics.forward import ForwardModel
 
-__all__ = ["MAX_THREADS", "MomentumOptions", "Calibration", "SequentialMomentum", "held_back_captures"]
+__all__ = ["MAX_THREADS", "MomentumOptions", "Calibration", "MomentumBase", "SequentialMomentum", "held_back_captures"]
 
 #: Most threads a pass uses: lanes of a phase are at most eight (three splits of the spectrum).
 MAX_THREADS = 8
 
 
-class SequentialMomentum(CalibratingEngine):
+class MomentumBase(CalibratingEngine):
+    """What every momentum engine shares beside its pass: the end of a pass, growing batches, results, checkpoints.
+
+    A subclass keeps ``_spectrum``, ``_velocity`` and ``_anchor`` (on its device), ``_previous_misfit``,
+    ``_batch``, ``_held`` (:class:`~cca_cli.engines.held_back.HeldBack`), ``_order``, ``_all_layout``,
+    ``_model``, a :class:`~cca_cli.engines.calibrator.Calibrator` and a
+    :class:`~cca_cli.engines.stopping.StoppingPolicy`, and provides ``_momentum`` (the momentum step),
+    ``_arrange`` (layout, visiting order and model) and ``_set_model`` (pupils in engine order).
+    ``_to_host`` / ``_to_device`` move arrays where the engine keeps them elsewhere (a GPU).
+    """
+
+    def _to_host(self, array):
+        return array
+
+    def _to_device(self, array: np.ndarray):
+        return array
+
+    def _end_pass(self, misfit: float) -> tuple[float, float]:
+        """After a pass: momentum, pupil step, held-back misfit, stopping and batch growth; the pass's figures."""
+        change = self._momentum(misfit)
+        self._pupil_step(misfit)
+        self._previous_misfit = misfit
+        if len(self._held):
+            self.held_back_residual = self._held.misfit(self.spectrum(), self.calibrator, self._all_layout)
+        if self.stopping.record(misfit, change, self.held_back_residual):
+            self._grow_batch()
+        best = self._held.keep_best(self.stopping, self.spectrum, self.calibrator)
+        if best is not None:
+            self._spectrum[...] = self._to_device(best)
+            self._arrange()
+        return float(np.sqrt(misfit / max(self._data_norm, 1e-30))), change
+
+    def _pupil_step(self, misfit: float) -> None:
+        """End-of-pass pupil update; the spectrum takes over the pupils' common scale and tilt."""
+        normalisation = self.calibrator.pupil_step(misfit, self.stopping.iteration)
+        if normalisation is None:
+            return
+        scale, tilt = normalisation
+        if scale != 1 or np.any(tilt):
+            grid = np.arange(self._spectrum.shape[0], dtype=np.float64)
+            factor = np.outer(scale * np.exp(1j * tilt[0] * grid), np.exp(1j * tilt[1] * grid)).astype(np.complex64)
+            factor = self._to_device(factor)
+            for array in (self._spectrum, self._anchor, self._velocity):
+                array *= factor
+        self._set_model(self.calibrator.recovery.pupils())
+
+    # ------------------------------------------------------------ growing batches
+    def _can_grow(self) -> bool:
+        return self.options.batch_growth > 1 and self._batch < self._trained.size
+
+    def _grow_batch(self) -> None:
+        """Take larger batches from the next pass on; the plateau test starts afresh."""
+        self._batch = min(self._batch * self.options.batch_growth, self._trained.size)
+        self.stopping.grew()
+        self._velocity[...] = 0
+        self._arrange()
+
+    @property
+    def batch(self) -> int:
+        """Captures per batch now (``batch``, grown by ``batch_growth`` at each plateau)."""
+        return self._batch
+
+    # ------------------------------------------------------------ results and checkpoints
+    def spectrum(self) -> np.ndarray:
+        """Current spectrum estimate (complex64, M x M), on the host."""
+        return self._to_host(self._spectrum)
+
+    def calibration(self) -> Calibration:
+        """The current positions, pupils and brightness, in the problem's capture order."""
+        calibrator = self.calibrator
+        if len(self._held):  # the model holds the trained captures' pupils only
+            return calibrator.calibration(calibrator.pupils_for(self._all_layout, calibrator.pupil_index))
+        inverse = np.empty_like(self._order)
+        inverse[self._order] = np.arange(self._order.size)
+        return calibrator.calibration(np.asarray(self._model.pupils)[inverse].copy())
+
+    def state(self) -> dict:
+        """Spectrum, momentum, calibration and stopping state (problem order, on the host)."""
+        host = self._to_host
+        return {"spectrum": host(self._spectrum), "velocity": host(self._velocity), "anchor": host(self._anchor),
+                "previous_misfit": self._previous_misfit, "batch": self._batch, **self.stopping.state(),
+                **self.calibrator.state()}
+
+    def restore(self, state: dict) -> None:
+        """Continue from :meth:`state` (of any momentum engine); layout, visiting order and pupils are rebuilt."""
+        for name in ("spectrum", "velocity", "anchor"):
+            getattr(self, f"_{name}")[...] = self._to_device(np.asarray(state[name], np.complex64))
+        self.stopping.restore(state)
+        self._previous_misfit = float(state["previous_misfit"])
+        self._batch = int(state.get("batch", self.options.batch))
+        self.calibrator.restore(state)
+        self._arrange()
+
+
+class SequentialMomentum(MomentumBase):
     """Centre-out batched rPIE with mPIE momentum and optional model calibration.
 
     Parameters
@@ -191,19 +285,6 @@ class SequentialMomentum(CalibratingEngine):
         change, norm = kernels.momentum_step(self._spectrum, self._anchor, self._velocity, eta)
         return float(np.sqrt(change / max(norm, 1e-30)))
 
-    def _pupil_step(self, misfit: float) -> None:
-        """End-of-pass pupil update; the spectrum takes over the pupils' common scale and tilt."""
-        normalisation = self.calibrator.pupil_step(misfit, self.stopping.iteration)
-        if normalisation is None:
-            return
-        scale, tilt = normalisation
-        if scale != 1 or np.any(tilt):
-            grid = np.arange(self._spectrum.shape[0], dtype=np.float64)
-            factor = np.outer(scale * np.exp(1j * tilt[0] * grid), np.exp(1j * tilt[1] * grid)).astype(np.complex64)
-            for array in (self._spectrum, self._anchor, self._velocity):
-                array *= factor
-        self._set_model(self.calibrator.recovery.pupils())
-
     def _calibrate(self) -> None:
         """A position / brightness round when one is due before this pass."""
         if not self.calibrator.due(self.stopping.iteration):
@@ -223,63 +304,7 @@ class SequentialMomentum(CalibratingEngine):
                                pupil_sums=None if recovery is None else recovery.lane_sums)
         after = self._accumulate_pupil if self.calibrator.recovery is not None else None
         misfit = self.passes.run(self._schedule, self._spectrum, targets, self._difference, after)
-        change = self._momentum(misfit)
-        self._pupil_step(misfit)
-        self._previous_misfit = misfit
-        self.held_back_residual = self._held.misfit(self._spectrum, self.calibrator, self._all_layout)
-        if self.stopping.record(misfit, change, self.held_back_residual):
-            self._grow_batch()
-        best = self._held.keep_best(self.stopping, lambda: self._spectrum, self.calibrator)
-        if best is not None:
-            self._spectrum[...] = best
-            self._arrange()
-        return float(np.sqrt(misfit / max(self._data_norm, 1e-30))), change
-
-    # ------------------------------------------------------------ growing batches
-    def _can_grow(self) -> bool:
-        return self.options.batch_growth > 1 and self._batch < self._trained.size
-
-    def _grow_batch(self) -> None:
-        """Take larger batches from the next pass on; the plateau test starts afresh."""
-        self._batch = min(self._batch * self.options.batch_growth, self._trained.size)
-        self.stopping.grew()
-        self._velocity[:] = 0
-        self._arrange()
-
-    @property
-    def batch(self) -> int:
-        """Captures per batch now (``batch``, grown by ``batch_growth`` at each plateau)."""
-        return self._batch
-
-    # ------------------------------------------------------------ results and checkpoints
-    def spectrum(self) -> np.ndarray:
-        """Current spectrum estimate (complex64, M x M)."""
-        return self._spectrum
-
-    def calibration(self) -> Calibration:
-        """The current positions, pupils and brightness, in the problem's capture order."""
-        if self.held_back.size:  # the model holds the trained captures' pupils only
-            calibrator = self.calibrator
-            return calibrator.calibration(calibrator.pupils_for(self._all_layout, calibrator.pupil_index))
-        inverse = np.empty_like(self._order)
-        inverse[self._order] = np.arange(self._order.size)
-        return self.calibrator.calibration(np.asarray(self._model.pupils)[inverse].copy())
-
-    def state(self) -> dict:
-        """Spectrum, momentum, calibration and stopping state (problem order)."""
-        return {"spectrum": self._spectrum, "velocity": self._velocity, "anchor": self._anchor,
-                "previous_misfit": self._previous_misfit, "batch": self._batch, **self.stopping.state(),
-                **self.calibrator.state()}
-
-    def restore(self, state: dict) -> None:
-        """Continue from :meth:`state`; the layout, visiting order and pupils are rebuilt from it."""
-        for name in ("spectrum", "velocity", "anchor"):
-            getattr(self, f"_{name}")[...] = state[name]
-        self.stopping.restore(state)
-        self._previous_misfit = float(state["previous_misfit"])
-        self._batch = int(state.get("batch", self.options.batch))
-        self.calibrator.restore(state)
-        self._arrange()
+        return self._end_pass(misfit)
 
     def close(self) -> None:
         """Stop worker threads."""
