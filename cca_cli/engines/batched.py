@@ -40,8 +40,7 @@ from types import ModuleType
 import numpy as np
 
 from cca_cli.engines.base import IterativeEngine
-from cca_cli.engines.calibrator import Calibrator, subset_layout
-from cca_cli.engines.held_back import HeldBack
+from cca_cli.engines.calibrator import subset_layout
 from cca_cli.engines.momentum import MomentumBase
 from cca_cli.engines.options import AltMinOptions, EngineOptions, MomentumOptions
 from cca_cli.engines.problem import PhaseRetrievalProblem, initial_spectrum
@@ -286,22 +285,8 @@ class BatchedMomentum(MomentumBase):
     def __init__(self, problem: PhaseRetrievalProblem, options: MomentumOptions = MomentumOptions(),
                  spectrum: np.ndarray | None = None, *, xp: ModuleType = np, lanes: int = 8):
         check_options(options)
-        self.problem, self.options, self.xp = problem, options, xp
-        self._lanes = lanes
-        start = initial_spectrum(problem) if spectrum is None else spectrum
-        self._spectrum = backend.to_device(np.asarray(start, np.complex64), xp)
-        self._velocity = xp.zeros_like(self._spectrum)
-        self._anchor = self._spectrum.copy()
-        self._previous_misfit = np.inf
-        self._batch = options.batch
-        self._held = HeldBack(problem, options.hold_back)
-        self.held_back, self._trained = self._held.captures, self._held.trained
-        self._data_norm = self._held.trained_norm
-        self.calibrator = Calibrator(problem, options, 1)
-        self.stopping = StoppingPolicy(max_iterations=options.max_iterations, tol=options.tol,
-                                       plateau=options.plateau, plateau_window=options.plateau_window,
-                                       can_grow=self._can_grow,
-                                       held_back_patience=options.hold_back_patience if len(self._held) else 0)
+        self.xp, self._lanes = xp, lanes
+        self._start(problem, options, spectrum, threads=1)
         self._arrange()
 
     # ------------------------------------------------------------ the model of a pass

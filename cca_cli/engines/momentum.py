@@ -81,6 +81,26 @@ class MomentumBase(CalibratingEngine):
     ``_to_host`` / ``_to_device`` move arrays where the engine keeps them elsewhere (a GPU).
     """
 
+    def _start(self, problem: PhaseRetrievalProblem, options: MomentumOptions, spectrum: np.ndarray | None,
+               threads: int) -> None:
+        """The state every momentum engine starts from (the subclass has set ``_to_device``'s needs)."""
+        self.problem, self.options = problem, options
+        start = initial_spectrum(problem) if spectrum is None else spectrum
+        self._spectrum = self._to_device(np.array(start, np.complex64))
+        self._velocity = self._spectrum.copy()
+        self._velocity[...] = 0
+        self._anchor = self._spectrum.copy()
+        self._previous_misfit = np.inf
+        self._batch = options.batch
+        self._held = HeldBack(problem, options.hold_back)
+        self.held_back, self._trained = self._held.captures, self._held.trained
+        self._data_norm = self._held.trained_norm
+        self.calibrator = Calibrator(problem, options, threads)
+        self.stopping = StoppingPolicy(max_iterations=options.max_iterations, tol=options.tol,
+                                       plateau=options.plateau, plateau_window=options.plateau_window,
+                                       can_grow=self._can_grow,
+                                       held_back_patience=options.hold_back_patience if len(self._held) else 0)
+
     def _to_host(self, array):
         return array
 
@@ -179,25 +199,9 @@ class SequentialMomentum(MomentumBase):
 
     def __init__(self, problem: PhaseRetrievalProblem, options: MomentumOptions = MomentumOptions(),
                  spectrum: np.ndarray | None = None):
-        self.problem = problem
-        self.options = options
-        k = problem.model.n_images
-        threads = max(1, min(options.threads or fft.default_threads(), MAX_THREADS, k))
+        threads = max(1, min(options.threads or fft.default_threads(), MAX_THREADS, problem.model.n_images))
         self._lanes = max(2, 1 << (threads.bit_length() - 1))   # 1 and 2 threads visit in the same order
-        self._data_norm = problem.energy
-        self._spectrum = (initial_spectrum(problem) if spectrum is None else spectrum).astype(np.complex64)
-        self._velocity = np.zeros_like(self._spectrum)
-        self._anchor = self._spectrum.copy()
-        self._previous_misfit = np.inf
-        self._batch = options.batch
-        self._held = HeldBack(problem, options.hold_back)
-        self.held_back, self._trained = self._held.captures, self._held.trained
-        self._data_norm = self._held.trained_norm
-        self.calibrator = Calibrator(problem, options, threads)
-        self.stopping = StoppingPolicy(max_iterations=options.max_iterations, tol=options.tol,
-                                       plateau=options.plateau, plateau_window=options.plateau_window,
-                                       can_grow=self._can_grow,
-                                       held_back_patience=options.hold_back_patience if self.held_back.size else 0)
+        self._start(problem, options, spectrum, threads)
         self.passes = SequentialPass(problem.model, threads)
         self._coverages = [np.zeros(problem.model.spectrum_shape, np.float32) for _ in range(threads)]  # work arrays
         self._arrange()
