@@ -109,18 +109,25 @@ def test_per_camera_recovery_leaves_perfect_pupils_alone():
     assert np.abs(calibration.pupil.coefficients).max() < 0.05
 
 
-def test_full_pupil_map_takes_amplitude_and_phase_of_an_led_array_objective():
-    # An apodised, aberrated objective: the full map recovers what Zernike phase modes cannot hold.
-    problem, true_centres, spectrum = led_case()
+def aberrated_objective_case(coefficients, apodisation, seed):
+    """The LED case seen through an aberrated (order-3 Zernike) objective apodised by ``1 − a r²``.
+
+    Returns the problem built on the ideal disc pupil and the truth spectrum.
+    """
+    problem, _, spectrum = led_case()
     layout = problem.model.layout
-    disc = cal.pupil_functions(layout)
     radius = np.hypot(*np.meshgrid(np.arange(layout.box_size) - layout.box_centres[0, 0],
                                    np.arange(layout.box_size) - layout.box_centres[0, 1], indexing="ij"))
-    apodised = cal.pupil_functions(layout, coefficients=[0.1, 0.05, 0.0, 0.05, 0.0, 0.0, 0.0], order=3)
-    apodised = apodised * (1 - 0.4 * (radius / LED_RADIUS) ** 2)[None].astype(np.float32)
-    images = ForwardModel(layout, apodised).sensor_intensity(spectrum)
-    aberrated = PhaseRetrievalProblem.from_sensor_images(ForwardModel(layout, disc),
-                                                         add_gaussian_noise(images, 30.0, np.random.default_rng(1)))
+    objective = cal.pupil_functions(layout, coefficients=coefficients, order=3)
+    objective = objective * (1 - apodisation * (radius / LED_RADIUS) ** 2)[None].astype(np.float32)
+    images = ForwardModel(layout, objective).sensor_intensity(spectrum)
+    noisy = add_gaussian_noise(images, 30.0, np.random.default_rng(seed))
+    return PhaseRetrievalProblem.from_sensor_images(ForwardModel(layout, cal.pupil_functions(layout)), noisy), spectrum
+
+
+def test_full_pupil_map_takes_amplitude_and_phase_of_an_led_array_objective():
+    # An apodised, aberrated objective: the full map recovers what Zernike phase modes cannot hold.
+    aberrated, _ = aberrated_objective_case([0.1, 0.05, 0.0, 0.05, 0.0, 0.0, 0.0], 0.4, seed=1)
     residual = {}
     for name, options in (("plain", {}), ("zernike", dict(pupil_model="zernike", pupil_order=3)),
                           ("full", dict(pupil_model="full"))):
@@ -152,21 +159,12 @@ def _subpixel_shift(image, reference, upsample=20):
 
 
 def test_smooth_pinned_pupil_takes_the_aberration_and_leaves_the_object_in_place():
-    # The LED-array default: Zernike modes plus a smooth remainder, tilt pinned. On an apodised, aberrated
-    # objective it must fit about as well as a free per-pixel map, recover the object with the truth's
-    # error level and keep it registered to the truth (no drift).
-    problem, _, spectrum = led_case()
-    layout = problem.model.layout
-    disc = cal.pupil_functions(layout)
-    radius = np.hypot(*np.meshgrid(np.arange(layout.box_size) - layout.box_centres[0, 0],
-                                   np.arange(layout.box_size) - layout.box_centres[0, 1], indexing="ij"))
-    # Defocus, astigmatism and trefoil: none has a mean phase gradient, so "registered to the centre
-    # capture" and "where the truth is" are the same place (coma's gradient would move the former).
-    aberrated = cal.pupil_functions(layout, coefficients=[0.1, 0.05, 0.0, 0.0, 0.0, 0.05, 0.0], order=3)
-    aberrated = aberrated * (1 - 0.3 * (radius / LED_RADIUS) ** 2)[None].astype(np.float32)
-    images = ForwardModel(layout, aberrated).sensor_intensity(spectrum)
-    noisy = add_gaussian_noise(images, 30.0, np.random.default_rng(2))
-    problem = PhaseRetrievalProblem.from_sensor_images(ForwardModel(layout, disc), noisy)
+    # Zernike modes plus a smooth remainder, tilt pinned. On an apodised, aberrated objective it must fit
+    # about as well as a free per-pixel map, recover the object with the truth's error level and keep it
+    # registered to the truth (no drift). Defocus, astigmatism and trefoil: none has a mean phase gradient,
+    # so "registered to the centre capture" and "where the truth is" are the same place (coma's gradient
+    # would move the former).
+    problem, spectrum = aberrated_objective_case([0.1, 0.05, 0.0, 0.0, 0.0, 0.05, 0.0], 0.3, seed=2)
     truth = np.abs(fft.ifft2c(spectrum)) ** 2
     error, shift = {}, {}
     smooth = dict(pupil_recovery="shared", pupil_model="smooth")
