@@ -134,6 +134,10 @@ class MomentumBase(CalibratingEngine):
             factor = self._to_device(factor)
             for array in (self._spectrum, self._anchor, self._velocity):
                 array *= factor
+        self._set_recovered_model()
+
+    def _set_recovered_model(self) -> None:
+        """Use the pupil recovery's current pupils."""
         self._set_model(self.calibrator.recovery.pupils())
 
     # ------------------------------------------------------------ growing batches
@@ -204,6 +208,7 @@ class SequentialMomentum(MomentumBase):
         self._start(problem, options, spectrum, threads)
         self.passes = SequentialPass(problem.model, threads)
         self._coverages = [np.zeros(problem.model.spectrum_shape, np.float32) for _ in range(threads)]  # work arrays
+        self._buffers = None   # pupils, pupil boxes and update factors, refilled at each new model
         self._arrange()
 
     # ------------------------------------------------------------ the model of a pass
@@ -228,7 +233,9 @@ class SequentialMomentum(MomentumBase):
                             and (recovery is None or recovery.model != "zernike"))
         if recovery is not None:
             recovery.set_geometry(self._layout, self.calibrator.pupil_index[order])
-        self._set_model(self.calibrator.pupils_for(self._layout, self.calibrator.pupil_index[order]))
+            self._set_recovered_model()
+        else:
+            self._set_model(self.calibrator.pupils_for(self._layout, self.calibrator.pupil_index[order]))
 
     def _set_targets(self) -> None:
         """Measured amplitudes divided by each capture's brightness (engine order)."""
@@ -236,21 +243,50 @@ class SequentialMomentum(MomentumBase):
         self._targets = self._amplitudes if np.all(scale == 1) else self._amplitudes * scale[:, None, None]
         self._intensities = np.square(self._targets) if self.options.cost == "poisson" else None
 
-    def _set_model(self, pupils: np.ndarray) -> None:
-        """Use ``pupils`` (engine order) and precompute each capture's update factor."""
-        self._model = model = ForwardModel(self._layout, pupils)
-        opts = self.options
+    def _set_model(self, pupils: np.ndarray | None, parts: tuple | None = None) -> None:
+        """Use ``pupils`` (engine order) and precompute each capture's update factor.
+
+        With ``parts`` (:meth:`~cca_cli.engines.pupil_recovery.PupilRecovery.map_parts`) the pupils
+        are built here instead, each thread its share, together with the model's pupil boxes.
+        """
+        layout, opts = self._layout, self.options
         bounds = np.array([[sl.start, sl.stop] for sl in self._schedule.batches], np.int64)
-        self._factors = factors = np.empty(model.pupils.shape, np.complex64)
         # Batches are independent: each thread takes a contiguous share of them, with its own work array.
-        shares = np.array_split(bounds, self.passes.threads)
+        shares = [np.ascontiguousarray(share) for share in np.array_split(bounds, self.passes.threads)]
+        shape = (layout.n_images, layout.box_size, layout.box_size)
+        if self._buffers is None or self._buffers[0].shape != shape:
+            self._buffers = tuple(np.empty(shape, np.complex64) for _ in range(3))
+        # The previous model is out of use from here on: its arrays are refilled (fresh pages cost more).
+        boxes = None
+        factors = self._buffers[2]
+        if parts is not None:
+            pupils, boxes = self._buffers[:2]
 
-        def factors_of_share(t: int) -> None:
-            kernels.rpie_factors(model.pupils, self._origins, np.ascontiguousarray(shares[t]), alpha=opts.alpha,
-                                 tau=opts.tau, scale=opts.beta / self._layout.lowres_size,
-                                 coverage=self._coverages[t], out=factors)
+        def share_of_factors(t: int) -> None:
+            rpie = dict(alpha=opts.alpha, tau=opts.tau, scale=opts.beta / layout.lowres_size,
+                        coverage=self._coverages[t])
+            if boxes is None:
+                kernels.rpie_factors(pupils, self._origins, shares[t], out=factors, **rpie)
+            else:
+                kernels.map_pupil_factors(*parts, self._origins, shares[t], forward_scale=1.0 / layout.lowres_size,
+                                          pupils=pupils, boxes=boxes, factors=factors, **rpie)
 
-        self.passes.on_every_thread(factors_of_share)
+        if boxes is None:
+            self._model = ForwardModel(layout, pupils)
+            pupils = self._model.pupils
+        self.passes.on_every_thread(share_of_factors)
+        if boxes is not None:
+            self._model = ForwardModel(layout, pupils, pupil_boxes=boxes)
+        self._factors = factors
+
+    def _set_recovered_model(self) -> None:
+        """Use the pupil recovery's current pupils (built on every thread for the map models)."""
+        recovery = self.calibrator.recovery
+        parts = recovery.map_parts()
+        if parts is None:
+            self._set_model(recovery.pupils())
+        else:   # the schedule's batches hold every capture of the layout once
+            self._set_model(None, parts)
 
     # ------------------------------------------------------------ the update rule
     def _difference(self, fields: np.ndarray, images: slice, scratch: np.ndarray) -> float:

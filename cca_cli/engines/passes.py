@@ -146,24 +146,36 @@ class SequentialPass:
         self._capacity = 0
         self._workspaces: list = []
         self._scratch: list[np.ndarray] = []
+        self._boxes: list = []
         self._fused: list = []
 
     def reserve(self, capacity: int, *, fusable: bool) -> None:
         """Make room for batches of ``capacity`` captures; ``fusable``: lanes may run as one compiled call.
 
         The fused lane does the magnitude step (and the map models' pupil sums) only, so engines with
-        another data step pass ``fusable=False``. Nothing changes while the capacity suffices.
+        another data step pass ``fusable=False``. A fused lane transforms a few captures at a time
+        (:func:`~cca_cli.optics.kernels.lane_chunk`), so its workspace holds that many fields and only
+        the update boxes grow with the batches. Nothing changes while the capacity suffices.
         """
         if capacity <= self._capacity:
             return
         self._capacity = capacity
         model = self._model
+        box = model.layout.box_size
+        if fusable:
+            if not self.fused:
+                chunk = kernels.lane_chunk(model.field_shape[0])
+                workspaces = [model.workspace(chunk, threads=1) for _ in range(self.threads)]
+                raw = [None if ws.box_fft is None else ws.box_fft.raw_plans() for ws in workspaces]
+                if all(kernels.can_fuse_lanes(plans) for plans in raw):
+                    self._workspaces, self._fused, self._scratch = workspaces, raw, [None] * self.threads
+            if self.fused:
+                self._boxes = [np.empty((capacity, box, box), np.complex64) for _ in range(self.threads)]
+                return
         self._workspaces = [model.workspace(capacity, threads=1) for _ in range(self.threads)]
         self._scratch = [np.empty((capacity,) + model.field_shape, np.float32) for _ in range(self.threads)]
-        self._fused = [ws.box_fft.raw_plans() if fusable and ws.box_fft is not None else None
-                       for ws in self._workspaces]
-        if not all(kernels.can_fuse_lanes(raw) for raw in self._fused):
-            self._fused = [None] * self.threads
+        self._fused = [None] * self.threads
+        self._boxes = [None] * self.threads
 
     @property
     def fused(self) -> bool:
@@ -230,18 +242,21 @@ class _PassRun:
         return misfit
 
     def scatter(self, t: int, images: slice) -> None:
-        """Add the batch's weighted update boxes (workspace ``t``) to the spectrum."""
+        """Add the batch's weighted update boxes (thread ``t``'s) to the spectrum."""
         k = images.stop - images.start
         if k > 0:
-            kernels.scatter_boxes(self.owner._workspaces[t].fields[:k], self.targets.origins, self.targets.factors,
-                                  self.spectrum, images.start)
+            held = self.owner._boxes[t] if self.owner._fused[t] is not None else self.owner._workspaces[t].fields
+            kernels.scatter_boxes(held[:k], self.targets.origins, self.targets.factors, self.spectrum, images.start)
 
     def lanes(self, t: int, lanes: list[tuple[slice, ...]]) -> float:
         """Run ``lanes`` one after the other on thread ``t``; returns their summed misfit."""
         return sum(self.lane(t, lane) for lane in lanes)
 
-    def lane(self, t: int, batches: tuple[slice, ...]) -> float:
-        """Run ``batches`` one after the other on thread ``t``; returns their summed misfit."""
+    def lane(self, t: int, batches: tuple[slice, ...], *, scatter: bool = True) -> float:
+        """Run ``batches`` one after the other on thread ``t``; returns their summed misfit.
+
+        ``scatter=False`` (one batch): leave its update in thread ``t``'s boxes for :meth:`scatter`.
+        """
         raw = self.owner._fused[t]
         if raw is not None:  # one compiled call for the whole lane: the threads never wait for the interpreter
             bounds = np.array([[sl.start, sl.stop] for sl in batches], dtype=np.int64).reshape(-1, 2)
@@ -249,7 +264,9 @@ class _PassRun:
             sums = None if tg.pupil_sums is None else tg.pupil_sums(t)
             return kernels.sequential_lane(raw, bounds, self.spectrum, tg.origins, tg.model.pupil_boxes, tg.factors,
                                            self.owner._workspaces[t].fields, tg.amplitudes, tg.weights, tg.eps,
-                                           pupil_sums=sums)
+                                           pupil_sums=sums, boxes=self.owner._boxes[t], scatter=scatter)
+        if not scatter:
+            return self.half_batch(t, batches[0])
         misfit = 0.0
         for sl in batches:
             misfit += self.half_batch(t, sl)
@@ -264,8 +281,14 @@ class _PassRun:
         if threads == 2:   # halves as before: the first the larger
             cuts = [sl.start, sl.start + (size + 1) // 2, sl.stop]
         parts = [slice(a, b) for a, b in zip(cuts[:-1], cuts[1:])]
-        futures = [self.owner._pool.submit(self.half_batch, t, part) for t, part in enumerate(parts) if t > 0]
-        misfit = self.half_batch(0, parts[0]) + sum(f.result() for f in futures)
-        for t, part in enumerate(parts):
+        futures = [self.owner._pool.submit(self.part_of_batch, t, part) for t, part in enumerate(parts) if t > 0]
+        misfit = self.part_of_batch(0, parts[0]) + sum(f.result() for f in futures)
+        for t, part in enumerate(parts):  # every part has read the spectrum: now the updates go in, in order
             self.scatter(t, part)
         return misfit
+
+    def part_of_batch(self, t: int, images: slice) -> float:
+        """Thread ``t``'s part of a shared batch, up to its update (not yet scattered)."""
+        if images.stop <= images.start:
+            return 0.0
+        return self.lane(t, (images,), scatter=False)

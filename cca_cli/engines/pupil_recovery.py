@@ -228,6 +228,20 @@ class PupilRecovery:
         """Every capture's pupil ``D_i · A_{p(i)}`` (engine order), complex64 (K, b, b)."""
         return self._pupils(self._discs, self._basis, self.index)
 
+    def map_parts(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """What :meth:`pupils` is made of for the map models, for :func:`~cca_cli.optics.kernels.map_pupil_factors`.
+
+        Returns
+        -------
+        tuple or None
+            Every capture's NA disc (float32, (K, b, b)), the maps (complex64, (P, b, b)) and each
+            capture's map (int64, (K,)), engine order; None for the Zernike model.
+        """
+        if self.model == "zernike":
+            return None
+        return (np.ascontiguousarray(self._discs, np.float32), np.ascontiguousarray(self.maps, np.complex64),
+                np.ascontiguousarray(self.index, np.int64))
+
     def pupils_at(self, layout: BandLayout, pupil_index: np.ndarray) -> np.ndarray:
         """The current pupils of captures laid out by ``layout`` (any order), complex64 (K, b, b)."""
         discs = circular_pupils(layout.box_size, layout.box_centres, layout.pupil_radius_px)

@@ -129,6 +129,11 @@ class ForwardModel:
     pupils : ndarray, (K, b, b) or (1, b, b), float32 or complex64
         Pupil function of each capture on its box (see
         :func:`~cca_cli.optics.pupil.circular_pupils`).
+    pupil_boxes : ndarray, complex64, (K, b, b), optional
+        ``pupils`` times ``1/m`` (see :attr:`pupil_boxes`), when the caller has made them
+        already (:func:`~cca_cli.optics.kernels.map_pupil_factors`). The model then keeps both arrays
+        as they are, without copies: ``pupils`` must be complex64 (K, b, b) too, and neither
+        may change while the model is in use.
 
     Notes
     -----
@@ -138,19 +143,28 @@ class ForwardModel:
     divides by it.
     """
 
-    def __init__(self, layout: BandLayout, pupils: np.ndarray):
+    def __init__(self, layout: BandLayout, pupils: np.ndarray, *, pupil_boxes: np.ndarray | None = None):
         pupils = np.asarray(pupils)
         b = layout.box_size
         if pupils.ndim != 3 or pupils.shape[1:] != (b, b) or pupils.shape[0] not in (1, layout.n_images):
             raise ValueError(
                 f"pupils must have shape ({layout.n_images} or 1, {b}, {b}), got {pupils.shape}"
             )
-        pupils = np.broadcast_to(pupils, (layout.n_images, b, b)).astype(np.complex64)
-        self.layout = layout
-        self.pupils = pupils
         m = layout.lowres_size
-        # Orthonormal scaling folded into the pupils: raw FFTs then need no extra pass.
-        self._pupil_forward = pupils * np.float32(1.0 / m)
+        self.layout = layout
+        if pupil_boxes is not None:
+            full = (layout.n_images, b, b)
+            for name, array in (("pupils", pupils), ("pupil_boxes", pupil_boxes)):
+                if not (isinstance(array, np.ndarray) and array.dtype == np.complex64 and array.shape == full
+                        and array.flags.c_contiguous):
+                    raise ValueError(f"{name} must be a C-contiguous complex64 {full} array when pupil_boxes is "
+                                     f"given, got {array.dtype} {array.shape}")
+            self.pupils = pupils
+            self._pupil_forward = pupil_boxes
+        else:
+            self.pupils = pupils = np.broadcast_to(pupils, (layout.n_images, b, b)).astype(np.complex64)
+            # Orthonormal scaling folded into the pupils: raw FFTs then need no extra pass.
+            self._pupil_forward = pupils * np.float32(1.0 / m)
         self._pupil_adjoint = None
         self._origin_array = np.ascontiguousarray(layout.box_origins, dtype=np.int64)
         kernels.warm_up()

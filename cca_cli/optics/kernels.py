@@ -30,8 +30,8 @@ if switches.read_at_import("CCA_KERNELS", "numba", ("numba", "numpy")) == "numba
 _HAVE_NUMBA = numba is not None
 
 __all__ = ["HAVE_NUMBA", "kernels_name", "use_kernels", "check_settings", "warm_up", "place_boxes",
-           "project_magnitudes", "magnitude_step", "can_fuse_lanes", "sequential_lane", "scatter_boxes",
-           "momentum_step", "tikhonov_update", "rpie_factors", "accumulate_pupil"]
+           "project_magnitudes", "magnitude_step", "can_fuse_lanes", "lane_chunk", "sequential_lane", "scatter_boxes",
+           "momentum_step", "tikhonov_update", "rpie_factors", "map_pupil_factors", "accumulate_pupil"]
 
 #: Whether numba is installed and enabled (``CCA_KERNELS`` is not ``numpy``).
 HAVE_NUMBA = _HAVE_NUMBA
@@ -360,9 +360,13 @@ def warm_up() -> None:
     _magnitude_numba(fields, real, real, np.float32(1e-6), np.float32(1.0), False)
     _magnitude_numba(fields, real, real, np.float32(1e-6), np.float32(0.0), True)
     _tikhonov_numba(spectrum, np.ones((8, 8), np.float32), spectrum.copy())
+    one = np.float32(1.0)
+    _map_pupil_factors_numba(np.ones((1, 4, 4), np.float32), pupils, np.zeros(1, np.int64), origins,
+                             np.array([[0, 1]], np.int64), one, one, one, one, np.zeros((8, 8), np.float32),
+                             pupils.copy(), pupils.copy(), pupils.copy())
     no_batches = np.zeros((0, 2), np.int64)  # compiles (or loads) the fused lane without running an FFT
     _lane_numba(0, np.ones(1, np.int64), np.zeros((1, 4), np.int64), no_batches, spectrum, origins, pupils, pupils,
-                fields, real, real, False, np.float32(1e-6), False, *_checked_pupil_sums("warm_up", None, 1, 4),
+                fields, pupils.copy(), 1, True, real, real, False, np.float32(1e-6), False, *_checked_pupil_sums("warm_up", None, 1, 4),
                 np.float32(1.0))
 
 
@@ -566,42 +570,62 @@ if _HAVE_NUMBA:  # pragma: no branch
         return signature, codegen
 
     @_jit
-    def _lane_numba(execute, counts, plans, batches, spectrum, origins, pupils, factors, fields, amplitudes, weights,
-                    weighted, eps, summed, discs, index, numerator, denominator, sum_scale):  # pragma: no cover
-        """Returns the lane's misfit, a status and the largest batch.
+    def _lane_numba(execute, counts, plans, batches, spectrum, origins, pupils, factors, fields, boxes, chunk,
+                    scatter, amplitudes, weights, weighted, eps, summed, discs, index, numerator, denominator,
+                    sum_scale):  # pragma: no cover
+        """Returns the lane's misfit, a status and the largest chunk transformed.
 
         The status is -1, or the first capture whose box leaves the spectrum, or ``-2 - i`` for
-        batch ``i`` outside the captures or larger than the plans; nothing runs unless it is -1.
+        batch ``i`` outside the captures or larger than ``boxes``; nothing runs unless it is -1.
+        A batch goes through the transforms ``chunk`` captures at a time (fields that stay in
+        cache), keeping only each capture's update box; the boxes are scattered at the batch's end.
         """
-        b = pupils.shape[1]
-        largest = 0
+        b, m = pupils.shape[1], fields.shape[1]
+        s = m // 2 - b // 2
         for i in range(batches.shape[0]):  # every batch and box is checked before anything runs
             start, stop = batches[i, 0], batches[i, 1]
-            if start < 0 or stop <= start or stop > origins.shape[0] or stop - start > counts[counts.shape[0] - 1]:
+            if start < 0 or stop <= start or stop > origins.shape[0] or stop - start > boxes.shape[0]:
                 return 0.0, -2 - i, 0
-            largest = max(largest, stop - start)
             bad = _first_bad_box(origins, start, stop - start, spectrum.shape[0] - b, spectrum.shape[1] - b)
             if bad >= 0:
                 return 0.0, bad, 0
         total = 0.0
         zero = np.float32(0.0)
+        largest = 0
         for i in range(batches.shape[0]):
             start, stop = batches[i, 0], batches[i, 1]
-            k = stop - start
-            j = 0
-            while counts[j] < k:
-                j += 1
-            _place_boxes_numba(spectrum, origins, pupils, fields[:k], start)
-            _call_address(execute, plans[j, 0])
-            _call_address(execute, plans[j, 1])
-            total += _magnitude_numba(fields[:k], amplitudes[start:stop], weights[start:stop], eps, zero, weighted)
-            _call_address(execute, plans[j, 2])
-            _call_address(execute, plans[j, 3])
-            if summed:  # the pupil fit's sums, from the spectrum the batch saw (before its update)
-                _accumulate_pupil_numba(spectrum, origins, discs, fields[:k], start, index, numerator, denominator,
-                                        sum_scale)
-            _scatter_numba(fields[:k], origins, factors, spectrum, start)
+            for first in range(start, stop, chunk):
+                last = min(stop, first + chunk)
+                k = last - first
+                j = 0
+                while counts[j] < k:
+                    j += 1
+                largest = max(largest, counts[j])
+                _place_boxes_numba(spectrum, origins, pupils, fields[:k], first)
+                _call_address(execute, plans[j, 0])
+                _call_address(execute, plans[j, 1])
+                total += _magnitude_numba(fields[:k], amplitudes[first:last], weights[first:last], eps, zero,
+                                          weighted)
+                _call_address(execute, plans[j, 2])
+                _call_address(execute, plans[j, 3])
+                if summed:  # the pupil fit's sums, from the spectrum the batch saw (before its update)
+                    _accumulate_pupil_numba(spectrum, origins, discs, fields[:k], first, index, numerator,
+                                            denominator, sum_scale)
+                for q in range(k):
+                    boxes[first - start + q] = fields[q, s:s + b, s:s + b]
+            if scatter:
+                _scatter_numba(boxes[:stop - start], origins, factors, spectrum, start)
         return total, -1, largest
+
+
+#: Bytes of fields a fused lane transforms together: about half a core's L2 cache.
+_LANE_CHUNK_BYTES = 1 << 19
+
+
+def lane_chunk(m: int) -> int:
+    """Captures of ``m`` × ``m`` complex64 fields a fused lane transforms together (a power of two, at least 1)."""
+    fitting = max(1, _LANE_CHUNK_BYTES // (8 * m * m))
+    return 1 << (fitting.bit_length() - 1)
 
 
 def can_fuse_lanes(raw_plans) -> bool:
@@ -611,13 +635,19 @@ def can_fuse_lanes(raw_plans) -> bool:
 
 def sequential_lane(raw_plans, batches: np.ndarray, spectrum: np.ndarray, origins: np.ndarray, pupils: np.ndarray,
                     factors: np.ndarray, fields: np.ndarray, amplitudes: np.ndarray, weights: np.ndarray | None,
-                    eps: float, pupil_sums: tuple | None = None) -> float:
+                    eps: float, pupil_sums: tuple | None = None, boxes: np.ndarray | None = None,
+                    chunk: int | None = None, scatter: bool = True) -> float:
     """Run batches one after the other in one GIL-free call: place, inverse FFT, magnitude step, FFT, scatter.
 
     Each batch does what :meth:`~cca_cli.optics.forward.ForwardModel.forward_into`,
     :func:`magnitude_step`, the forward transform and :func:`scatter_boxes` do in turn, without
     returning to the interpreter in between, so two threads running lanes do not wait for each
     other. Requires :func:`can_fuse_lanes`. Every argument is checked before compiled code runs.
+
+    A batch goes through the transforms ``chunk`` captures at a time, so the fields stay in the
+    core's cache from the inverse FFT to the forward one; only each capture's update box is kept
+    (in ``boxes``) until the batch's update is scattered. Memory traffic, not arithmetic, is what
+    two cores running lanes side by side share.
 
     Parameters
     ----------
@@ -642,6 +672,15 @@ def sequential_lane(raw_plans, batches: np.ndarray, spectrum: np.ndarray, origin
     pupil_sums : tuple, optional
         ``(discs, index, numerator, denominator)``: also add each batch's terms of the pupil
         fit (:func:`accumulate_pupil`) before its update is scattered.
+    boxes : ndarray, complex64, (n, b, b), optional
+        Work array for a batch's update boxes, at least as many as the largest batch holds
+        (default: allocated here).
+    chunk : int, optional
+        Captures transformed together (default :func:`lane_chunk`; at most the workspace's capacity).
+    scatter : bool
+        False: run one batch and leave its update boxes in ``boxes`` (for :func:`scatter_boxes`
+        with ``factors``), so that threads sharing a batch scatter their parts after all have
+        read the spectrum.
 
     Returns
     -------
@@ -652,7 +691,7 @@ def sequential_lane(raw_plans, batches: np.ndarray, spectrum: np.ndarray, origin
     ------
     ValueError
         If an argument has the wrong dtype, shape or layout, a batch is out of range or larger
-        than the workspace, a box leaves the spectrum, or ``fields`` is not the planned buffer;
+        than ``boxes``, a box leaves the spectrum, or ``fields`` is not the planned buffer;
         nothing has run then.
     RuntimeError
         If the plans were released.
@@ -678,9 +717,24 @@ def sequential_lane(raw_plans, batches: np.ndarray, spectrum: np.ndarray, origin
     if batches.ndim != 2 or batches.shape[1] != 2:
         raise ValueError(f"sequential_lane: batches must be (n, 2) [start, stop) rows, got {batches.shape}")
     sums = _checked_pupil_sums("sequential_lane", pupil_sums, n, pupils.shape[1])
+    b = pupils.shape[1]
+    if boxes is None:
+        largest = int((batches[:, 1] - batches[:, 0]).max()) if batches.size else 0
+        boxes = np.empty((max(largest, 1), b, b), np.complex64)
+    if not (isinstance(boxes, _ndarray) and boxes.dtype == _C64 and boxes.ndim == 3 and boxes.shape[1:] == (b, b)
+            and boxes.flags.c_contiguous):
+        raise ValueError(f"sequential_lane: boxes must be a C-contiguous complex64 (n, {b}, {b}) array, "
+                         f"got {_describe(boxes)}")
+    chunk = lane_chunk(m) if chunk is None else int(chunk)
+    if chunk < 1:
+        raise ValueError(f"sequential_lane: chunk must be at least 1, got {chunk}")
+    chunk = min(chunk, int(raw_plans.counts[-1]))
+    if not scatter and batches.shape[0] != 1:
+        raise ValueError(f"sequential_lane: scatter=False runs exactly one batch, got {batches.shape[0]}")
     with raw_plans.executing(fields) as held:
         total, status, held.largest = _lane_numba(held.execute, held.counts, held.plans, batches, spectrum, origins,
-                                                  pupils, factors, fields, amplitudes, confidence,
+                                                  pupils, factors, fields, boxes, chunk, bool(scatter), amplitudes,
+                                                  confidence,
                                                   weights is not None, np.float32(eps), pupil_sums is not None,
                                                   *sums, np.float32(1.0 / m))
     if status >= 0:
@@ -688,7 +742,7 @@ def sequential_lane(raw_plans, batches: np.ndarray, spectrum: np.ndarray, origin
     if status < -1:
         start, stop = (int(v) for v in batches[-2 - status])
         raise ValueError(f"sequential_lane: batch {-2 - status} [{start}, {stop}) must lie within the {n} captures "
-                         f"and hold at most {int(raw_plans.counts[-1])} (the workspace's capacity)")
+                         f"and hold at most {boxes.shape[0]} (the boxes' capacity)")
     return float(total)
 
 
@@ -723,11 +777,10 @@ def _checked_pupil_sums(where: str, pupil_sums, n: int, b: int) -> tuple:
 # ----------------------------------------------------------------------------- calibration support
 def _rpie_factors_numpy(pupils, origins, batches, alpha, tau, scale, coverage, out):
     b = pupils.shape[1]
-    power = np.abs(pupils) ** 2
-    for start, stop in batches:
+    for start, stop in batches:   # only the batches' pupils are read (others may not be filled yet)
         for i in range(start, stop):
             y0, x0 = origins[i]
-            coverage[y0:y0 + b, x0:x0 + b] += power[i]
+            coverage[y0:y0 + b, x0:x0 + b] += np.abs(pupils[i]) ** 2
         boxes = np.stack([coverage[y0:y0 + b, x0:x0 + b] for y0, x0 in origins[start:stop]])
         peak = float(np.max(boxes))
         out[start:stop] = scale * np.conj(pupils[start:stop]) / ((1.0 - alpha) * boxes + alpha * peak + tau + 1e-30)
@@ -753,32 +806,33 @@ if _HAVE_NUMBA:  # pragma: no branch
         b = pupils.shape[1]
         for n in range(batches.shape[0]):
             start, stop = batches[n, 0], batches[n, 1]
-            for i in range(start, stop):
-                y0, x0 = origins[i, 0], origins[i, 1]
-                for r in range(b):
-                    for c in range(b):
-                        p = pupils[i, r, c]
-                        coverage[y0 + r, x0 + c] += p.real * p.real + p.imag * p.imag
+            # Coverage only grows while it is summed, so the largest running value is the largest final one.
             peak = np.float32(0.0)
             for i in range(start, stop):
                 y0, x0 = origins[i, 0], origins[i, 1]
                 for r in range(b):
+                    p = pupils[i, r].view(np.float32)   # re, im interleaved: loops over floats vectorise
+                    row = coverage[y0 + r, x0:x0 + b]
                     for c in range(b):
-                        peak = max(peak, coverage[y0 + r, x0 + c])
+                        v = row[c] + (p[2 * c] * p[2 * c] + p[2 * c + 1] * p[2 * c + 1])
+                        row[c] = v
+                        peak = max(peak, v)
             floor = alpha * peak + tau + np.float32(1e-30)
             keep = np.float32(1.0) - alpha
             for i in range(start, stop):
                 y0, x0 = origins[i, 0], origins[i, 1]
                 for r in range(b):
+                    p = pupils[i, r].view(np.float32)
+                    o = out[i, r].view(np.float32)
+                    row = coverage[y0 + r, x0:x0 + b]
                     for c in range(b):
-                        q = scale / (keep * coverage[y0 + r, x0 + c] + floor)
-                        p = pupils[i, r, c]
-                        out[i, r, c] = np.complex64(complex(p.real * q, -p.imag * q))
+                        q = scale / (keep * row[c] + floor)
+                        o[2 * c] = p[2 * c] * q
+                        o[2 * c + 1] = -p[2 * c + 1] * q
             for i in range(start, stop):
                 y0, x0 = origins[i, 0], origins[i, 1]
                 for r in range(b):
-                    for c in range(b):
-                        coverage[y0 + r, x0 + c] = 0
+                    coverage[y0 + r, x0:x0 + b] = 0
 
     @_jit
     def _accumulate_pupil_numba(spectrum, origins, discs, fields, start, index, numerator, denominator,
@@ -812,16 +866,16 @@ def rpie_factors(pupils: np.ndarray, origins: np.ndarray, batches: np.ndarray, *
     batches : ndarray, int64, (n, 2)
         ``[start, stop)`` of every batch.
     alpha, tau, scale : float
-    coverage : ndarray, float32, (M, M)
+    coverage : ndarray, float32, (M, M), C-contiguous
         Zero work array, left zero.
-    out : ndarray, complex64, (K, b, b)
+    out : ndarray, complex64, (K, b, b), C-contiguous
         Receives the factors.
 
     Raises
     ------
     ValueError
-        If an array has the wrong dtype or shape, a batch leaves ``[0, K)`` or a box leaves the
-        spectrum; nothing has run then.
+        If an array has the wrong dtype, shape or layout, a batch leaves ``[0, K)`` or a box leaves
+        the spectrum; nothing has run then.
     """
     _check_arrays("rpie_factors", (("pupils", pupils, _C64, 3), ("origins", origins, _I64, 2),
                                    ("batches", batches, _I64, 2), ("coverage", coverage, _F32, 2),
@@ -833,11 +887,128 @@ def rpie_factors(pupils: np.ndarray, origins: np.ndarray, batches: np.ndarray, *
     if batches.size and (batches.min() < 0 or batches.max() > n or (batches[:, 1] < batches[:, 0]).any()):
         raise ValueError(f"rpie_factors: batches must be [start, stop) rows within the {n} captures")
     _check_origins_numpy("rpie_factors", origins, 0, n, coverage.shape, b)
+    if not (coverage.flags.c_contiguous and out.flags.c_contiguous):
+        raise ValueError(f"rpie_factors: coverage and out must be C-contiguous, got {_describe(coverage)} and "
+                         f"{_describe(out)}")
     if _use_numba:
+        pupils = np.ascontiguousarray(pupils)   # the compiled loops read rows as interleaved floats
         _rpie_factors_numba(pupils, origins, batches, np.float32(alpha), np.float32(tau), np.float32(scale),
                             coverage, out)
     else:
         _rpie_factors_numpy(pupils, origins, batches, alpha, tau, scale, coverage, out)
+
+
+def _map_pupil_factors_numpy(discs, maps, index, origins, batches, alpha, tau, scale, forward_scale, coverage,
+                             pupils, boxes, factors):
+    for start, stop in batches:
+        pupils[start:stop] = discs[start:stop] * maps[index[start:stop]]
+        boxes[start:stop] = pupils[start:stop] * np.float32(forward_scale)
+    _rpie_factors_numpy(pupils, origins, batches, alpha, tau, scale, coverage, factors)
+
+
+if _HAVE_NUMBA:  # pragma: no branch
+    @_jit
+    def _map_pupil_factors_numba(discs, maps, index, origins, batches, alpha, tau, scale, forward_scale, coverage,
+                                 pupils, boxes, factors):  # pragma: no cover - compiled
+        b = discs.shape[1]
+        for n in range(batches.shape[0]):
+            start, stop = batches[n, 0], batches[n, 1]
+            peak = np.float32(0.0)   # the largest running coverage is the largest final one
+            for i in range(start, stop):
+                y0, x0 = origins[i, 0], origins[i, 1]
+                for r in range(b):
+                    a = maps[index[i], r].view(np.float32)
+                    d = discs[i, r]
+                    row = coverage[y0 + r, x0:x0 + b]
+                    for c in range(b):
+                        re, im = d[c] * a[2 * c], d[c] * a[2 * c + 1]
+                        v = row[c] + (re * re + im * im)
+                        row[c] = v
+                        peak = max(peak, v)
+            floor = alpha * peak + tau + np.float32(1e-30)
+            keep = np.float32(1.0) - alpha
+            for i in range(start, stop):
+                y0, x0 = origins[i, 0], origins[i, 1]
+                for r in range(b):
+                    a = maps[index[i], r].view(np.float32)
+                    d = discs[i, r]
+                    row = coverage[y0 + r, x0:x0 + b]
+                    p, f, o = pupils[i, r].view(np.float32), boxes[i, r].view(np.float32), factors[i, r].view(np.float32)
+                    for c in range(b):
+                        re, im = d[c] * a[2 * c], d[c] * a[2 * c + 1]
+                        q = scale / (keep * row[c] + floor)
+                        p[2 * c], p[2 * c + 1] = re, im
+                        f[2 * c], f[2 * c + 1] = re * forward_scale, im * forward_scale
+                        o[2 * c], o[2 * c + 1] = re * q, -im * q
+            for i in range(start, stop):
+                y0, x0 = origins[i, 0], origins[i, 1]
+                for r in range(b):
+                    coverage[y0 + r, x0:x0 + b] = 0
+
+
+def map_pupil_factors(discs: np.ndarray, maps: np.ndarray, index: np.ndarray, origins: np.ndarray,
+                      batches: np.ndarray, *, alpha: float, tau: float, scale: float, forward_scale: float,
+                      coverage: np.ndarray, pupils: np.ndarray, boxes: np.ndarray, factors: np.ndarray) -> None:
+    """A map pupil model's pupils, forward pupil boxes and rPIE factors, for the captures of ``batches``.
+
+    Each capture's pupil is ``P_i = D_i · A_{p(i)}`` (its NA disc times its pupil's map); this
+    writes ``P_i``, ``forward_scale · P_i`` (the forward model's pupil boxes, raw-FFT scaling
+    folded in) and the factors of :func:`rpie_factors`, in two sweeps over the discs: one sweep
+    of memory where a gather, a product, a copy, a scaling and the factors took six. They are
+    rebuilt after every pupil step.
+
+    Parameters
+    ----------
+    discs : ndarray, float32, (K, b, b), C-contiguous
+        Each capture's NA disc on its box.
+    maps : ndarray, complex64, (P, b, b), C-contiguous
+        The pupil maps.
+    index : ndarray, int64, (K,)
+        Map each capture uses.
+    origins : ndarray, int64, (K, 2)
+        Box corners in the spectrum.
+    batches : ndarray, int64, (n, 2)
+        ``[start, stop)`` of every batch to fill.
+    alpha, tau, scale : float
+        As in :func:`rpie_factors`.
+    forward_scale : float
+    coverage : ndarray, float32, (M, M), C-contiguous
+        Zero work array, left zero.
+    pupils, boxes, factors : ndarray, complex64, (K, b, b), C-contiguous
+        Receive the pupils, the pupil boxes and the factors.
+
+    Raises
+    ------
+    ValueError
+        If an array has the wrong dtype, shape or layout, a batch leaves ``[0, K)``, ``index``
+        names a map that does not exist or a box leaves the spectrum; nothing has run then.
+    """
+    named = (("discs", discs, _F32, 3), ("maps", maps, _C64, 3), ("index", index, _I64, 1),
+             ("origins", origins, _I64, 2), ("batches", batches, _I64, 2), ("coverage", coverage, _F32, 2),
+             ("pupils", pupils, _C64, 3), ("boxes", boxes, _C64, 3), ("factors", factors, _C64, 3))
+    _check_arrays("map_pupil_factors", named)
+    for name, array, _, _ in named:
+        if not array.flags.c_contiguous:
+            raise ValueError(f"map_pupil_factors: {name} must be C-contiguous, got {_describe(array)}")
+    k, b = discs.shape[0], discs.shape[1]
+    if (discs.shape[2] != b or maps.shape[1:] != (b, b) or index.shape != (k,) or origins.shape != (k, 2)
+            or any(array.shape != discs.shape for array in (pupils, boxes, factors))):
+        raise ValueError(f"map_pupil_factors: shapes do not fit together: discs {discs.shape}, maps {maps.shape}, "
+                         f"index {index.shape}, origins {origins.shape}, pupils {pupils.shape}, boxes "
+                         f"{boxes.shape}, factors {factors.shape} (need (K, b, b), (P, b, b), (K,), (K, 2) and "
+                         "(K, b, b) for the three outputs)")
+    if batches.shape[1:] != (2,) or (batches.size and (batches.min() < 0 or batches.max() > k
+                                                       or (batches[:, 1] < batches[:, 0]).any())):
+        raise ValueError(f"map_pupil_factors: batches must be [start, stop) rows within the {k} captures")
+    if index.size and (int(index.min()) < 0 or int(index.max()) >= maps.shape[0]):
+        raise ValueError(f"map_pupil_factors: index must name maps 0 … {maps.shape[0] - 1}")
+    _check_origins_numpy("map_pupil_factors", origins, 0, k, coverage.shape, b)
+    values = (np.float32(alpha), np.float32(tau), np.float32(scale), np.float32(forward_scale))
+    if _use_numba:
+        _map_pupil_factors_numba(discs, maps, index, origins, batches, *values, coverage, pupils, boxes, factors)
+    else:
+        _map_pupil_factors_numpy(discs, maps, index, origins, batches, alpha, tau, scale, forward_scale, coverage,
+                                 pupils, boxes, factors)
 
 
 def accumulate_pupil(spectrum: np.ndarray, origins: np.ndarray, discs: np.ndarray, fields: np.ndarray, start: int,

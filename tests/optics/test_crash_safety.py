@@ -84,19 +84,57 @@ CHILD = textwrap.dedent('''
     def momentum_with_a_complex128_velocity():
         kernels.momentum_step(spectrum.copy(), spectrum.copy(), spectrum.astype(np.complex128), 0.5)
 
+    discs = np.ones((K, b, b), np.float32)
+
+    def map_pupil_factors(maps_index, batches, factors=None):
+        kernels.map_pupil_factors(discs, pupils[:1].copy(), maps_index, origins, np.array(batches, np.int64),
+                                  alpha=0.1, tau=1e-3, scale=1.0, forward_scale=1.0,
+                                  coverage=np.zeros((M, M), np.float32), pupils=pupils.copy(), boxes=pupils.copy(),
+                                  factors=pupils.copy() if factors is None else factors)
+
+    @case
+    def map_pupil_factors_naming_a_map_that_does_not_exist():
+        map_pupil_factors(np.full(K, 1, np.int64), [[0, K]])
+
+    @case
+    def map_pupil_factors_beyond_the_last_capture():
+        map_pupil_factors(np.zeros(K, np.int64), [[0, K + 1]])
+
+    @case
+    def map_pupil_factors_into_strided_factors():
+        map_pupil_factors(np.zeros(K, np.int64), [[0, K]], np.empty((K, b, 2 * b), np.complex64)[:, :, ::2])
+
+    @case
+    def rpie_factors_into_a_strided_out():
+        out = np.empty((K, b, 2 * b), np.complex64)[:, :, ::2]
+        kernels.rpie_factors(pupils, origins, np.array([[0, K]], np.int64), alpha=0.1, tau=1e-3, scale=1.0,
+                             coverage=np.zeros((M, M), np.float32), out=out)
+
     workspace = Workspace(4, m, threads=1, band=(m // 2 - b // 2, m // 2 + b // 2), effort="estimate")
     raw = workspace.box_fft.raw_plans()
     lane_amplitudes = np.ones((K, m, m), np.float32)
 
-    def lane(batches, lane_origins=origins, lane_fields=None, plans=None):
+    def lane(batches, lane_origins=origins, lane_fields=None, plans=None, boxes=None, **options):
         return kernels.sequential_lane(raw if plans is None else plans, np.array(batches, np.int64), spectrum,
                                        lane_origins, pupils, pupils, workspace.fields if lane_fields is None
-                                       else lane_fields, lane_amplitudes, None, 1e-6)
+                                       else lane_fields, lane_amplitudes, None, 1e-6, boxes=boxes, **options)
 
     if kernels.can_fuse_lanes(raw):
         @case
-        def lane_batch_larger_than_the_workspace():
-            lane([[0, 6]])
+        def lane_batch_larger_than_its_boxes():
+            lane([[0, 6]], boxes=np.empty((4, b, b), np.complex64))
+
+        @case
+        def lane_boxes_of_another_size():
+            lane([[0, 2]], boxes=np.empty((4, b + 1, b), np.complex64))
+
+        @case
+        def lane_chunk_of_zero():
+            lane([[0, 2]], chunk=0)
+
+        @case
+        def lane_leaving_two_batches_unscattered():
+            lane([[0, 2], [2, 4]], scatter=False)
 
         @case
         def lane_batch_beyond_the_last_capture():
@@ -117,8 +155,6 @@ CHILD = textwrap.dedent('''
         def lane_with_sums(sums):
             return kernels.sequential_lane(raw, np.array([[0, 2]], np.int64), spectrum, origins, pupils, pupils,
                                            workspace.fields, lane_amplitudes, None, 1e-6, pupil_sums=sums)
-
-        discs = np.ones((K, b, b), np.float32)
 
         @case
         def lane_pupil_sums_of_too_few_discs():
@@ -202,8 +238,15 @@ RAISES = {
     "magnitude_step_of_complex128_fields": ("ValueError", "fields complex128"),
     "tikhonov_with_a_smaller_normal": ("ValueError", "inverse_normal float32 (16, 32)"),
     "momentum_with_a_complex128_velocity": ("ValueError", "velocity complex128"),
-    "lane_batch_larger_than_the_workspace": ("ValueError", "batch 0 [0, 6) must lie within the 6 captures and "
-                                                           "hold at most 4"),
+    "map_pupil_factors_naming_a_map_that_does_not_exist": ("ValueError", "index must name maps 0 … 0"),
+    "map_pupil_factors_beyond_the_last_capture": ("ValueError", "batches must be [start, stop) rows within the 6"),
+    "map_pupil_factors_into_strided_factors": ("ValueError", "factors must be C-contiguous"),
+    "rpie_factors_into_a_strided_out": ("ValueError", "coverage and out must be C-contiguous"),
+    "lane_batch_larger_than_its_boxes": ("ValueError", "batch 0 [0, 6) must lie within the 6 captures and "
+                                                       "hold at most 4 (the boxes' capacity)"),
+    "lane_boxes_of_another_size": ("ValueError", "boxes must be a C-contiguous complex64 (n, 8, 8) array"),
+    "lane_chunk_of_zero": ("ValueError", "chunk must be at least 1"),
+    "lane_leaving_two_batches_unscattered": ("ValueError", "scatter=False runs exactly one batch, got 2"),
     "lane_batch_beyond_the_last_capture": ("ValueError", "batch 0 [4, 7) must lie within the 6 captures"),
     "lane_box_outside_the_spectrum_runs_nothing": ("ValueError", "capture 3 at origin (32, 32)"),
     "lane_on_another_buffer_than_the_planned_one": ("ValueError", "buffer these FFTW plans were made for"),

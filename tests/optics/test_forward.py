@@ -118,6 +118,21 @@ def test_forward_model_rejects_badly_shaped_pupils():
     assert model.pupils.shape == (9, layout.box_size, layout.box_size)
 
 
+def test_forward_model_given_its_pupil_boxes_keeps_them_and_computes_the_same_fields():
+    model = _model(phase=True)
+    layout = model.layout
+    pupils = model.pupils.copy()
+    boxes = pupils * np.float32(1.0 / layout.lowres_size)
+    given = ForwardModel(layout, pupils, pupil_boxes=boxes)
+    assert given.pupils is pupils and given.pupil_boxes is boxes
+    spectrum = _random_complex(model.spectrum_shape)
+    np.testing.assert_array_equal(given.forward(spectrum), model.forward(spectrum))
+    with pytest.raises(ValueError, match="pupil_boxes must be a C-contiguous complex64"):
+        ForwardModel(layout, pupils, pupil_boxes=boxes.astype(np.complex128))
+    with pytest.raises(ValueError, match="pupils must be a C-contiguous complex64"):
+        ForwardModel(layout, pupils[:1], pupil_boxes=boxes)
+
+
 @pytest.mark.parametrize("radius", [6.0, 10.0, 20.945])
 def test_circular_pupil_area_is_pi_r_squared(radius):
     box = 2 * math.ceil(radius) + 4

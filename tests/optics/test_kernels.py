@@ -151,6 +151,70 @@ def test_momentum_lanes_with_pupil_sums_fused_in_one_call_agree_with_the_step_by
     np.testing.assert_allclose(fast_maps, slow_maps, atol=1e-4)
 
 
+@pytest.mark.parametrize("chunk", [1, 2])
+@pytest.mark.parametrize("threads", [1, 2])
+def test_fused_lanes_in_cache_sized_chunks_agree_with_the_step_by_step_pass(chunk, threads, monkeypatch):
+    """A fused lane transforms a batch a few captures at a time; threads sharing a batch scatter after both read."""
+    from cca_cli.engines.momentum import MomentumOptions, SequentialMomentum
+
+    forward = _model()
+    m = forward.field_shape[0]
+    assert kernels.lane_chunk(m) > 3          # small fields: one chunk per batch unless told otherwise
+    monkeypatch.setattr(kernels, "_LANE_CHUNK_BYTES", chunk * 8 * m * m)
+    assert kernels.lane_chunk(m) == chunk
+    rng = np.random.default_rng(7)
+    amplitudes = np.abs(rng.standard_normal((forward.n_images,) + forward.field_shape)).astype(np.float32) + 0.5
+    problem = PhaseRetrievalProblem(forward, amplitudes)
+
+    def run():
+        engine = SequentialMomentum(problem, MomentumOptions(max_iterations=4, tol=0, batch=3, threads=threads,
+                                                             pupil_recovery="shared", pupil_estimate=False))
+        misfits = [engine.update()[0] for _ in range(4)]
+        engine.close()
+        return engine.spectrum().copy(), engine.calibration().pupil.maps, np.array(misfits)
+
+    (fast, fast_maps, fast_misfits), (slow, slow_maps, slow_misfits) = _both(run)
+    np.testing.assert_allclose(fast, slow, atol=1e-4 * np.abs(slow).max())
+    np.testing.assert_allclose(fast_maps, slow_maps, atol=1e-4)
+    np.testing.assert_allclose(fast_misfits, slow_misfits, rtol=1e-4)
+
+
+def test_pupils_from_maps_and_rpie_factors_agree_and_match_the_formulas():
+    rng = np.random.default_rng(8)
+    K, b, M = 7, 6, 20
+    discs = rng.random((K, b, b)).astype(np.float32)
+    maps = (rng.standard_normal((2, b, b)) + 1j * rng.standard_normal((2, b, b))).astype(np.complex64)
+    index = rng.integers(0, 2, K).astype(np.int64)
+    origins = rng.integers(0, M - b, (K, 2)).astype(np.int64)   # overlapping boxes
+    batches = np.array([[0, 3], [3, 7]], np.int64)
+
+    def run():
+        pupils, boxes, factors, separate = (np.zeros((K, b, b), np.complex64) for _ in range(4))
+        coverage = np.zeros((M, M), np.float32)
+        kernels.map_pupil_factors(discs, maps, index, origins, batches, alpha=0.2, tau=1e-3, scale=0.5,
+                                  forward_scale=0.25, coverage=coverage, pupils=pupils, boxes=boxes, factors=factors)
+        assert not coverage.any()
+        kernels.rpie_factors(pupils, origins, batches, alpha=0.2, tau=1e-3, scale=0.5, coverage=coverage,
+                             out=separate)
+        np.testing.assert_array_equal(separate, factors)   # the same factors as from the pupils
+        return pupils, boxes, factors
+
+    (pupils, boxes, factors), (slow_pupils, slow_boxes, slow_factors) = _both(run)
+    np.testing.assert_array_equal(pupils, discs * maps[index])
+    np.testing.assert_array_equal(boxes, pupils * np.float32(0.25))
+    np.testing.assert_array_equal(slow_pupils, pupils)
+    np.testing.assert_array_equal(slow_boxes, boxes)
+    for start, stop in batches:   # scale · P* / ((1 − α) D_B + α max D_B + τ), D_B the batch's pupil power
+        power = np.zeros((M, M))
+        for i in range(start, stop):
+            power[origins[i, 0]:origins[i, 0] + b, origins[i, 1]:origins[i, 1] + b] += np.abs(pupils[i]) ** 2
+        for i in range(start, stop):
+            y, x = origins[i]
+            expected = 0.5 * np.conj(pupils[i]) / (0.8 * power[y:y + b, x:x + b] + 0.2 * power.max() + 1e-3)
+            np.testing.assert_allclose(factors[i], expected, rtol=1e-5)
+    np.testing.assert_allclose(slow_factors, factors, rtol=1e-6)
+
+
 def test_momentum_step_agrees():
     rng = np.random.default_rng(6)
     arrays = [(rng.standard_normal((16, 16)) + 1j * rng.standard_normal((16, 16))).astype(np.complex64)
