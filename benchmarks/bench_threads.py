@@ -7,17 +7,11 @@ over one thread. Per-pass time is the fair comparison: with more than two
 threads the spectrum is split further, so a run may stop a few passes earlier
 or later.
 
-``--interleaved`` measures on a shared or noisy machine: it builds one engine per
-thread count and runs their passes in turn (1, 2, 2, 1, ...), so a slow spell of
-the machine hits every count alike, and prints each count's summed pass time over
-the same passes of the default run (start-up excluded).
-
 Usage::
 
     cca ingest configs/bloodsmear_green_manifest.yaml -o blood_raw.h5
     python benchmarks/bench_threads.py blood_raw.h5 --repeats 3
     python benchmarks/bench_threads.py blood_raw.h5 --threads 1,2 --json threads.json
-    python benchmarks/bench_threads.py blood_raw.h5 --threads 1,2 --interleaved
 """
 
 from __future__ import annotations
@@ -41,26 +35,6 @@ def thread_counts(cores: int) -> list[int]:
     return counts + [cores]
 
 
-def interleaved(captures, counts: list[int], passes: int) -> list[dict]:
-    """Summed time of the same ``passes`` passes per thread count, the counts' passes taken in turn."""
-    from cca_cli.engines.registry import resolve
-    from cca_cli.library.recovery import build_engine, embed_region, without_dead_captures
-
-    engine, options = resolve("auto", captures.kind, {})
-    padded, _ = embed_region(without_dead_captures(captures))
-    engines = {n: build_engine(padded, engine, options.model_copy(update={"threads": n}))[0] for n in counts}
-    seconds = {n: [] for n in counts}
-    for i in range(passes):
-        for n in counts if i % 2 == 0 else counts[::-1]:
-            start = time.perf_counter()
-            engines[n].update()
-            seconds[n].append(time.perf_counter() - start)
-    for runner in engines.values():
-        runner.close()
-    return [{"threads": n, "median_s": sum(seconds[n]), "passes": [passes], "s_per_pass": sum(seconds[n]) / passes}
-            for n in counts]
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("captures", type=Path, help="captures.h5 (from cca ingest or cca simulate)")
@@ -68,31 +42,11 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--engine", default="auto")
     parser.add_argument("--json", type=Path, default=None, help="also write the table here")
-    parser.add_argument("--interleaved", action="store_true",
-                        help="one engine per thread count, their passes in turn (default engine and options)")
-    parser.add_argument("--passes", type=int, default=None,
-                        help="passes for --interleaved (default: as many as a default run takes)")
     args = parser.parse_args()
 
     counts = [int(t) for t in args.threads.split(",")] if args.threads else thread_counts(cpu_count())
     captures = cca.load(args.captures)
-    # Compiles and warms the caches; --interleaved without --passes also learns how many passes a default run takes.
-    learn = args.interleaved and not args.passes
-    warm = cca.reconstruct(captures, engine=args.engine) if learn else cca.reconstruct(captures, engine=args.engine,
-                                                                                       iterations=2)
-    if args.interleaved:
-        passes = args.passes or warm.iterations
-        rows = interleaved(captures, counts, passes)
-        base = rows[0]["s_per_pass"]
-        print(f"{args.captures} on {cpu_count()} cores, default engine, {passes} passes per count, interleaved")
-        print(f"{'threads':>7} {'summed s':>9} {'s/pass':>8} {'speed-up':>9}")
-        for row in rows:
-            row["speedup_per_pass"] = base / row["s_per_pass"]
-            print(f"{row['threads']:>7} {row['median_s']:>9.2f} {row['s_per_pass']:>8.4f} {row['speedup_per_pass']:>8.2f}×")
-        if args.json:
-            args.json.write_text(json.dumps({"captures": str(args.captures), "cores": cpu_count(), "interleaved": True,
-                                             "rows": rows}, indent=1))
-        return
+    cca.reconstruct(captures, engine=args.engine, iterations=2)  # compile and warm the caches once
     runs: dict[int, list[tuple[float, int]]] = {n: [] for n in counts}
     for _ in range(args.repeats):
         for n in counts:  # interleaved, so a slow spell of the machine hits every count

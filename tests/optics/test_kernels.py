@@ -168,15 +168,48 @@ def test_fused_lanes_in_cache_sized_chunks_agree_with_the_step_by_step_pass(chun
 
     def run():
         engine = SequentialMomentum(problem, MomentumOptions(max_iterations=4, tol=0, batch=3, threads=threads,
-                                                             pupil_recovery="shared", pupil_estimate=False))
+                                                             pupil_recovery="shared", pupil_model="full",
+                                                             pupil_estimate=False))
+        fused.append(engine.passes.fused)
         misfits = [engine.update()[0] for _ in range(4)]
         engine.close()
         return engine.spectrum().copy(), engine.calibration().pupil.maps, np.array(misfits)
 
+    fused = []
     (fast, fast_maps, fast_misfits), (slow, slow_maps, slow_misfits) = _both(run)
+    from cca_cli.optics import fft
+
+    if fft.backend_name() == "pyfftw" and fft.raw_fftw_available():
+        assert fused == [True, False]
     np.testing.assert_allclose(fast, slow, atol=1e-4 * np.abs(slow).max())
     np.testing.assert_allclose(fast_maps, slow_maps, atol=1e-4)
     np.testing.assert_allclose(fast_misfits, slow_misfits, rtol=1e-4)
+
+
+def test_fused_lanes_give_the_same_spectrum_whatever_their_chunk(monkeypatch):
+    """Chunks change only how many captures one FFT call transforms, not what is computed."""
+    from cca_cli.engines.momentum import MomentumOptions, SequentialMomentum
+    from cca_cli.optics import fft
+
+    if not (fft.backend_name() == "pyfftw" and fft.raw_fftw_available()):
+        pytest.skip("fused lanes need pyfftw and raw FFTW plans")
+    forward = _model()
+    m = forward.field_shape[0]
+    rng = np.random.default_rng(9)
+    amplitudes = np.abs(rng.standard_normal((forward.n_images,) + forward.field_shape)).astype(np.float32) + 0.5
+    problem = PhaseRetrievalProblem(forward, amplitudes)
+    spectra = []
+    for chunk in (1, 64):
+        monkeypatch.setattr(kernels, "_LANE_CHUNK_BYTES", chunk * 8 * m * m)
+        engine = SequentialMomentum(problem, MomentumOptions(max_iterations=4, tol=0, batch=5, threads=2,
+                                                             pupil_recovery="shared", pupil_model="full",
+                                                             pupil_estimate=False))
+        assert engine.passes.fused
+        for _ in range(4):
+            engine.update()
+        engine.close()
+        spectra.append(engine.spectrum().copy())
+    np.testing.assert_allclose(spectra[0], spectra[1], rtol=0, atol=1e-6 * np.abs(spectra[1]).max())
 
 
 def test_pupils_from_maps_and_rpie_factors_agree_and_match_the_formulas():
