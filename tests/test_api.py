@@ -43,6 +43,14 @@ def test_importing_the_package_loads_no_numerics():
     assert out.strip() == "['cca_cli.version']"
 
 
+def test_the_command_line_starts_without_dask_and_dask_still_imports_after():
+    """pyfftw would import dask.array (about half a second) for an interface cca never uses."""
+    code = ("import sys, cca_cli.commands.app, cca_cli.optics.fft as fft; loaded = 'dask' in sys.modules; "
+            "import dask.array, dask.distributed; print(fft.backend_name(), loaded, dask.array.ones(3).sum().compute())")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out[1:] == ["False", "3.0"]
+
+
 def test_the_package_and_the_api_list_the_same_names():
     from cca_cli import api
 

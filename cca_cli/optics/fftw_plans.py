@@ -52,6 +52,7 @@ import ctypes
 import os
 import pickle
 import tempfile
+import sys
 import threading
 import time
 import weakref
@@ -65,12 +66,32 @@ from cca_cli.optics import switches
 __all__ = ["HAVE_PYFFTW", "PLANNER_LOCK", "STEP_SECONDS", "UPGRADE_SHARE", "SHAPE_SECONDS", "LONG_RUN_SHARE",
            "planning_seconds", "raw_fftw_available", "Spec", "PlanSet", "owned_plans", "release", "RawFFTPlans"]
 
+
+
+def _import_pyfftw():
+    """pyfftw, or None where it is not installed.
+
+    pyfftw's package imports its optional dask interface whenever dask is installed, and
+    importing ``dask.array`` takes about half a second, on every ``cca`` command; cca never
+    uses that interface. So unless dask is in use already, dask is unimportable while pyfftw
+    loads (pyfftw then leaves the interface out), and importable again right after.
+    """
+    hidden = "dask" not in sys.modules
+    if hidden:
+        sys.modules["dask"] = None
+    try:
+        import pyfftw as module
+    except ImportError:  # pragma: no cover
+        return None
+    finally:
+        if hidden and sys.modules.get("dask", 0) is None:
+            del sys.modules["dask"]
+    return module
+
+
 pyfftw = None
 if switches.read_at_import("CCA_FFT_BACKEND", "pyfftw", ("pyfftw", "scipy")) == "pyfftw":
-    try:  # pragma: no cover - exercised when pyfftw is installed
-        import pyfftw
-    except ImportError:  # pragma: no cover
-        pyfftw = None
+    pyfftw = _import_pyfftw()
 
 #: Whether pyfftw is installed and enabled (``CCA_FFT_BACKEND`` is not ``scipy``).
 HAVE_PYFFTW = pyfftw is not None
