@@ -51,6 +51,29 @@ def test_the_command_line_starts_without_dask_and_dask_still_imports_after():
     assert out[1:] == ["False", "3.0"]
 
 
+def test_dask_is_hidden_from_the_thread_loading_pyfftw_only():
+    """Other threads import dask as usual while pyfftw loads."""
+    code = """
+import sys, threading
+from cca_cli.optics.fftw_plans import _DaskHiddenFromThread
+sys.modules.pop("dask", None)
+finder = _DaskHiddenFromThread(threading.get_ident())
+sys.meta_path.insert(0, finder)
+try:
+    import dask
+except ModuleNotFoundError as error:
+    print("hidden here:", "hidden while pyfftw loads" in str(error))
+outcome = []
+thread = threading.Thread(target=lambda: outcome.append(__import__("dask").__name__))
+thread.start()
+thread.join()
+sys.meta_path.remove(finder)
+print("other thread:", outcome)
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.split("\n")[:2] == ["hidden here: True", "other thread: ['dask']"]
+
+
 def test_the_package_and_the_api_list_the_same_names():
     from cca_cli import api
 

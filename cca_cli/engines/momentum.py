@@ -208,7 +208,7 @@ class SequentialMomentum(MomentumBase):
         self._start(problem, options, spectrum, threads)
         self.passes = SequentialPass(problem.model, threads)
         self._coverages = [np.zeros(problem.model.spectrum_shape, np.float32) for _ in range(threads)]  # work arrays
-        self._buffers = None   # pupils, pupil boxes and update factors, refilled at each new model
+        self._buffers: dict[str, np.ndarray] = {}   # pupils, pupil boxes and update factors (see _buffer)
         self._arrange()
 
     # ------------------------------------------------------------ the model of a pass
@@ -253,31 +253,36 @@ class SequentialMomentum(MomentumBase):
         bounds = np.array([[sl.start, sl.stop] for sl in self._schedule.batches], np.int64)
         # Batches are independent: each thread takes a contiguous share of them, with its own work array.
         shares = [np.ascontiguousarray(share) for share in np.array_split(bounds, self.passes.threads)]
-        shape = (layout.n_images, layout.box_size, layout.box_size)
-        if self._buffers is None or self._buffers[0].shape != shape:
-            self._buffers = tuple(np.empty(shape, np.complex64) for _ in range(3))
+        from_maps = parts is not None
         # The previous model is out of use from here on: its arrays are refilled (fresh pages cost more).
-        boxes = None
-        factors = self._buffers[2]
-        if parts is not None:
-            pupils, boxes = self._buffers[:2]
+        factors = self._buffer("factors")
+        if from_maps:
+            pupils, boxes = self._buffer("pupils"), self._buffer("boxes")
+        else:
+            self._model = ForwardModel(layout, pupils)
+            pupils = self._model.pupils
 
         def share_of_factors(t: int) -> None:
             rpie = dict(alpha=opts.alpha, tau=opts.tau, scale=opts.beta / layout.lowres_size,
                         coverage=self._coverages[t])
-            if boxes is None:
-                kernels.rpie_factors(pupils, self._origins, shares[t], out=factors, **rpie)
-            else:
+            if from_maps:
                 kernels.map_pupil_factors(*parts, self._origins, shares[t], forward_scale=1.0 / layout.lowres_size,
                                           pupils=pupils, boxes=boxes, factors=factors, **rpie)
+            else:
+                kernels.rpie_factors(pupils, self._origins, shares[t], out=factors, **rpie)
 
-        if boxes is None:
-            self._model = ForwardModel(layout, pupils)
-            pupils = self._model.pupils
         self.passes.on_every_thread(share_of_factors)
-        if boxes is not None:
+        if from_maps:
             self._model = ForwardModel(layout, pupils, pupil_boxes=boxes)
         self._factors = factors
+
+    def _buffer(self, name: str) -> np.ndarray:
+        """A complex64 (K, b, b) array kept from model to model (made anew when the layout's shape changes)."""
+        shape = (self._layout.n_images, self._layout.box_size, self._layout.box_size)
+        array = self._buffers.get(name)
+        if array is None or array.shape != shape:
+            array = self._buffers[name] = np.empty(shape, np.complex64)
+        return array
 
     def _set_recovered_model(self) -> None:
         """Use the pupil recovery's current pupils (built on every thread for the map models)."""

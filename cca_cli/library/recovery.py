@@ -41,8 +41,8 @@ from cca_cli.sampling.grid import BandLayout, band_layout, smallest_fft_size
 from cca_cli.sampling.region import RegionEmbedding, plan_embedding
 
 __all__ = ["MAX_DEAD_FRACTION", "DivergedError", "DeviceUnavailable", "reconstruct", "engine_device",
-           "without_dead_captures", "embed_region", "build_model", "problem_calibration", "build_engine", "recover",
-           "drive_engine", "calibrated_pupils"]
+           "without_dead_captures", "embed_region", "build_model", "problem_calibration", "recover", "drive_engine",
+           "calibrated_pupils"]
 
 _log = logging.getLogger("cca")
 #: Share of the captures that may be dead (constant) and left out; more is refused as a broken recording.
@@ -357,10 +357,24 @@ def recover(captures: CaptureSet, engine: str, options: EngineOptions, *, progre
     ValueError
         A geometry no grid can hold, or ``init`` of another grid.
     """
+    margin = 0
+    if options.refines_positions:
+        margin = int(np.ceil(captures.geometry.pupil_radius_px / 8)) + 2
+    model = build_model(captures.geometry, captures.intensity.shape[-1], margin_px=margin)
+    calibration = problem_calibration(captures.geometry, model.layout, captures.initial_pupil)
+    if aberration is not None:
+        calibration["aberration"] = np.asarray(aberration, np.float64)
+    problem = PhaseRetrievalProblem.from_sensor_images(model, captures.intensity, captures.weight, **calibration)
+    start = None
+    if init is not None:
+        start = np.asarray(init, np.complex64)
+        if start.shape != model.spectrum_shape:
+            raise ValueError(f"init: the spectrum is {start.shape[0]}x{start.shape[-1]} but this reconstruction's "
+                             f"grid is {model.spectrum_shape[0]}x{model.spectrum_shape[1]}; start from a result of "
+                             "the same captures (and padding)")
     device = engine_device(device, engine, options)
-    runner, problem, start = build_engine(captures, engine, options, init=init, aberration=aberration, device=device)
     engine_class = _engine_factory(engine, device)
-    model = problem.model
+    runner = engine_class(problem, options, spectrum=start)
     history = None
     saved = checkpoint.load(_state_of(runner)) if checkpoint is not None else None
     if saved is not None:
@@ -384,44 +398,6 @@ def recover(captures: CaptureSet, engine: str, options: EngineOptions, *, progre
         positions_px=None if found is None else found.centres_px, calibration=found,
         fit=fit_report(problem, spectrum, found), dropped=captures.dropped,
         held_back=tuple(int(i) for i in runner.held_back), device=device)
-
-
-def build_engine(captures: CaptureSet, engine: str, options: EngineOptions, *, init: np.ndarray | None = None,
-                 aberration=None, device: str = "cpu"):
-    """The engine :func:`recover` runs, ready to take its first pass.
-
-    Parameters
-    ----------
-    captures, engine, options, init, aberration
-        As in :func:`recover`.
-    device : {"cpu", "cuda"}
-        Where the engine runs (resolved already).
-
-    Returns
-    -------
-    engine : IterativeEngine
-        Call ``update()`` for each pass and ``close()`` at the end.
-    problem : PhaseRetrievalProblem
-        The forward model and the measured amplitudes it fits.
-    start : ndarray or None
-        The starting spectrum from ``init``.
-    """
-    margin = 0
-    if options.refines_positions:
-        margin = int(np.ceil(captures.geometry.pupil_radius_px / 8)) + 2
-    model = build_model(captures.geometry, captures.intensity.shape[-1], margin_px=margin)
-    calibration = problem_calibration(captures.geometry, model.layout, captures.initial_pupil)
-    if aberration is not None:
-        calibration["aberration"] = np.asarray(aberration, np.float64)
-    problem = PhaseRetrievalProblem.from_sensor_images(model, captures.intensity, captures.weight, **calibration)
-    start = None
-    if init is not None:
-        start = np.asarray(init, np.complex64)
-        if start.shape != model.spectrum_shape:
-            raise ValueError(f"init: the spectrum is {start.shape[0]}x{start.shape[-1]} but this reconstruction's "
-                             f"grid is {model.spectrum_shape[0]}x{model.spectrum_shape[1]}; start from a result of "
-                             "the same captures (and padding)")
-    return _engine_factory(engine, device)(problem, options, spectrum=start), problem, start
 
 
 def _engine_factory(engine: str, device: str):

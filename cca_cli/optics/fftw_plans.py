@@ -49,10 +49,11 @@ from __future__ import annotations
 import bisect
 import contextlib
 import ctypes
+import importlib.abc
 import os
 import pickle
-import tempfile
 import sys
+import tempfile
 import threading
 import time
 import weakref
@@ -67,25 +68,47 @@ __all__ = ["HAVE_PYFFTW", "PLANNER_LOCK", "STEP_SECONDS", "UPGRADE_SHARE", "SHAP
            "planning_seconds", "raw_fftw_available", "Spec", "PlanSet", "owned_plans", "release", "RawFFTPlans"]
 
 
+class _DaskHiddenFromThread(importlib.abc.MetaPathFinder):
+    """Makes ``import dask`` fail in one thread (others import it as usual)."""
+
+    def __init__(self, thread: int):
+        self.thread = thread
+
+    def find_spec(self, name, path, target=None):
+        if threading.get_ident() == self.thread and (name == "dask" or name.startswith("dask.")):
+            raise ModuleNotFoundError(f"dask is hidden while pyfftw loads ({name})", name=name)
+        return None
+
 
 def _import_pyfftw():
     """pyfftw, or None where it is not installed.
 
     pyfftw's package imports its optional dask interface whenever dask is installed, and
     importing ``dask.array`` takes about half a second, on every ``cca`` command; cca never
-    uses that interface. So unless dask is in use already, dask is unimportable while pyfftw
-    loads (pyfftw then leaves the interface out), and importable again right after.
+    uses that interface. So unless dask is loaded already, the importing thread cannot find
+    dask while pyfftw loads (pyfftw then leaves the interface out); other threads, and this
+    one afterwards, import dask as usual. Should pyfftw ever need dask to load, it is imported
+    again with dask in view.
     """
-    hidden = "dask" not in sys.modules
-    if hidden:
-        sys.modules["dask"] = None
+    if "dask" in sys.modules:
+        finder = None
+    else:
+        finder = _DaskHiddenFromThread(threading.get_ident())
+        sys.meta_path.insert(0, finder)
     try:
         import pyfftw as module
     except ImportError:  # pragma: no cover
-        return None
+        if finder is None:
+            return None
+        sys.meta_path.remove(finder)
+        finder = None
+        try:
+            import pyfftw as module
+        except ImportError:
+            return None
     finally:
-        if hidden and sys.modules.get("dask", 0) is None:
-            del sys.modules["dask"]
+        if finder is not None:
+            sys.meta_path.remove(finder)
     return module
 
 

@@ -573,7 +573,7 @@ if _HAVE_NUMBA:  # pragma: no branch
     def _lane_numba(execute, counts, plans, batches, spectrum, origins, pupils, factors, fields, boxes, chunk,
                     scatter, amplitudes, weights, weighted, eps, summed, discs, index, numerator, denominator,
                     sum_scale):  # pragma: no cover
-        """Returns the lane's misfit, a status and the largest chunk transformed.
+        """Returns the lane's misfit, a status and the largest planned count it transformed.
 
         The status is -1, or the first capture whose box leaves the spectrum, or ``-2 - i`` for
         batch ``i`` outside the captures or larger than ``boxes``; nothing runs unless it is -1.
@@ -623,7 +623,11 @@ _LANE_CHUNK_BYTES = 1 << 19
 
 
 def lane_chunk(m: int) -> int:
-    """Captures of ``m`` × ``m`` complex64 fields a fused lane transforms together (a power of two, at least 1)."""
+    """Captures of ``m`` × ``m`` complex64 fields a fused lane transforms together (a power of two, at least 1).
+
+    It depends on the field size alone, so a run is reproducible from machine to machine (the
+    misfit's partial sums, which restarts compare, follow the chunks).
+    """
     fitting = max(1, _LANE_CHUNK_BYTES // (8 * m * m))
     return 1 << (fitting.bit_length() - 1)
 
@@ -719,8 +723,10 @@ def sequential_lane(raw_plans, batches: np.ndarray, spectrum: np.ndarray, origin
     sums = _checked_pupil_sums("sequential_lane", pupil_sums, n, pupils.shape[1])
     b = pupils.shape[1]
     if boxes is None:
+        if not scatter:
+            raise ValueError("sequential_lane: scatter=False leaves the update in boxes: pass boxes")
         largest = int((batches[:, 1] - batches[:, 0]).max()) if batches.size else 0
-        boxes = np.empty((max(largest, 1), b, b), np.complex64)
+        boxes = np.empty((min(max(largest, 1), max(n, 1)), b, b), np.complex64)   # batches are checked in the kernel
     if not (isinstance(boxes, _ndarray) and boxes.dtype == _C64 and boxes.ndim == 3 and boxes.shape[1:] == (b, b)
             and boxes.flags.c_contiguous):
         raise ValueError(f"sequential_lane: boxes must be a C-contiguous complex64 (n, {b}, {b}) array, "
@@ -778,6 +784,8 @@ def _checked_pupil_sums(where: str, pupil_sums, n: int, b: int) -> tuple:
 def _rpie_factors_numpy(pupils, origins, batches, alpha, tau, scale, coverage, out):
     b = pupils.shape[1]
     for start, stop in batches:   # only the batches' pupils are read (others may not be filled yet)
+        if stop <= start:
+            continue
         for i in range(start, stop):
             y0, x0 = origins[i]
             coverage[y0:y0 + b, x0:x0 + b] += np.abs(pupils[i]) ** 2

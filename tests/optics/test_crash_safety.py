@@ -134,7 +134,15 @@ CHILD = textwrap.dedent('''
 
         @case
         def lane_leaving_two_batches_unscattered():
-            lane([[0, 2], [2, 4]], scatter=False)
+            lane([[0, 2], [2, 4]], scatter=False, boxes=np.empty((4, b, b), np.complex64))
+
+        @case
+        def lane_left_unscattered_without_boxes():
+            lane([[0, 2]], scatter=False)
+
+        @case
+        def lane_of_a_huge_batch_allocates_nothing_first():
+            lane([[0, 10 ** 12]])
 
         @case
         def lane_batch_beyond_the_last_capture():
@@ -247,6 +255,9 @@ RAISES = {
     "lane_boxes_of_another_size": ("ValueError", "boxes must be a C-contiguous complex64 (n, 8, 8) array"),
     "lane_chunk_of_zero": ("ValueError", "chunk must be at least 1"),
     "lane_leaving_two_batches_unscattered": ("ValueError", "scatter=False runs exactly one batch, got 2"),
+    "lane_left_unscattered_without_boxes": ("ValueError", "scatter=False leaves the update in boxes: pass boxes"),
+    "lane_of_a_huge_batch_allocates_nothing_first": ("ValueError", "batch 0 [0, 1000000000000) must lie within the "
+                                                                   "6 captures"),
     "lane_batch_beyond_the_last_capture": ("ValueError", "batch 0 [4, 7) must lie within the 6 captures"),
     "lane_box_outside_the_spectrum_runs_nothing": ("ValueError", "capture 3 at origin (32, 32)"),
     "lane_on_another_buffer_than_the_planned_one": ("ValueError", "buffer these FFTW plans were made for"),
