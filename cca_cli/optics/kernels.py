@@ -810,37 +810,41 @@ def _accumulate_pupil_numpy(spectrum, origins, discs, fields, start, index, nume
 
 if _HAVE_NUMBA:  # pragma: no branch
     @_jit
-    def _rpie_factors_numba(pupils, origins, batches, alpha, tau, scale, coverage, out):  # pragma: no cover
+    def _rpie_batch_numba(pupils, origins, start, stop, alpha, tau, scale, coverage, out):  # pragma: no cover
+        """The factors of one batch ``[start, stop)`` (coverage left zero)."""
         b = pupils.shape[1]
+        # Coverage only grows while it is summed, so the largest running value is the largest final one.
+        peak = np.float32(0.0)
+        for i in range(start, stop):
+            y0, x0 = origins[i, 0], origins[i, 1]
+            for r in range(b):
+                p = pupils[i, r].view(np.float32)   # re, im interleaved: loops over floats vectorise
+                row = coverage[y0 + r, x0:x0 + b]
+                for c in range(b):
+                    v = row[c] + (p[2 * c] * p[2 * c] + p[2 * c + 1] * p[2 * c + 1])
+                    row[c] = v
+                    peak = max(peak, v)
+        floor = alpha * peak + tau + np.float32(1e-30)
+        keep = np.float32(1.0) - alpha
+        for i in range(start, stop):
+            y0, x0 = origins[i, 0], origins[i, 1]
+            for r in range(b):
+                p = pupils[i, r].view(np.float32)
+                o = out[i, r].view(np.float32)
+                row = coverage[y0 + r, x0:x0 + b]
+                for c in range(b):
+                    q = scale / (keep * row[c] + floor)
+                    o[2 * c] = p[2 * c] * q
+                    o[2 * c + 1] = -p[2 * c + 1] * q
+        for i in range(start, stop):
+            y0, x0 = origins[i, 0], origins[i, 1]
+            for r in range(b):
+                coverage[y0 + r, x0:x0 + b] = 0
+
+    @_jit
+    def _rpie_factors_numba(pupils, origins, batches, alpha, tau, scale, coverage, out):  # pragma: no cover
         for n in range(batches.shape[0]):
-            start, stop = batches[n, 0], batches[n, 1]
-            # Coverage only grows while it is summed, so the largest running value is the largest final one.
-            peak = np.float32(0.0)
-            for i in range(start, stop):
-                y0, x0 = origins[i, 0], origins[i, 1]
-                for r in range(b):
-                    p = pupils[i, r].view(np.float32)   # re, im interleaved: loops over floats vectorise
-                    row = coverage[y0 + r, x0:x0 + b]
-                    for c in range(b):
-                        v = row[c] + (p[2 * c] * p[2 * c] + p[2 * c + 1] * p[2 * c + 1])
-                        row[c] = v
-                        peak = max(peak, v)
-            floor = alpha * peak + tau + np.float32(1e-30)
-            keep = np.float32(1.0) - alpha
-            for i in range(start, stop):
-                y0, x0 = origins[i, 0], origins[i, 1]
-                for r in range(b):
-                    p = pupils[i, r].view(np.float32)
-                    o = out[i, r].view(np.float32)
-                    row = coverage[y0 + r, x0:x0 + b]
-                    for c in range(b):
-                        q = scale / (keep * row[c] + floor)
-                        o[2 * c] = p[2 * c] * q
-                        o[2 * c + 1] = -p[2 * c + 1] * q
-            for i in range(start, stop):
-                y0, x0 = origins[i, 0], origins[i, 1]
-                for r in range(b):
-                    coverage[y0 + r, x0:x0 + b] = 0
+            _rpie_batch_numba(pupils, origins, batches[n, 0], batches[n, 1], alpha, tau, scale, coverage, out)
 
     @_jit
     def _accumulate_pupil_numba(spectrum, origins, discs, fields, start, index, numerator, denominator,
@@ -921,37 +925,16 @@ if _HAVE_NUMBA:  # pragma: no branch
         b = discs.shape[1]
         for n in range(batches.shape[0]):
             start, stop = batches[n, 0], batches[n, 1]
-            peak = np.float32(0.0)   # the largest running coverage is the largest final one
-            for i in range(start, stop):
-                y0, x0 = origins[i, 0], origins[i, 1]
+            for i in range(start, stop):   # the batch's pupils, then its factors while they are in cache
                 for r in range(b):
                     a = maps[index[i], r].view(np.float32)
                     d = discs[i, r]
-                    row = coverage[y0 + r, x0:x0 + b]
+                    p, f = pupils[i, r].view(np.float32), boxes[i, r].view(np.float32)
                     for c in range(b):
                         re, im = d[c] * a[2 * c], d[c] * a[2 * c + 1]
-                        v = row[c] + (re * re + im * im)
-                        row[c] = v
-                        peak = max(peak, v)
-            floor = alpha * peak + tau + np.float32(1e-30)
-            keep = np.float32(1.0) - alpha
-            for i in range(start, stop):
-                y0, x0 = origins[i, 0], origins[i, 1]
-                for r in range(b):
-                    a = maps[index[i], r].view(np.float32)
-                    d = discs[i, r]
-                    row = coverage[y0 + r, x0:x0 + b]
-                    p, f, o = pupils[i, r].view(np.float32), boxes[i, r].view(np.float32), factors[i, r].view(np.float32)
-                    for c in range(b):
-                        re, im = d[c] * a[2 * c], d[c] * a[2 * c + 1]
-                        q = scale / (keep * row[c] + floor)
                         p[2 * c], p[2 * c + 1] = re, im
                         f[2 * c], f[2 * c + 1] = re * forward_scale, im * forward_scale
-                        o[2 * c], o[2 * c + 1] = re * q, -im * q
-            for i in range(start, stop):
-                y0, x0 = origins[i, 0], origins[i, 1]
-                for r in range(b):
-                    coverage[y0 + r, x0:x0 + b] = 0
+            _rpie_batch_numba(pupils, origins, start, stop, alpha, tau, scale, coverage, factors)
 
 
 def map_pupil_factors(discs: np.ndarray, maps: np.ndarray, index: np.ndarray, origins: np.ndarray,
@@ -961,9 +944,9 @@ def map_pupil_factors(discs: np.ndarray, maps: np.ndarray, index: np.ndarray, or
 
     Each capture's pupil is ``P_i = D_i · A_{p(i)}`` (its NA disc times its pupil's map); this
     writes ``P_i``, ``forward_scale · P_i`` (the forward model's pupil boxes, raw-FFT scaling
-    folded in) and the factors of :func:`rpie_factors`, in two sweeps over the discs: one sweep
-    of memory where a gather, a product, a copy, a scaling and the factors took six. They are
-    rebuilt after every pupil step.
+    folded in) and the factors of :func:`rpie_factors`, batch by batch, so that a batch's pupils
+    are still in cache when its factors are formed (a gather, a product, a copy and a scaling
+    took a sweep of memory each). They are rebuilt after every pupil step.
 
     Parameters
     ----------
