@@ -40,11 +40,10 @@ from types import ModuleType
 import numpy as np
 
 from cca_cli.engines.base import IterativeEngine
-from cca_cli.engines.calibrator import subset_layout
 from cca_cli.engines.momentum import MomentumBase
 from cca_cli.engines.options import AltMinOptions, EngineOptions, MomentumOptions
 from cca_cli.engines.problem import PhaseRetrievalProblem, initial_spectrum
-from cca_cli.engines.schedule import Schedule, build_schedule
+from cca_cli.engines.schedule import Schedule
 from cca_cli.engines.stopping import StoppingPolicy
 from cca_cli.optics import backend, kernels
 from cca_cli.optics.backend import DeviceUnavailable
@@ -293,14 +292,7 @@ class BatchedMomentum(MomentumBase):
     def _arrange(self) -> None:
         """Lay out the captures, build the visiting order and calls, and move the pass's data to the device."""
         xp, problem, calibrator = self.xp, self.problem, self.calibrator
-        layout = calibrator.layout_for(calibrator.centres())
-        distances = np.hypot(layout.centres_px[:, 0], layout.centres_px[:, 1])
-        trained = self._trained
-        self._schedule = build_schedule(layout.box_origins[trained], layout.box_size, distances[trained], self._batch,
-                                        lanes=self._lanes)
-        self._order = order = trained[self._schedule.order]
-        self._all_layout = layout
-        self._layout = subset_layout(layout, order)
+        order = self._lay_out()
         self._operator = BoxOperator(xp, self._layout)
         self._steps = [_as_slice(step) for step in merged_steps(self._schedule)]
         self._steps = [step if isinstance(step, slice) else backend.to_device(step, xp) for step in self._steps]

@@ -74,10 +74,10 @@ class MomentumBase(CalibratingEngine):
     """What every momentum engine shares beside its pass: the end of a pass, growing batches, results, checkpoints.
 
     A subclass keeps ``_spectrum``, ``_velocity`` and ``_anchor`` (on its device), ``_previous_misfit``,
-    ``_batch``, ``_held`` (:class:`~cca_cli.engines.held_back.HeldBack`), ``_order``, ``_all_layout``,
-    ``_model``, a :class:`~cca_cli.engines.calibrator.Calibrator` and a
+    ``_batch``, ``_held`` (:class:`~cca_cli.engines.held_back.HeldBack`), ``_lanes`` (how far the
+    schedule splits the spectrum), ``_model``, a :class:`~cca_cli.engines.calibrator.Calibrator` and a
     :class:`~cca_cli.engines.stopping.StoppingPolicy`, and provides ``_momentum`` (the momentum step),
-    ``_arrange`` (layout, visiting order and model) and ``_set_model`` (pupils in engine order).
+    ``_arrange`` (:meth:`_lay_out`, then the model) and ``_set_model`` (pupils in engine order).
     ``_to_host`` / ``_to_device`` move arrays where the engine keeps them elsewhere (a GPU).
     """
 
@@ -100,6 +100,22 @@ class MomentumBase(CalibratingEngine):
                                        plateau=options.plateau, plateau_window=options.plateau_window,
                                        can_grow=self._can_grow,
                                        held_back_patience=options.hold_back_patience if len(self._held) else 0)
+
+    def _lay_out(self) -> np.ndarray:
+        """Lay the captures out at their current centres and build the visiting order; returns that order.
+
+        Sets ``_schedule``, ``_order`` (capture indices in visiting order), ``_all_layout`` (every
+        capture) and ``_layout`` (the trained captures in visiting order).
+        """
+        layout = self.calibrator.layout_for(self.calibrator.centres())
+        distances = np.hypot(layout.centres_px[:, 0], layout.centres_px[:, 1])
+        trained = self._trained
+        self._schedule = build_schedule(layout.box_origins[trained], layout.box_size, distances[trained], self._batch,
+                                        lanes=self._lanes)
+        self._order = order = trained[self._schedule.order]
+        self._all_layout = layout
+        self._layout = subset_layout(layout, order)
+        return order
 
     def _to_host(self, array):
         return array
@@ -214,14 +230,7 @@ class SequentialMomentum(MomentumBase):
     # ------------------------------------------------------------ the model of a pass
     def _arrange(self) -> None:
         """Lay out the captures at their current centres and (re)build the visiting order and the model."""
-        layout = self.calibrator.layout_for(self.calibrator.centres())
-        distances = np.hypot(layout.centres_px[:, 0], layout.centres_px[:, 1])
-        trained = self._trained
-        self._schedule = build_schedule(layout.box_origins[trained], layout.box_size, distances[trained], self._batch,
-                                        lanes=self._lanes)
-        self._order = order = trained[self._schedule.order]
-        self._all_layout = layout
-        self._layout = subset_layout(layout, order)
+        order = self._lay_out()
         self._origins = np.ascontiguousarray(self._layout.box_origins, dtype=np.int64)
         self._amplitudes = np.ascontiguousarray(self.problem.amplitudes[order], dtype=np.float32)
         self._weights = None if self.problem.weights is None else np.ascontiguousarray(self.problem.weights[order],
