@@ -64,8 +64,8 @@ class EngineOptions(StrictModel):
         return False
 
     @property
-    def recovers_pupil_map(self) -> bool:
-        """Whether the engine recovers a full pupil map, whose tilt moves the object (so results are registered)."""
+    def object_moves_with_pupil_tilt(self) -> bool:
+        """Whether a pupil tilt the engine finds moves the object (``pupil_tilt: object``), so results are registered after."""
         return False
 
     @model_validator(mode="after")
@@ -165,10 +165,11 @@ class MomentumOptions(EngineOptions):
         in it); or the phase in Zernike modes up to ``pupil_order``.
     pupil_smoothing : float
         ``smooth`` model: width of the remainder's smoothing, in pupil radii.
-    pupil_tilt : {"object", "pinned"}
-        Map models: a phase tilt the pupil step finds is handed to the object
-        (which then moves with it), or dropped, so that the object stays
-        registered to the captures.
+    pupil_tilt : {"pupil", "object", "pinned"}
+        Map models: a phase tilt the pupil step finds stays in the pupil, so the
+        object stays where the captures put it (as in mPIE and EPRY); is handed
+        to the object, which then moves with it (the predictions are the same);
+        or is dropped.
     pupil_order : {2, 3, 4}
         Highest Zernike radial order fitted (``zernike``) or reported (``full``).
     pupil_amplitude : bool
@@ -222,7 +223,7 @@ class MomentumOptions(EngineOptions):
     pupil_recovery: Literal["none", "shared", "per_camera"] = "none"
     pupil_model: Literal["full", "smooth", "zernike"] = "zernike"
     pupil_smoothing: float = 0.25
-    pupil_tilt: Literal["object", "pinned"] = "object"
+    pupil_tilt: Literal["pupil", "object", "pinned"] = "pupil"
     pupil_order: Literal[2, 3, 4] = 4
     pupil_amplitude: bool = True
     pupil_start: int = 1
@@ -240,7 +241,7 @@ class MomentumOptions(EngineOptions):
         return self.position_refinement != "none"
 
     @property
-    def recovers_pupil_map(self) -> bool:
+    def object_moves_with_pupil_tilt(self) -> bool:
         return self.pupil_recovery != "none" and self.pupil_model != "zernike" and self.pupil_tilt == "object"
 
     @model_validator(mode="before")

@@ -146,9 +146,10 @@ class PupilRecovery:
     maps : ndarray, complex, (b, b) or (P, b, b), optional
         Starting aberration maps on the box grid (``full``); for ``zernike`` their
         phase is projected on the modes.
-    tilt : {"object", "pinned"}
-        Map models: a phase tilt the step finds is handed to the object (which then
-        moves), or removed (the object stays registered to the captures).
+    tilt : {"pupil", "object", "pinned"}
+        Map models: a phase tilt the step finds stays in the pupil (the object stays
+        where the captures put it), is handed to the object (which then moves with
+        it; the model's predictions are the same), or is removed.
     smoothing : float
         ``smooth`` model: width (in pupil radii) of the Gaussian the phase left over by
         the Zernike modes is smoothed with.
@@ -157,7 +158,7 @@ class PupilRecovery:
     def __init__(self, layout: BandLayout, pupil_index: np.ndarray, *, model: str = "full", order: int = 4,
                  coefficients: np.ndarray | None = None, amplitude: bool = True, step: float = 1.0,
                  threads: int = 1, offsets: np.ndarray | None = None, maps: np.ndarray | None = None,
-                 tilt: str = "object", smoothing: float = 0.25):
+                 tilt: str = "pupil", smoothing: float = 0.25):
         if model not in PUPIL_MODELS:
             raise ValueError(f"pupil model must be one of {', '.join(PUPIL_MODELS)}, got {model!r}")
         self.model = model
@@ -366,7 +367,8 @@ class PupilRecovery:
         The phase is fitted, weighted by the light each pixel saw, with the modes up to ``order``
         and piston and tilt; what the modes leave is smoothed with a Gaussian of ``smoothing`` pupil
         radii (normalised over the disc), so detail finer than that (the object's, or noise) cannot
-        settle in the pupil. Piston and tilt are dropped: the object keeps them.
+        settle in the pupil. Piston is dropped (the object keeps it), and so is the tilt unless it stays in the
+        pupil (``tilt="pupil"``).
         """
         from scipy import ndimage
 
@@ -382,6 +384,9 @@ class PupilRecovery:
             weighted = columns * (weight[disc] / weight.max())[:, None]
             solution, *_ = np.linalg.lstsq(weighted.T @ columns, weighted.T @ phase[disc], rcond=None)
             low_order = np.einsum("n,nyx->yx", solution[:len(modes)], modes)
+            if self.tilt == "pupil":
+                grid = np.arange(maps.shape[-1], dtype=np.float64)
+                low_order = low_order + solution[-2] * grid[:, None] + solution[-1] * grid[None, :]
             fitted = np.zeros(disc.shape)
             fitted[disc] = columns @ solution
             mask = disc.astype(np.float64)
@@ -433,10 +438,13 @@ class PupilRecovery:
         maps = np.where(seen, maps, 1).astype(np.complex64)
         if self.model == "smooth":
             maps = self._smooth_maps(maps, denominator)
-        # The object absorbs a common scale, piston and tilt of the pupils; keep them in the object, or (pinned)
-        # drop the tilt so that the object stays where the captures put it.
-        weights = denominator.sum(axis=0)
-        tilt = tilt_of(np.sum(maps * denominator, axis=0), np.sqrt(weights / weights.max()))
+        # The object absorbs a common scale and piston of the pupils. Their mean tilt stays in them ("pupil"), goes
+        # to the object ("object"; it moves with it) or is dropped ("pinned").
+        if self.tilt == "pupil":
+            tilt = np.zeros(2)
+        else:
+            weights = denominator.sum(axis=0)
+            tilt = tilt_of(np.sum(maps * denominator, axis=0), np.sqrt(weights / weights.max()))
         b = maps.shape[-1]
         grid = np.arange(b, dtype=np.float64)
         ramp = np.exp(-1j * (tilt[0] * grid[:, None] + tilt[1] * grid[None, :]))

@@ -174,7 +174,7 @@ DATASETS: tuple[DatasetSpec, ...] = (
     DatasetSpec('/tiles/seconds', 'float64', '(T,)', 's',
                 "Time each tile's recovery took on its worker."),
     DatasetSpec('/tiles/shift_px', 'float64', '(T, 2)', 'blend-grid px',
-                'Shift applied to register each tile to its centre capture (tiles whose full pupil map may carry a tilt; 0 otherwise).'),
+                'Shift applied to register each tile to its centre capture (tiles whose object moved with the tilt of its pupil map, `pupil_tilt: object`; 0 otherwise).'),
     DatasetSpec('/tiles/pupil', 'complex64', '(T, P, b, b)', '1',
                 'Recovered pupil(s) of each tile on its pupil box, NA disc included.'),
     DatasetSpec('/tiles/zernike_waves', 'float64', '(T, P, modes)', 'waves RMS',

@@ -332,7 +332,7 @@ def _recover_tile(task: TileTask, section: ReconstructSection, parent: TileResul
                            aberration=start)
     except ValueError as exc:
         raise InputError(f"{plan.captures_path}: tile at ({tile.y0}, {tile.x0}): {exc}") from None
-    obj, shift = _on_blend_grid(recovery, padded, region, plan.upsampling, register=options.recovers_pupil_map)
+    obj, shift = _on_blend_grid(recovery, padded, region, plan.upsampling, register=options.object_moves_with_pupil_tilt)
     pupil = waves = None
     modes: list = []
     if recovery.calibration is not None and recovery.calibration.pupil is not None:
