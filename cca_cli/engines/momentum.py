@@ -144,10 +144,13 @@ class MomentumBase(CalibratingEngine):
         if normalisation is None:
             return
         scale, tilt = normalisation
-        if scale != 1 or np.any(tilt):
+        if np.any(tilt):
             grid = np.arange(self._spectrum.shape[0], dtype=np.float64)
             factor = np.outer(scale * np.exp(1j * tilt[0] * grid), np.exp(1j * tilt[1] * grid)).astype(np.complex64)
             factor = self._to_device(factor)
+        else:  # the same products as a flat array of ``scale`` gives, without building one
+            factor = np.complex64(scale)
+        if scale != 1 or np.any(tilt):
             for array in (self._spectrum, self._anchor, self._velocity):
                 array *= factor
         self._set_recovered_model()

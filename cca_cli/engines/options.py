@@ -64,8 +64,8 @@ class EngineOptions(StrictModel):
         return False
 
     @property
-    def object_moves_with_pupil_tilt(self) -> bool:
-        """Whether a pupil tilt the engine finds moves the object (``pupil_tilt: object``), so results are registered after."""
+    def recovers_pupil_map(self) -> bool:
+        """Whether the engine recovers a full pupil map whose tilt (an image shift) may move the object: register results."""
         return False
 
     @model_validator(mode="after")
@@ -241,8 +241,8 @@ class MomentumOptions(EngineOptions):
         return self.position_refinement != "none"
 
     @property
-    def object_moves_with_pupil_tilt(self) -> bool:
-        return self.pupil_recovery != "none" and self.pupil_model != "zernike" and self.pupil_tilt == "object"
+    def recovers_pupil_map(self) -> bool:
+        return self.pupil_recovery != "none" and self.pupil_model != "zernike" and self.pupil_tilt != "pinned"
 
     @model_validator(mode="before")
     @classmethod

@@ -336,7 +336,8 @@ class PupilRecovery:
             None when nothing changed. Otherwise the ``full`` map was normalised by
             dividing it by ``scale`` and removing the phase ramp ``exp(i tilt·k)``:
             the engine multiplies its spectrum by ``scale · exp(i tilt·k)`` (k the
-            spectrum pixel index) so the model's predictions stay the same.
+            spectrum pixel index) so the model's predictions stay the same. The tilt
+            is zero where it stays in the map (``tilt="pupil"``) or for Zernike pupils.
         """
         numerator, denominator = self._num.sum(axis=0), self._den.sum(axis=0)
         rhs = self._rhs.sum(axis=0)
@@ -367,26 +368,30 @@ class PupilRecovery:
         The phase is fitted, weighted by the light each pixel saw, with the modes up to ``order``
         and piston and tilt; what the modes leave is smoothed with a Gaussian of ``smoothing`` pupil
         radii (normalised over the disc), so detail finer than that (the object's, or noise) cannot
-        settle in the pupil. Piston is dropped (the object keeps it), and so is the tilt unless it stays in the
-        pupil (``tilt="pupil"``).
+        settle in the pupil. Piston is dropped (the object keeps it); the tilt is kept for the step to place
+        (in the pupil, in the object, or nowhere: ``tilt``).
         """
         from scipy import ndimage
 
         sigma = max(self.smoothing * self.layout.pupil_radius_px, 0.5)
         out = np.ones_like(maps)
+        grid = np.arange(maps.shape[-1], dtype=np.float64)
         for p in range(self.n_pupils):
             disc, columns, cover, modes = self._smooth_design(p, sigma)
             weight = light[p] * disc
             if not weight.any():
                 continue
-            phase = np.angle(maps[p] * np.conj(np.sum(maps[p] * weight)))
+            # The tilt comes off first (measured without wrapping): a tilt kept in the pupil grows past π over the
+            # disc, and the phase would wrap.
+            tilt = tilt_of(maps[p], np.sqrt(weight / weight.max()))
+            flat = maps[p] * np.exp(-1j * (tilt[0] * grid[:, None] + tilt[1] * grid[None, :]))
+            phase = np.angle(flat * np.conj(np.sum(flat * weight)))
             # Weighted least squares by its normal equations: the design is fixed, only the weights change.
             weighted = columns * (weight[disc] / weight.max())[:, None]
             solution, *_ = np.linalg.lstsq(weighted.T @ columns, weighted.T @ phase[disc], rcond=None)
             low_order = np.einsum("n,nyx->yx", solution[:len(modes)], modes)
-            if self.tilt == "pupil":
-                grid = np.arange(maps.shape[-1], dtype=np.float64)
-                low_order = low_order + solution[-2] * grid[:, None] + solution[-1] * grid[None, :]
+            ty, tx = solution[-2] + tilt[0], solution[-1] + tilt[1]  # kept: the step places it (``tilt``)
+            low_order = low_order + ty * grid[:, None] + tx * grid[None, :]
             fitted = np.zeros(disc.shape)
             fitted[disc] = columns @ solution
             mask = disc.astype(np.float64)
@@ -473,7 +478,9 @@ class PupilRecovery:
             members = self.index == p
             centre = self._centres[members].mean(axis=0) if np.any(members) else self._centres.mean(axis=0)
             disc = circular_pupils(b, centre[None], self.layout.pupil_radius_px)[0] > 0
-            phase = np.angle(self.maps[p] * np.conj(self.maps[p][disc].mean()))
+            tilt = tilt_of(self.maps[p], disc.astype(np.float64))  # off first, so that a large tilt cannot wrap
+            flat = self.maps[p] * np.exp(-1j * (tilt[0] * grid[:, None] + tilt[1] * grid[None, :]))
+            phase = np.angle(flat * np.conj(flat[disc].mean()))
             columns = [self._box_basis[p, j][disc] for j in range(len(self.modes))]
             columns += [np.ones(disc.sum()), (grid[:, None] * np.ones(b))[disc], (np.ones(b)[:, None] * grid)[disc]]
             solution, *_ = np.linalg.lstsq(np.stack(columns, axis=1), phase[disc], rcond=None)

@@ -73,7 +73,7 @@ DATASETS: tuple[DatasetSpec, ...] = (
                 "(pixel 1/field_width_m): NA disc (centred on box pixel b//2) × aberration."),
     DatasetSpec("/calibration/pupil_map", "complex64", "(P, b, b)", "1",
                 "The recovered aberration map of each pupil on the pupil box, without the NA disc: the model's pupil "
-                "of capture k is its NA disc at its own (fractional) box centre times pupil_map[pupil_index[k]]."),
+                "of capture k is its NA disc at its own (fractional) box centre times pupil_map[pupil_index[k]]. A phase tilt in it is an image shift (kept in the map by default, pupil_tilt)."),
     DatasetSpec("/calibration/pupil_index", "int32", "(K,)", "1", "Pupil (camera) each capture uses."),
     DatasetSpec("/calibration/zernike_waves", "float64", "(P, n_modes)", "waves",
                 "Zernike phase coefficients of each pupil (RMS-normalised, Noll modes listed in "
@@ -174,7 +174,7 @@ DATASETS: tuple[DatasetSpec, ...] = (
     DatasetSpec('/tiles/seconds', 'float64', '(T,)', 's',
                 "Time each tile's recovery took on its worker."),
     DatasetSpec('/tiles/shift_px', 'float64', '(T, 2)', 'blend-grid px',
-                'Shift applied to register each tile to its centre capture (tiles whose object moved with the tilt of its pupil map, `pupil_tilt: object`; 0 otherwise).'),
+                'Shift applied to register each tile to its centre capture (tiles whose full pupil map may carry a tilt; 0 otherwise).'),
     DatasetSpec('/tiles/pupil', 'complex64', '(T, P, b, b)', '1',
                 'Recovered pupil(s) of each tile on its pupil box, NA disc included.'),
     DatasetSpec('/tiles/zernike_waves', 'float64', '(T, P, modes)', 'waves RMS',

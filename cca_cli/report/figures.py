@@ -684,6 +684,8 @@ def write_calibration_figures(directory: Path, calibration: dict) -> list[Path]:
 
 def _pupil_figure(plt, path: Path, calibration: dict) -> Path:
     """Amplitude and phase of the recovered pupil(s); one row per camera (up to 6) on the NA disc."""
+    from cca_cli.engines.pupil_recovery import tilt_of
+
     pupils = np.asarray(calibration["pupil"])
     shown = pupils[:6]
     b = pupils.shape[-1]
@@ -694,14 +696,21 @@ def _pupil_figure(plt, path: Path, calibration: dict) -> Path:
     extent = ((-0.5 - centre) / radius, (b - 1 - centre + 0.5) / radius,
               (b - 1 - centre + 0.5) / radius, (-0.5 - centre) / radius)
     fig, axes = plt.subplots(len(shown), 2, figsize=(8.4, 3.6 * len(shown)), squeeze=False)
+    pixels = np.arange(b, dtype=np.float64)
     for row, pupil in enumerate(shown):
-        reference = np.sum(pupil[inside])
-        phase = np.angle(pupil * np.exp(-1j * np.angle(reference)))
+        # A pupil's tilt is a shift of the image, not an aberration: shown without it (its size in the title).
+        tilt = tilt_of(pupil, inside.astype(np.float64))
+        flat = pupil * np.exp(-1j * (tilt[0] * pixels[:, None] + tilt[1] * pixels[None, :]))
+        reference = np.sum(flat[inside])
+        phase = np.angle(flat * np.exp(-1j * np.angle(reference)))
         amplitude = np.abs(pupil)
         label = "pupil" if len(pupils) == 1 else f"camera {row}"
+        tilt_waves = float(np.hypot(*tilt)) * 2.0 * radius / (2.0 * np.pi)
+        phase_title = f"{label}: phase" + (f"\n(a tilt of {tilt_waves:.2f} waves across the NA removed)"
+                                           if tilt_waves >= 0.005 else "")
         for ax, image, title, cmap, bar in (
                 (axes[row, 0], amplitude, f"{label}: amplitude", "gray", "relative amplitude"),
-                (axes[row, 1], phase / (2 * np.pi), f"{label}: phase", _phase_cmap(plt), "waves")):
+                (axes[row, 1], phase / (2 * np.pi), phase_title, _phase_cmap(plt), "waves")):
             masked = np.ma.masked_where(~inside, image)
             limit = max(float(np.max(np.abs(masked))), 1e-3) if bar == "waves" else None
             shown_image = ax.imshow(masked, cmap=cmap, extent=extent, interpolation="nearest",

@@ -14,8 +14,8 @@ single-threaded worker processes by default, or the workers of ``--scheduler``):
    run from the centre outwards; the centre tile starts from the data);
 3. it puts the tile's object on the common blend grid (``q`` samples per frame
    pixel, a zero-padded spectrum), registers it to the tile's centre capture
-   when the pupil model may have moved it (full pupil maps carry the tilt into
-   the object), and writes it with its pupil to ``<output>.tiles/`` (one
+   when the pupil model may have moved it (a full pupil map's tilt is a shift
+   of the image), and writes it with its pupil to ``<output>.tiles/`` (one
    file per tile, temporary file + rename).
 
 The client then blends the tiles (weights summing to 1, sin² ramps over the
@@ -332,7 +332,7 @@ def _recover_tile(task: TileTask, section: ReconstructSection, parent: TileResul
                            aberration=start)
     except ValueError as exc:
         raise InputError(f"{plan.captures_path}: tile at ({tile.y0}, {tile.x0}): {exc}") from None
-    obj, shift = _on_blend_grid(recovery, padded, region, plan.upsampling, register=options.object_moves_with_pupil_tilt)
+    obj, shift = _on_blend_grid(recovery, padded, region, plan.upsampling, register=options.recovers_pupil_map)
     pupil = waves = None
     modes: list = []
     if recovery.calibration is not None and recovery.calibration.pupil is not None:
