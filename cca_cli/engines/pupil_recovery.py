@@ -51,7 +51,7 @@ from cca_cli.optics.pupil import circular_pupils
 from cca_cli.optics.zernike import zernike_basis, zernike_modes
 from cca_cli.sampling.grid import BandLayout
 
-__all__ = ["PUPIL_MODELS", "PupilEstimate", "PupilRecovery", "tilt_of", "resample_pupil"]
+__all__ = ["PUPIL_MODELS", "PupilEstimate", "PupilRecovery", "tilt_of", "untilt_ramp", "resample_pupil"]
 
 #: Largest change of any Zernike coefficient in one step (waves): the linearisation holds within ~0.05.
 _MAX_ZERNIKE_STEP = 0.1
@@ -119,6 +119,12 @@ def tilt_of(field: np.ndarray, weights: np.ndarray) -> np.ndarray:
     gy = np.angle(np.sum(weights[1:, :] * weights[:-1, :] * field[1:, :] * np.conj(field[:-1, :])))
     gx = np.angle(np.sum(weights[:, 1:] * weights[:, :-1] * field[:, 1:] * np.conj(field[:, :-1])))
     return np.array([gy, gx])
+
+
+def untilt_ramp(tilt: np.ndarray, size: int) -> np.ndarray:
+    """``exp(−i (t_y y + t_x x))`` on a ``size`` × ``size`` box (pixel indices): multiplying by it takes tilt ``t`` off."""
+    grid = np.arange(size, dtype=np.float64)
+    return np.exp(-1j * (tilt[0] * grid[:, None] + tilt[1] * grid[None, :]))
 
 
 class PupilRecovery:
@@ -384,7 +390,7 @@ class PupilRecovery:
             # The tilt comes off first (measured without wrapping): a tilt kept in the pupil grows past π over the
             # disc, and the phase would wrap.
             tilt = tilt_of(maps[p], np.sqrt(weight / weight.max()))
-            flat = maps[p] * np.exp(-1j * (tilt[0] * grid[:, None] + tilt[1] * grid[None, :]))
+            flat = maps[p] * untilt_ramp(tilt, maps.shape[-1])
             phase = np.angle(flat * np.conj(np.sum(flat * weight)))
             # Weighted least squares by its normal equations: the design is fixed, only the weights change.
             weighted = columns * (weight[disc] / weight.max())[:, None]
@@ -450,10 +456,7 @@ class PupilRecovery:
         else:
             weights = denominator.sum(axis=0)
             tilt = tilt_of(np.sum(maps * denominator, axis=0), np.sqrt(weights / weights.max()))
-        b = maps.shape[-1]
-        grid = np.arange(b, dtype=np.float64)
-        ramp = np.exp(-1j * (tilt[0] * grid[:, None] + tilt[1] * grid[None, :]))
-        maps = maps * ramp[None]
+        maps = maps * untilt_ramp(tilt, maps.shape[-1])[None]
         if self.tilt == "pinned":
             tilt = np.zeros(2)
         mean = np.sum(maps * denominator) / np.sum(denominator)
@@ -479,7 +482,7 @@ class PupilRecovery:
             centre = self._centres[members].mean(axis=0) if np.any(members) else self._centres.mean(axis=0)
             disc = circular_pupils(b, centre[None], self.layout.pupil_radius_px)[0] > 0
             tilt = tilt_of(self.maps[p], disc.astype(np.float64))  # off first, so that a large tilt cannot wrap
-            flat = self.maps[p] * np.exp(-1j * (tilt[0] * grid[:, None] + tilt[1] * grid[None, :]))
+            flat = self.maps[p] * untilt_ramp(tilt, b)
             phase = np.angle(flat * np.conj(flat[disc].mean()))
             columns = [self._box_basis[p, j][disc] for j in range(len(self.modes))]
             columns += [np.ones(disc.sum()), (grid[:, None] * np.ones(b))[disc], (np.ones(b)[:, None] * grid)[disc]]

@@ -684,7 +684,7 @@ def write_calibration_figures(directory: Path, calibration: dict) -> list[Path]:
 
 def _pupil_figure(plt, path: Path, calibration: dict) -> Path:
     """Amplitude and phase of the recovered pupil(s); one row per camera (up to 6) on the NA disc."""
-    from cca_cli.engines.pupil_recovery import tilt_of
+    from cca_cli.engines.pupil_recovery import tilt_of, untilt_ramp
 
     pupils = np.asarray(calibration["pupil"])
     shown = pupils[:6]
@@ -696,11 +696,10 @@ def _pupil_figure(plt, path: Path, calibration: dict) -> Path:
     extent = ((-0.5 - centre) / radius, (b - 1 - centre + 0.5) / radius,
               (b - 1 - centre + 0.5) / radius, (-0.5 - centre) / radius)
     fig, axes = plt.subplots(len(shown), 2, figsize=(8.4, 3.6 * len(shown)), squeeze=False)
-    pixels = np.arange(b, dtype=np.float64)
     for row, pupil in enumerate(shown):
         # A pupil's tilt is a shift of the image, not an aberration: shown without it (its size in the title).
         tilt = tilt_of(pupil, inside.astype(np.float64))
-        flat = pupil * np.exp(-1j * (tilt[0] * pixels[:, None] + tilt[1] * pixels[None, :]))
+        flat = pupil * untilt_ramp(tilt, b)
         reference = np.sum(flat[inside])
         phase = np.angle(flat * np.exp(-1j * np.angle(reference)))
         amplitude = np.abs(pupil)
