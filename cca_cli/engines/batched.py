@@ -13,6 +13,10 @@ captures at once, in complex64, with the array module ``xp`` they are given
 * batched forward FFT, multiply by the adjoint pupil (or the rPIE factor), and
   scatter-add the boxes back into the spectrum.
 
+On CuPy the amplitude data step and a shared map pupil's sums run as one fused kernel each
+(:mod:`cca_cli.engines.fused`), and the rPIE factors of a pass are formed on the device
+(:class:`RpieFactors`): a pupil step sends only the pupil maps across.
+
 They read the same problem (:class:`~cca_cli.engines.problem.PhaseRetrievalProblem`),
 take the same options, stop by the same :class:`~cca_cli.engines.stopping.StoppingPolicy`
 and keep the engine interface (update / spectrum / state / restore / close), so
@@ -39,18 +43,18 @@ from types import ModuleType
 
 import numpy as np
 
+from cca_cli.engines import fused
 from cca_cli.engines.base import IterativeEngine
 from cca_cli.engines.momentum import MomentumBase
 from cca_cli.engines.options import AltMinOptions, EngineOptions, MomentumOptions
 from cca_cli.engines.problem import PhaseRetrievalProblem, initial_spectrum
 from cca_cli.engines.schedule import Schedule
 from cca_cli.engines.stopping import StoppingPolicy
-from cca_cli.optics import backend, kernels
+from cca_cli.optics import backend
 from cca_cli.optics.backend import DeviceUnavailable
-from cca_cli.optics.forward import ForwardModel
 from cca_cli.sampling.grid import BandLayout
 
-__all__ = ["FIELD_BYTES", "BoxOperator", "unsupported_options", "check_options", "merged_steps",
+__all__ = ["FIELD_BYTES", "BoxOperator", "unsupported_options", "check_options", "merged_steps", "RpieFactors",
            "BatchedAlternatingMinimization", "BatchedMomentum"]
 
 #: Most bytes of complex64 fields one batched call holds (the FFTs need about as much again).
@@ -120,16 +124,26 @@ class BoxOperator:
             raise ValueError(f"a pupil box leaves the {self.size} x {self.size} spectrum")
         #: Flat spectrum index of every box pixel, (K, b, b).
         self.index = backend.to_device(rows * self.size + cols, xp)
+        #: Whether the steps run as fused kernels (:mod:`cca_cli.engines.fused`: CuPy only).
+        self.fused = fused.available(xp)
 
     def boxes(self, spectrum, captures):
         """The spectrum's boxes of ``captures`` (a slice or an index array), complex64 (k, b, b)."""
         return spectrum.reshape(-1)[self.index[captures]]
 
-    def fields(self, boxes, pupils):
-        """Fields ``F⁻¹{pupil · box}`` of a batch, complex64 (k, m, m) (field layout, see ForwardModel)."""
+    def fields(self, spectrum, captures, pupils):
+        """Fields ``F⁻¹{pupil · box}`` of the spectrum's boxes of ``captures``, complex64 (k, m, m).
+
+        ``pupils`` (k, b, b) are the captures' pupil boxes (field layout, see ForwardModel).
+        """
         xp, s, b = self.xp, self.start, self.b
-        fields = xp.zeros((boxes.shape[0], self.m, self.m), xp.complex64)
-        fields[:, s:s + b, s:s + b] = boxes * pupils
+        if self.fused:
+            fields = fused.box_fields(xp, spectrum, xp.ascontiguousarray(self.index[captures]),
+                                      xp.ascontiguousarray(pupils), self.m)
+        else:
+            boxes = self.boxes(spectrum, captures)
+            fields = xp.zeros((boxes.shape[0], self.m, self.m), xp.complex64)
+            fields[:, s:s + b, s:s + b] = boxes * pupils
         return backend.ifft2(xp, fields)
 
     def spectra(self, fields):
@@ -137,9 +151,12 @@ class BoxOperator:
         s, b = self.start, self.b
         return backend.fft2(self.xp, fields)[:, s:s + b, s:s + b]
 
-    def scatter(self, boxes, captures, out) -> None:
-        """Add ``boxes`` (k, b, b) into the spectrum ``out`` at the boxes of ``captures``."""
-        backend.scatter_add(self.xp, out, self.index[captures], boxes)
+    def scatter(self, boxes, captures, out, factors=None) -> None:
+        """Add ``boxes · factors`` (k, b, b; ``factors`` None: 1) into the spectrum ``out`` at the boxes of ``captures``."""
+        if self.fused:
+            fused.scatter(self.xp, out, self.index[captures], boxes, factors)
+        else:
+            backend.scatter_add(self.xp, out, self.index[captures], boxes if factors is None else boxes * factors)
 
 
 def project(xp: ModuleType, fields, amplitudes, weights, eps: float, *, keep: bool):
@@ -208,10 +225,10 @@ class BatchedAlternatingMinimization(IterativeEngine):
         numerator = xp.zeros_like(self._spectrum)
         misfit = 0.0
         for group in self._groups:
-            fields = operator.fields(operator.boxes(self._spectrum, group), self._pupils[group])
+            fields = operator.fields(self._spectrum, group, self._pupils[group])
             weights = None if self._weights is None else self._weights[group]
             misfit = misfit + project(xp, fields, self._amplitudes[group], weights, self._eps, keep=True)
-            operator.scatter(operator.spectra(fields) * self._adjoint[group], group, numerator)
+            operator.scatter(operator.spectra(fields), group, numerator, self._adjoint[group])
         numerator *= self._inverse_normal
         change = float(np.sqrt(_squared_norm(xp, numerator - self._spectrum)
                                / max(_squared_norm(xp, self._spectrum), 1e-30)))
@@ -258,6 +275,66 @@ def _as_slice(positions: np.ndarray) -> slice | np.ndarray:
     if positions.size and np.array_equal(positions, np.arange(positions[0], positions[0] + positions.size)):
         return slice(int(positions[0]), int(positions[0]) + positions.size)
     return positions
+
+
+class RpieFactors:
+    """Each capture's rPIE factor, formed on the device from the pupils (as :func:`~cca_cli.optics.kernels.rpie_factors`).
+
+    The factor of capture ``i`` in batch ``B`` is ``scale · P_i* / ((1 − α) D_B + α max D_B + τ)``, ``D_B`` the
+    pupil power ``Σ_{j∈B} |P_j|²`` of its batch on the spectrum grid. Every batch gets its own power map, so
+    the batches of a pass are formed together (in groups whose maps fit :data:`FIELD_BYTES`), with no host
+    round trip.
+
+    Parameters
+    ----------
+    xp : module
+        numpy or CuPy.
+    operator : BoxOperator
+        The captures' boxes (engine order).
+    batches : list of slice
+        The visiting order's batches (positions in engine order).
+    alpha, tau, scale : float
+    """
+
+    def __init__(self, xp: ModuleType, operator: BoxOperator, batches: list[slice], *, alpha: float, tau: float,
+                 scale: float):
+        self.xp = xp
+        self._alpha, self._tau, self._scale = np.float32(alpha), np.float32(tau), np.float32(scale)
+        area = operator.size * operator.size
+        batches = [batch for batch in batches if batch.stop > batch.start]
+        per_group = max(1, FIELD_BYTES // (area * 4))
+        self._groups = []
+        for first in range(0, len(batches), per_group):
+            group = batches[first:first + per_group]
+            positions = np.concatenate([np.arange(batch.start, batch.stop) for batch in group]).astype(np.int64)
+            local = np.repeat(np.arange(len(group), dtype=np.int64), [batch.stop - batch.start for batch in group])
+            longest = max(batch.stop - batch.start for batch in group)
+            members = np.full((len(group), longest), positions.size, np.int64)   # padded with a zero-power slot
+            ends = np.cumsum([0] + [batch.stop - batch.start for batch in group])
+            for j in range(len(group)):
+                members[j, :ends[j + 1] - ends[j]] = np.arange(ends[j], ends[j + 1])
+            selection = _as_slice(positions)
+            if not isinstance(selection, slice):
+                selection = backend.to_device(selection, xp)
+            target = backend.to_device(local[:, None, None] * area, xp) + operator.index[selection]
+            self._groups.append((selection, len(group) * area, target, backend.to_device(members, xp),
+                                 backend.to_device(local, xp)))
+
+    def __call__(self, pupils):
+        """The factors of ``pupils`` (complex64 (K, b, b), on the device), complex64 (K, b, b)."""
+        xp = self.xp
+        factors = xp.zeros_like(pupils)
+        for selection, size, target, members, local in self._groups:
+            group = pupils[selection]
+            coverage = xp.zeros(size, xp.float32)
+            backend.scatter_add(xp, coverage, target, xp.square(xp.abs(group)))
+            boxes = coverage[target]
+            peaks = xp.concatenate([boxes.reshape(boxes.shape[0], -1).max(axis=1), xp.zeros(1, xp.float32)])
+            peak = peaks[members].max(axis=1)[local]
+            boxes *= 1 - self._alpha
+            boxes += (self._alpha * peak + (self._tau + np.float32(1e-30)))[:, None, None]
+            factors[selection] = xp.conj(group) * xp.divide(self._scale, boxes)
+        return factors
 
 
 class BatchedMomentum(MomentumBase):
@@ -308,11 +385,16 @@ class BatchedMomentum(MomentumBase):
                 floors[batch] = eps * eps + 1e-3 * intensities[batch].mean()
             self._intensities = backend.to_device(intensities, xp)
             self._floors = backend.to_device(floors[:, None, None], xp)
+        opts = self.options
+        self._rpie = RpieFactors(xp, self._operator, self._schedule.batches, alpha=opts.alpha, tau=opts.tau,
+                                 scale=opts.beta / self._layout.lowres_size)
         recovery = calibrator.recovery
         if recovery is not None:
             recovery.set_geometry(self._layout, calibrator.pupil_index[order])
             self._prepare_pupil_sums(recovery)
-        self._set_model(calibrator.pupils_for(self._layout, calibrator.pupil_index[order]))
+            self._set_recovered_model()
+        else:
+            self._set_model(calibrator.pupils_for(self._layout, calibrator.pupil_index[order]))
 
     def _prepare_pupil_sums(self, recovery) -> None:
         """The pupil fit's sums on the device, and what forming them needs (discs, modes, pupil of each capture)."""
@@ -322,6 +404,7 @@ class BatchedMomentum(MomentumBase):
             discs, index, _, _ = recovery.lane_sums(0)
             first = xp.zeros((recovery.n_pupils, b, b), xp.complex128)   # Σ conj(D S) · residual
             self._basis = None
+            self._map_index = backend.to_device(index, xp)
         else:
             discs, basis, index, rhs, _ = zernike
             n_modes = basis.shape[0]
@@ -336,20 +419,27 @@ class BatchedMomentum(MomentumBase):
         self._pupil_index = backend.to_device(index[:, None, None] * (b * b) + pixels, xp)
 
     def _set_model(self, pupils: np.ndarray) -> None:
-        """Use ``pupils`` (engine order): the forward pupils and each capture's rPIE factor, on the device."""
-        self._model = model = ForwardModel(self._layout, pupils)
-        opts = self.options
-        bounds = np.array([[sl.start, sl.stop] for sl in self._schedule.batches], np.int64)
-        factors = np.empty(model.pupils.shape, np.complex64)
-        coverage = np.zeros(model.spectrum_shape, np.float32)
-        kernels.rpie_factors(model.pupils, np.ascontiguousarray(self._layout.box_origins, np.int64), bounds,
-                             alpha=opts.alpha, tau=opts.tau, scale=opts.beta / self._layout.lowres_size,
-                             coverage=coverage, out=factors)
-        self._pupil_boxes = backend.to_device(model.pupil_boxes, self.xp)
-        self._factors = backend.to_device(factors, self.xp)
+        """Use ``pupils`` (engine order, on the host)."""
+        self._use_pupils(backend.to_device(np.ascontiguousarray(pupils, np.complex64), self.xp))
+
+    def _set_recovered_model(self) -> None:
+        """Use the pupil recovery's current pupils; a map model's are built on the device from its maps."""
         recovery = self.calibrator.recovery
-        self._pupils = None if recovery is None or recovery.model != "zernike" else backend.to_device(model.pupils,
-                                                                                                     self.xp)
+        parts = recovery.map_parts()
+        if parts is None:
+            self._set_model(recovery.pupils())
+            return
+        maps = backend.to_device(parts[1], self.xp)
+        self._use_pupils(self._discs * maps[self._map_index])
+
+    def _use_pupils(self, pupils) -> None:
+        """Use ``pupils`` (complex64 (K, b, b), on the device): the forward pupils and each capture's rPIE factor."""
+        self._pupils = pupils
+        self._pupil_boxes = pupils * self.xp.float32(1.0 / self._layout.lowres_size)
+        self._factors = self._rpie(pupils)
+
+    def _engine_pupils(self) -> np.ndarray:
+        return backend.to_host(self._pupils)
 
     # ------------------------------------------------------------ the update rule
     def _data_step(self, fields, step):
@@ -357,6 +447,8 @@ class BatchedMomentum(MomentumBase):
         xp = self.xp
         weights = None if self._weights is None else self._weights[step]
         if self.options.cost == "amplitude":
+            if self._operator.fused:
+                return fused.data_step(xp, fields, self._targets[step], weights, self.problem.amplitude_floor)
             return project(xp, fields, self._targets[step], weights, self.problem.amplitude_floor, keep=False)
         magnitude = xp.abs(fields)
         misfit = magnitude - self._targets[step]
@@ -373,13 +465,19 @@ class BatchedMomentum(MomentumBase):
         fields *= factor
         return squared
 
-    def _accumulate_pupil(self, step, seen, residuals) -> None:
+    def _accumulate_pupil(self, step, residuals) -> None:
         """Add a call's terms of the pupil fit (as :meth:`~cca_cli.engines.pupil_recovery.PupilRecovery.accumulate`).
 
         Map models: ``Σ conj(D S) · r`` and ``Σ |D S|²`` per pupil pixel; Zernike: the phase gradient
         ``Im(conj(P S) · r)`` on each capture's modes, and ``Σ |D S|²``.
         """
-        xp = self.xp
+        xp, operator = self.xp, self._operator
+        sums_first, sums_power = self._pupil_sums
+        if operator.fused and self._basis is None and sums_first.shape[0] == 1:
+            fused.add_pupil_sums(xp, sums_first[0], sums_power[0], self._discs[step], self._spectrum,
+                                 xp.ascontiguousarray(operator.index[step]), residuals, 1.0 / self._layout.lowres_size)
+            return
+        seen = operator.boxes(self._spectrum, step)   # the spectrum is updated after this call's sums
         residuals = residuals * xp.float32(1.0 / self._layout.lowres_size)
         lit = self._discs[step] * seen
         power = xp.square(xp.abs(lit))
@@ -389,7 +487,6 @@ class BatchedMomentum(MomentumBase):
             gradient = xp.imag(xp.conj(self._pupils[step] * seen) * residuals)
             first = xp.einsum("knp,kp->kn", self._basis[step], gradient.reshape(gradient.shape[0], -1))
             index = self._mode_index[step]
-        sums_first, sums_power = self._pupil_sums
         if sums_first.shape[0] == 1:
             sums_first[0] += first.sum(axis=0, dtype=sums_first.dtype)
             sums_power[0] += power.sum(axis=0, dtype=xp.float64)
@@ -403,13 +500,12 @@ class BatchedMomentum(MomentumBase):
         recovery = self.calibrator.recovery
         misfit = 0.0
         for step in self._steps:
-            seen = operator.boxes(spectrum, step)
-            fields = operator.fields(seen, self._pupil_boxes[step])
+            fields = operator.fields(spectrum, step, self._pupil_boxes[step])
             misfit = misfit + self._data_step(fields, step)
             residuals = operator.spectra(fields)
             if recovery is not None:
-                self._accumulate_pupil(step, seen, residuals)
-            operator.scatter(residuals * self._factors[step], step, spectrum)
+                self._accumulate_pupil(step, residuals)
+            operator.scatter(residuals, step, spectrum, self._factors[step])
         if recovery is not None:   # the pass's sums join the recovery's own (host) sums
             zernike = recovery.zernike_sums(0)
             first, power = (recovery.lane_sums(0)[2:] if zernike is None else zernike[3:])

@@ -77,7 +77,8 @@ class MomentumBase(CalibratingEngine):
     ``_batch``, ``_held`` (:class:`~cca_cli.engines.held_back.HeldBack`), ``_lanes`` (how far the
     schedule splits the spectrum), ``_model``, a :class:`~cca_cli.engines.calibrator.Calibrator` and a
     :class:`~cca_cli.engines.stopping.StoppingPolicy`, and provides ``_momentum`` (the momentum step),
-    ``_arrange`` (:meth:`_lay_out`, then the model) and ``_set_model`` (pupils in engine order).
+    ``_arrange`` (:meth:`_lay_out`, then the model) and ``_set_model`` (pupils in engine order); one that
+    keeps no host ``_model`` overrides ``_engine_pupils``.
     ``_to_host`` / ``_to_device`` move arrays where the engine keeps them elsewhere (a GPU).
     """
 
@@ -187,7 +188,11 @@ class MomentumBase(CalibratingEngine):
             return calibrator.calibration(calibrator.pupils_for(self._all_layout, calibrator.pupil_index))
         inverse = np.empty_like(self._order)
         inverse[self._order] = np.arange(self._order.size)
-        return calibrator.calibration(np.asarray(self._model.pupils)[inverse].copy())
+        return calibrator.calibration(self._engine_pupils()[inverse].copy())
+
+    def _engine_pupils(self) -> np.ndarray:
+        """The pupils the passes use now (engine order, on the host), complex64 (K, b, b)."""
+        return np.asarray(self._model.pupils)
 
     def state(self) -> dict:
         """Spectrum, momentum, calibration and stopping state (problem order, on the host)."""

@@ -163,18 +163,29 @@ def to_host(array) -> np.ndarray:
 def fft2(xp: ModuleType, array):
     """Unnormalised forward 2-D FFT over the last two axes, batched over the leading ones; keeps complex64.
 
-    numpy arrays go through ``scipy.fft`` (single precision, all cores), CuPy arrays through cuFFT.
+    numpy arrays go through ``scipy.fft`` (single precision, all cores), CuPy arrays through cuFFT; either
+    may overwrite ``array``.
     """
     if xp is np:
         return scipy.fft.fft2(array, norm="backward", overwrite_x=True, workers=_workers())
-    return xp.fft.fft2(array, norm="backward")
+    return _cupy_fft().fft2(array, norm="backward", overwrite_x=True)
 
 
 def ifft2(xp: ModuleType, array):
-    """Unnormalised inverse 2-D FFT over the last two axes (``Σ X exp(+2πi k n / m)``), batched; keeps complex64."""
+    """Unnormalised inverse 2-D FFT over the last two axes (``Σ X exp(+2πi k n / m)``), batched; keeps complex64.
+
+    May overwrite ``array``.
+    """
     if xp is np:
         return scipy.fft.ifft2(array, norm="forward", overwrite_x=True, workers=_workers())
-    return xp.fft.ifft2(array, norm="forward")
+    return _cupy_fft().ifft2(array, norm="forward", overwrite_x=True)
+
+
+def _cupy_fft() -> ModuleType:
+    """CuPy's ``scipy.fft``, whose transforms may run in place (``overwrite_x``); ``cupy.fft`` always copies."""
+    import cupyx.scipy.fft
+
+    return cupyx.scipy.fft
 
 
 def _workers() -> int:

@@ -5,13 +5,14 @@ import pytest
 
 from cca_cli.engines.altmin import AlternatingMinimization, AltMinOptions
 from cca_cli.engines.base import run_engine
-from cca_cli.engines.batched import (BatchedAlternatingMinimization, BatchedMomentum, BoxOperator, merged_steps,
-                                     unsupported_options)
+from cca_cli.engines import batched
+from cca_cli.engines.batched import (BatchedAlternatingMinimization, BatchedMomentum, BoxOperator, RpieFactors,
+                                     merged_steps, unsupported_options)
 from cca_cli.engines.momentum import MomentumOptions, SequentialMomentum
 from cca_cli.engines.problem import PhaseRetrievalProblem
 from cca_cli.engines.schedule import build_schedule
 from cca_cli.metrics import rmse
-from cca_cli.optics import backend, fft
+from cca_cli.optics import backend, fft, kernels
 from cca_cli.optics.backend import DeviceUnavailable
 from cca_cli.optics.forward import ForwardModel
 from cca_cli.optics.pupil import circular_pupils
@@ -131,12 +132,32 @@ def test_the_box_operator_is_the_forward_model(simulated):
     spectrum = fft.fft2c(truth).astype(np.complex64)
     operator = BoxOperator(np, model.layout)
     everything = slice(0, model.n_images)
-    fields = operator.fields(operator.boxes(spectrum, everything), model.pupil_boxes)
+    fields = operator.fields(spectrum, everything, model.pupil_boxes)
     np.testing.assert_allclose(fields, model.forward(spectrum), atol=1e-5 * np.abs(fields).max())
     adjoint = np.zeros(model.spectrum_shape, np.complex64)
-    operator.scatter(operator.spectra(fields.copy()) * np.conj(model.pupil_boxes), everything, adjoint)
+    operator.scatter(operator.spectra(fields.copy()), everything, adjoint, np.conj(model.pupil_boxes))
     expected = model.adjoint(model.forward(spectrum))
     np.testing.assert_allclose(adjoint, expected, atol=1e-5 * np.abs(expected).max())
+
+
+@pytest.mark.parametrize("group_bytes", [batched.FIELD_BYTES, 3 * SIZE * SIZE * 4])
+def test_rpie_factors_on_the_device_are_the_compiled_kernels(simulated, monkeypatch, group_bytes):
+    """Batches of uneven sizes, out of order, formed together or a few batches at a time."""
+    model, _, _, _, _ = simulated
+    layout = model.layout
+    monkeypatch.setattr(batched, "FIELD_BYTES", group_bytes)
+    rng = np.random.default_rng(3)
+    shape = (model.n_images, layout.box_size, layout.box_size)
+    pupils = (model.pupils * np.exp(1j * rng.uniform(0, 1, shape)) * rng.uniform(0.5, 1.5, shape)).astype(np.complex64)
+    batches = [slice(8, 20), slice(0, 8), slice(20, 23), slice(23, model.n_images)]
+    options = dict(alpha=0.3, tau=1e-3, scale=0.7)
+    expected = np.zeros_like(pupils)
+    kernels.rpie_factors(pupils, np.ascontiguousarray(layout.box_origins, np.int64),
+                         np.array([[b.start, b.stop] for b in batches], np.int64),
+                         coverage=np.zeros(model.spectrum_shape, np.float32), out=expected, **options)
+    found = RpieFactors(np, BoxOperator(np, layout), batches, **options)(pupils)
+    np.testing.assert_allclose(found, expected, rtol=1e-5, atol=1e-6 * np.abs(expected).max())
+    assert len(RpieFactors(np, BoxOperator(np, layout), batches, **options)._groups) == (1 if group_bytes > 1e6 else 2)
 
 
 def test_checkpoints_move_between_the_cpu_and_the_batched_engine(simulated):

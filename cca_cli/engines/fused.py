@@ -1,0 +1,225 @@
+"""CuPy kernels that do a batched engine step in one launch instead of eight or ten.
+
+On a GPU the batched momentum engine is bound by launches, not arithmetic: a call of 24
+blood-smear captures spends about 0.2 ms on each of its data step and pupil sums, most of it in
+the small elementwise operations (abs, subtract, square, maximum, divide, conj, casts) each of
+which is one launch. The kernels here fuse them:
+
+* :func:`box_fields`: gather each capture's spectrum box, multiply by its pupil and place it in the
+  middle of a zeroed field (four launches and a temporary before);
+* :func:`data_step`: the amplitude data step ``ψ ← w (A/max(|ψ|, ε) − 1) ψ`` of
+  :func:`~cca_cli.engines.batched.project` (``keep=False``) and its misfit ``Σ w (|ψ| − A)²``;
+* :func:`add_pupil_sums`: a shared map pupil's sums ``Σ_k conj(D_k S_k) r_k / m`` and
+  ``Σ_k |D_k S_k|²``, one thread per pupil pixel looping over the call's captures, added in
+  float64 into the sums in place;
+* :func:`scatter`: multiply by the rPIE factors (or the adjoint pupils) and add the boxes into the
+  spectrum with atomic adds (a product and two ``cupyx.scatter_add`` calls before).
+
+The kernels are compiled on first use; :func:`available` compiles them and checks them against
+the numpy-style operations once per process, and the engine uses them only where that check
+passed (a CuPy build that cannot compile them runs the operations one by one, as before, after
+one warning).
+"""
+
+from __future__ import annotations
+
+import functools
+import warnings
+from types import ModuleType
+
+import numpy as np
+
+__all__ = ["available", "box_fields", "data_step", "add_pupil_sums", "scatter"]
+
+_DATA_STEP = ("float32 target, float32 weight, float32 eps", "complex64 field, float32 squared", """
+    const float magnitude = abs(field);
+    const float misfit = magnitude - target;
+    squared = weight * misfit * misfit;
+    field = field * (weight * (target / max(magnitude, eps) - 1.0f));
+""")
+
+_FIELDS = ("raw complex64 spectrum, raw int64 index, raw complex64 pupils, int32 m, int32 b, int32 start",
+           "complex64 field", """
+    const ptrdiff_t capture = i / ((ptrdiff_t)m * m);
+    const int y = (int)((i / m) % m) - start, x = (int)(i % m) - start;
+    if (y >= 0 && y < b && x >= 0 && x < b) {
+        const ptrdiff_t n = (capture * b + y) * b + x;
+        field = spectrum[index[n]] * pupils[n];
+    } else {
+        field = complex<float>(0.0f, 0.0f);
+    }
+""")
+
+_SCATTER = ("complex64 value, complex64 factor, int64 index", "raw float32 target", """
+    const complex<float> v = value * factor;
+    atomicAdd(&target[2 * index], v.real());
+    atomicAdd(&target[2 * index + 1], v.imag());
+""")
+
+_PUPIL_SUMS = ("raw float32 discs, raw complex64 spectrum, raw int64 index, raw complex64 residuals, int32 count, "
+               "int32 area, float32 scale", "complex128 first, float64 power", """
+    double re = 0.0, im = 0.0, pw = 0.0;
+    for (int j = 0; j < count; ++j) {
+        const ptrdiff_t n = (ptrdiff_t)j * area + i;
+        const complex<float> lit = spectrum[index[n]] * discs[n];
+        const complex<float> r = residuals[n];
+        re += (double)(lit.real() * r.real() + lit.imag() * r.imag());
+        im += (double)(lit.real() * r.imag() - lit.imag() * r.real());
+        pw += (double)(lit.real() * lit.real() + lit.imag() * lit.imag());
+    }
+    first += complex<double>(re * scale, im * scale);
+    power += pw;
+""")
+
+
+@functools.lru_cache(maxsize=None)
+def _kernels(xp: ModuleType) -> tuple:
+    return (xp.ElementwiseKernel(*_DATA_STEP, "cca_data_step"),
+            xp.ElementwiseKernel(*_PUPIL_SUMS, "cca_pupil_sums"),
+            xp.ElementwiseKernel(*_FIELDS, "cca_fields"),
+            xp.ElementwiseKernel(*_SCATTER, "cca_scatter"))
+
+
+def box_fields(xp: ModuleType, spectrum, index, pupils, m: int):
+    """Fields ``F⁻¹``-ready: each capture's box ``spectrum.flat[index] · pupil`` in the middle of an m x m grid.
+
+    Parameters
+    ----------
+    xp : module
+        CuPy.
+    spectrum : complex64 (M, M), C-contiguous
+    index : int64 (k, b, b), C-contiguous
+        Flat spectrum index of every box pixel.
+    pupils : complex64 (k, b, b), C-contiguous
+    m : int
+        Field side; the box starts at ``m // 2 − b // 2``.
+
+    Returns
+    -------
+    complex64 (k, m, m)
+        Zero outside the boxes (what :meth:`~cca_cli.engines.batched.BoxOperator.fields` transforms).
+    """
+    b = index.shape[1]
+    out = xp.empty((index.shape[0], m, m), xp.complex64)
+    _kernels(xp)[2](spectrum, index, pupils, np.int32(m), np.int32(b), np.int32(m // 2 - b // 2), out)
+    return out
+
+
+def scatter(xp: ModuleType, target, index, values, factors=None) -> None:
+    """``target.flat[index] += values · factors`` by atomic adds (repeated indices add up).
+
+    Parameters
+    ----------
+    xp : module
+        CuPy.
+    target : complex64, C-contiguous
+    index : int64 (k, b, b)
+    values, factors : complex64 (k, b, b), any strides (``factors`` None: 1)
+    """
+    factor = np.complex64(1.0) if factors is None else factors
+    _kernels(xp)[3](values, factor, index, target.reshape(-1).view(xp.float32))
+
+
+def data_step(xp: ModuleType, fields, targets, weights, eps: float):
+    """``fields ← w (A/max(|ψ|, ε) − 1) ψ`` in place; returns ``Σ w (|ψ| − A)²`` (a float64 device scalar).
+
+    Parameters
+    ----------
+    xp : module
+        CuPy.
+    fields : complex64 (k, m, m), C-contiguous
+    targets : float32 (k, m, m)
+        Measured amplitudes ``A``.
+    weights : float32 (k, m, m) or None
+    eps : float
+        Floor on ``|ψ|``.
+    """
+    squared = xp.empty(fields.shape, xp.float32)
+    weight = xp.float32(1.0) if weights is None else weights
+    _kernels(xp)[0](targets, weight, xp.float32(eps), fields, squared)
+    return squared.sum(dtype=xp.float64)
+
+
+def add_pupil_sums(xp: ModuleType, first, power, discs, spectrum, index, residuals, scale: float) -> None:
+    """Add ``Σ_k conj(D_k S_k) r_k · scale`` to ``first`` and ``Σ_k |D_k S_k|²`` to ``power`` (one shared pupil).
+
+    Parameters
+    ----------
+    xp : module
+        CuPy.
+    first : complex128 (b, b), C-contiguous
+    power : float64 (b, b), C-contiguous
+    discs : float32 (k, b, b)
+        Each capture's NA disc ``D_k``.
+    spectrum : complex64 (M, M), C-contiguous
+        The spectrum the call read (its boxes ``S_k``), not yet updated.
+    index : int64 (k, b, b), C-contiguous
+        Flat spectrum index of every box pixel.
+    residuals : complex64 (k, b, b), any strides
+        The call's data-step spectra ``r_k``.
+    scale : float
+    """
+    count, b = index.shape[0], index.shape[1]
+    _kernels(xp)[1](discs, spectrum, index, residuals, np.int32(count), np.int32(b * b), xp.float32(scale), first,
+                    power)
+
+
+def _reference_data_step(xp, fields, targets, weights, eps):
+    magnitude = xp.abs(fields)
+    squared = xp.sum(weights * xp.square(magnitude - targets), dtype=xp.float64)
+    fields *= weights * (targets / xp.maximum(magnitude, xp.float32(eps)) - 1)
+    return squared
+
+
+@functools.lru_cache(maxsize=None)
+def available(xp: ModuleType) -> bool:
+    """Whether the fused kernels compile on ``xp`` (CuPy) and agree with the operations they replace.
+
+    False for numpy, and (after one warning naming the reason) where compiling or the check fails.
+    """
+    if xp is np:
+        return False
+    try:
+        rng = np.random.default_rng(0)
+        shape = (3, 8, 8)
+        psi = (rng.standard_normal(shape) + 1j * rng.standard_normal(shape)).astype(np.complex64)
+        targets = rng.uniform(0, 2, shape).astype(np.float32)
+        weights = rng.uniform(0.5, 1, shape).astype(np.float32)
+        got = xp.array(psi)   # a copy on either module
+        misfit = float(data_step(xp, got, xp.asarray(targets), xp.asarray(weights), 1e-3))
+        expected = psi.copy()
+        expected_misfit = float(_reference_data_step(np, expected, targets, weights, 1e-3))
+        ok = (np.allclose(xp.asnumpy(got), expected, rtol=1e-5, atol=1e-6)
+              and np.isclose(misfit, expected_misfit, rtol=1e-5))
+        # three overlapping 8 x 8 boxes of a 16 x 16 spectrum, placed on a 12 x 12 field grid
+        spectrum = (rng.standard_normal((16, 16)) + 1j * rng.standard_normal((16, 16))).astype(np.complex64)
+        origins = np.array([[0, 0], [3, 5], [8, 8]])
+        index = ((origins[:, 0, None, None] + np.arange(8)[None, :, None]) * 16
+                 + origins[:, 1, None, None] + np.arange(8)[None, None, :]).astype(np.int64)
+        seen = spectrum.reshape(-1)[index]
+        pupils = (seen * 0.5j).astype(np.complex64)
+        got = box_fields(xp, xp.asarray(spectrum), xp.asarray(index), xp.asarray(pupils), 12)
+        expected = np.zeros((3, 12, 12), np.complex64)
+        expected[:, 2:10, 2:10] = seen * pupils
+        ok = ok and np.allclose(xp.asnumpy(got), expected, rtol=1e-6, atol=1e-6)
+        discs = rng.uniform(0, 1, shape).astype(np.float32)
+        wide = (rng.standard_normal((3, 12, 12)) + 1j * rng.standard_normal((3, 12, 12))).astype(np.complex64)
+        residuals = wide[:, 2:10, 2:10]                      # strided, as the engine's spectra are
+        first, power = xp.zeros((8, 8), xp.complex128), xp.zeros((8, 8), xp.float64)
+        add_pupil_sums(xp, first, power, xp.asarray(discs), xp.asarray(spectrum), xp.asarray(index),
+                       xp.asarray(wide)[:, 2:10, 2:10], 0.5)
+        lit = discs * seen
+        ok = ok and np.allclose(xp.asnumpy(first), (np.conj(lit) * residuals).sum(axis=0) * 0.5, rtol=1e-5, atol=1e-5)
+        ok = ok and np.allclose(xp.asnumpy(power), np.square(np.abs(lit)).sum(axis=0), rtol=1e-5, atol=1e-5)
+        target = xp.zeros((16, 16), xp.complex64)
+        scatter(xp, target, xp.asarray(index), xp.asarray(wide)[:, 2:10, 2:10], xp.asarray(pupils))
+        added = np.zeros(256, np.complex64)
+        np.add.at(added, index.reshape(-1), (residuals * pupils).reshape(-1))
+        ok = ok and np.allclose(xp.asnumpy(target).reshape(-1), added, rtol=1e-5, atol=1e-5)
+        if not ok:
+            raise ValueError("the fused kernels disagree with the operations they replace")
+        return True
+    except Exception as exc:   # a CuPy that cannot compile them still runs the engine, one operation at a time
+        warnings.warn(f"fused GPU kernels unavailable ({type(exc).__name__}: {str(exc).splitlines()[0][:160]}); "
+                      "running each step's operations one by one", RuntimeWarning, stacklevel=2)
+        return False

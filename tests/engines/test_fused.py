@@ -1,0 +1,74 @@
+"""The fused CuPy kernels: their reference formulas here, the kernels themselves on a GPU (skipped without one)."""
+
+import numpy as np
+import pytest
+
+from cca_cli.engines import fused
+from cca_cli.engines.batched import project
+from cca_cli.optics import backend
+
+
+def _random(shape, seed=0):
+    rng = np.random.default_rng(seed)
+    fields = (rng.standard_normal(shape) + 1j * rng.standard_normal(shape)).astype(np.complex64)
+    return fields, rng.uniform(0, 2, shape).astype(np.float32), rng.uniform(0.5, 1, shape).astype(np.float32)
+
+
+def test_numpy_never_takes_the_fused_path():
+    assert fused.available(np) is False
+
+
+def test_the_self_check_reference_is_the_engine_data_step():
+    fields, targets, weights = _random((4, 16, 16))
+    expected = fields.copy()
+    expected_misfit = float(project(np, expected, targets, weights, 1e-3, keep=False))
+    found = fields.copy()
+    found_misfit = float(fused._reference_data_step(np, found, targets, weights, 1e-3))
+    np.testing.assert_allclose(found, expected, rtol=1e-5, atol=1e-6)
+    assert found_misfit == pytest.approx(expected_misfit, rel=1e-5)
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("weighted", [False, True])
+def test_gpu_fused_kernels_are_the_operations_they_replace(weighted):
+    if not backend.device_status().cuda:
+        pytest.skip(f"needs CuPy and a CUDA GPU ({backend.device_status().summary})")
+    cupy = backend.cupy_module()
+    assert fused.available(cupy)
+    fields, targets, weights = _random((24, 144, 144), seed=1)
+    weights = weights if weighted else None
+    expected = fields.copy()
+    expected_misfit = float(project(np, expected, targets, weights, 1e-3, keep=False))
+    found = cupy.array(fields)
+    misfit = float(fused.data_step(cupy, found, cupy.asarray(targets), None if weights is None else cupy.asarray(weights),
+                                   1e-3))
+    np.testing.assert_allclose(cupy.asnumpy(found), expected, rtol=1e-5, atol=1e-5 * np.abs(expected).max())
+    assert misfit == pytest.approx(expected_misfit, rel=1e-5)
+
+    rng = np.random.default_rng(2)
+    discs = rng.uniform(0, 1, (24, 104, 104)).astype(np.float32)
+    spectrum = (rng.standard_normal((420, 420)) + 1j * rng.standard_normal((420, 420))).astype(np.complex64)
+    origins = rng.integers(0, 420 - 104, (24, 2))
+    index = ((origins[:, 0, None, None] + np.arange(104)[None, :, None]) * 420
+             + origins[:, 1, None, None] + np.arange(104)[None, None, :]).astype(np.int64)
+    seen = spectrum.reshape(-1)[index]
+    residuals = expected[:, 20:124, 20:124]
+    first, power = cupy.zeros((104, 104), cupy.complex128), cupy.zeros((104, 104), cupy.float64)
+    fused.add_pupil_sums(cupy, first, power, cupy.asarray(discs), cupy.asarray(spectrum), cupy.asarray(index),
+                         cupy.asarray(expected)[:, 20:124, 20:124], 1 / 144)
+    lit = (discs * seen).astype(np.complex128)
+    want = (np.conj(lit) * residuals).sum(axis=0) / 144
+    np.testing.assert_allclose(cupy.asnumpy(first), want, atol=1e-5 * np.abs(want).max())
+    np.testing.assert_allclose(cupy.asnumpy(power), np.square(np.abs(lit)).sum(axis=0), rtol=1e-5)
+
+    pupils = (seen * np.exp(1j * discs)).astype(np.complex64)
+    placed = fused.box_fields(cupy, cupy.asarray(spectrum), cupy.asarray(index), cupy.asarray(pupils), 144)
+    want_fields = np.zeros((24, 144, 144), np.complex64)
+    want_fields[:, 20:124, 20:124] = seen * pupils
+    np.testing.assert_allclose(cupy.asnumpy(placed), want_fields, rtol=1e-6, atol=1e-6 * np.abs(want_fields).max())
+
+    target = cupy.zeros((420, 420), cupy.complex64)
+    fused.scatter(cupy, target, cupy.asarray(index), cupy.asarray(expected)[:, 20:124, 20:124], cupy.asarray(pupils))
+    added = np.zeros(420 * 420, np.complex128)
+    np.add.at(added, index.reshape(-1), (residuals.astype(np.complex128) * pupils).reshape(-1))
+    np.testing.assert_allclose(cupy.asnumpy(target).reshape(-1), added, atol=1e-5 * np.abs(added).max())
