@@ -41,6 +41,9 @@ def run_cli(
         if status == "skipped":
             err_console.print(f"{plan.name}: {plan.output} is up to date, skipped", style="dim", highlight=False,
                               soft_wrap=True)
+        elif status == "outdated":
+            err_console.print(f"{plan.name}: {plan.output} was made with other engine defaults (another cca), "
+                              "recomputing", style="dim", highlight=False, soft_wrap=True)
 
     tiled = cfg.reconstruct is not None and cfg.reconstruct.tiles is not None
     with cluster_options(workers, scheduler, used=tiled), progress_reporter(not quiet) as progress:

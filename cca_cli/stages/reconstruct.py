@@ -12,17 +12,18 @@ from pathlib import Path
 
 from cca_cli.config.model import ReconstructSection
 from cca_cli.engines.base import History
-from cca_cli.errors import ConfigError, InputError
+from cca_cli.errors import CcaError, ConfigError, InputError
 from cca_cli.io.captures import read_captures
 from cca_cli.io.checkpoint import (checkpoint_damage, checkpoint_path, read_checkpoint, remove_checkpoint,
                                    write_checkpoint)
-from cca_cli.io.h5 import Provenance, check_output, file_sha256
+from cca_cli.io.geometry import read_geometry
+from cca_cli.io.h5 import Provenance, check_output, file_sha256, open_input
 from cca_cli.io.outputs import is_cca_hdf5
 from cca_cli.io.recon import write_recon
 from cca_cli.library.data import Reconstruction
 from cca_cli.stages.progress import ProgressFn, silent
 from cca_cli.version import __version__
-from cca_cli.workflows.recovery import check_device, reconstruct_captures
+from cca_cli.workflows.recovery import check_device, engine_options, reconstruct_captures
 
 __all__ = ["SECTIONS", "Checkpointing", "checkpoint_fingerprint", "run", "run_tiled"]
 
@@ -111,6 +112,29 @@ def checkpoint_fingerprint(section: ReconstructSection, provenance: Provenance, 
         init = [str(section.init), stat.st_size, stat.st_mtime_ns]
     data = {"inputs": inputs or [file_sha256(captures_path)], "init": init, "version": __version__,
             "section": section.model_dump(mode="json", exclude={"checkpoint_every", *section.NOT_RECIPE})}
+    return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
+
+
+def captures_kind(captures_path: Path) -> str:
+    """What a captures file holds, as :attr:`~cca_cli.library.data.CaptureSet.kind` says, from its geometry alone."""
+    with open_input(captures_path) as handle:
+        truth = "truth" in handle and len(handle["truth"]) > 0
+        return "simulation" if truth else read_geometry(handle).kind
+
+
+def engine_recipe(captures_path: Path, section: ReconstructSection) -> str:
+    """SHA-256 of the engine and options ``section`` resolves to on these captures, cca's defaults included.
+
+    The stage records it (provenance ``engine_recipe``), so that a recon.h5 made before cca's engine
+    defaults changed counts as outdated although its config and captures are the same. Threads are left
+    out (results are reproducible per thread count, and the count follows the machine). Empty when the
+    section's options do not resolve (the run itself then says why).
+    """
+    try:
+        name, options = engine_options(section, captures_kind(captures_path))
+    except CcaError:
+        return ""
+    data = {"engine": name, "options": options.model_dump(mode="json", exclude={"threads"})}
     return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
 
 

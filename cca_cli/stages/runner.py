@@ -2,7 +2,10 @@
 
 A stage's output is up to date when it exists, is complete (a report folder
 still holds every file it lists) and records the same hash of the config
-sections the stage reads and the same SHA-256 of its input files. Outputs
+sections the stage reads and the same SHA-256 of its input files; a
+reconstruction also records the engine and options its section resolved to
+(cca's defaults included), and one that another cca's defaults made is
+recomputed. Outputs
 appear atomically, so an interrupted run resumes at the first stage without a
 complete, matching output. One run at a time writes in a folder (a lock file);
 temporaries that killed runs left are removed, and an output cca did not write
@@ -128,9 +131,10 @@ def _recorded_provenance(output: Path) -> dict:
     return read_provenance(output) if output.exists() else {}
 
 
-def is_up_to_date(plan: StagePlan, digest: str) -> bool:
-    """Whether ``plan.output`` exists, complete, with the same config hash and input hashes."""
-    return _state(plan, digest) == "current"
+def is_up_to_date(plan: StagePlan, digest: str, section: BaseModel | None = None) -> bool:
+    """Whether ``plan.output`` exists, complete, with the same config hash and input hashes (and, for a
+    reconstruction given its ``section``, made with today's engine defaults)."""
+    return _state(plan, digest, section) == "current"
 
 
 @functools.lru_cache(maxsize=64)
@@ -144,9 +148,11 @@ def _sha256(path: Path) -> str:
     return _cached_sha256(str(Path(path).resolve()), stat.st_size, stat.st_mtime_ns)
 
 
-def _state(plan: StagePlan, digest: str) -> str:
+def _state(plan: StagePlan, digest: str, section: BaseModel | None = None) -> str:
     """``current``; ``incomplete`` (cca's, same config and inputs, files missing, or a report folder that lost
-    report.json); ``other`` (another config or inputs); ``foreign`` (not written by cca, or unreadable)."""
+    report.json); ``outdated`` (a reconstruction of the same config and inputs whose engine and options, cca's
+    defaults included, were others: made by another cca; checked when its ``section`` is given); ``other``
+    (another config or inputs); ``foreign`` (not written by cca, or unreadable)."""
     if foreign_part(plan.output) is not None:
         return "foreign"
     if plan.output.is_dir() and not (plan.output / report_stage.REPORT_JSON).is_file():
@@ -161,6 +167,11 @@ def _state(plan: StagePlan, digest: str) -> str:
         same_inputs = False
     if not same_inputs:
         return "other"
+    if plan.name == "reconstruct" and section is not None:
+        from cca_cli.stages.reconstruct import engine_recipe
+
+        if recorded.get("engine_recipe") != engine_recipe(plan.inputs[0], section):
+            return "outdated"
     if plan.output.is_dir() and not folder_complete(plan.output):
         return "incomplete"
     return "current"
@@ -180,7 +191,8 @@ def run_pipeline(config: RunConfig, out_dir: Path, *, force: bool = False, progr
     progress : callable
         Receives :class:`~cca_cli.stages.progress.ProgressEvent` objects.
     on_stage : callable, optional
-        Called with ``(plan, "start" | "skipped")`` before each stage.
+        Called with ``(plan, "start" | "skipped")`` before each stage, and with ``(plan, "outdated")`` before
+        a reconstruction of the same config and inputs that another cca's engine defaults made is recomputed.
     source : str or Path, optional
         The config file, named in messages about the run's size.
 
@@ -214,7 +226,7 @@ def _check_before_running(config: RunConfig, plans: list[StagePlan], *, force: b
     rewritten: set[Path] = set()
     for plan in plans:  # the same decisions as _run_stages, without running anything
         exists = plan.output.exists() or plan.output.is_symlink()
-        state = _state(plan, config_hash(pick_sections(config, plan.sections))) if exists else None
+        state = _state(plan, config_hash(pick_sections(config, plan.sections)), config.reconstruct) if exists else None
         if state == "foreign":
             _refuse_existing(plan, state)
         if exists and not force and not rewritten.intersection(plan.inputs):
@@ -262,9 +274,11 @@ def _run_stages(config: RunConfig, plans: list[StagePlan], *, force: bool, progr
         sections = pick_sections(config, plan.sections)
         digest = config_hash(sections)
         if plan.output.exists() or plan.output.is_symlink():
-            state = _state(plan, digest)
+            state = _state(plan, digest, config.reconstruct)
             if state == "foreign":
                 _refuse_existing(plan, state)
+            if state == "outdated" and not force and on_stage:
+                on_stage(plan, "outdated")
             # An output made from an input this run just rewrote is stale by construction: recompute it.
             if not force and not rewritten.intersection(plan.inputs):
                 if state == "other":
@@ -278,6 +292,10 @@ def _run_stages(config: RunConfig, plans: list[StagePlan], *, force: bool, progr
             on_stage(plan, "start")
         start = time.perf_counter()
         provenance = stage_provenance(plan.name, sections, plan.inputs)
+        if plan.name == "reconstruct":
+            from cca_cli.stages.reconstruct import engine_recipe
+
+            provenance["engine_recipe"] = engine_recipe(plan.inputs[0], config.reconstruct)
         if plan.name == "simulate":
             check_footprint(simulate_footprint(config), plan.output, source=source)
             args = (config,)

@@ -12,6 +12,7 @@ import pytest
 from cca_cli.config.load import apply_overrides
 from cca_cli.errors import OutputExistsError
 from cca_cli.io.schema import SCHEMA_VERSION
+from cca_cli.stages import reconstruct as reconstruct_stage
 from cca_cli.stages import simulate as simulate_stage
 from cca_cli.stages.runner import config_hash, pick_sections, plan_stages, run_pipeline
 from cca_cli.units import spot_size_m
@@ -143,6 +144,42 @@ def test_deleting_recon_reruns_only_reconstruct_and_report(finished_run, tiny_ru
     assert recorded[0]["sha256"] == file_sha256(out / "recon.h5")
     # ... and now everything is up to date again.
     assert set(_statuses(run_pipeline(tiny_run_config, out)).values()) == {"skipped"}
+
+
+@pytest.mark.parametrize("how", ["defaults changed", "made before recipes were recorded"])
+def test_a_recon_from_other_engine_defaults_is_recomputed(finished_run, tiny_run_config, tmp_path, monkeypatch, how):
+    """Same config and captures, but cca's defaults changed since recon.h5 was made: recomputed, with a note."""
+    out = _copy(finished_run, tmp_path)
+    captures = (out / "captures.h5").read_bytes()
+    with h5py.File(out / "recon.h5", "r") as handle:
+        recorded = handle.attrs["engine_recipe"]
+    assert recorded == reconstruct_stage.engine_recipe(out / "captures.h5", tiny_run_config.reconstruct)
+    if how == "defaults changed":
+        name, options = reconstruct_stage.engine_options(tiny_run_config.reconstruct, "simulation")
+        changed = options.model_copy(update={"tau": options.tau * 2 + 1e-3})
+        monkeypatch.setattr(reconstruct_stage, "engine_options", lambda section, kind: (name, changed))
+    else:
+        with h5py.File(out / "recon.h5", "a") as handle:
+            del handle.attrs["engine_recipe"]
+    stages = []
+    outcomes = run_pipeline(tiny_run_config, out, on_stage=lambda plan, status: stages.append((plan.name, status)))
+    assert _statuses(outcomes) == {"simulate": "skipped", "reconstruct": "ran", "report": "ran"}
+    assert ("reconstruct", "outdated") in stages
+    assert (out / "captures.h5").read_bytes() == captures
+    with h5py.File(out / "recon.h5", "r") as handle:
+        assert handle.attrs["engine_recipe"] == reconstruct_stage.engine_recipe(out / "captures.h5",
+                                                                                tiny_run_config.reconstruct)
+    assert set(_statuses(run_pipeline(tiny_run_config, out)).values()) == {"skipped"}
+
+
+def test_the_engine_recipe_leaves_threads_and_device_out(finished_run, tiny_run_config):
+    captures = finished_run[0] / "captures.h5"
+    section = tiny_run_config.reconstruct
+    recipe = reconstruct_stage.engine_recipe(captures, section)
+    options = {**section.options, "threads": 1}
+    assert reconstruct_stage.engine_recipe(captures, section.model_copy(update={"options": options})) == recipe
+    assert reconstruct_stage.engine_recipe(captures, section.model_copy(update={"device": "auto"})) == recipe
+    assert reconstruct_stage.engine_recipe(captures, section.model_copy(update={"tau": section.tau * 2})) != recipe
 
 
 def test_changed_reconstruct_config_needs_force(finished_run, tiny_run_config, tmp_path):
