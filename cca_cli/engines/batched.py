@@ -13,9 +13,10 @@ captures at once, in complex64, with the array module ``xp`` they are given
 * batched forward FFT, multiply by the adjoint pupil (or the rPIE factor), and
   scatter-add the boxes back into the spectrum.
 
-On CuPy the amplitude data step and a shared map pupil's sums run as one fused kernel each
-(:mod:`cca_cli.engines.fused`), and the rPIE factors of a pass are formed on the device
-(:class:`RpieFactors`): a pupil step sends only the pupil maps across.
+On CuPy the gather and placement of the boxes, the amplitude data step, a shared map pupil's
+sums and the scatter-add run as one fused kernel each (:mod:`cca_cli.engines.fused`), and the
+rPIE factors are formed on the device (:class:`RpieFactors`): a pupil step of a map model sends
+only the pupil maps across.
 
 They read the same problem (:class:`~cca_cli.engines.problem.PhaseRetrievalProblem`),
 take the same options, stop by the same :class:`~cca_cli.engines.stopping.StoppingPolicy`
@@ -439,6 +440,7 @@ class BatchedMomentum(MomentumBase):
         self._factors = self._rpie(pupils)
 
     def _engine_pupils(self) -> np.ndarray:
+        """The pupils the passes use now (engine order), copied to the host."""
         return backend.to_host(self._pupils)
 
     # ------------------------------------------------------------ the update rule
