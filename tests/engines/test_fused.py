@@ -72,3 +72,22 @@ def test_gpu_fused_kernels_are_the_operations_they_replace(weighted):
     added = np.zeros(420 * 420, np.complex128)
     np.add.at(added, index.reshape(-1), (residuals.astype(np.complex128) * pupils).reshape(-1))
     np.testing.assert_allclose(cupy.asnumpy(target).reshape(-1), added, atol=1e-5 * np.abs(added).max())
+
+
+def test_a_cupy_that_cannot_compile_them_runs_the_plain_operations_after_one_warning():
+    """available() on a module whose kernels fail to build: False, with one warning naming the reason."""
+
+    class NoCompiler:
+        __name__ = "no_compiler"
+        float32, float64, complex64, complex128 = np.float32, np.float64, np.complex64, np.complex128
+        asarray, array, zeros, empty = staticmethod(np.asarray), staticmethod(np.array), staticmethod(np.zeros), \
+            staticmethod(np.empty)
+
+        @staticmethod
+        def ElementwiseKernel(*args, **kwargs):
+            raise RuntimeError("nvrtc: compilation failed\nsecond line")
+
+    module = NoCompiler()
+    with pytest.warns(RuntimeWarning, match=r"fused GPU kernels unavailable \(RuntimeError: nvrtc: compilation "
+                                            r"failed\); running each step's operations one by one"):
+        assert fused.available(module) is False
