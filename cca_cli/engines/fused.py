@@ -116,6 +116,8 @@ def scatter(xp: ModuleType, target, index, values, factors=None) -> None:
     index : int64 (k, b, b)
     values, factors : complex64 (k, b, b), any strides (``factors`` None: 1)
     """
+    if not target.flags.c_contiguous:   # a copy would take the sums and drop them
+        raise ValueError("fused.scatter: target must be C-contiguous")
     factor = np.complex64(1.0) if factors is None else factors
     _kernels(xp)[3](values, factor, index, target.reshape(-1).view(xp.float32))
 
@@ -191,6 +193,12 @@ def available(xp: ModuleType) -> bool:
         expected_misfit = float(_reference_data_step(np, expected, targets, weights, 1e-3))
         ok = (np.allclose(xp.asnumpy(got), expected, rtol=1e-5, atol=1e-6)
               and np.isclose(misfit, expected_misfit, rtol=1e-5))
+        got = xp.array(psi)   # without weights: the kernel then takes a scalar weight (another compiled form)
+        misfit = float(data_step(xp, got, xp.asarray(targets), None, 1e-3))
+        expected = psi.copy()
+        expected_misfit = float(_reference_data_step(np, expected, targets, np.float32(1.0), 1e-3))
+        ok = ok and (np.allclose(xp.asnumpy(got), expected, rtol=1e-5, atol=1e-6)
+                     and np.isclose(misfit, expected_misfit, rtol=1e-5))
         # three overlapping 8 x 8 boxes of a 16 x 16 spectrum, placed on a 12 x 12 field grid
         spectrum = (rng.standard_normal((16, 16)) + 1j * rng.standard_normal((16, 16))).astype(np.complex64)
         origins = np.array([[0, 0], [3, 5], [8, 8]])

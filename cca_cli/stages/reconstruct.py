@@ -126,13 +126,24 @@ def engine_recipe(captures_path: Path, section: ReconstructSection) -> str:
     """SHA-256 of the engine and options ``section`` resolves to on these captures, cca's defaults included.
 
     The stage records it (provenance ``engine_recipe``), so that a recon.h5 made before cca's engine
-    defaults changed counts as outdated although its config and captures are the same. Threads are left
-    out (results are reproducible per thread count, and the count follows the machine). Empty when the
-    section's options do not resolve (the run itself then says why).
+    defaults changed counts as outdated although its config and captures are the same. It resolves as
+    the run does: multiplexed captures with the simulation preset, tiles with their own
+    (:func:`~cca_cli.workflows.tiled.tile_engine`), other captures by their kind. Threads are left out
+    (results are reproducible per thread count, and the count follows the machine). Empty when the
+    captures cannot be read or the section's options do not resolve (the run itself then says why).
     """
+    from cca_cli.workflows import multiplex
+    from cca_cli.workflows.tiled import tile_engine
+
     try:
-        name, options = engine_options(section, captures_kind(captures_path))
-    except CcaError:
+        if multiplex.is_multiplexed_file(captures_path):
+            name, options = engine_options(section, "simulation")
+        elif section.tiles is not None:
+            with open_input(captures_path) as handle:
+                name, options = tile_engine(section, read_geometry(handle).kind)
+        else:
+            name, options = engine_options(section, captures_kind(captures_path))
+    except (CcaError, OSError, KeyError, ValueError):
         return ""
     data = {"engine": name, "options": options.model_dump(mode="json", exclude={"threads"})}
     return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
@@ -149,6 +160,7 @@ def run(captures_path: Path, section: ReconstructSection, output: Path, *, prove
     """
     check_output(output, force=force)
     check_device(section)
+    provenance.setdefault("engine_recipe", engine_recipe(captures_path, section))
     from cca_cli.workflows import multiplex
 
     if section.device == "cuda" and (section.tiles is not None or multiplex.is_multiplexed_file(captures_path)):

@@ -133,7 +133,8 @@ def _recorded_provenance(output: Path) -> dict:
 
 def is_up_to_date(plan: StagePlan, digest: str, section: BaseModel | None = None) -> bool:
     """Whether ``plan.output`` exists, complete, with the same config hash and input hashes (and, for a
-    reconstruction given its ``section``, made with today's engine defaults)."""
+    reconstruction given its ``section``, made with today's engine defaults: without it that is not checked,
+    while :func:`run_pipeline` checks it)."""
     return _state(plan, digest, section) == "current"
 
 
@@ -292,10 +293,6 @@ def _run_stages(config: RunConfig, plans: list[StagePlan], *, force: bool, progr
             on_stage(plan, "start")
         start = time.perf_counter()
         provenance = stage_provenance(plan.name, sections, plan.inputs)
-        if plan.name == "reconstruct":
-            from cca_cli.stages.reconstruct import engine_recipe
-
-            provenance["engine_recipe"] = engine_recipe(plan.inputs[0], config.reconstruct)
         if plan.name == "simulate":
             check_footprint(simulate_footprint(config), plan.output, source=source)
             args = (config,)

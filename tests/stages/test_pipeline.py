@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from cca_cli.config.load import apply_overrides
+from cca_cli.config.model import ReconstructSection
 from cca_cli.errors import OutputExistsError
 from cca_cli.io.schema import SCHEMA_VERSION
 from cca_cli.stages import reconstruct as reconstruct_stage
@@ -180,6 +181,29 @@ def test_the_engine_recipe_leaves_threads_and_device_out(finished_run, tiny_run_
     assert reconstruct_stage.engine_recipe(captures, section.model_copy(update={"options": options})) == recipe
     assert reconstruct_stage.engine_recipe(captures, section.model_copy(update={"device": "auto"})) == recipe
     assert reconstruct_stage.engine_recipe(captures, section.model_copy(update={"tau": section.tau * 2})) != recipe
+    # tiles resolve as the tiled run does (the calibrating preset of the geometry's kind), not as a whole frame
+    whole = ReconstructSection(**{**section.model_dump(), "engine": "auto"})
+    tiled = ReconstructSection(**{**whole.model_dump(), "tiles": {"size_px": 96, "overlap_px": 32}})
+    assert reconstruct_stage.engine_recipe(captures, tiled) not in (reconstruct_stage.engine_recipe(captures, whole), "")
+    assert reconstruct_stage.engine_recipe(finished_run[0] / "missing.h5", section) == ""
+
+
+def test_a_recon_written_by_cca_reconstruct_is_current_for_cca_run(finished_run, tiny_run_config, tmp_path):
+    """The one-stage command records the same recipe, so a later `cca run` of that config skips it."""
+    out = _copy(finished_run, tmp_path)
+    with h5py.File(out / "recon.h5", "r") as handle:
+        recorded = handle.attrs["engine_recipe"]
+    (out / "recon.h5").unlink()
+    shutil.rmtree(out / "report")   # its input is about to change
+    plan = next(p for p in plan_stages(tiny_run_config, out) if p.name == "reconstruct")
+    from cca_cli.stages.runner import stage_provenance
+
+    provenance = stage_provenance("reconstruct", pick_sections(tiny_run_config, plan.sections), plan.inputs)
+    reconstruct_stage.run(plan.inputs[0], tiny_run_config.reconstruct, out / "recon.h5", provenance=provenance)
+    with h5py.File(out / "recon.h5", "r") as handle:
+        assert handle.attrs["engine_recipe"] == recorded
+    assert _statuses(run_pipeline(tiny_run_config, out)) == {"simulate": "skipped", "reconstruct": "skipped",
+                                                             "report": "ran"}
 
 
 def test_changed_reconstruct_config_needs_force(finished_run, tiny_run_config, tmp_path):
