@@ -40,10 +40,15 @@ def circular_pupils(box_size: int, box_centres, radius_px: float, *, edge_px: fl
     grid = np.arange(box_size, dtype=np.float64)
     dy = grid[None, :, None] - centres[:, 0, None, None]
     dx = grid[None, None, :] - centres[:, 1, None, None]
-    distance = np.sqrt(dy * dy + dx * dx)
+    distance = dy * dy + dx * dx   # one (K, b, b) array, worked on in place (a box set can be tens of MB)
+    np.sqrt(distance, out=distance)
     if edge_px <= 0:
         return (distance <= radius_px).astype(np.float32)
-    return np.clip((radius_px + 0.5 * edge_px - distance) / edge_px, 0.0, 1.0).astype(np.float32)
+    ramp = np.subtract(radius_px + 0.5 * edge_px, distance, out=distance)
+    ramp /= edge_px
+    np.maximum(ramp, 0.0, out=ramp)
+    np.minimum(ramp, 1.0, out=ramp)
+    return ramp.astype(np.float32)
 
 
 def centred_disc(size: int, radius_px: float) -> np.ndarray:
