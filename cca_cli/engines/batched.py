@@ -307,13 +307,12 @@ class RpieFactors:
         self._groups = []
         for first in range(0, len(batches), per_group):
             group = batches[first:first + per_group]
+            lengths = np.array([batch.stop - batch.start for batch in group], np.int64)
             positions = np.concatenate([np.arange(batch.start, batch.stop) for batch in group]).astype(np.int64)
-            local = np.repeat(np.arange(len(group), dtype=np.int64), [batch.stop - batch.start for batch in group])
-            longest = max(batch.stop - batch.start for batch in group)
-            members = np.full((len(group), longest), positions.size, np.int64)   # padded with a zero-power slot
-            ends = np.cumsum([0] + [batch.stop - batch.start for batch in group])
-            for j in range(len(group)):
-                members[j, :ends[j + 1] - ends[j]] = np.arange(ends[j], ends[j + 1])
+            local = np.repeat(np.arange(len(group), dtype=np.int64), lengths)   # each position's batch in the group
+            members = np.full((len(group), lengths.max()), positions.size, np.int64)   # padded: a zero-power slot
+            for j, start in enumerate(np.cumsum(lengths) - lengths):
+                members[j, :lengths[j]] = np.arange(start, start + lengths[j])
             selection = _as_slice(positions)
             if not isinstance(selection, slice):
                 selection = backend.to_device(selection, xp)

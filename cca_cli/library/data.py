@@ -25,11 +25,17 @@ from cca_cli.engines.fit import FitReport
 from cca_cli.sampling.geometry import CaptureGeometry
 from cca_cli.sampling.region import RegionEmbedding
 
-__all__ = ["BOUNDARIES", "CaptureSet", "Reconstruction", "TiledReconstruction", "check_intensity", "check_weight",
+__all__ = ["BOUNDARIES", "CaptureSet", "data_kind", "Reconstruction", "TiledReconstruction", "check_intensity", "check_weight",
            "constant_images"]
 
 #: ``periodic``: simulated images that wrap; ``open``: windows on a larger scene (recorded frames).
 BOUNDARIES = ("periodic", "open")
+
+
+def data_kind(has_truth: bool, geometry_kind: str) -> str:
+    """What captures are, as the engine presets read it: ``simulation`` when a ground truth is known, else the
+    geometry's kind (``led_array``, ``camera_scan``)."""
+    return "simulation" if has_truth else geometry_kind
 
 
 @dataclass(frozen=True)
@@ -73,7 +79,7 @@ class CaptureSet:
     @property
     def kind(self) -> str:
         """``simulation`` (a ground truth is known), else the geometry's kind (``led_array``, ``camera_scan``)."""
-        return "simulation" if self.truth else self.geometry.kind
+        return data_kind(bool(self.truth), self.geometry.kind)
 
     @property
     def centre_image(self) -> np.ndarray:

@@ -20,7 +20,7 @@ from cca_cli.io.geometry import read_geometry
 from cca_cli.io.h5 import Provenance, check_output, file_sha256, open_input
 from cca_cli.io.outputs import is_cca_hdf5
 from cca_cli.io.recon import write_recon
-from cca_cli.library.data import Reconstruction
+from cca_cli.library.data import Reconstruction, data_kind
 from cca_cli.stages.progress import ProgressFn, silent
 from cca_cli.version import __version__
 from cca_cli.workflows.recovery import check_device, engine_options, reconstruct_captures
@@ -118,8 +118,7 @@ def checkpoint_fingerprint(section: ReconstructSection, provenance: Provenance, 
 def captures_kind(captures_path: Path) -> str:
     """What a captures file holds, as :attr:`~cca_cli.library.data.CaptureSet.kind` says, from its geometry alone."""
     with open_input(captures_path) as handle:
-        truth = "truth" in handle and len(handle["truth"]) > 0
-        return "simulation" if truth else read_geometry(handle).kind
+        return data_kind("truth" in handle and len(handle["truth"]) > 0, read_geometry(handle).kind)
 
 
 def engine_recipe(captures_path: Path, section: ReconstructSection) -> str:
