@@ -1,4 +1,7 @@
-"""`cca ingest`, `cca hdr`, `cca register`: recorded captures → measurements the recovery reads."""
+"""`cca ingest`, `cca hdr`, `cca register`: recorded captures → measurements the recovery reads.
+
+Each command imports its stage when it runs, so that starting one does not load the others' modules.
+"""
 
 from __future__ import annotations
 
@@ -13,9 +16,6 @@ from cca_cli.commands.options import Force, Quiet, section_from_options
 from cca_cli.commands.stage_run import run_stage
 from cca_cli.config.model import HdrSection, RegisterSection
 from cca_cli.errors import ConfigError
-from cca_cli.stages import hdr as hdr_stage
-from cca_cli.stages import ingest as ingest_stage
-from cca_cli.stages import register as register_stage
 
 __all__ = ["ingest_cli", "hdr_cli", "register_cli"]
 
@@ -31,6 +31,7 @@ def ingest_cli(
     """Read the images MANIFEST lists (linear counts, grouped by position) → raw.h5."""
     from cca_cli.config.model import IngestSection
     from cca_cli.io.manifest import manifest_files
+    from cca_cli.stages import ingest as ingest_stage
 
     data = run_stage("ingest", ingest_stage.run, manifest, output=output,
                      sections={"ingest": IngestSection(manifest=manifest)}, inputs=lambda: manifest_files(manifest),
@@ -51,6 +52,8 @@ def hdr_cli(
     quiet: Quiet = False,
 ) -> None:
     """Merge each position's exposure bracket into linear radiance + validity weights → hdr.h5."""
+    from cca_cli.stages import hdr as hdr_stage
+
     section = section_from_options(HdrSection, saturation_level=saturation_level, read_noise=read_noise)
     out = run_stage("hdr", hdr_stage.run, raw, section, output=output, sections={"hdr": section}, inputs=[raw],
                     force=force, quiet=quiet)
@@ -74,6 +77,8 @@ def register_cli(
     quiet: Quiet = False,
 ) -> None:
     """Align every view to the centre view with the checkerboard and crop the object → registered.h5."""
+    from cca_cli.stages import register as register_stage
+
     rect = None
     if crop is not None:
         try:

@@ -14,7 +14,6 @@ from cca_cli.config.load import load_config
 from cca_cli.config.model import ReconstructSection
 from cca_cli.io.outputs import disk_usage
 from cca_cli.stages.footprint import size_text
-from cca_cli.stages.runner import default_out_dir, run_pipeline
 
 
 @handle_errors
@@ -32,6 +31,8 @@ def run_cli(
     --workers / --scheduler say where a tiled reconstruction (reconstruct.tiles) runs its tiles; --device where
     the engine runs (reconstruct.device). Outputs a run already made stay current whichever device made them.
     """
+    from cca_cli.stages.runner import default_out_dir, run_pipeline  # every stage's modules: only when a run starts
+
     cfg = load_config(config)
     if device is not None:
         cfg = with_device(cfg, device)

@@ -1,4 +1,7 @@
-"""`cca simulate`, `cca reconstruct`, `cca report`: one stage each."""
+"""`cca simulate`, `cca reconstruct`, `cca report`: one stage each.
+
+Each command imports its stage when it runs, so that starting one does not load the others' modules.
+"""
 
 from __future__ import annotations
 
@@ -15,11 +18,8 @@ from cca_cli.commands.stage_run import run_stage
 from cca_cli.config.load import load_config
 from cca_cli.engines.registry import engine_help
 from cca_cli.config.model import ReconstructSection, ReportSection
-from cca_cli.stages import reconstruct as reconstruct_stage
-from cca_cli.stages import report as report_stage
-from cca_cli.stages import simulate as simulate_stage
 from cca_cli.stages.footprint import reconstruct_footprint, report_footprint, simulate_footprint
-from cca_cli.stages.runner import pick_sections
+from cca_cli.stages.provenance import pick_sections
 
 
 @handle_errors
@@ -30,6 +30,8 @@ def simulate_cli(
     quiet: Quiet = False,
 ) -> None:
     """Simulate the captures of CONFIG's array and scene → captures.h5."""
+    from cca_cli.stages import simulate as simulate_stage
+
     cfg = load_config(config)
     sim = run_stage("simulate", simulate_stage.run, cfg, output=output,
                     sections=pick_sections(cfg, simulate_stage.SECTIONS), force=force, quiet=quiet, protect=[config],
@@ -73,6 +75,8 @@ def reconstruct_cli(
     reconstruct.tiles (from --config) the frame is recovered in tiles on Dask: --workers local processes, or
     the workers of --scheduler; a run started again redoes only the unfinished tiles.
     """
+    from cca_cli.stages import reconstruct as reconstruct_stage
+
     base = load_config(config).reconstruct if config else None
     section = section_from_options(ReconstructSection, base, engine=engine, tau=tau, iterations=iterations, tol=tol,
                                    init=init, checkpoint_every=checkpoint_every, device=device)
@@ -104,6 +108,8 @@ def report_cli(
     force: Force = False,
 ) -> None:
     """Metrics (report.json) and figures (PNG) of RECON → a report directory."""
+    from cca_cli.stages import report as report_stage
+
     base = load_config(config).report if config else None
     section = section_from_options(ReportSection, base, names={"mtf_threshold": "--threshold"},
                                    mtf_threshold=threshold, figures=figures)

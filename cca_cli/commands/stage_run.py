@@ -11,7 +11,7 @@ from cca_cli.commands.console import progress_reporter
 from cca_cli.io.h5 import check_input_file
 from cca_cli.io.outputs import check_output
 from cca_cli.stages.footprint import Footprint, check_footprint
-from cca_cli.stages.runner import stage_provenance
+from cca_cli.stages.provenance import stage_provenance
 
 __all__ = ["run_stage"]
 

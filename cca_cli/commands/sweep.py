@@ -14,8 +14,7 @@ from cca_cli.commands.console import console, err_console, handle_errors, styled
 from cca_cli.commands.options import ConfigArg, Force, Quiet, Scheduler, Workers
 from cca_cli.errors import CcaError, ConfigError
 from cca_cli.io.lock import folder_lock
-from cca_cli.io.outputs import check_folder
-from cca_cli.stages.runner import prepare_folder
+from cca_cli.io.outputs import check_folder, prepare_folder
 
 __all__ = ["sweep_app"]
 

@@ -43,6 +43,7 @@ __all__ = ["disk_usage",
     "folder_complete",
     "write_marker",
     "check_output",
+    "prepare_folder",
     "check_folder",
     "remove_stale_temporaries",
     "atomic_path",
@@ -268,6 +269,15 @@ def check_folder(directory: str | Path) -> None:
         raise OutputError(f"{directory}: {folder} is a file, not a folder; choose another output folder")
     _probe(folder, directory)
 
+
+
+def prepare_folder(directory: Path) -> None:
+    """Create a run folder, or refuse one that is a file or cannot be written (one line)."""
+    check_folder(directory)
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"{directory}: cannot create the folder ({exc.strerror}); choose another one") from None
 
 def remove_stale_temporaries(directory: str | Path, names: Iterable[str] | None = None) -> list[Path]:
     """Remove ``.<name>.tmp-<pid>`` (and ``.old-<pid>``) entries of processes that no longer run.

@@ -15,20 +15,18 @@ is never replaced.
 from __future__ import annotations
 
 import functools
-import hashlib
 import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import yaml
 from pydantic import BaseModel
 
 from cca_cli.config.model import RunConfig
 from cca_cli.errors import OutputError, OutputExistsError, check_interrupt
-from cca_cli.io.h5 import Provenance, file_sha256, read_provenance
+from cca_cli.io.h5 import file_sha256, read_provenance
 from cca_cli.io.lock import folder_lock
-from cca_cli.io.outputs import check_folder, folder_complete, foreign_part, remove_stale_temporaries
+from cca_cli.io.outputs import check_folder, folder_complete, foreign_part, prepare_folder, remove_stale_temporaries
 from cca_cli.stages import hdr as hdr_stage
 from cca_cli.stages import ingest as ingest_stage
 from cca_cli.stages import reconstruct as reconstruct_stage
@@ -36,6 +34,7 @@ from cca_cli.stages import register as register_stage
 from cca_cli.stages import report as report_stage
 from cca_cli.stages import simulate as simulate_stage
 from cca_cli.stages.progress import ProgressFn, silent
+from cca_cli.stages.provenance import config_hash, pick_sections, section_yaml, stage_provenance
 
 __all__ = ["StagePlan", "StageOutcome", "plan_stages", "config_hash", "section_yaml", "stage_provenance",
            "pick_sections", "is_up_to_date", "run_pipeline", "prepare_folder", "default_out_dir"]
@@ -98,28 +97,6 @@ def _manifest_inputs(config: RunConfig) -> list[Path]:
     from cca_cli.io.manifest import manifest_files
 
     return manifest_files(config.ingest.manifest)
-
-
-def pick_sections(config: RunConfig, names: tuple[str, ...]) -> dict[str, BaseModel]:
-    """The named sections of ``config`` (optional sections that are absent are left out)."""
-    return {name: getattr(config, name) for name in names if getattr(config, name) is not None}
-
-
-def section_yaml(sections: dict[str, BaseModel]) -> str:
-    """YAML of config sections, as stored in provenance."""
-    return yaml.safe_dump({k: v.model_dump(mode="json") for k, v in sections.items()}, sort_keys=False)
-
-
-def config_hash(sections: dict[str, BaseModel]) -> str:
-    """SHA-256 of the JSON form of config sections (without the keys that say only where a run computes,
-    a section's ``NOT_RECIPE``, such as ``reconstruct.device``)."""
-    data = {k: v.model_dump(mode="json", exclude=set(getattr(v, "NOT_RECIPE", ()))) for k, v in sections.items()}
-    return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
-
-
-def stage_provenance(stage: str, sections: dict[str, BaseModel], inputs=()) -> Provenance:
-    """Provenance of one stage run: the YAML and hash of the sections it reads, and its inputs' hashes."""
-    return Provenance.make(stage, section_yaml(sections), config_hash(sections), list(inputs))
 
 
 def _recorded_provenance(output: Path) -> dict:
@@ -244,15 +221,6 @@ def _check_before_running(config: RunConfig, plans: list[StagePlan], *, force: b
             check_device(config.reconstruct)
     if simulate is not None:
         check_footprint(simulate_footprint(config), simulate.output, source=source)
-
-
-def prepare_folder(directory: Path) -> None:
-    """Create a run folder, or refuse one that is a file or cannot be written (one line)."""
-    check_folder(directory)
-    try:
-        directory.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise OutputError(f"{directory}: cannot create the folder ({exc.strerror}); choose another one") from None
 
 
 def _refuse_existing(plan: StagePlan, state: str) -> None:

@@ -164,3 +164,21 @@ def test_bad_option_values_are_one_line_errors(runner, small_config, tmp_path):
     result = runner.invoke(app, ["reconstruct", str(captures), "-o", str(tmp_path / "r.h5"), "--tau", "-1", "-q"])
     assert "--tau" in _error_line(result)
     assert not (tmp_path / "r.h5").exists()
+
+
+def test_starting_the_command_line_loads_no_stage():
+    """`cca reconstruct` must not pay for the report's, registration's and ingest's modules (nor the engines'
+    before it runs): each command imports its own stage when it starts."""
+    import subprocess
+    import sys
+
+    watched = ("cca_cli.stages.", "cca_cli.engines", "cca_cli.optics.fft", "cca_cli.optics.kernels",
+               "cca_cli.registration", "cca_cli.report", "cca_cli.metrics", "cv2", "numba")
+    code = ("import json, sys, cca_cli.commands.app; "
+            f"print(json.dumps(sorted(m for m in sys.modules if m.startswith({watched!r}))))")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    loaded = set(json.loads(run.stdout))
+    # the config's engine names and options, and what every stage command checks before it starts
+    allowed = {"cca_cli.engines", "cca_cli.engines.registry", "cca_cli.engines.options", "cca_cli.engines.presets",
+               "cca_cli.stages.footprint", "cca_cli.stages.progress", "cca_cli.stages.provenance"}
+    assert loaded <= allowed, sorted(loaded - allowed)
