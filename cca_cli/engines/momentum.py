@@ -233,6 +233,7 @@ class SequentialMomentum(MomentumBase):
         self.passes = SequentialPass(problem.model, threads)
         self._coverages = [np.zeros(problem.model.spectrum_shape, np.float32) for _ in range(threads)]  # work arrays
         self._buffers: dict[str, np.ndarray] = {}   # pupils, pupil boxes and update factors (see _buffer)
+        self._map_pupils: kernels.MapPupils | None = None   # a map model's parts, when the lanes form the pupils
         self._arrange()
 
     # ------------------------------------------------------------ the model of a pass
@@ -266,6 +267,7 @@ class SequentialMomentum(MomentumBase):
         With ``parts`` (:meth:`~cca_cli.engines.pupil_recovery.PupilRecovery.map_parts`) the pupils
         are built here instead, each thread its share, together with the model's pupil boxes.
         """
+        self._map_pupils = None
         layout, opts = self._layout, self.options
         bounds = np.array([[sl.start, sl.stop] for sl in self._schedule.batches], np.int64)
         # Batches are independent: each thread takes a contiguous share of them, with its own work array.
@@ -302,13 +304,25 @@ class SequentialMomentum(MomentumBase):
         return array
 
     def _set_recovered_model(self) -> None:
-        """Use the pupil recovery's current pupils (built on every thread for the map models)."""
+        """Use the pupil recovery's current pupils: for the map models, formed in the fused lanes from the
+        maps, or built on every thread."""
         recovery = self.calibrator.recovery
         parts = recovery.map_parts()
+        self._map_pupils = None
         if parts is None:
             self._set_model(recovery.pupils())
+        elif self.passes.fused:
+            opts, layout = self.options, self._layout
+            self._map_pupils = kernels.MapPupils(*parts, forward_scale=1.0 / layout.lowres_size, alpha=opts.alpha,
+                                                 tau=opts.tau, scale=opts.beta / layout.lowres_size)
+            self._model = self._factors = None
         else:   # the schedule's batches hold every capture of the layout once
             self._set_model(None, parts)
+
+    def _engine_pupils(self) -> np.ndarray:
+        if self._map_pupils is not None:
+            return self._map_pupils.pupils()
+        return super()._engine_pupils()
 
     # ------------------------------------------------------------ the update rule
     def _difference(self, fields: np.ndarray, images: slice, scratch: np.ndarray) -> float:
@@ -363,7 +377,8 @@ class SequentialMomentum(MomentumBase):
         recovery = self.calibrator.recovery
         targets = BatchTargets(self._model, self._origins, self._factors, self._targets, self._weights,
                                self.problem.amplitude_floor,
-                               pupil_sums=None if recovery is None else recovery.lane_sums)
+                               pupil_sums=None if recovery is None else recovery.lane_sums,
+                               map_pupils=self._map_pupils, coverages=self._coverages)
         after = self._accumulate_pupil if self.calibrator.recovery is not None else None
         misfit = self.passes.run(self._schedule, self._spectrum, targets, self._difference, after)
         return self._end_pass(misfit)

@@ -109,15 +109,22 @@ class BatchTargets:
     pupil_sums : callable, optional
         ``pupil_sums(thread)`` gives the arrays a fused lane adds the pupil fit's sums to (see
         :func:`~cca_cli.optics.kernels.sequential_lane`); None: nothing is summed in the lane.
+    map_pupils : MapPupils, optional
+        Fused lanes only: a map model's parts, from which the lanes form the pupil boxes and factors
+        (``model`` and ``factors`` are then None).
+    coverages : list of ndarray, optional
+        With ``map_pupils``: one zero float32 (M, M) work array per thread.
     """
 
-    model: ForwardModel
+    model: ForwardModel | None
     origins: np.ndarray
-    factors: np.ndarray
+    factors: np.ndarray | None
     amplitudes: np.ndarray
     weights: np.ndarray | None
     eps: float
     pupil_sums: Callable[[int], tuple] | None = None
+    map_pupils: kernels.MapPupils | None = None
+    coverages: list | None = None
 
 
 #: data_step(fields, images, scratch) replaces ``fields`` by the data step ψ' − ψ and returns the squared misfit.
@@ -241,12 +248,17 @@ class _PassRun:
             self.after_step(t, images, self.spectrum, ws.fields[:k])
         return misfit
 
-    def scatter(self, t: int, images: slice) -> None:
-        """Add the batch's weighted update boxes (thread ``t``'s) to the spectrum."""
+    def scatter(self, t: int, images: slice, batch: slice) -> None:
+        """Add the weighted update boxes (thread ``t``'s) of ``images``, part of ``batch``, to the spectrum."""
         k = images.stop - images.start
         if k > 0:
             held = self.owner._boxes[t] if self.owner._fused[t] is not None else self.owner._workspaces[t].fields
-            kernels.scatter_boxes(held[:k], self.targets.origins, self.targets.factors, self.spectrum, images.start)
+            tg = self.targets
+            if tg.map_pupils is not None:   # the calling thread scatters: its work array is free
+                kernels.scatter_map_boxes(held[:k], tg.origins, tg.map_pupils, tg.coverages[0], self.spectrum,
+                                          (batch.start, batch.stop), images.start)
+            else:
+                kernels.scatter_boxes(held[:k], tg.origins, tg.factors, self.spectrum, images.start)
 
     def lanes(self, t: int, lanes: list[tuple[slice, ...]]) -> float:
         """Run ``lanes`` one after the other on thread ``t``; returns their summed misfit."""
@@ -262,15 +274,18 @@ class _PassRun:
             bounds = np.array([[sl.start, sl.stop] for sl in batches], dtype=np.int64).reshape(-1, 2)
             tg = self.targets
             sums = None if tg.pupil_sums is None else tg.pupil_sums(t)
-            return kernels.sequential_lane(raw, bounds, self.spectrum, tg.origins, tg.model.pupil_boxes, tg.factors,
+            mapped = tg.map_pupils is not None
+            return kernels.sequential_lane(raw, bounds, self.spectrum, tg.origins,
+                                           None if mapped else tg.model.pupil_boxes, tg.factors,
                                            self.owner._workspaces[t].fields, tg.amplitudes, tg.weights, tg.eps,
-                                           pupil_sums=sums, boxes=self.owner._boxes[t], scatter=scatter)
+                                           pupil_sums=sums, boxes=self.owner._boxes[t], scatter=scatter,
+                                           map_pupils=tg.map_pupils, coverage=tg.coverages[t] if mapped else None)
         if not scatter:
             return self.half_batch(t, batches[0])
         misfit = 0.0
         for sl in batches:
             misfit += self.half_batch(t, sl)
-            self.scatter(t, sl)
+            self.scatter(t, sl, sl)
         return misfit
 
     def shared_batch(self, sl: slice) -> float:
@@ -284,7 +299,7 @@ class _PassRun:
         futures = [self.owner._pool.submit(self.part_of_batch, t, part) for t, part in enumerate(parts) if t > 0]
         misfit = self.part_of_batch(0, parts[0]) + sum(f.result() for f in futures)
         for t, part in enumerate(parts):  # every part has read the spectrum: now the updates go in, in order
-            self.scatter(t, part)
+            self.scatter(t, part, sl)
         return misfit
 
     def part_of_batch(self, t: int, images: slice) -> float:

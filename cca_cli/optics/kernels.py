@@ -31,7 +31,8 @@ _HAVE_NUMBA = numba is not None
 
 __all__ = ["HAVE_NUMBA", "kernels_name", "use_kernels", "check_settings", "warm_up", "place_boxes",
            "project_magnitudes", "magnitude_step", "can_fuse_lanes", "lane_chunk", "sequential_lane", "scatter_boxes",
-           "momentum_step", "tikhonov_update", "rpie_factors", "map_pupil_factors", "accumulate_pupil"]
+           "momentum_step", "tikhonov_update", "rpie_factors", "map_pupil_factors", "accumulate_pupil", "MapPupils",
+           "scatter_map_boxes"]
 
 #: Whether numba is installed and enabled (``CCA_KERNELS`` is not ``numpy``).
 HAVE_NUMBA = _HAVE_NUMBA
@@ -375,10 +376,12 @@ def warm_up() -> None:
     _map_pupil_factors_numba(np.ones((1, 4, 4), np.float32), pupils, np.zeros(1, np.int64), origins,
                              np.array([[0, 1]], np.int64), one, one, one, one, np.zeros((8, 8), np.float32),
                              pupils.copy(), pupils.copy(), pupils.copy())
+    _scatter_map_numba(pupils, origins, real[:, :4, :4].copy(), pupils, origins[:, 0].copy(), one, one, one,
+                       np.zeros((8, 8), np.float32), spectrum, 0, 1, 0)
     no_batches = np.zeros((0, 2), np.int64)  # compiles (or loads) the fused lane without running an FFT
     _lane_numba(0, np.ones(1, np.int64), np.zeros((1, 4), np.int64), no_batches, spectrum, origins, pupils, pupils,
                 fields, pupils.copy(), 1, True, real, real, False, np.float32(1e-6), False, *_checked_pupil_sums("warm_up", None, 1, 4),
-                np.float32(1.0))
+                np.float32(1.0), *_map_arguments("warm_up", None, None, None, 1, 4))
 
 
 def place_boxes(spectrum: np.ndarray, origins: np.ndarray, pupils: np.ndarray, fields: np.ndarray,
@@ -583,15 +586,17 @@ if _HAVE_NUMBA:  # pragma: no branch
     @_jit
     def _lane_numba(execute, counts, plans, batches, spectrum, origins, pupils, factors, fields, boxes, chunk,
                     scatter, amplitudes, weights, weighted, eps, summed, discs, index, numerator, denominator,
-                    sum_scale):  # pragma: no cover
+                    sum_scale, mapped, map_discs, maps, map_index, forward_scale, alpha, tau, step,
+                    coverage):  # pragma: no cover
         """Returns the lane's misfit, a status and the largest planned count it transformed.
 
         The status is -1, or the first capture whose box leaves the spectrum, or ``-2 - i`` for
         batch ``i`` outside the captures or larger than ``boxes``; nothing runs unless it is -1.
         A batch goes through the transforms ``chunk`` captures at a time (fields that stay in
         cache), keeping only each capture's update box; the boxes are scattered at the batch's end.
+        ``mapped``: the pupils and factors are formed from a map model's parts instead of read.
         """
-        b, m = pupils.shape[1], fields.shape[1]
+        b, m = boxes.shape[1], fields.shape[1]
         s = m // 2 - b // 2
         for i in range(batches.shape[0]):  # every batch and box is checked before anything runs
             start, stop = batches[i, 0], batches[i, 1]
@@ -612,7 +617,11 @@ if _HAVE_NUMBA:  # pragma: no branch
                 while counts[j] < k:
                     j += 1
                 largest = max(largest, counts[j])
-                _place_boxes_numba(spectrum, origins, pupils, fields[:k], first)
+                if mapped:
+                    _place_map_boxes_numba(spectrum, origins, map_discs, maps, map_index, forward_scale, fields[:k],
+                                           first)
+                else:
+                    _place_boxes_numba(spectrum, origins, pupils, fields[:k], first)
                 _call_address(execute, plans[j, 0])
                 _call_address(execute, plans[j, 1])
                 total += _magnitude_numba(fields[:k], amplitudes[first:last], weights[first:last], eps, zero,
@@ -624,7 +633,10 @@ if _HAVE_NUMBA:  # pragma: no branch
                                             denominator, sum_scale)
                 for q in range(k):
                     boxes[first - start + q] = fields[q, s:s + b, s:s + b]
-            if scatter:
+            if scatter and mapped:
+                _scatter_map_numba(boxes[:stop - start], origins, map_discs, maps, map_index, alpha, tau, step,
+                                   coverage, spectrum, start, stop, start)
+            elif scatter:
                 _scatter_numba(boxes[:stop - start], origins, factors, spectrum, start)
         return total, -1, largest
 
@@ -648,10 +660,143 @@ def can_fuse_lanes(raw_plans) -> bool:
     return _use_numba and isinstance(raw_plans, fft.RawFFTPlans) and not raw_plans.released
 
 
-def sequential_lane(raw_plans, batches: np.ndarray, spectrum: np.ndarray, origins: np.ndarray, pupils: np.ndarray,
-                    factors: np.ndarray, fields: np.ndarray, amplitudes: np.ndarray, weights: np.ndarray | None,
-                    eps: float, pupil_sums: tuple | None = None, boxes: np.ndarray | None = None,
-                    chunk: int | None = None, scatter: bool = True) -> float:
+class MapPupils:
+    """A map model's pupils ``P_i = D_i · A_p(i)`` and rPIE factors as parts, for lanes that form them on the fly.
+
+    Forming each pupil where a lane places or scatters its box costs a few products, where stored
+    pupils, pupil boxes and factors cost three (K, b, b) arrays rebuilt after every pupil step and
+    read again in every pass: memory traffic is what lanes running side by side share. The products
+    are those of :func:`map_pupil_factors`, so the results are bit-identical.
+
+    Parameters
+    ----------
+    discs : ndarray, float32, (K, b, b), C-contiguous
+        Each capture's NA disc on its box.
+    maps : ndarray, complex64, (P, b, b), C-contiguous
+    index : ndarray, int64, (K,)
+        Map each capture uses.
+    forward_scale : float
+        Raw-FFT scaling of the forward pupil boxes.
+    alpha, tau, scale : float
+        The rPIE factors' parameters (:func:`rpie_factors`).
+
+    Raises
+    ------
+    ValueError
+        If an array has the wrong dtype, shape or layout, or ``index`` names a map that does not exist.
+    """
+
+    def __init__(self, discs: np.ndarray, maps: np.ndarray, index: np.ndarray, *, forward_scale: float,
+                 alpha: float, tau: float, scale: float):
+        named = (("discs", discs, _F32, 3), ("maps", maps, _C64, 3), ("index", index, _I64, 1))
+        _check_arrays("MapPupils", named)
+        for name, array, _, _ in named:
+            if not array.flags.c_contiguous:
+                raise ValueError(f"MapPupils: {name} must be C-contiguous, got {_describe(array)}")
+        k, b = discs.shape[0], discs.shape[1]
+        if discs.shape[2] != b or maps.shape[1:] != (b, b) or index.shape != (k,):
+            raise ValueError(f"MapPupils: shapes do not fit together: discs {discs.shape}, maps {maps.shape}, "
+                             f"index {index.shape} (need (K, b, b), (P, b, b) and (K,))")
+        if index.size and (int(index.min()) < 0 or int(index.max()) >= maps.shape[0]):
+            raise ValueError(f"MapPupils: index must name maps 0 … {maps.shape[0] - 1}")
+        self.discs, self.maps, self.index = discs, maps, index
+        self.values = tuple(np.float32(v) for v in (forward_scale, alpha, tau, scale))
+
+    @property
+    def box(self) -> int:
+        """Box size ``b``."""
+        return self.discs.shape[1]
+
+    @property
+    def count(self) -> int:
+        """Captures ``K``."""
+        return self.discs.shape[0]
+
+    def pupils(self) -> np.ndarray:
+        """Every capture's pupil, complex64 (K, b, b) (as :func:`map_pupil_factors` writes them)."""
+        maps = self.maps[self.index]
+        pupils = np.empty(maps.shape, np.complex64)
+        pupils.real = self.discs * maps.real
+        pupils.imag = self.discs * maps.imag
+        return pupils
+
+    def check_coverage(self, where: str, coverage: np.ndarray, spectrum: np.ndarray) -> None:
+        """``coverage`` is a C-contiguous float32 work array of the spectrum's shape."""
+        if not (isinstance(coverage, _ndarray) and coverage.dtype == _F32 and coverage.flags.c_contiguous
+                and coverage.shape == spectrum.shape):
+            raise ValueError(f"{where}: coverage must be a C-contiguous float32 {spectrum.shape} array, "
+                             f"got {_describe(coverage)}")
+
+
+_NO_MAP = None
+
+
+def _map_arguments(where: str, map_pupils: MapPupils | None, coverage, spectrum, n: int, b: int) -> tuple:
+    """The lane's map-model arguments, checked (placeholders without a map model)."""
+    global _NO_MAP
+    if map_pupils is None:
+        if _NO_MAP is None:
+            _NO_MAP = (False, np.zeros((1, 1, 1), _F32), np.zeros((1, 1, 1), _C64), np.zeros(1, _I64),
+                       *(np.float32(0),) * 4, np.zeros((1, 1), _F32))
+        return _NO_MAP
+    if not isinstance(map_pupils, MapPupils):
+        raise ValueError(f"{where}: map_pupils must be a MapPupils, got {type(map_pupils).__name__}")
+    if map_pupils.count != n or map_pupils.box != b:
+        raise ValueError(f"{where}: map_pupils hold {map_pupils.count} captures of {map_pupils.box}² boxes; "
+                         f"need {n} of {b}²")
+    map_pupils.check_coverage(where, coverage, spectrum)
+    return (True, map_pupils.discs, map_pupils.maps, map_pupils.index, *map_pupils.values, coverage)
+
+
+def scatter_map_boxes(boxes: np.ndarray, origins: np.ndarray, map_pupils: MapPupils, coverage: np.ndarray,
+                      accumulator: np.ndarray, batch: tuple[int, int], start: int) -> None:
+    """Add captures ``start …``'s update boxes × their rPIE factors, formed from ``map_pupils``, to ``accumulator``.
+
+    The factors are those :func:`map_pupil_factors` gives for the batch ``[batch[0], batch[1])``
+    the captures belong to (its coverage is summed here, in ``coverage``, and left zero).
+
+    Parameters
+    ----------
+    boxes : ndarray, complex64, (k, b, b), C-contiguous
+    origins : ndarray, int64, (K, 2)
+    map_pupils : MapPupils
+    coverage : ndarray, float32, (M, M), C-contiguous
+        Zero work array, left zero.
+    accumulator : ndarray, complex64, (M, M), C-contiguous
+    batch : (int, int)
+        ``[start, stop)`` of the whole batch; captures ``start … start + k - 1`` lie in it.
+    start : int
+
+    Raises
+    ------
+    ValueError
+        If an argument has the wrong dtype, shape or layout, the captures leave the batch or the
+        batch the captures, or a box leaves the spectrum; nothing has run then.
+    """
+    if not _use_numba:
+        raise ValueError("scatter_map_boxes needs the numba kernels")
+    b = map_pupils.box if isinstance(map_pupils, MapPupils) else 0
+    _check_boxes("scatter_map_boxes", accumulator, origins, np.broadcast_to(np.complex64(0), (len(origins), b, b)),
+                 boxes, 0)
+    first, stop = (int(v) for v in batch)
+    k = boxes.shape[0]
+    if not (0 <= first <= start and start + k <= stop <= len(origins)):
+        raise ValueError(f"scatter_map_boxes: captures {start} to {start + k - 1} must lie in the batch "
+                         f"[{first}, {stop}) of the {len(origins)} captures")
+    args = _map_arguments("scatter_map_boxes", map_pupils, coverage, accumulator, len(origins), b)
+    if not _contiguous(boxes, accumulator, origins):
+        raise ValueError("scatter_map_boxes: boxes, accumulator and origins must be C-contiguous")
+    _check_origins_numpy("scatter_map_boxes", origins, first, stop - first, accumulator.shape, b)
+    _, discs, maps, index, _, alpha, tau, scale, coverage = args
+    _scatter_map_numba(boxes, origins, discs, maps, index, alpha, tau, scale, coverage, accumulator, first, stop,
+                       start)
+
+
+def sequential_lane(raw_plans, batches: np.ndarray, spectrum: np.ndarray, origins: np.ndarray,
+                    pupils: np.ndarray | None, factors: np.ndarray | None, fields: np.ndarray, amplitudes: np.ndarray,
+                    weights: np.ndarray | None, eps: float, pupil_sums: tuple | None = None,
+                    boxes: np.ndarray | None = None, chunk: int | None = None, scatter: bool = True,
+                    map_pupils: MapPupils | None = None, coverage: np.ndarray | None = None) -> float:
     """Run batches one after the other in one GIL-free call: place, inverse FFT, magnitude step, FFT, scatter.
 
     Each batch does what :meth:`~cca_cli.optics.forward.ForwardModel.forward_into`,
@@ -674,10 +819,10 @@ def sequential_lane(raw_plans, batches: np.ndarray, spectrum: np.ndarray, origin
     spectrum : ndarray, complex64, (M, M), C-contiguous
         Updated in place.
     origins : ndarray, int64, (K, 2)
-    pupils : ndarray, complex64, (K, b, b)
-        Forward pupil boxes (scaling folded in).
-    factors : ndarray, complex64, (K, b, b)
-        Update factors multiplying each capture's back-transformed step.
+    pupils : ndarray, complex64, (K, b, b), or None
+        Forward pupil boxes (scaling folded in); None with ``map_pupils``.
+    factors : ndarray, complex64, (K, b, b), or None
+        Update factors multiplying each capture's back-transformed step; None with ``map_pupils``.
     fields : ndarray, complex64, (c, m, m)
         The workspace buffer the plans were made for.
     amplitudes : ndarray, float32, (K, m, m)
@@ -694,8 +839,13 @@ def sequential_lane(raw_plans, batches: np.ndarray, spectrum: np.ndarray, origin
         Captures transformed together (default :func:`lane_chunk`; at most the workspace's capacity).
     scatter : bool
         False: run one batch and leave its update boxes in ``boxes`` (for :func:`scatter_boxes`
-        with ``factors``), so that threads sharing a batch scatter their parts after all have
-        read the spectrum.
+        with ``factors``, or :func:`scatter_map_boxes`), so that threads sharing a batch scatter
+        their parts after all have read the spectrum.
+    map_pupils : MapPupils, optional
+        Form the pupil boxes and the factors from a map model's parts (in place of ``pupils`` and
+        ``factors``); each batch's factors are those of :func:`map_pupil_factors`.
+    coverage : ndarray, float32, (M, M), C-contiguous, optional
+        Zero work array for ``map_pupils`` (left zero).
 
     Returns
     -------
@@ -717,11 +867,20 @@ def sequential_lane(raw_plans, batches: np.ndarray, spectrum: np.ndarray, origin
         raise RuntimeError("sequential_lane: these raw FFTW plans were released; ask the workspace for new ones")
     if not (isinstance(fields, _ndarray) and fields.dtype == _C64 and fields.ndim == 3):
         raise ValueError(f"sequential_lane: fields must be a complex64 (c, m, m) array, got {_describe(fields)}")
+    if map_pupils is not None:
+        if pupils is not None or factors is not None:
+            raise ValueError("sequential_lane: with map_pupils the pupils and factors are formed: pass None for both")
+        b = map_pupils.box if isinstance(map_pupils, MapPupils) else 0
+        pupils = factors = np.broadcast_to(np.complex64(0), (len(origins), b, b))   # shapes for the checks
     _check_boxes("sequential_lane", spectrum, origins, pupils, fields[:0], 0)
     n, m = origins.shape[0], fields.shape[1]
+    mapping = _map_arguments("sequential_lane", map_pupils, coverage, spectrum, n, pupils.shape[1])
+    if map_pupils is not None:
+        pupils = factors = mapping[2][:0]   # unused: the kernel forms them
     confidence = amplitudes if weights is None else weights
     for name, array, dtype, shape in (("spectrum", spectrum, _C64, spectrum.shape), ("origins", origins, _I64, None),
-                                      ("pupils", pupils, _C64, None), ("factors", factors, _C64, pupils.shape),
+                                      ("pupils", pupils, _C64, None),
+                                      ("factors", factors, _C64, pupils.shape),
                                       ("amplitudes", amplitudes, _F32, (n, m, m)),
                                       ("weights", confidence, _F32, (n, m, m)), ("batches", batches, _I64, None)):
         if not (isinstance(array, _ndarray) and array.dtype == dtype and array.flags.c_contiguous
@@ -753,7 +912,7 @@ def sequential_lane(raw_plans, batches: np.ndarray, spectrum: np.ndarray, origin
                                                   pupils, factors, fields, boxes, chunk, bool(scatter), amplitudes,
                                                   confidence,
                                                   weights is not None, np.float32(eps), pupil_sums is not None,
-                                                  *sums, np.float32(1.0 / m))
+                                                  *sums, np.float32(1.0 / m), *mapping)
     if status >= 0:
         raise _bad_box("sequential_lane", origins, status, spectrum.shape, pupils.shape[1])
     if status < -1:
@@ -953,6 +1112,84 @@ if _HAVE_NUMBA:  # pragma: no branch
                         p[2 * c], p[2 * c + 1] = re, im
                         f[2 * c], f[2 * c + 1] = re * forward_scale, im * forward_scale
             _rpie_batch_numba(pupils, origins, start, stop, alpha, tau, scale, coverage, factors)
+
+
+if _HAVE_NUMBA:  # pragma: no branch
+    # A map model's pupils P_i = D_i · A_p(i), formed where they are used (the same float32 products as
+    # _map_pupil_factors_numba's, so results are bit-identical to placing and scattering stored arrays).
+    @_jit
+    def _map_coverage_numba(discs, maps, index, origins, start, stop, coverage):  # pragma: no cover - compiled
+        """Add ``|P_i|²`` of captures ``start … stop - 1`` into ``coverage``; returns the largest sum."""
+        b = discs.shape[1]
+        peak = np.float32(0.0)
+        for i in range(start, stop):
+            y0, x0 = origins[i, 0], origins[i, 1]
+            for r in range(b):
+                a = maps[index[i], r].view(np.float32)
+                d = discs[i, r]
+                row = coverage[y0 + r, x0:x0 + b]
+                for c in range(b):
+                    re, im = d[c] * a[2 * c], d[c] * a[2 * c + 1]
+                    v = row[c] + (re * re + im * im)
+                    row[c] = v
+                    peak = max(peak, v)
+        return peak
+
+    @_jit
+    def _place_map_boxes_numba(spectrum, origins, discs, maps, index, forward_scale, fields,
+                               start):  # pragma: no cover - compiled
+        """:func:`_place_boxes_numba` with the pupil boxes ``forward_scale · P_i`` formed on the fly."""
+        k, m, b = fields.shape[0], fields.shape[1], discs.shape[1]
+        s = m // 2 - b // 2
+        for j in range(k):
+            i = start + j
+            y0, x0 = origins[i, 0], origins[i, 1]
+            for r in range(m):
+                if r < s or r >= s + b:
+                    fields[j, r, :] = 0
+                    continue
+                fields[j, r, :s] = 0
+                fields[j, r, s + b:] = 0
+                a = maps[index[i], r - s].view(np.float32)
+                d = discs[i, r - s]
+                x = spectrum[y0 + r - s, x0:x0 + b].view(np.float32)
+                f = fields[j, r, s:s + b].view(np.float32)
+                for c in range(b):
+                    pr = (d[c] * a[2 * c]) * forward_scale
+                    pi = (d[c] * a[2 * c + 1]) * forward_scale
+                    xr, xi = x[2 * c], x[2 * c + 1]
+                    f[2 * c] = xr * pr - xi * pi
+                    f[2 * c + 1] = xr * pi + xi * pr
+
+    @_jit
+    def _scatter_map_numba(boxes, origins, discs, maps, index, alpha, tau, scale, coverage, accumulator,
+                           batch_start, batch_stop, start):  # pragma: no cover - compiled
+        """Scatter the update boxes of captures ``start …`` of batch ``[batch_start, batch_stop)`` with the
+        rPIE factors of :func:`_rpie_batch_numba` formed on the fly from the batch's coverage (left zero)."""
+        b = discs.shape[1]
+        peak = _map_coverage_numba(discs, maps, index, origins, batch_start, batch_stop, coverage)
+        floor = alpha * peak + tau + np.float32(1e-30)
+        keep = np.float32(1.0) - alpha
+        for j in range(boxes.shape[0]):
+            i = start + j
+            y0, x0 = origins[i, 0], origins[i, 1]
+            for r in range(b):
+                a = maps[index[i], r].view(np.float32)
+                d = discs[i, r]
+                f = boxes[j, r].view(np.float32)
+                row = coverage[y0 + r, x0:x0 + b]
+                out = accumulator[y0 + r, x0:x0 + b].view(np.float32)
+                for c in range(b):
+                    q = scale / (keep * row[c] + floor)
+                    pr = (d[c] * a[2 * c]) * q
+                    pi = -(d[c] * a[2 * c + 1]) * q
+                    fr, fi = f[2 * c], f[2 * c + 1]
+                    out[2 * c] += fr * pr - fi * pi
+                    out[2 * c + 1] += fr * pi + fi * pr
+        for i in range(batch_start, batch_stop):
+            y0, x0 = origins[i, 0], origins[i, 1]
+            for r in range(b):
+                coverage[y0 + r, x0:x0 + b] = 0
 
 
 def map_pupil_factors(discs: np.ndarray, maps: np.ndarray, index: np.ndarray, origins: np.ndarray,

@@ -169,6 +169,44 @@ CHILD = textwrap.dedent('''
             lane_with_sums((discs[:2], np.zeros(K, np.int64), np.zeros((1, b, b), np.complex128),
                             np.zeros((1, b, b))))
 
+        def map_lane(map_index, coverage, lane_pupils=None, batches=((0, 2),)):
+            parts = kernels.MapPupils(discs, pupils[:1].copy(), map_index, forward_scale=1.0, alpha=0.1, tau=1e-3,
+                                      scale=1.0)
+            return kernels.sequential_lane(raw, np.array(batches, np.int64), spectrum, origins, lane_pupils,
+                                           lane_pupils, workspace.fields, lane_amplitudes, None, 1e-6,
+                                           map_pupils=parts, coverage=coverage)
+
+        @case
+        def map_pupils_naming_a_map_that_does_not_exist():
+            map_lane(np.full(K, 1, np.int64), np.zeros((M, M), np.float32))
+
+        @case
+        def map_lane_with_a_coverage_of_another_shape():
+            map_lane(np.zeros(K, np.int64), np.zeros((M, M - 1), np.float32))
+
+        @case
+        def map_lane_given_pupils_too():
+            map_lane(np.zeros(K, np.int64), np.zeros((M, M), np.float32), lane_pupils=pupils)
+
+        @case
+        def map_lane_box_outside_the_spectrum_runs_nothing():
+            before = spectrum.copy()
+            try:
+                parts = kernels.MapPupils(discs, pupils[:1].copy(), np.zeros(K, np.int64), forward_scale=1.0,
+                                          alpha=0.1, tau=1e-3, scale=1.0)
+                kernels.sequential_lane(raw, np.array([[0, 2], [2, 4]], np.int64), spectrum, shifted(3, M), None,
+                                        None, workspace.fields, lane_amplitudes, None, 1e-6, map_pupils=parts,
+                                        coverage=np.zeros((M, M), np.float32))
+            finally:
+                assert np.array_equal(spectrum, before), "the lane ran batches before refusing"
+
+        @case
+        def map_scatter_boxes_outside_their_batch():
+            parts = kernels.MapPupils(discs, pupils[:1].copy(), np.zeros(K, np.int64), forward_scale=1.0, alpha=0.1,
+                                      tau=1e-3, scale=1.0)
+            kernels.scatter_map_boxes(np.zeros((3, b, b), np.complex64), origins, parts,
+                                      np.zeros((M, M), np.float32), spectrum, (0, 4), 2)
+
         @case
         def lane_pupil_sums_naming_a_pupil_that_does_not_exist():
             lane_with_sums((discs, np.full(K, 3, np.int64), np.zeros((1, b, b), np.complex128), np.zeros((1, b, b))))
@@ -264,12 +302,17 @@ RAISES = {
     "lane_pupil_sums_of_too_few_discs": ("ValueError", "discs must be a C-contiguous float32 array (6, 8, 8)"),
     "lane_pupil_sums_naming_a_pupil_that_does_not_exist": ("ValueError", "index must name pupils 0 … 0"),
     "lane_pupil_sums_in_single_precision": ("ValueError", "numerator must be a C-contiguous complex128 array"),
+    "map_pupils_naming_a_map_that_does_not_exist": ("ValueError", "MapPupils: index must name maps 0 … 0"),
+    "map_lane_with_a_coverage_of_another_shape": ("ValueError", "coverage must be a C-contiguous float32 (32, 32)"),
+    "map_lane_given_pupils_too": ("ValueError", "pass None for both"),
+    "map_lane_box_outside_the_spectrum_runs_nothing": ("ValueError", "capture 3 at origin (32, 32)"),
+    "map_scatter_boxes_outside_their_batch": ("ValueError", "captures 2 to 4 must lie in the batch [0, 4)"),
     "raw_plans_of_a_collected_transform_still_run": ("none", ""),
     "raw_plans_released_refuse_to_run": ("RuntimeError", "released"),
     "lane_after_the_workspace_was_closed": ("RuntimeError", "released"),
     "threads_planning_at_once_all_get_working_plans": ("none", ""),
 }
-NEEDS_RAW = [name for name in RAISES if name.startswith(("lane_", "raw_"))]
+NEEDS_RAW = [name for name in RAISES if name.startswith(("lane_", "raw_", "map_"))]
 
 
 @pytest.fixture(scope="module")

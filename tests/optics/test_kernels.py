@@ -248,6 +248,63 @@ def test_pupils_from_maps_and_rpie_factors_agree_and_match_the_formulas():
     np.testing.assert_allclose(slow_factors, factors, rtol=1e-6)
 
 
+def test_lanes_forming_map_pupils_on_the_fly_give_bit_identical_spectra():
+    """A map model's pupils and rPIE factors formed inside the lane, or stored by map_pupil_factors: the
+    same bits, whether the lane scatters each batch itself or leaves it to scatter_map_boxes in parts."""
+    from cca_cli.optics.forward import Workspace
+
+    rng = np.random.default_rng(12)
+    K, b, m, M = 9, 8, 16, 40
+    discs = rng.random((K, b, b)).astype(np.float32)
+    maps = (rng.standard_normal((2, b, b)) + 1j * rng.standard_normal((2, b, b))).astype(np.complex64)
+    index = rng.integers(0, 2, K).astype(np.int64)
+    origins = rng.integers(0, M - b, (K, 2)).astype(np.int64)   # overlapping boxes
+    batches = np.array([[0, 4], [4, 9]], np.int64)
+    start = (rng.standard_normal((M, M)) + 1j * rng.standard_normal((M, M))).astype(np.complex64)
+    amplitudes = rng.random((K, m, m)).astype(np.float32)
+    options = dict(alpha=0.2, tau=1e-3, scale=0.5 / m)
+    workspace = Workspace(5, m, threads=1, band=(m // 2 - b // 2, m // 2 + b // 2), effort="estimate")
+    raw = workspace.box_fft.raw_plans()
+    if not kernels.can_fuse_lanes(raw):
+        pytest.skip("fused lanes need pyfftw and raw FFTW plans")
+    pupils, boxes, factors = (np.zeros((K, b, b), np.complex64) for _ in range(3))
+    coverage = np.zeros((M, M), np.float32)
+    kernels.map_pupil_factors(discs, maps, index, origins, batches, forward_scale=1.0 / m, coverage=coverage,
+                              pupils=pupils, boxes=boxes, factors=factors, **options)
+    parts = kernels.MapPupils(discs, maps, index, forward_scale=1.0 / m, **options)
+    np.testing.assert_array_equal(parts.pupils(), pupils)
+    work = np.empty((5, b, b), np.complex64)
+
+    stored, formed = start.copy(), start.copy()
+    misfit = kernels.sequential_lane(raw, batches, stored, origins, boxes, factors, workspace.fields, amplitudes,
+                                     None, 1e-6, boxes=work)
+    same = kernels.sequential_lane(raw, batches, formed, origins, None, None, workspace.fields, amplitudes, None,
+                                   1e-6, boxes=work, map_pupils=parts, coverage=coverage)
+    assert not coverage.any()
+    assert misfit == same
+    np.testing.assert_array_equal(formed, stored)
+    assert not np.array_equal(formed, start)
+
+    # one batch run in two parts, each left unscattered, then scattered in order
+    stored, formed = start.copy(), start.copy()
+    for spectrum, mapped in ((stored, False), (formed, True)):
+        held = []
+        for first, last in ((4, 7), (7, 9)):
+            part = np.empty((last - first, b, b), np.complex64)
+            kernels.sequential_lane(raw, np.array([[first, last]], np.int64), spectrum, origins,
+                                    None if mapped else boxes, None if mapped else factors, workspace.fields,
+                                    amplitudes, None, 1e-6, boxes=part, scatter=False,
+                                    map_pupils=parts if mapped else None, coverage=coverage if mapped else None)
+            held.append((first, part))
+        for first, part in held:
+            if mapped:
+                kernels.scatter_map_boxes(part, origins, parts, coverage, spectrum, (4, 9), first)
+            else:
+                kernels.scatter_boxes(part, origins, factors, spectrum, first)
+    assert not coverage.any()
+    np.testing.assert_array_equal(formed, stored)
+
+
 def test_momentum_step_agrees():
     rng = np.random.default_rng(6)
     arrays = [(rng.standard_normal((16, 16)) + 1j * rng.standard_normal((16, 16))).astype(np.complex64)
