@@ -270,7 +270,6 @@ def check_folder(directory: str | Path) -> None:
     _probe(folder, directory)
 
 
-
 def prepare_folder(directory: Path) -> None:
     """Create a run folder, or refuse one that is a file or cannot be written (one line)."""
     check_folder(directory)
@@ -278,6 +277,7 @@ def prepare_folder(directory: Path) -> None:
         directory.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise OutputError(f"{directory}: cannot create the folder ({exc.strerror}); choose another one") from None
+
 
 def remove_stale_temporaries(directory: str | Path, names: Iterable[str] | None = None) -> list[Path]:
     """Remove ``.<name>.tmp-<pid>`` (and ``.old-<pid>``) entries of processes that no longer run.

@@ -688,19 +688,26 @@ class MapPupils:
 
     def __init__(self, discs: np.ndarray, maps: np.ndarray, index: np.ndarray, *, forward_scale: float,
                  alpha: float, tau: float, scale: float):
-        named = (("discs", discs, _F32, 3), ("maps", maps, _C64, 3), ("index", index, _I64, 1))
-        _check_arrays("MapPupils", named)
-        for name, array, _, _ in named:
-            if not array.flags.c_contiguous:
-                raise ValueError(f"MapPupils: {name} must be C-contiguous, got {_describe(array)}")
-        k, b = discs.shape[0], discs.shape[1]
-        if discs.shape[2] != b or maps.shape[1:] != (b, b) or index.shape != (k,):
-            raise ValueError(f"MapPupils: shapes do not fit together: discs {discs.shape}, maps {maps.shape}, "
-                             f"index {index.shape} (need (K, b, b), (P, b, b) and (K,))")
-        if index.size and (int(index.min()) < 0 or int(index.max()) >= maps.shape[0]):
-            raise ValueError(f"MapPupils: index must name maps 0 … {maps.shape[0] - 1}")
         self.discs, self.maps, self.index = discs, maps, index
         self.values = tuple(np.float32(v) for v in (forward_scale, alpha, tau, scale))
+        self.check("MapPupils")
+
+    def check(self, where: str) -> None:
+        """Raise ValueError unless the parts fit together (run again before every compiled call: the arrays
+        are the caller's, and may have changed since).
+        """
+        discs, maps, index = self.discs, self.maps, self.index
+        named = (("discs", discs, _F32, 3), ("maps", maps, _C64, 3), ("index", index, _I64, 1))
+        _check_arrays(where, named)
+        for name, array, _, _ in named:
+            if not array.flags.c_contiguous:
+                raise ValueError(f"{where}: {name} must be C-contiguous, got {_describe(array)}")
+        k, b = discs.shape[0], discs.shape[1]
+        if discs.shape[2] != b or maps.shape[1:] != (b, b) or index.shape != (k,):
+            raise ValueError(f"{where}: shapes do not fit together: discs {discs.shape}, maps {maps.shape}, "
+                             f"index {index.shape} (need (K, b, b), (P, b, b) and (K,))")
+        if index.size and (int(index.min()) < 0 or int(index.max()) >= maps.shape[0]):
+            raise ValueError(f"{where}: index must name maps 0 … {maps.shape[0] - 1}")
 
     @property
     def box(self) -> int:
@@ -741,6 +748,7 @@ def _map_arguments(where: str, map_pupils: MapPupils | None, coverage, spectrum,
         return _NO_MAP
     if not isinstance(map_pupils, MapPupils):
         raise ValueError(f"{where}: map_pupils must be a MapPupils, got {type(map_pupils).__name__}")
+    map_pupils.check(where)
     if map_pupils.count != n or map_pupils.box != b:
         raise ValueError(f"{where}: map_pupils hold {map_pupils.count} captures of {map_pupils.box}² boxes; "
                          f"need {n} of {b}²")
@@ -775,10 +783,16 @@ def scatter_map_boxes(boxes: np.ndarray, origins: np.ndarray, map_pupils: MapPup
     """
     if not _use_numba:
         raise ValueError("scatter_map_boxes needs the numba kernels")
+    _check_arrays("scatter_map_boxes", (("origins", origins, _I64, 2), ("boxes", boxes, _C64, 3)))
     b = map_pupils.box if isinstance(map_pupils, MapPupils) else 0
     _check_boxes("scatter_map_boxes", accumulator, origins, np.broadcast_to(np.complex64(0), (len(origins), b, b)),
                  boxes, 0)
-    first, stop = (int(v) for v in batch)
+    if boxes.shape[1:] != (b, b):
+        raise ValueError(f"scatter_map_boxes: boxes must be (k, {b}, {b}) update boxes, got {boxes.shape}")
+    try:
+        first, stop = (int(v) for v in batch)
+    except (TypeError, ValueError):
+        raise ValueError(f"scatter_map_boxes: batch must be two integers [start, stop), got {batch!r}") from None
     k = boxes.shape[0]
     if not (0 <= first <= start and start + k <= stop <= len(origins)):
         raise ValueError(f"scatter_map_boxes: captures {start} to {start + k - 1} must lie in the batch "
@@ -870,6 +884,7 @@ def sequential_lane(raw_plans, batches: np.ndarray, spectrum: np.ndarray, origin
     if map_pupils is not None:
         if pupils is not None or factors is not None:
             raise ValueError("sequential_lane: with map_pupils the pupils and factors are formed: pass None for both")
+        _check_arrays("sequential_lane", (("origins", origins, _I64, 2),))
         b = map_pupils.box if isinstance(map_pupils, MapPupils) else 0
         pupils = factors = np.broadcast_to(np.complex64(0), (len(origins), b, b))   # shapes for the checks
     _check_boxes("sequential_lane", spectrum, origins, pupils, fields[:0], 0)

@@ -201,6 +201,29 @@ CHILD = textwrap.dedent('''
                 assert np.array_equal(spectrum, before), "the lane ran batches before refusing"
 
         @case
+        def map_pupils_whose_index_changed_after_they_were_made():
+            map_index = np.zeros(K, np.int64)
+            parts = kernels.MapPupils(discs, pupils[:1].copy(), map_index, forward_scale=1.0, alpha=0.1, tau=1e-3,
+                                      scale=1.0)
+            map_index[:] = 10**9
+            kernels.scatter_map_boxes(np.zeros((2, b, b), np.complex64), origins, parts,
+                                      np.zeros((M, M), np.float32), spectrum, (0, 2), 0)
+
+        @case
+        def map_scatter_of_whole_fields():
+            parts = kernels.MapPupils(discs, pupils[:1].copy(), np.zeros(K, np.int64), forward_scale=1.0, alpha=0.1,
+                                      tau=1e-3, scale=1.0)
+            kernels.scatter_map_boxes(np.zeros((2, m, m), np.complex64), origins, parts,
+                                      np.zeros((M, M), np.float32), spectrum, (0, 2), 0)
+
+        @case
+        def map_scatter_without_origins():
+            parts = kernels.MapPupils(discs, pupils[:1].copy(), np.zeros(K, np.int64), forward_scale=1.0, alpha=0.1,
+                                      tau=1e-3, scale=1.0)
+            kernels.scatter_map_boxes(np.zeros((2, b, b), np.complex64), None, parts,
+                                      np.zeros((M, M), np.float32), spectrum, (0, 2), 0)
+
+        @case
         def map_scatter_boxes_outside_their_batch():
             parts = kernels.MapPupils(discs, pupils[:1].copy(), np.zeros(K, np.int64), forward_scale=1.0, alpha=0.1,
                                       tau=1e-3, scale=1.0)
@@ -306,6 +329,10 @@ RAISES = {
     "map_lane_with_a_coverage_of_another_shape": ("ValueError", "coverage must be a C-contiguous float32 (32, 32)"),
     "map_lane_given_pupils_too": ("ValueError", "pass None for both"),
     "map_lane_box_outside_the_spectrum_runs_nothing": ("ValueError", "capture 3 at origin (32, 32)"),
+    "map_pupils_whose_index_changed_after_they_were_made": ("ValueError", "scatter_map_boxes: index must name "
+                                                                           "maps 0 … 0"),
+    "map_scatter_of_whole_fields": ("ValueError", "boxes must be (k, 8, 8) update boxes, got (2, 16, 16)"),
+    "map_scatter_without_origins": ("ValueError", "origins must be a 2-d int64 array"),
     "map_scatter_boxes_outside_their_batch": ("ValueError", "captures 2 to 4 must lie in the batch [0, 4)"),
     "raw_plans_of_a_collected_transform_still_run": ("none", ""),
     "raw_plans_released_refuse_to_run": ("RuntimeError", "released"),

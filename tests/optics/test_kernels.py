@@ -305,6 +305,40 @@ def test_lanes_forming_map_pupils_on_the_fly_give_bit_identical_spectra():
     np.testing.assert_array_equal(formed, stored)
 
 
+@pytest.mark.parametrize("threads, batch", [(1, 3), (2, 3), (2, 25)])
+def test_momentum_engine_forming_map_pupils_in_its_lanes_matches_stored_pupils_bit_for_bit(threads, batch):
+    """The engine's map-pupil lanes against the same engine made to store pupils, boxes and factors:
+    lanes side by side, one batch shared by two threads (batch 25: every capture), batches that grow."""
+    from cca_cli.engines.momentum import MomentumOptions, SequentialMomentum
+    from cca_cli.optics import fft
+
+    if not (fft.backend_name() == "pyfftw" and fft.raw_fftw_available()):
+        pytest.skip("fused lanes need pyfftw and raw FFTW plans")
+
+    class StoredPupils(SequentialMomentum):
+        def _set_recovered_model(self):
+            self._map_pupils = None
+            self._set_model(None, self.calibrator.recovery.map_parts())
+
+    forward = _model()
+    rng = np.random.default_rng(11)
+    amplitudes = np.abs(rng.standard_normal((forward.n_images,) + forward.field_shape)).astype(np.float32) + 0.5
+    problem = PhaseRetrievalProblem(forward, amplitudes)
+    results = []
+    for engine_class in (SequentialMomentum, StoredPupils):
+        engine = engine_class(problem, MomentumOptions(max_iterations=6, tol=0, batch=batch, batch_growth=2,
+                                                       threads=threads, pupil_recovery="shared", pupil_model="full",
+                                                       pupil_estimate=False))
+        assert engine.passes.fused and ((engine._map_pupils is not None) == (engine_class is SequentialMomentum))
+        misfits = [engine.update()[0] for _ in range(6)]
+        engine.close()
+        results.append((engine.spectrum().copy(), engine.calibration().pupil.maps, misfits))
+    (formed, formed_maps, formed_misfits), (stored, stored_maps, stored_misfits) = results
+    np.testing.assert_array_equal(formed, stored)
+    np.testing.assert_array_equal(formed_maps, stored_maps)
+    assert formed_misfits == stored_misfits
+
+
 def test_momentum_step_agrees():
     rng = np.random.default_rng(6)
     arrays = [(rng.standard_normal((16, 16)) + 1j * rng.standard_normal((16, 16))).astype(np.complex64)
