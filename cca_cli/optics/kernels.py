@@ -251,7 +251,9 @@ if _HAVE_NUMBA:  # pragma: no branch
                     a[2 * c + 1] += fr * pi + fi * pr
         return -1
 
-    @_jit_fast
+    # Strict IEEE arithmetic: with fastmath, LLVM fused and reordered this loop differently depending on
+    # what the process had compiled before it, so the same inputs gave different bits from one cache to another.
+    @_jit
     def _momentum_numba(spectrum, anchor, velocity, eta):  # pragma: no cover - compiled
         s = spectrum.reshape(spectrum.size)
         a = anchor.reshape(anchor.size)

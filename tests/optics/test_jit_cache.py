@@ -91,3 +91,32 @@ def test_a_temporary_folder_others_may_write_is_not_used(tmp_path):
     assert result.returncode == 0, result.stderr
     assert result.stdout.split() == ["numba", "False"]
     assert not list(shared.iterdir())
+
+
+ORDER_SCRIPT = """
+import hashlib, sys
+import numpy as np
+from cca_cli.optics import kernels
+
+if sys.argv[1] == "after":   # another kernel compiled first, as warm_up does
+    kernels._place_boxes_numba(np.zeros((8, 8), np.complex64), np.zeros((1, 2), np.int64),
+                               np.zeros((1, 4, 4), np.complex64), np.zeros((1, 8, 8), np.complex64), 0)
+rng = np.random.default_rng(3)
+spectrum, anchor, velocity = ((rng.standard_normal((96, 96)) + 1j * rng.standard_normal((96, 96))).astype(np.complex64)
+                              for _ in range(3))
+change, norm = kernels.momentum_step(spectrum, anchor, velocity, 0.3)
+print(hashlib.sha256(spectrum.tobytes() + velocity.tobytes()).hexdigest(), repr(change), repr(norm))
+"""
+
+
+def test_the_momentum_kernel_gives_the_same_bits_whatever_was_compiled_before_it(tmp_path):
+    """Compiled with fastmath, the momentum step's code (and so its results) depended on whether another kernel
+    had been compiled first in the process: two caches of one install gave two results."""
+    outputs = []
+    for order in ("first", "after"):
+        env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / order))
+        run = subprocess.run([sys.executable, "-c", ORDER_SCRIPT, order], env=env, capture_output=True, text=True,
+                             timeout=300)
+        assert run.returncode == 0, run.stderr[-2000:]
+        outputs.append(run.stdout.strip())
+    assert outputs[0] == outputs[1]
