@@ -729,13 +729,6 @@ class MapPupils:
         pupils.imag = self.discs * maps.imag
         return pupils
 
-    def check_coverage(self, where: str, coverage: np.ndarray, spectrum: np.ndarray) -> None:
-        """``coverage`` is a C-contiguous float32 work array of the spectrum's shape."""
-        if not (isinstance(coverage, _ndarray) and coverage.dtype == _F32 and coverage.flags.c_contiguous
-                and coverage.shape == spectrum.shape):
-            raise ValueError(f"{where}: coverage must be a C-contiguous float32 {spectrum.shape} array, "
-                             f"got {_describe(coverage)}")
-
 
 _NO_MAP = None
 
@@ -754,7 +747,10 @@ def _map_arguments(where: str, map_pupils: MapPupils | None, coverage, spectrum,
     if map_pupils.count != n or map_pupils.box != b:
         raise ValueError(f"{where}: map_pupils hold {map_pupils.count} captures of {map_pupils.box}² boxes; "
                          f"need {n} of {b}²")
-    map_pupils.check_coverage(where, coverage, spectrum)
+    if not (isinstance(coverage, _ndarray) and coverage.dtype == _F32 and coverage.flags.c_contiguous
+            and coverage.shape == spectrum.shape):
+        raise ValueError(f"{where}: coverage must be a C-contiguous float32 {spectrum.shape} array, "
+                         f"got {_describe(coverage)}")
     return (True, map_pupils.discs, map_pupils.maps, map_pupils.index, *map_pupils.values, coverage)
 
 
