@@ -169,66 +169,58 @@ CHILD = textwrap.dedent('''
             lane_with_sums((discs[:2], np.zeros(K, np.int64), np.zeros((1, b, b), np.complex128),
                             np.zeros((1, b, b))))
 
-        def map_lane(map_index, coverage, lane_pupils=None, batches=((0, 2),)):
-            parts = kernels.MapPupils(discs, pupils[:1].copy(), map_index, forward_scale=1.0, alpha=0.1, tau=1e-3,
-                                      scale=1.0)
-            return kernels.sequential_lane(raw, np.array(batches, np.int64), spectrum, origins, lane_pupils,
+        def map_parts(map_index=None):
+            return kernels.MapPupils(discs, pupils[:1].copy(), np.zeros(K, np.int64) if map_index is None
+                                     else map_index, forward_scale=1.0, alpha=0.1, tau=1e-3, scale=1.0)
+
+        def map_lane(parts, coverage=None, lane_pupils=None, lane_origins=origins, batches=((0, 2),)):
+            return kernels.sequential_lane(raw, np.array(batches, np.int64), spectrum, lane_origins, lane_pupils,
                                            lane_pupils, workspace.fields, lane_amplitudes, None, 1e-6,
-                                           map_pupils=parts, coverage=coverage)
+                                           map_pupils=parts,
+                                           coverage=np.zeros((M, M), np.float32) if coverage is None else coverage)
+
+        def map_scatter(parts, boxes, scatter_origins=origins, batch=(0, 2), start=0):
+            kernels.scatter_map_boxes(boxes, scatter_origins, parts, np.zeros((M, M), np.float32), spectrum, batch,
+                                      start)
 
         @case
         def map_pupils_naming_a_map_that_does_not_exist():
-            map_lane(np.full(K, 1, np.int64), np.zeros((M, M), np.float32))
+            map_lane(map_parts(np.full(K, 1, np.int64)))
 
         @case
         def map_lane_with_a_coverage_of_another_shape():
-            map_lane(np.zeros(K, np.int64), np.zeros((M, M - 1), np.float32))
+            map_lane(map_parts(), coverage=np.zeros((M, M - 1), np.float32))
 
         @case
         def map_lane_given_pupils_too():
-            map_lane(np.zeros(K, np.int64), np.zeros((M, M), np.float32), lane_pupils=pupils)
+            map_lane(map_parts(), lane_pupils=pupils)
 
         @case
         def map_lane_box_outside_the_spectrum_runs_nothing():
             before = spectrum.copy()
             try:
-                parts = kernels.MapPupils(discs, pupils[:1].copy(), np.zeros(K, np.int64), forward_scale=1.0,
-                                          alpha=0.1, tau=1e-3, scale=1.0)
-                kernels.sequential_lane(raw, np.array([[0, 2], [2, 4]], np.int64), spectrum, shifted(3, M), None,
-                                        None, workspace.fields, lane_amplitudes, None, 1e-6, map_pupils=parts,
-                                        coverage=np.zeros((M, M), np.float32))
+                map_lane(map_parts(), lane_origins=shifted(3, M), batches=((0, 2), (2, 4)))
             finally:
                 assert np.array_equal(spectrum, before), "the lane ran batches before refusing"
 
         @case
         def map_pupils_whose_index_changed_after_they_were_made():
             map_index = np.zeros(K, np.int64)
-            parts = kernels.MapPupils(discs, pupils[:1].copy(), map_index, forward_scale=1.0, alpha=0.1, tau=1e-3,
-                                      scale=1.0)
+            parts = map_parts(map_index)
             map_index[:] = 10**9
-            kernels.scatter_map_boxes(np.zeros((2, b, b), np.complex64), origins, parts,
-                                      np.zeros((M, M), np.float32), spectrum, (0, 2), 0)
+            map_scatter(parts, np.zeros((2, b, b), np.complex64))
 
         @case
         def map_scatter_of_whole_fields():
-            parts = kernels.MapPupils(discs, pupils[:1].copy(), np.zeros(K, np.int64), forward_scale=1.0, alpha=0.1,
-                                      tau=1e-3, scale=1.0)
-            kernels.scatter_map_boxes(np.zeros((2, m, m), np.complex64), origins, parts,
-                                      np.zeros((M, M), np.float32), spectrum, (0, 2), 0)
+            map_scatter(map_parts(), np.zeros((2, m, m), np.complex64))
 
         @case
         def map_scatter_without_origins():
-            parts = kernels.MapPupils(discs, pupils[:1].copy(), np.zeros(K, np.int64), forward_scale=1.0, alpha=0.1,
-                                      tau=1e-3, scale=1.0)
-            kernels.scatter_map_boxes(np.zeros((2, b, b), np.complex64), None, parts,
-                                      np.zeros((M, M), np.float32), spectrum, (0, 2), 0)
+            map_scatter(map_parts(), np.zeros((2, b, b), np.complex64), scatter_origins=None)
 
         @case
         def map_scatter_boxes_outside_their_batch():
-            parts = kernels.MapPupils(discs, pupils[:1].copy(), np.zeros(K, np.int64), forward_scale=1.0, alpha=0.1,
-                                      tau=1e-3, scale=1.0)
-            kernels.scatter_map_boxes(np.zeros((3, b, b), np.complex64), origins, parts,
-                                      np.zeros((M, M), np.float32), spectrum, (0, 4), 2)
+            map_scatter(map_parts(), np.zeros((3, b, b), np.complex64), batch=(0, 4), start=2)
 
         @case
         def lane_pupil_sums_naming_a_pupil_that_does_not_exist():
