@@ -63,7 +63,14 @@ sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(HERE / "corpus"))
 
 import rebuild
-from real_data import SHARED, DatasetSpec, Prepared, cca_command, prepare
+from real_data import (
+    SHARED,
+    DatasetSpec,
+    Prepared,
+    cca_command,
+    prepare,
+    tool_environment,
+)
 from real_methods import forward_check, read_cca_recovery, run_peer
 from real_model import (
     FrameModel,
@@ -242,7 +249,7 @@ def run_cca(data: Prepared, workdir: Path, config: dict | None) -> tuple[Recover
         (workdir / f"cca_{tag}.yaml").write_text(text)
         args += ["--config", str(workdir / f"cca_{tag}.yaml")]
     start = time.perf_counter()
-    proc = subprocess.run(args, capture_output=True, text=True, env=dict(os.environ, COLUMNS="200"), check=False)
+    proc = subprocess.run(args, capture_output=True, text=True, env=tool_environment(COLUMNS="200"), check=False)
     wall = time.perf_counter() - start
     (workdir / f"cca_{tag}.log").write_text(proc.stdout + proc.stderr)
     if proc.returncode != 0:

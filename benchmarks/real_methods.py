@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import subprocess
 import time
 from dataclasses import replace
@@ -22,7 +21,7 @@ import h5py
 import numpy as np
 import yaml
 
-from real_data import ROOT, Prepared, run_cca
+from real_data import ROOT, Prepared, run_cca, tool_environment
 from real_model import Recovery, circle_pupils, embed_centred
 
 HERE = Path(__file__).resolve().parent
@@ -46,7 +45,7 @@ def peer_available(family: str) -> tuple[bool, str]:
 
 def _worker(python: str, args: list[str], timeout: float, log: Path) -> None:
     proc = subprocess.run([python, str(HERE / "real_peer_worker.py"), *args], capture_output=True, text=True,
-                          timeout=timeout, cwd=ROOT, env=dict(os.environ, PYTHONPATH=str(HERE)))
+                          timeout=timeout, cwd=ROOT, env=tool_environment(PYTHONPATH=str(HERE)))
     log.write_text(proc.stdout + proc.stderr)
     if proc.returncode != 0:
         lines = [line for line in (proc.stderr or proc.stdout).splitlines() if line.strip()]

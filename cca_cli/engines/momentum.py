@@ -36,9 +36,9 @@ business.
 The run stops (:class:`~cca_cli.engines.stopping.StoppingPolicy`) at
 ``max_iterations``, when a pass changes the spectrum by less than ``tol``, or
 when the misfit has fallen by less than ``plateau`` (relative) over the last
-``plateau_window`` passes. With ``batch_growth`` a plateau first makes the
-batches larger (until a batch may hold every capture), and only a plateau at
-the largest batch ends the run: on recorded data, which the model never
+``plateau_window`` passes. With ``batch_growth`` a plateau (over the last
+``growth_window`` passes) first makes the batches larger (until a batch may
+hold every capture), and only a plateau at the largest batch ends the run: on recorded data, which the model never
 explains exactly, fixed small batches settle into a cycle between the
 captures' constraints rather than at a minimum of the whole misfit.
 
@@ -99,7 +99,7 @@ class MomentumBase(CalibratingEngine):
         self.calibrator = Calibrator(problem, options, threads)
         self.stopping = StoppingPolicy(max_iterations=options.max_iterations, tol=options.tol,
                                        plateau=options.plateau, plateau_window=options.plateau_window,
-                                       can_grow=self._can_grow,
+                                       growth_window=options.growth_window, can_grow=self._can_grow,
                                        held_back_patience=options.hold_back_patience if len(self._held) else 0)
 
     def _lay_out(self) -> np.ndarray:

@@ -129,6 +129,9 @@ class MomentumOptions(EngineOptions):
         ``plateau_window`` passes (0: never).
     plateau_window : int
         Passes the plateau test looks back.
+    growth_window : int or None
+        Passes the plateau test looks back while the batches can still grow
+        (``batch_growth``); None: ``plateau_window``.
     alpha : float
         rPIE regularisation α in [0, 1]: 0 divides by the batch's pupil power
         (ePIE-like full projection), 1 by its maximum (small, uniform steps).
@@ -212,6 +215,7 @@ class MomentumOptions(EngineOptions):
     max_iterations: int = 200
     plateau: float = 0.0
     plateau_window: int = 5
+    growth_window: int | None = None
     alpha: float = 0.1
     beta: float = 1.0
     eta: float = 0.7
@@ -257,6 +261,8 @@ class MomentumOptions(EngineOptions):
         _checked([
             (0 <= self.plateau < 1, f"plateau must be in [0, 1), got {self.plateau}"),
             (self.plateau_window >= 1, f"plateau_window must be ≥ 1, got {self.plateau_window}"),
+            (self.growth_window is None or self.growth_window >= 1,
+             f"growth_window must be ≥ 1 (or null: plateau_window), got {self.growth_window}"),
             (0 <= self.alpha <= 1, f"alpha must be in [0, 1], got {self.alpha}"),
             (0 < self.beta < 2, f"beta must be in (0, 2), got {self.beta}"),
             (0 <= self.eta < 1, f"eta must be in [0, 1), got {self.eta}"),

@@ -4,8 +4,11 @@ Every engine counts its iterations against a cap and stops early when an
 iteration changes the spectrum by less than ``tol``. Engines that report a
 data misfit may also stop on a *plateau*: the misfit fell by less than
 ``plateau`` (relative) over the last ``plateau_window`` iterations. An engine
-that can enlarge its batches first grows them at a plateau; only a plateau it
-can no longer grow out of ends the run.
+that can enlarge its batches first grows them at a plateau, judged over the
+last ``growth_window`` iterations (a shorter look back: growing early costs
+little, the next batch size goes on from where the last left off); only a
+plateau it can no longer grow out of, judged over ``plateau_window``, ends the
+run.
 
 An engine that holds some captures back from its updates reports their misfit
 too: it measures how well the recovery predicts data it never fitted. When
@@ -40,6 +43,9 @@ class StoppingPolicy:
         Relative misfit drop over ``plateau_window`` iterations below which the
         misfit counts as flat (0: never).
     plateau_window : int
+    growth_window : int, optional
+        Iterations the plateau test looks back while the engine can still grow its
+        batches (None: ``plateau_window``).
     can_grow : callable, optional
         Whether the engine can still enlarge its batches; while it can, a flat
         misfit asks for growth (:meth:`record` returns True) instead of ending the run.
@@ -49,11 +55,13 @@ class StoppingPolicy:
     """
 
     def __init__(self, *, max_iterations: int, tol: float, plateau: float = 0.0, plateau_window: int = 1,
-                 can_grow: Callable[[], bool] = lambda: False, held_back_patience: int = 0):
+                 growth_window: int | None = None, can_grow: Callable[[], bool] = lambda: False,
+                 held_back_patience: int = 0):
         self.max_iterations = int(max_iterations)
         self.tol = float(tol)
         self.plateau = float(plateau)
         self.window = int(plateau_window)
+        self.growth_window = self.window if growth_window is None else int(growth_window)
         self._can_grow = can_grow
         self.iteration = 0
         self.change = np.inf
@@ -81,7 +89,7 @@ class StoppingPolicy:
             self.rising_since = self.iteration if self.rising_since is None else self.rising_since
         else:
             self.rising_since = None
-        return self._can_grow() and self.flat()
+        return self._can_grow() and self.flat(self.growth_window)
 
     def held_back_rose(self) -> bool:
         """Whether the held-back misfit has stayed clearly above its best for ``held_back_patience`` iterations."""
@@ -96,11 +104,13 @@ class StoppingPolicy:
         """The engine enlarged its batches: the plateau test starts afresh from the next iteration."""
         self.plateau_from = len(self.misfits)
 
-    def flat(self) -> bool:
-        """Whether the misfit fell by less than ``plateau`` over the last ``plateau_window`` iterations."""
-        if self.plateau <= 0 or len(self.misfits) - self.plateau_from <= self.window:
+    def flat(self, window: int | None = None) -> bool:
+        """Whether the misfit fell by less than ``plateau`` over the last ``window`` iterations
+        (default ``plateau_window``) of the current batch size."""
+        window = self.window if window is None else window
+        if self.plateau <= 0 or len(self.misfits) - self.plateau_from <= window:
             return False
-        then, now = self.misfits[-1 - self.window], self.misfits[-1]
+        then, now = self.misfits[-1 - window], self.misfits[-1]
         return (then - now) < self.plateau * now
 
     def on_plateau(self) -> bool:

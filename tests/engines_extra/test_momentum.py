@@ -9,6 +9,7 @@ from cca_cli.engines.base import run_engine
 from cca_cli.engines.momentum import MomentumOptions, SequentialMomentum
 from cca_cli.engines.problem import PhaseRetrievalProblem
 from cca_cli.engines.registry import get_engine
+from cca_cli.engines.stopping import StoppingPolicy
 from cca_cli.metrics import rmse
 from cca_cli.optics import fft
 from cca_cli.optics.forward import ForwardModel
@@ -160,6 +161,48 @@ def test_batch_growth_takes_inconsistent_data_past_the_small_batch_plateau():
     assert len(set(batches)) == 5
     assert fixed.stopping.on_plateau() and growing.stopping.on_plateau()
     assert misfit < 0.97 * fixed_history.records[-1].residual
+
+
+def test_a_shorter_growth_window_grows_sooner_and_still_stops_on_the_plateau_window():
+    problem = make_case(position_error=1.0, seed=3)[0]
+    run = dict(max_iterations=300, tol=0, batch=4, plateau=0.01, plateau_window=8, batch_growth=2)
+
+    def stages(options):
+        engine, batches = SequentialMomentum(problem, options), []
+        while not engine.done():
+            engine.update()
+            batches.append(engine.batch)
+        engine.close()
+        return engine, [batches.count(size) for size in sorted(set(batches))]
+
+    slow, slow_stages = stages(MomentumOptions(**run))
+    quick, quick_stages = stages(MomentumOptions(**run, growth_window=2))
+    assert len(quick_stages) == len(slow_stages) == 5
+    # Each batch size lasts more than its look-back: 9 passes at least with 8, 3 with 2 ...
+    assert min(slow_stages[:-1]) >= 9 and min(quick_stages[:-1]) >= 3
+    assert sum(quick_stages[:-1]) < sum(slow_stages[:-1])
+    # ... but the last (every capture) ends only on a plateau over plateau_window passes.
+    assert quick_stages[-1] >= 9 and quick.stopping.on_plateau()
+
+
+def test_the_stopping_policy_grows_on_the_growth_window_and_ends_on_the_plateau_window():
+    grown = []
+    policy = StoppingPolicy(max_iterations=100, tol=0, plateau=0.01, plateau_window=6, growth_window=2,
+                            can_grow=lambda: len(grown) < 1)
+    flat = [policy.record(1.0, 1.0) for _ in range(3)]
+    assert flat == [False, False, True]   # the third flat pass looks back two
+    policy.grew()
+    grown.append(True)
+    ends = []
+    while not policy.done():
+        policy.record(1.0, 1.0)
+        ends.append(policy.iteration)
+    assert len(ends) == 7 and policy.reason() == "plateau"   # then seven passes: more than six to look back
+
+
+def test_growth_window_is_checked():
+    with pytest.raises(ValueError, match="growth_window must be ≥ 1"):
+        MomentumOptions(growth_window=0)
 
 
 def test_batch_growth_survives_a_checkpoint_restore():
