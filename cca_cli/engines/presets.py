@@ -29,6 +29,19 @@ in the README this lowered the residual over all images from 0.101 to 0.095
 (blood smear, intensities), for about 1.5× the passes (so the cap is 300
 passes), and kept the USAF bars' contrast.
 
+A batch size gives way to the next once the misfit has fallen by less than 2%
+over 3 passes (``growth_window``); only the last, every capture in one batch,
+waits for the 10-pass plateau. The fit is made at the largest batches: on the
+corpus's tuning half (common reading, all / bright-field images) growing after
+3 flat passes instead of 10 gave 0.0664 / 0.0565 against 0.0667 / 0.0570
+(blood smear, 97 passes instead of 145), 0.1259 / 0.0662 against 0.1264 /
+0.0672 (32² USAF tile, 84 instead of 139) and 0.1030 / 0.0522 against 0.1032 /
+0.0521 (8-bit USAF set, 42 instead of 76). Stopping on 3 passes as well
+(``plateau_window: 3``) fitted the tuning half as well with still fewer passes
+(63, 58, 33), but not the validation half's line-pair chart, which converges
+slowly (0.236 → 0.275 after 62 passes instead of 294); with the 10-pass stop it
+reads 0.248 after 194 passes (benchmarks/README.md, "When batches grow").
+
 rPIE's α is 0.3 on LED arrays (0.1 elsewhere). On the corpus's tuning half
 (common reading, residual over all images, tilt kept in the pupil) α = 0.1,
 0.3, 0.5 gave 0.068, 0.067, 0.067 (blood smear), 0.131, 0.126, 0.126 (32² USAF
