@@ -317,7 +317,7 @@ def timing_check(family: str, data: Prepared, workdir: Path, iterations: int, ti
         return res
     proc = subprocess.run([str(PEER_PYTHON[family]), str(HERE / "peer_plain_timing.py"), family,
                            str(data.peer_data), str(iterations)], capture_output=True, text=True, timeout=timeout,
-                          check=False)
+                          check=False, env=tool_environment())
     line = [x for x in proc.stdout.splitlines() if "s/iteration" in x]
     if proc.returncode != 0 or not line:
         return {"status": "failed", "reason": (proc.stderr or proc.stdout)[-300:]}

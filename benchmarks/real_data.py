@@ -88,7 +88,7 @@ def cca_command() -> list[str]:
 
 
 def tool_environment(**extra: str) -> dict[str, str]:
-    """The environment every timed tool runs in: this one, with Python's bytecode caches allowed.
+    """The environment the real-data benchmarks run each timed tool in: this one, with Python's bytecode caches allowed.
 
     A shell that sets ``PYTHONDONTWRITEBYTECODE`` makes each run compile the sources it imports again
     (about 0.2 s for cca's own modules), which no installed copy of a tool pays.

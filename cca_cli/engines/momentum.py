@@ -38,9 +38,10 @@ The run stops (:class:`~cca_cli.engines.stopping.StoppingPolicy`) at
 when the misfit has fallen by less than ``plateau`` (relative) over the last
 ``plateau_window`` passes. With ``batch_growth`` a plateau (over the last
 ``growth_window`` passes) first makes the batches larger (until a batch may
-hold every capture), and only a plateau at the largest batch ends the run: on recorded data, which the model never
-explains exactly, fixed small batches settle into a cycle between the
-captures' constraints rather than at a minimum of the whole misfit.
+hold every capture), and only a plateau at the largest batch ends the run: on
+recorded data, which the model never explains exactly, fixed small batches
+settle into a cycle between the captures' constraints rather than at a minimum
+of the whole misfit.
 
 References
 ----------

@@ -40,7 +40,11 @@ corpus's tuning half (common reading, all / bright-field images) growing after
 (``plateau_window: 3``) fitted the tuning half as well with still fewer passes
 (63, 58, 33), but not the validation half's line-pair chart, which converges
 slowly (0.236 → 0.275 after 62 passes instead of 294); with the 10-pass stop it
-reads 0.248 after 194 passes (benchmarks/README.md, "When batches grow").
+reads 0.248 after 194 passes (benchmarks/README.md, "When batches grow"). The
+runs' own data misfit, which the common reading does not use, rose a little
+(blood smear 0.059 → 0.061, USAF tile 0.094 → 0.098), and the tile's own bar
+reading lost G9E1 across the columns (0.28 → 0.14; the common reading, which
+registers every tool's object alike, still reads G9E1).
 
 rPIE's α is 0.3 on LED arrays (0.1 elsewhere). On the corpus's tuning half
 (common reading, residual over all images, tilt kept in the pupil) α = 0.1,

@@ -101,7 +101,9 @@ class Checkpointing:
 
 def checkpoint_fingerprint(section: ReconstructSection, provenance: Provenance, captures_path: Path) -> str:
     """SHA-256 of what a reconstruction's result depends on: the captures' bytes, the section (without
-    ``checkpoint_every`` and ``device``), the starting spectrum's file (size and time) and the cca version."""
+    ``checkpoint_every`` and ``device``), the engine and options it resolves to (``engine_recipe`` in the
+    provenance: a preset that changed between cca versions does not resume an older run), the starting
+    spectrum's file (size and time) and the cca version."""
     try:
         inputs = [item["sha256"] for item in json.loads(provenance.get("inputs", "[]"))]
     except (ValueError, KeyError, TypeError):
@@ -111,6 +113,7 @@ def checkpoint_fingerprint(section: ReconstructSection, provenance: Provenance, 
         stat = Path(section.init).stat()
         init = [str(section.init), stat.st_size, stat.st_mtime_ns]
     data = {"inputs": inputs or [file_sha256(captures_path)], "init": init, "version": __version__,
+            "recipe": provenance.get("engine_recipe", ""),
             "section": section.model_dump(mode="json", exclude={"checkpoint_every", *section.NOT_RECIPE})}
     return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
 

@@ -622,9 +622,18 @@ def _run_on(client, plan: TiledPlan, order, tasks: dict, finished: dict, section
 
 
 def run_fingerprint(section: ReconstructSection, inputs: list[str], captures_path: Path) -> str:
-    """SHA-256 of what a tiled result depends on: the captures' bytes, the section and the cca version."""
-    from cca_cli.io.h5 import file_sha256
+    """SHA-256 of what a tiled result depends on: the captures' bytes, the section, the engine and options the
+    tiles resolve to (cca's defaults included: a preset that changed between versions redoes every tile) and
+    the cca version."""
+    from cca_cli.io.geometry import read_geometry
+    from cca_cli.io.h5 import file_sha256, open_input
 
-    data = {"inputs": inputs or [file_sha256(captures_path)], "version": __version__,
+    try:
+        with open_input(captures_path) as handle:
+            name, options = tile_engine(section, read_geometry(handle).kind)
+        recipe = {"engine": name, "options": options.model_dump(mode="json", exclude={"threads"})}
+    except (CcaError, OSError, KeyError, ValueError):
+        recipe = None   # the run itself says why
+    data = {"inputs": inputs or [file_sha256(captures_path)], "version": __version__, "recipe": recipe,
             "section": section.model_dump(mode="json", exclude={"checkpoint_every", *section.NOT_RECIPE})}
     return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()

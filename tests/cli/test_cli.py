@@ -193,6 +193,19 @@ def test_the_command_line_leaves_no_image_library_objects_for_its_leak_check():
     code = ("import sys, OpenImageIO; from cca_cli.commands.entry import main\n"
             "cycle = [OpenImageIO.ImageSpec(4, 4, 1, 'float')]; cycle.append(cycle); del cycle\n"
             "sys.argv = ['cca', '--version']; main()")
-    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr
     assert "leaked" not in run.stderr, run.stderr
+
+
+def test_the_command_line_skips_the_collectors_passes_at_exit_without_the_image_library():
+    import subprocess
+    import sys
+
+    code = ("import gc, sys; from cca_cli.commands.entry import main\n"
+            "sys.argv = ['cca', '--version']\n"
+            "try:\n    main()\nexcept SystemExit:\n    pass\n"
+            "print(gc.get_freeze_count() > 0, 'OpenImageIO' in sys.modules)")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.split()[-2:] == ["True", "False"], run.stdout

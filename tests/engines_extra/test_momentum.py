@@ -170,8 +170,8 @@ def test_a_shorter_growth_window_grows_sooner_and_still_stops_on_the_plateau_win
     def stages(options):
         engine, batches = SequentialMomentum(problem, options), []
         while not engine.done():
+            batches.append(engine.batch)   # the batch size this pass runs
             engine.update()
-            batches.append(engine.batch)
         engine.close()
         return engine, [batches.count(size) for size in sorted(set(batches))]
 
@@ -182,7 +182,7 @@ def test_a_shorter_growth_window_grows_sooner_and_still_stops_on_the_plateau_win
     assert min(slow_stages[:-1]) >= 9 and min(quick_stages[:-1]) >= 3
     assert sum(quick_stages[:-1]) < sum(slow_stages[:-1])
     # ... but the last (every capture) ends only on a plateau over plateau_window passes.
-    assert quick_stages[-1] >= 9 and quick.stopping.on_plateau()
+    assert quick_stages[-1] >= 9 and quick.stopping.on_plateau() and slow.stopping.on_plateau()
 
 
 def test_the_stopping_policy_grows_on_the_growth_window_and_ends_on_the_plateau_window():
@@ -200,9 +200,10 @@ def test_the_stopping_policy_grows_on_the_growth_window_and_ends_on_the_plateau_
     assert len(ends) == 7 and policy.reason() == "plateau"   # then seven passes: more than six to look back
 
 
-def test_growth_window_is_checked():
+@pytest.mark.parametrize("value", [0, -1])
+def test_growth_window_is_checked(value):
     with pytest.raises(ValueError, match="growth_window must be ≥ 1"):
-        MomentumOptions(growth_window=0)
+        MomentumOptions(growth_window=value)
 
 
 def test_batch_growth_survives_a_checkpoint_restore():

@@ -200,3 +200,20 @@ def test_cca_run_resumes_an_interrupted_reconstruction_from_its_checkpoint(tiny_
     with h5py.File(out / "recon.h5", "r") as handle:
         assert handle["/history/residual"].shape == (60,)
     assert not checkpoint.exists()
+
+
+def test_a_checkpoint_made_under_other_engine_defaults_does_not_resume(tiny, monkeypatch):
+    """The same config and captures resolve to other engine options when cca's presets change; a checkpoint
+    (or a tiled run's finished tiles) made under the old ones must not be continued with the new ones."""
+    from cca_cli.workflows import tiled
+
+    captures, section = tiny
+    provenance = stage_provenance("reconstruct", {"reconstruct": section}, [captures])
+    before = reconstruct_stage.checkpoint_fingerprint(section, dict(provenance, engine_recipe="a"), captures)
+    after = reconstruct_stage.checkpoint_fingerprint(section, dict(provenance, engine_recipe="b"), captures)
+    assert before != after
+
+    tiles_before = tiled.run_fingerprint(section, [], captures)
+    name, options = tiled.tile_engine(section, "simulation")
+    monkeypatch.setattr(tiled, "tile_engine", lambda *a, **k: (name, options.model_copy(update={"tau": 0.5})))
+    assert tiled.run_fingerprint(section, [], captures) != tiles_before
