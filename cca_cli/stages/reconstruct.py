@@ -23,7 +23,7 @@ from cca_cli.io.recon import write_recon
 from cca_cli.library.data import Reconstruction, data_kind
 from cca_cli.stages.progress import ProgressFn, silent
 from cca_cli.version import __version__
-from cca_cli.workflows.recovery import check_device, engine_options, reconstruct_captures
+from cca_cli.workflows.recovery import check_device, engine_options, reconstruct_captures, recipe_of
 
 __all__ = ["SECTIONS", "Checkpointing", "checkpoint_fingerprint", "run", "run_tiled"]
 
@@ -135,19 +135,17 @@ def engine_recipe(captures_path: Path, section: ReconstructSection) -> str:
     captures cannot be read or the section's options do not resolve (the run itself then says why).
     """
     from cca_cli.workflows import multiplex
-    from cca_cli.workflows.tiled import tile_engine
+    from cca_cli.workflows.tiled import tile_recipe
 
     try:
         if multiplex.is_multiplexed_file(captures_path):
-            name, options = engine_options(section, "simulation")
+            data = recipe_of(*engine_options(section, "simulation"))
         elif section.tiles is not None:
-            with open_input(captures_path) as handle:
-                name, options = tile_engine(section, read_geometry(handle).kind)
+            data = tile_recipe(section, captures_path)
         else:
-            name, options = engine_options(section, captures_kind(captures_path))
+            data = recipe_of(*engine_options(section, captures_kind(captures_path)))
     except (CcaError, OSError, KeyError, ValueError):
         return ""
-    data = {"engine": name, "options": options.model_dump(mode="json", exclude={"threads"})}
     return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
 
 

@@ -21,7 +21,7 @@ from cca_cli.optics.backend import DeviceUnavailable, resolve_device
 from cca_cli.progress import ProgressFn, silent
 from cca_cli.sampling.region import RegionEmbedding
 
-__all__ = ["engine_options", "check_device", "reconstruct_captures", "embed_region", "without_dead_captures"]
+__all__ = ["engine_options", "recipe_of", "check_device", "reconstruct_captures", "embed_region", "without_dead_captures"]
 
 
 def engine_options(section: ReconstructSection, kind: str = "simulation", **overrides) -> tuple[str, EngineOptions]:
@@ -35,6 +35,12 @@ def engine_options(section: ReconstructSection, kind: str = "simulation", **over
         return resolve(section.engine, kind, {**section.given(), **overrides})
     except ValueError as exc:
         raise ConfigError(f"reconstruct.options: {exc}") from None
+
+
+def recipe_of(name: str, options: EngineOptions) -> dict:
+    """What a result depends on of an engine and its options: the name and every option but ``threads``
+    (results are reproducible per thread count, and the count follows the machine)."""
+    return {"engine": name, "options": options.model_dump(mode="json", exclude={"threads"})}
 
 
 def check_device(section: ReconstructSection) -> None:

@@ -59,10 +59,10 @@ from cca_cli.sampling.grid import band_layout
 from cca_cli.sampling.region import RegionEmbedding, plan_embedding
 from cca_cli.sampling.tiles import Tile, TilePlan, local_illumination, plan_tiles, tile_order
 from cca_cli.version import __version__
-from cca_cli.workflows.recovery import embed_region, engine_options
+from cca_cli.workflows.recovery import embed_region, engine_options, recipe_of
 
-__all__ = ["TiledPlan", "TiledRecovery", "plan_tiled", "tile_geometry", "tile_engine", "run_tile", "stitch",
-           "reconstruct_tiled"]
+__all__ = ["TiledPlan", "TiledRecovery", "plan_tiled", "tile_geometry", "tile_engine", "tile_recipe", "run_tile",
+           "stitch", "reconstruct_tiled"]
 
 #: Seconds between a worker's progress messages for one tile.
 _PROGRESS_EVERY_S = 1.0
@@ -621,17 +621,30 @@ def _run_on(client, plan: TiledPlan, order, tasks: dict, finished: dict, section
             pass
 
 
+def tile_recipe(section: ReconstructSection, captures_path: Path) -> dict:
+    """The engine and options the tiles of ``captures_path`` resolve to, cca's defaults included
+    (:func:`~cca_cli.workflows.recovery.recipe_of`).
+
+    Raises
+    ------
+    CcaError, OSError, KeyError, ValueError
+        When the captures cannot be read or the section's options do not resolve.
+    """
+    from cca_cli.io.geometry import read_geometry
+    from cca_cli.io.h5 import open_input
+
+    with open_input(captures_path) as handle:
+        return recipe_of(*tile_engine(section, read_geometry(handle).kind))
+
+
 def run_fingerprint(section: ReconstructSection, inputs: list[str], captures_path: Path) -> str:
     """SHA-256 of what a tiled result depends on: the captures' bytes, the section, the engine and options the
     tiles resolve to (cca's defaults included: a preset that changed between versions redoes every tile) and
     the cca version."""
-    from cca_cli.io.geometry import read_geometry
-    from cca_cli.io.h5 import file_sha256, open_input
+    from cca_cli.io.h5 import file_sha256
 
     try:
-        with open_input(captures_path) as handle:
-            name, options = tile_engine(section, read_geometry(handle).kind)
-        recipe = {"engine": name, "options": options.model_dump(mode="json", exclude={"threads"})}
+        recipe = tile_recipe(section, captures_path)
     except (CcaError, OSError, KeyError, ValueError):
         recipe = None   # the run itself says why
     data = {"inputs": inputs or [file_sha256(captures_path)], "version": __version__, "recipe": recipe,
