@@ -185,6 +185,7 @@ class PupilRecovery:
         self._num = np.zeros((threads, self.n_pupils, b, b), np.complex128)
         self._den = np.zeros((threads, self.n_pupils, b, b), np.float64)
         self._rhs = np.zeros((threads, self.n_pupils, len(self.modes)), np.float64)
+        self._known_discs_key, self._known_discs = None, {}   # the last geometry's discs (see _discs_at)
         self.set_geometry(layout, self.index, offsets)
         self.maps = np.ones((self.n_pupils, b, b), np.complex64)
         if maps is not None:  # a known pupil: the map starts from it, the modes from its phase
@@ -213,7 +214,7 @@ class PupilRecovery:
         self.index = np.asarray(pupil_index, np.int64)
         centres = layout.box_centres if offsets is None else layout.box_centres + np.asarray(offsets, np.float64)
         self._centres = centres
-        self._discs = circular_pupils(layout.box_size, centres, layout.pupil_radius_px)
+        self._discs = self._discs_at(layout, centres)
         self._smooth_designs = {}   # per pupil: what the smooth model's fit needs that only the geometry sets
         self._basis = None
         if self.model == "zernike":
@@ -225,6 +226,24 @@ class PupilRecovery:
             centre = centres[members].mean(axis=0) if np.any(members) else centres.mean(axis=0)
             self._box_basis[p] = zernike_basis(layout.box_size, centre[None], layout.pupil_radius_px,
                                                    order=self.order)[:, 0]
+
+    def _discs_at(self, layout: BandLayout, centres: np.ndarray) -> np.ndarray:
+        """Every capture's NA disc at ``centres`` (float32, (K, b, b)).
+
+        A new visiting order (each time the batches grow) only permutes the captures: a disc already
+        made for the same centre, box and radius is reused (the same values as made anew), the rest
+        are made. Only the last call's discs are kept.
+        """
+        key = (layout.box_size, float(layout.pupil_radius_px))
+        known = self._known_discs if self._known_discs_key == key else {}
+        rows = [tuple(centre) for centre in centres.tolist()]
+        missing = [i for i, row in enumerate(rows) if row not in known]
+        if missing:
+            fresh = circular_pupils(layout.box_size, centres[missing], layout.pupil_radius_px)
+            known = {**known, **{rows[i]: disc for i, disc in zip(missing, fresh)}}
+        discs = np.stack([known[row] for row in rows]) if rows else np.zeros((0, key[0], key[0]), np.float32)
+        self._known_discs_key, self._known_discs = key, dict(zip(rows, discs.copy()))   # its own copy: callers own discs
+        return discs
 
     def _zernike_maps(self, coefficients: np.ndarray) -> np.ndarray:
         """Each pupil's Zernike phase on the box grid, at the mean centre of its captures."""

@@ -156,3 +156,24 @@ def test_a_tilt_the_pupil_step_finds_stays_in_the_map_moves_the_object_or_is_dro
         np.testing.assert_allclose(left_in_map, 0.0, atol=close / 2 * np.abs(wanted).max())
         np.testing.assert_allclose(given_to_object, wanted if mode == "object" else 0.0, rtol=close, atol=1e-12)
     assert np.abs(recovery.project_zernike()).max() < 0.01  # a tilt is no aberration (waves)
+
+
+def test_a_new_visiting_order_reuses_the_discs_and_a_moved_capture_gets_a_new_one():
+    from cca_cli.engines.calibrator import subset_layout
+    from cca_cli.engines.pupil_recovery import PupilRecovery
+    from cca_cli.optics.pupil import circular_pupils
+
+    layout, _ = layout_and_chart()
+    recovery = PupilRecovery(layout, np.zeros(layout.n_images, np.int64))
+    order = np.random.default_rng(1).permutation(layout.n_images)
+    shuffled = subset_layout(layout, order)
+    recovery.set_geometry(shuffled, np.zeros(layout.n_images, np.int64))
+    fresh = circular_pupils(shuffled.box_size, shuffled.box_centres, shuffled.pupil_radius_px)
+    assert np.array_equal(recovery.map_parts()[0], fresh)   # bit for bit what a fresh build gives
+
+    offsets = np.zeros((layout.n_images, 2))
+    offsets[order[0]] = (0.3, -0.2)   # one capture moves (position refinement)
+    recovery.set_geometry(layout, np.zeros(layout.n_images, np.int64), offsets)
+    moved = circular_pupils(layout.box_size, layout.box_centres + offsets, layout.pupil_radius_px)
+    assert np.array_equal(recovery.map_parts()[0], moved)
+    assert not np.array_equal(moved[order[0]], fresh[0])
