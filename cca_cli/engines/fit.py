@@ -65,7 +65,8 @@ def _split(statistics: CaptureStatistics, brightness: np.ndarray, masks: list[np
     return per_image, totals
 
 
-def fit_report(problem: PhaseRetrievalProblem, spectrum: np.ndarray, calibration=None) -> FitReport:
+def fit_report(problem: PhaseRetrievalProblem, spectrum: np.ndarray, calibration=None, *,
+               threads: int = 1) -> FitReport:
     """Residuals of ``spectrum`` (and an engine's calibration) against the problem's captures.
 
     Parameters
@@ -75,6 +76,8 @@ def fit_report(problem: PhaseRetrievalProblem, spectrum: np.ndarray, calibration
     calibration : Calibration, optional
         Pupils, centres and brightness an engine arrived at; without it the
         problem's own model (nominal pupils and positions, brightness 1).
+    threads : int
+        Threads that evaluate the model (:func:`~cca_cli.engines.illumination.capture_statistics`).
 
     Returns
     -------
@@ -90,7 +93,7 @@ def fit_report(problem: PhaseRetrievalProblem, spectrum: np.ndarray, calibration
     # Every recorded pixel counts alike (a guard band or a saturated pixel, weight 0, does not): the engines'
     # confidence weights taper region edges, which would leave the misfit there out of the figure.
     recorded = None if problem.weights is None else (problem.weights > 0).astype(np.float32)
-    statistics = capture_statistics(model, spectrum, problem.amplitudes, recorded)
+    statistics = capture_statistics(model, spectrum, problem.amplitudes, recorded, threads=threads)
     bright = bright_field(problem)
     masks = [np.ones_like(bright), bright, ~bright]
     per_image, (every, light, dark) = _split(statistics, brightness, masks)

@@ -31,6 +31,7 @@ Tian et al., Biomed. Opt. Express 5(7) (2014).
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -171,7 +172,8 @@ class LedArrayModel(PositionModel):
 
 def capture_statistics(model: ForwardModel, spectrum: np.ndarray, amplitudes: np.ndarray,
                        weights: np.ndarray | None = None, *, pupil_derivatives: np.ndarray | None = None,
-                       workspace: Workspace | None = None, scale: np.ndarray | None = None) -> CaptureStatistics:
+                       workspace: Workspace | None = None, scale: np.ndarray | None = None,
+                       threads: int = 1) -> CaptureStatistics:
     """Evaluate the model once and sum, per capture, what the calibrations need.
 
     Parameters
@@ -188,19 +190,22 @@ def capture_statistics(model: ForwardModel, spectrum: np.ndarray, amplitudes: np
         Reused when given.
     scale : ndarray, (K,), optional
         Factor applied to each capture's measured amplitudes (e.g. ``1/√brightness``).
+    threads : int
+        Without ``workspace``: chunks of captures run on this many threads side by side, each with
+        its own workspace (each capture's figures are computed alike, whichever thread takes it).
 
     Returns
     -------
     CaptureStatistics
     """
     k = model.n_images
-    workspace = workspace or model.workspace(min(32, k))
     misfit, power, cross, energy = (np.zeros(k) for _ in range(4))
     positions = pupil_derivatives is not None
     gradient = np.zeros((k, 2)) if positions else None
     curvature = np.zeros((k, 2, 2)) if positions else None
     derivatives = [ForwardModel(model.layout, d) for d in pupil_derivatives] if positions else None
-    for sl in chunk_slices(k, workspace.capacity):
+
+    def one_chunk(sl: slice, workspace: Workspace) -> None:
         fields = model.forward_into(spectrum, sl, workspace).copy()
         magnitude = np.abs(fields)
         measured = amplitudes[sl] if scale is None else amplitudes[sl] * scale[sl, None, None].astype(np.float32)
@@ -210,7 +215,7 @@ def capture_statistics(model: ForwardModel, spectrum: np.ndarray, amplitudes: np
         cross[sl] = np.sum(w * magnitude * measured, axis=(1, 2), dtype=np.float64)
         energy[sl] = np.sum(w * measured ** 2, axis=(1, 2), dtype=np.float64)
         if not positions:
-            continue
+            return
         unit = fields / np.maximum(magnitude, 1e-30)
         radial = []
         for axis in range(2):
@@ -220,6 +225,25 @@ def capture_statistics(model: ForwardModel, spectrum: np.ndarray, amplitudes: np
             gradient[sl, a] = 2 * np.sum(w * (magnitude - measured) * radial[a], axis=(1, 2), dtype=np.float64)
             for b in range(2):
                 curvature[sl, a, b] = 2 * np.sum(w * radial[a] * radial[b], axis=(1, 2), dtype=np.float64)
+
+    def chunks(slices: list[slice], workspace: Workspace) -> None:
+        for sl in slices:
+            one_chunk(sl, workspace)
+
+    if workspace is not None:
+        chunks(chunk_slices(k, workspace.capacity), workspace)
+        return CaptureStatistics(misfit, power, cross, energy, gradient, curvature)
+    slices = chunk_slices(k, min(32, k))
+    count = max(1, min(int(threads), len(slices)))
+    if count == 1:
+        chunks(slices, model.workspace(min(32, k)))
+    else:   # each thread its own workspace and chunks; every capture's figures land in its own rows
+        spaces = [model.workspace(min(32, k), threads=1) for _ in range(count)]
+        with ThreadPoolExecutor(count - 1) as pool:
+            futures = [pool.submit(chunks, slices[t::count], spaces[t]) for t in range(1, count)]
+            chunks(slices[0::count], spaces[0])
+            for future in futures:
+                future.result()
     return CaptureStatistics(misfit, power, cross, energy, gradient, curvature)
 
 

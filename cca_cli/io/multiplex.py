@@ -9,7 +9,7 @@ from cca_cli.errors import InputError
 from cca_cli.io.h5 import write_dataset
 from cca_cli.optics.multiplex import MultiplexGeometry
 
-__all__ = ["write_multiplex", "read_multiplex"]
+__all__ = ["write_multiplex", "read_multiplex", "is_multiplexed_file"]
 
 
 def write_multiplex(handle: h5py.File, geometry: MultiplexGeometry) -> None:
@@ -52,3 +52,11 @@ def read_multiplex(handle: h5py.File) -> MultiplexGeometry:
     except ValueError as exc:
         raise InputError(f"{handle.filename}: /multiplex: {exc}") from None
     return geometry
+
+
+def is_multiplexed_file(path) -> bool:
+    """Whether ``path`` holds multiplexed captures (has a /multiplex group)."""
+    from cca_cli.io.h5 import open_input
+
+    with open_input(path) as handle:
+        return "multiplex" in handle

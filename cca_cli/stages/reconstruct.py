@@ -18,6 +18,7 @@ from cca_cli.io.checkpoint import (checkpoint_damage, checkpoint_path, read_chec
                                    write_checkpoint)
 from cca_cli.io.geometry import read_geometry
 from cca_cli.io.h5 import Provenance, check_output, file_sha256, open_input
+from cca_cli.io.multiplex import is_multiplexed_file
 from cca_cli.io.outputs import is_cca_hdf5
 from cca_cli.io.recon import write_recon
 from cca_cli.library.data import Reconstruction, data_kind
@@ -134,13 +135,12 @@ def engine_recipe(captures_path: Path, section: ReconstructSection) -> str:
     (results are reproducible per thread count, and the count follows the machine). Empty when the
     captures cannot be read or the section's options do not resolve (the run itself then says why).
     """
-    from cca_cli.workflows import multiplex
-    from cca_cli.workflows.tiled import tile_recipe
-
     try:
-        if multiplex.is_multiplexed_file(captures_path):
+        if is_multiplexed_file(captures_path):
             data = recipe_of(*engine_options(section, "simulation"))
         elif section.tiles is not None:
+            from cca_cli.workflows.tiled import tile_recipe
+
             data = tile_recipe(section, captures_path)
         else:
             data = recipe_of(*engine_options(section, captures_kind(captures_path)))
@@ -161,17 +161,18 @@ def run(captures_path: Path, section: ReconstructSection, output: Path, *, prove
     check_output(output, force=force)
     check_device(section)
     provenance.setdefault("engine_recipe", engine_recipe(captures_path, section))
-    from cca_cli.workflows import multiplex
-
-    if section.device == "cuda" and (section.tiles is not None or multiplex.is_multiplexed_file(captures_path)):
+    multiplexed = is_multiplexed_file(captures_path)
+    if section.device == "cuda" and (section.tiles is not None or multiplexed):
         what = "tiled (reconstruct.tiles)" if section.tiles is not None else "multiplexed"
         raise ConfigError(f"reconstruct.device: cuda runs whole-frame reconstructions of plain captures; {what} "
                           "reconstructions run on the CPU: use device cpu or auto")
     if section.tiles is not None:
-        if multiplex.is_multiplexed_file(captures_path):
+        if multiplexed:
             raise InputError(f"{captures_path}: multiplexed captures are recovered whole; leave out reconstruct.tiles")
         return run_tiled(captures_path, section, output, provenance=provenance, force=force, progress=progress)
-    if multiplex.is_multiplexed_file(captures_path):
+    if multiplexed:
+        from cca_cli.workflows import multiplex
+
         return multiplex.run_reconstruct(captures_path, section, output, provenance=provenance, force=force,
                                          progress=progress)
     checkpoint = Checkpointing(checkpoint_path(output), checkpoint_fingerprint(section, provenance, captures_path),

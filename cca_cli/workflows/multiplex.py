@@ -22,7 +22,7 @@ from cca_cli.engines.registry import engine_names, get_engine
 from cca_cli.errors import CcaError, ConfigError, InputError
 from cca_cli.io.captures import read_measurements
 from cca_cli.io.h5 import Provenance, check_output, open_input, write_dataset
-from cca_cli.io.multiplex import read_multiplex, write_multiplex
+from cca_cli.io.multiplex import is_multiplexed_file, read_multiplex, write_multiplex
 from cca_cli.io.recon import write_recon
 from cca_cli.io.schema import OBSERVED
 from cca_cli.library.data import CaptureSet, Reconstruction
@@ -188,12 +188,6 @@ def run_simulate(config: RunConfig, output: Path, *, provenance: Provenance, for
     simulation = simulate_multiplexed(config, progress=progress)
     write_multiplexed_captures(output, simulation, provenance, force=force)
     return simulation
-
-
-def is_multiplexed_file(path: Path) -> bool:
-    """Whether ``path`` holds multiplexed captures (has a /multiplex group)."""
-    with open_input(path) as handle:
-        return "multiplex" in handle
 
 
 def read_multiplexed_captures(path: Path) -> MultiplexedCaptures:

@@ -182,3 +182,16 @@ def test_smooth_pinned_pupil_takes_the_aberration_and_leaves_the_object_in_place
     assert error["tilt to object"] < 1.05 * error["full"]
     assert shift["smooth"] <= 0.15                         # and the object stays where the truth is
     assert shift["tilt to object"] <= 0.3
+
+
+def test_the_fit_report_reads_alike_on_any_number_of_threads():
+    from cca_cli.engines.illumination import capture_statistics
+
+    problem, _, spectrum = led_case()   # 49 captures: two chunks of 32 and 17
+    one = capture_statistics(problem.model, spectrum, problem.amplitudes, threads=1)
+    for threads in (2, 3):
+        many = capture_statistics(problem.model, spectrum, problem.amplitudes, threads=threads)
+        for name in ("misfit", "power", "cross", "energy"):
+            assert np.allclose(getattr(many, name), getattr(one, name), rtol=1e-6, atol=0)
+    assert np.all(one.energy > 0) and np.all(one.misfit > 0)   # every capture's rows were filled
+    assert fit_report(problem, spectrum, threads=2).all == pytest.approx(fit_report(problem, spectrum).all, rel=1e-6)
