@@ -117,16 +117,17 @@ class BoxOperator:
         self.xp = xp
         self.m, self.b, self.size = layout.lowres_size, layout.box_size, layout.hires_size
         self.start = self.m // 2 - self.b // 2
-        origins = np.asarray(layout.box_origins, np.int64)
-        offsets = np.arange(self.b, dtype=np.int64)
-        rows = origins[:, 0, None, None] + offsets[None, :, None]
-        cols = origins[:, 1, None, None] + offsets[None, None, :]
-        if origins.size and (rows.min() < 0 or cols.min() < 0 or rows.max() >= self.size or cols.max() >= self.size):
+        origins = np.asarray(layout.box_origins, np.int64).reshape(-1, 2)
+        if origins.size and (origins.min() < 0 or origins.max() + self.b > self.size):
             raise ValueError(f"a pupil box leaves the {self.size} x {self.size} spectrum")
+        corners = backend.to_device(origins, xp)   # the (K, b, b) index is made where it is used
+        offsets = xp.arange(self.b, dtype=xp.int64)
         #: Flat spectrum index of every box pixel, (K, b, b).
-        self.index = backend.to_device(rows * self.size + cols, xp)
+        self.index = ((corners[:, 0, None, None] + offsets[None, :, None]) * self.size
+                      + corners[:, 1, None, None] + offsets[None, None, :])
         #: Whether the steps run as fused kernels (:mod:`cca_cli.engines.fused`: CuPy only).
         self.fused = fused.available(xp)
+        self._fft = backend.PlannedFFT2(xp)
 
     def boxes(self, spectrum, captures):
         """The spectrum's boxes of ``captures`` (a slice or an index array), complex64 (k, b, b)."""
@@ -145,12 +146,12 @@ class BoxOperator:
             boxes = self.boxes(spectrum, captures)
             fields = xp.zeros((boxes.shape[0], self.m, self.m), xp.complex64)
             fields[:, s:s + b, s:s + b] = boxes * pupils
-        return backend.ifft2(xp, fields)
+        return self._fft.inverse(fields)
 
     def spectra(self, fields):
         """The boxes of the raw forward FFTs of ``fields`` (destroyed), complex64 (k, b, b)."""
         s, b = self.start, self.b
-        return backend.fft2(self.xp, fields)[:, s:s + b, s:s + b]
+        return self._fft.forward(fields)[:, s:s + b, s:s + b]
 
     def scatter(self, boxes, captures, out, factors=None) -> None:
         """Add ``boxes · factors`` (k, b, b; ``factors`` None: 1) into the spectrum ``out`` at the boxes of ``captures``."""
@@ -371,8 +372,16 @@ class BatchedMomentum(MomentumBase):
         xp, problem, calibrator = self.xp, self.problem, self.calibrator
         order = self._lay_out()
         self._operator = BoxOperator(xp, self._layout)
-        self._steps = [_as_slice(step) for step in merged_steps(self._schedule)]
+        steps = merged_steps(self._schedule)
+        self._steps = [_as_slice(step) for step in steps]
         self._steps = [step if isinstance(step, slice) else backend.to_device(step, xp) for step in self._steps]
+        # The fused data step writes each call's per-pixel misfit into its rows of one buffer, summed once a pass.
+        ends = np.cumsum([step.size for step in steps])
+        self._misfit_rows = [slice(int(end - step.size), int(end)) for step, end in zip(steps, ends)]
+        self._misfit_pixels = None
+        if self._operator.fused and self.options.cost == "amplitude":
+            m = self._layout.lowres_size
+            self._misfit_pixels = xp.empty((int(ends[-1]) if len(ends) else 0, m, m), xp.float32)
         targets = problem.amplitudes[order] * calibrator.target_scale(order)[:, None, None]
         self._targets = backend.to_device(targets, xp, xp.float32)
         self._weights = None if problem.weights is None else backend.to_device(problem.weights[order], xp, xp.float32)
@@ -415,8 +424,8 @@ class BatchedMomentum(MomentumBase):
             self._mode_index = backend.to_device(index[:, None] * n_modes + modes, xp)
         self._discs = backend.to_device(discs, xp)
         self._pupil_sums = (first, xp.zeros((recovery.n_pupils, b, b), xp.float64))
-        pixels = np.arange(b * b, dtype=np.int64).reshape(b, b)
-        self._pupil_index = backend.to_device(index[:, None, None] * (b * b) + pixels, xp)
+        pixels = xp.arange(b * b, dtype=xp.int64).reshape(b, b)
+        self._pupil_index = backend.to_device(np.asarray(index, np.int64), xp)[:, None, None] * (b * b) + pixels
 
     def _set_model(self, pupils: np.ndarray) -> None:
         """Use ``pupils`` (engine order, on the host)."""
@@ -443,13 +452,18 @@ class BatchedMomentum(MomentumBase):
         return backend.to_host(self._pupils)
 
     # ------------------------------------------------------------ the update rule
-    def _data_step(self, fields, step):
-        """Replace ``fields`` by the data step ``ψ' − ψ``; return the squared misfit (a device scalar)."""
+    def _data_step(self, fields, step, rows: slice):
+        """Replace ``fields`` by the data step ``ψ' − ψ``; return the squared misfit (a device scalar).
+
+        With the fused kernel the call's per-pixel misfit goes to ``rows`` of the pass's buffer instead
+        (:meth:`_pass` sums it) and None is returned.
+        """
         xp = self.xp
         weights = None if self._weights is None else self._weights[step]
         if self.options.cost == "amplitude":
-            if self._operator.fused:
-                return fused.data_step(xp, fields, self._targets[step], weights, self.problem.amplitude_floor)
+            if self._misfit_pixels is not None:
+                return fused.data_step(xp, fields, self._targets[step], weights, self.problem.amplitude_floor,
+                                       squared=self._misfit_pixels[rows])
             return project(xp, fields, self._targets[step], weights, self.problem.amplitude_floor, keep=False)
         magnitude = xp.abs(fields)
         misfit = magnitude - self._targets[step]
@@ -500,9 +514,11 @@ class BatchedMomentum(MomentumBase):
         operator, spectrum = self._operator, self._spectrum
         recovery = self.calibrator.recovery
         misfit = 0.0
-        for step in self._steps:
+        for step, rows in zip(self._steps, self._misfit_rows):
             fields = operator.fields(spectrum, step, self._pupil_boxes[step])
-            misfit = misfit + self._data_step(fields, step)
+            squared = self._data_step(fields, step, rows)
+            if squared is not None:
+                misfit = misfit + squared
             residuals = operator.spectra(fields)
             if recovery is not None:
                 self._accumulate_pupil(step, residuals)
@@ -514,6 +530,8 @@ class BatchedMomentum(MomentumBase):
             power += backend.to_host(self._pupil_sums[1])
             for sums in self._pupil_sums:
                 sums.fill(0)
+        if self._misfit_pixels is not None:
+            misfit = self._misfit_pixels.sum(dtype=self.xp.float64)
         return float(misfit)
 
     def _momentum(self, misfit: float) -> float:

@@ -122,7 +122,7 @@ def scatter(xp: ModuleType, target, index, values, factors=None) -> None:
     _kernels(xp)[3](values, factor, index, target.reshape(-1).view(xp.float32))
 
 
-def data_step(xp: ModuleType, fields, targets, weights, eps: float):
+def data_step(xp: ModuleType, fields, targets, weights, eps: float, squared=None):
     """``fields ← w (A/max(|ψ|, ε) − 1) ψ`` in place; returns ``Σ w (|ψ| − A)²`` (a float64 device scalar).
 
     Parameters
@@ -135,11 +135,18 @@ def data_step(xp: ModuleType, fields, targets, weights, eps: float):
     weights : float32 (k, m, m) or None
     eps : float
         Floor on ``|ψ|``.
+    squared : float32 (k, m, m), C-contiguous, optional
+        Receives each pixel's ``w (|ψ| − A)²`` instead of their sum (None is returned): a caller that
+        sums many calls' misfits sums once (a reduction costs a launch and its set-up on every call).
     """
-    squared = xp.empty(fields.shape, xp.float32)
+    given = squared is not None
+    if given and (squared.shape != fields.shape or squared.dtype != np.float32 or not squared.flags.c_contiguous):
+        raise ValueError("fused.data_step: squared must be a C-contiguous float32 array shaped as the fields")
+    if not given:
+        squared = xp.empty(fields.shape, xp.float32)
     weight = xp.float32(1.0) if weights is None else weights
     _kernels(xp)[0](targets, weight, xp.float32(eps), fields, squared)
-    return squared.sum(dtype=xp.float64)
+    return None if given else squared.sum(dtype=xp.float64)
 
 
 def add_pupil_sums(xp: ModuleType, first, power, discs, spectrum, index, residuals, scale: float) -> None:

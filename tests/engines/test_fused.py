@@ -74,6 +74,48 @@ def test_gpu_fused_kernels_are_the_operations_they_replace(weighted):
     np.testing.assert_allclose(cupy.asnumpy(target).reshape(-1), added, atol=1e-5 * np.abs(added).max())
 
 
+@pytest.mark.gpu
+def test_gpu_data_step_into_a_buffer_sums_to_the_returned_misfit():
+    if not backend.device_status().cuda:
+        pytest.skip(f"needs CuPy and a CUDA GPU ({backend.device_status().summary})")
+    cupy = backend.cupy_module()
+    fields, targets, weights = _random((10, 32, 32), seed=3)
+    summed = cupy.array(fields)
+    misfit = float(fused.data_step(cupy, summed, cupy.asarray(targets), cupy.asarray(weights), 1e-3))
+    buffer = cupy.zeros((16, 32, 32), cupy.float32)
+    kept = cupy.array(fields)
+    assert fused.data_step(cupy, kept, cupy.asarray(targets), cupy.asarray(weights), 1e-3, squared=buffer[3:13]) is None
+    assert cupy.array_equal(kept, summed)
+    assert float(buffer[3:13].sum(dtype=cupy.float64)) == pytest.approx(misfit, rel=1e-6)
+    assert not cupy.any(buffer[:3]) and not cupy.any(buffer[13:])
+    with pytest.raises(ValueError, match="squared"):
+        fused.data_step(cupy, kept, cupy.asarray(targets), None, 1e-3, squared=buffer[:5])
+
+
+@pytest.mark.gpu
+def test_gpu_planned_ffts_are_cupys_ffts():
+    if not backend.device_status().cuda:
+        pytest.skip(f"needs CuPy and a CUDA GPU ({backend.device_status().summary})")
+    cupy = backend.cupy_module()
+    fields, _, _ = _random((7, 48, 48), seed=4)
+    planned = backend.PlannedFFT2(cupy)
+    for _ in range(2):   # the second time from the kept plan
+        for forward, plain in ((True, backend.fft2), (False, backend.ifft2)):
+            a = cupy.array(fields)
+            out = planned.forward(a) if forward else planned.inverse(a)
+            assert out is a   # in place
+            assert cupy.array_equal(out, plain(cupy, cupy.array(fields)))
+    strided = cupy.array(fields)[:, ::2, ::2]   # not contiguous: the plain call
+    assert cupy.array_equal(planned.forward(strided), backend.fft2(cupy, cupy.ascontiguousarray(strided)))
+
+
+def test_planned_ffts_on_numpy_are_the_plain_ones():
+    fields, _, _ = _random((3, 16, 16), seed=5)
+    planned = backend.PlannedFFT2(np)
+    np.testing.assert_array_equal(planned.forward(fields.copy()), backend.fft2(np, fields.copy()))
+    np.testing.assert_array_equal(planned.inverse(fields.copy()), backend.ifft2(np, fields.copy()))
+
+
 def test_a_cupy_that_cannot_compile_them_runs_the_plain_operations_after_one_warning():
     """available() on a module whose kernels fail to build: False, with one warning naming the reason."""
 
