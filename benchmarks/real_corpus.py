@@ -99,6 +99,7 @@ SPLIT = {
     "fpm-euv-sharp-lines81": "validation",
     "fpm-janxu-target100": "validation",
     "fpm-fdpr-ring93": "validation",
+    "fpm-elfpie-usaf64": "validation",
 }
 
 #: PtyLab mPIE as it works on recorded data (benchmarks/README.md, "PtyLab's pupil recovery").
