@@ -268,7 +268,7 @@ def export_recon(recon_path: str | Path, path: str | Path, *, quantity: str = "a
     kind = export_format(path, format)
     from cca_cli.io.h5 import check_output
 
-    check_output(Path(path), force=force, owned=written_by_export)
+    check_output(Path(path), force=force, owned=written_by_export, inputs=(recon_path,))
     values, pixel, units = recon_quantity(recon_path, quantity)
     return export_image(values, path, pixel_size_m=pixel, quantity=quantity, units=units, format=kind, force=force)
 

@@ -144,6 +144,16 @@ def test_existing_output_is_refused_and_kept_unless_forced(recon, tmp_path):
     assert read_exported(ours).values.shape == (64, 64) and read_exported(ours).quantity == "phase"
 
 
+@pytest.mark.parametrize("kind", ["npy", "tiff"])
+def test_the_recovery_itself_is_never_the_output_even_forced(recon, tmp_path, kind):
+    copy = tmp_path / "recon.h5"
+    copy.write_bytes(recon.read_bytes())
+    for extra in ([], ["--force"]):
+        result = runner.invoke(app, ["export", str(copy), "-o", str(copy), "--format", kind, *extra])
+        assert result.exit_code == 4 and "is the input" in result.output
+        assert copy.read_bytes() == recon.read_bytes()
+
+
 @pytest.mark.parametrize("args, code, needle", [
     (["-o", "{tmp}/x.jpg"], 2, "unknown image format '.jpg'"),
     (["-o", "{tmp}/x.tif", "--quantity", "real"], 2, "choose one of amplitude, intensity, phase"),
