@@ -9,7 +9,7 @@ folder in the temporary directory (``cca-numba-<uid>``: created with mode
 0700, and used only when it is a real folder of this user that no one else
 may write, since numba loads compiled code from it), so later runs still
 start at once; failing that, the kernels are compiled without a cache in
-every process (about 15 s on 2 cores). One note says which.
+every process (about 20 s of one core on a 2-core machine). One note says which.
 
 Every numba kernel of the package lives in this folder (``cca_cli/optics``),
 so one probe function here answers for all of them.
@@ -91,6 +91,6 @@ def cache_enabled() -> bool:
             os.environ["NUMBA_CACHE_DIR"] = given[0]
         numba.config.CACHE_DIR = given[1]
     _log.warning("note: numba can write no cache folder (%s/__pycache__, NUMBA_CACHE_DIR, the user's cache folder, "
-                 "the temporary directory): the kernels are compiled in every run (about 15 s on 2 cores); set "
+                 "the temporary directory): the kernels are compiled in every run (about 20 s of one core on a 2-core machine); set "
                  "NUMBA_CACHE_DIR to a writable folder to keep them", package)
     return False
