@@ -1,6 +1,6 @@
 """Recorded LED-array sets nobody tuned for: cca's defaults and the peers, read one common way.
 
-Corpus: the seven recorded FPM sets in ../shared/datasets, each through
+Corpus: eight recorded FPM sets (../shared/datasets, ../corpus_extra), each through
 ``cca ingest`` with its manifest in ``benchmarks/corpus/<set>/manifest.yaml``
 (sets that need a conversion a manifest cannot express are rebuilt by
 ``benchmarks/corpus/rebuild.py`` into ``benchmarks/results/corpus_data/``).
