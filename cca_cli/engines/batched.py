@@ -16,7 +16,9 @@ captures at once, in complex64, with the array module ``xp`` they are given
 On CuPy the gather and placement of the boxes, the amplitude data step, a shared map pupil's
 sums and the scatter-add run as one fused kernel each (:mod:`cca_cli.engines.fused`), and the
 rPIE factors are formed on the device (:class:`RpieFactors`): a pupil step of a map model sends
-only the pupil maps across.
+only the pupil maps across. A call of a few captures costs more in launching than in arithmetic, so
+the transforms run through cuFFT plans kept per batch shape (:class:`~cca_cli.optics.backend.PlannedFFT2`)
+and the momentum engine sums its data misfit once a pass, not once a call.
 
 They read the same problem (:class:`~cca_cli.engines.problem.PhaseRetrievalProblem`),
 take the same options, stop by the same :class:`~cca_cli.engines.stopping.StoppingPolicy`
