@@ -6,7 +6,7 @@ import h5py
 import numpy as np
 
 from cca_cli.errors import InputError
-from cca_cli.io.h5 import write_dataset
+from cca_cli.io.h5 import open_input, write_dataset
 from cca_cli.optics.multiplex import MultiplexGeometry
 
 __all__ = ["write_multiplex", "read_multiplex", "is_multiplexed_file"]
@@ -56,7 +56,5 @@ def read_multiplex(handle: h5py.File) -> MultiplexGeometry:
 
 def is_multiplexed_file(path) -> bool:
     """Whether ``path`` holds multiplexed captures (has a /multiplex group)."""
-    from cca_cli.io.h5 import open_input
-
     with open_input(path) as handle:
         return "multiplex" in handle
