@@ -14,6 +14,14 @@ def _random(shape, seed=0):
     return fields, rng.uniform(0, 2, shape).astype(np.float32), rng.uniform(0.5, 1, shape).astype(np.float32)
 
 
+@pytest.fixture
+def cupy():
+    """CuPy on a CUDA GPU (the test is skipped where either is missing)."""
+    if not backend.device_status().cuda:
+        pytest.skip(f"needs CuPy and a CUDA GPU ({backend.device_status().summary})")
+    return backend.cupy_module()
+
+
 def test_numpy_never_takes_the_fused_path():
     assert fused.available(np) is False
 
@@ -30,10 +38,7 @@ def test_the_self_check_reference_is_the_engine_data_step():
 
 @pytest.mark.gpu
 @pytest.mark.parametrize("weighted", [False, True])
-def test_gpu_fused_kernels_are_the_operations_they_replace(weighted):
-    if not backend.device_status().cuda:
-        pytest.skip(f"needs CuPy and a CUDA GPU ({backend.device_status().summary})")
-    cupy = backend.cupy_module()
+def test_gpu_fused_kernels_are_the_operations_they_replace(cupy, weighted):
     assert fused.available(cupy)
     fields, targets, weights = _random((24, 144, 144), seed=1)
     weights = weights if weighted else None
@@ -75,10 +80,7 @@ def test_gpu_fused_kernels_are_the_operations_they_replace(weighted):
 
 
 @pytest.mark.gpu
-def test_gpu_data_step_into_a_buffer_sums_to_the_returned_misfit():
-    if not backend.device_status().cuda:
-        pytest.skip(f"needs CuPy and a CUDA GPU ({backend.device_status().summary})")
-    cupy = backend.cupy_module()
+def test_gpu_data_step_into_a_buffer_sums_to_the_returned_misfit(cupy):
     fields, targets, weights = _random((10, 32, 32), seed=3)
     summed = cupy.array(fields)
     misfit = float(fused.data_step(cupy, summed, cupy.asarray(targets), cupy.asarray(weights), 1e-3))
@@ -93,10 +95,7 @@ def test_gpu_data_step_into_a_buffer_sums_to_the_returned_misfit():
 
 
 @pytest.mark.gpu
-def test_gpu_planned_ffts_are_cupys_ffts():
-    if not backend.device_status().cuda:
-        pytest.skip(f"needs CuPy and a CUDA GPU ({backend.device_status().summary})")
-    cupy = backend.cupy_module()
+def test_gpu_planned_ffts_are_cupys_ffts(cupy):
     fields, _, _ = _random((7, 48, 48), seed=4)
     planned = backend.PlannedFFT2(cupy)
     for _ in range(2):   # the second time from the kept plan
