@@ -8,7 +8,19 @@ FFTW can find faster plans by timing candidates, but a timed search may pick
 another algorithm on another run, and another algorithm rounds differently.
 ``$CCA_FFTW_PLANNING`` sets how plans are made:
 
-* ``estimate`` (default): FFTW's estimated plans, made without timing and
+* ``exact`` (default): results bit-identical to ``estimate``'s, often
+  faster. A transform starts with its estimated plan; while the transforms
+  run, a timed plan is searched for the most used ones (the same steps and
+  budget as ``auto``, below) and kept only if it rounds exactly as the
+  estimated plan does: both transform one random probe on a scratch buffer
+  and must agree bit for bit. Timed plans often differ from the estimated one
+  only in loop order and buffering (same codelets, same arithmetic), and are
+  then up to twice as fast. The plans that passed, and the transforms whose
+  timed plans did not, are kept in ``$CCA_CACHE_DIR`` (default
+  ``~/.cache/cca``); a plan read from there is checked again before its
+  first use in a process. FFTW's own wisdom stays empty in between, so every
+  estimated plan is the one a fresh process makes.
+* ``estimate``: FFTW's estimated plans, made without timing and
   without the saved wisdom, so the same inputs and thread count give
   bit-identical results on every run and every machine with the same FFTW
   build.
@@ -135,6 +147,15 @@ _planning = {"seconds": 0.0}
 
 _LEVELS = ("estimate", "measure", "patient")
 
+#: ``exact`` planning: per transform key, ("measure" | "patient", wisdom) for a timed plan that rounds as the
+#: estimated plan, or ("rejected", level) for one that did not; shared by the process and the cache file.
+_exact_plans: dict = {}
+#: Keys whose ``_exact_plans`` entry was checked in this process (a cached entry is checked before first use).
+_exact_checked: set = set()
+_exact_loaded = False
+#: Seed of the probe that a timed plan and the estimated plan must transform to the same bits.
+_PROBE_SEED = 20161
+
 
 def planning_seconds() -> float:
     """Seconds this process has spent in timed FFTW planning so far."""
@@ -201,6 +222,88 @@ def _save_wisdom() -> None:
     except OSError:
         with contextlib.suppress(OSError, NameError):
             os.unlink(handle.name)  # a read-only or full cache only costs planning time
+
+
+def _exact_path() -> Path:
+    """Where ``exact`` planning keeps its checked plans between runs."""
+    return _wisdom_path().with_name(f"fftw-exact-{pyfftw.__version__}.pickle")
+
+
+def _valid_exact_entry(key, entry) -> bool:
+    if not (isinstance(key, tuple) and isinstance(entry, tuple) and len(entry) == 2):
+        return False
+    verdict, payload = entry
+    if verdict == "rejected":
+        return payload in _LEVELS[1:]
+    return (verdict in _LEVELS[1:] and isinstance(payload, tuple)
+            and all(isinstance(part, bytes) for part in payload))
+
+
+def _read_exact_file() -> dict:
+    """The ``exact`` plans saved in the cache (a dict), empty when absent, unreadable or malformed."""
+    try:
+        with open(_exact_path(), "rb") as handle:
+            saved = _BytesOnly(handle).load()
+    except Exception:  # noqa: BLE001 - a missing, truncated or foreign file only costs planning time
+        return {}
+    if not isinstance(saved, dict):
+        return {}
+    return {key: entry for key, entry in saved.items() if _valid_exact_entry(key, entry)}
+
+
+def _load_exact() -> None:
+    """Read the saved ``exact`` plans once per process (lock held); entries from disk are checked before use."""
+    global _exact_loaded
+    if _exact_loaded:
+        return
+    _exact_loaded = True
+    for key, entry in _read_exact_file().items():
+        _exact_plans.setdefault(key, entry)
+
+
+def _save_exact() -> None:
+    """Merge this process's ``exact`` plans into the cache file, written atomically (lock held).
+
+    Only plans checked in this process are written over what is on disk.
+    """
+    merged = _read_exact_file()
+    before = dict(merged)
+    for key, entry in _exact_plans.items():
+        if key in _exact_checked or entry[0] == "rejected":
+            merged[key] = entry
+    if merged == before:
+        return
+    try:
+        path = _exact_path()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile("wb", dir=path.parent, delete=False, suffix=".tmp") as handle:
+            pickle.dump(merged, handle)
+        os.replace(handle.name, path)
+    except OSError:
+        with contextlib.suppress(OSError, NameError):
+            os.unlink(handle.name)  # a read-only or full cache only costs planning time
+
+
+def _forget_wisdom() -> None:
+    """Empty FFTW's wisdom (lock held), so that the next estimated plan is the one a fresh process makes.
+
+    ``auto``, ``measure`` and ``patient`` transforms made later read the cache file again.
+    """
+    global _wisdom_loaded
+    pyfftw.forget_wisdom()
+    _wisdom_loaded = False
+
+
+@contextlib.contextmanager
+def _wisdom_held(wisdom):
+    """FFTW's wisdom is ``wisdom`` (None: none) inside the block and empty after it (lock held)."""
+    _forget_wisdom()
+    if wisdom:
+        pyfftw.import_wisdom(wisdom)
+    try:
+        yield
+    finally:
+        _forget_wisdom()
 
 
 # ----------------------------------------------------------------------------- FFTW library and planning
@@ -387,9 +490,11 @@ class PlanSet:
         self.buffer = buffer
         self.specs = specs
         self.threads = threads
-        self.auto = effort == "auto"
+        self.auto = effort in ("auto", "exact")
+        self.exact = effort == "exact"
         self.fftw = [None] * len(specs)
         self.level = ["estimate"] * len(specs)
+        self.wisdom = [None] * len(specs)  # ``exact``: the wisdom a timed plan in use was made from
         self.uses = [0] * len(specs)
         self.raw: list[int] | None = None
         self.raw_generation = 0
@@ -428,8 +533,121 @@ class PlanSet:
         _planning["seconds"] += seconds
         return seconds
 
+    def _key(self, i: int) -> tuple:
+        """What a timed plan of transform ``i`` depends on, as plain data (the ``exact`` cache's key)."""
+        spec = self.specs[i]
+        buffer = self.buffer
+        return (tuple(buffer.shape), buffer.dtype.str, buffer.ctypes.data % 64, spec.count, spec.rows,
+                tuple(spec.axes), spec.sign, self.threads)
+
+    def _plan_exact(self) -> None:
+        """``exact``: estimated plans, then the checked timed plans known for these transforms (lock held)."""
+        _forget_wisdom()
+        _load_exact()
+        for i, spec in enumerate(self.specs):
+            self.fftw[i] = _pyfftw_plan(spec.view(self.buffer), spec, self.threads, "estimate")
+        for i in range(len(self.specs)):
+            entry = _exact_plans.get(self._key(i))
+            if entry is not None and (entry[0] == "rejected" or not self._adopt_exact(i)):
+                self.budget.stuck.add(i)
+
+    def _rounds_exactly(self, i: int, level: str, wisdom=None, timelimit=None):
+        """Whether a plan of transform ``i`` at ``level`` rounds as its estimated plan; ``(same, wisdom)``.
+
+        The plan is searched for (timed, within ``timelimit``) unless ``wisdom`` holds it. Both
+        plans transform the same random probe on a scratch buffer; FFTW's wisdom is empty
+        afterwards. ``wisdom`` is None when the plan could not be made from it.
+        """
+        spec = self.specs[i]
+        scratch = _scratch_like(self.buffer)
+        view = spec.view(scratch)
+        _forget_wisdom()
+        reference = _pyfftw_plan(view, spec, self.threads, "estimate")
+        _forget_wisdom()
+        if wisdom is None:
+            start = time.perf_counter()
+            try:
+                candidate = _pyfftw_plan(view, spec, self.threads, level, timelimit=timelimit)
+                wisdom = pyfftw.export_wisdom()
+            finally:
+                _forget_wisdom()
+                _planning["seconds"] += time.perf_counter() - start
+        else:
+            with _wisdom_held(wisdom):
+                candidate = _pyfftw_plan(view, spec, self.threads, level, wisdom_only=True)
+            if candidate is None:
+                return False, None
+        rng = np.random.default_rng(_PROBE_SEED)
+        probe = (rng.standard_normal(view.shape, np.float32)
+                 + 1j * rng.standard_normal(view.shape, np.float32)).astype(view.dtype)
+        view[...] = probe
+        reference.execute()
+        expected = view.copy()
+        view[...] = probe
+        candidate.execute()
+        return bool(np.array_equal(view, expected)), wisdom
+
+    def _adopt_exact(self, i: int) -> bool:
+        """Use the timed plan ``_exact_plans`` holds for transform ``i``, checked once per process (lock held)."""
+        key = self._key(i)
+        level, wisdom = _exact_plans[key]
+        if key not in _exact_checked:
+            same, _ = self._rounds_exactly(i, level, wisdom)
+            _exact_checked.add(key)
+            if not same:
+                _exact_plans[key] = ("rejected", level)
+                return False
+        spec = self.specs[i]
+        with _wisdom_held(wisdom):
+            plan = _pyfftw_plan(spec.view(self.buffer), spec, self.threads, level, wisdom_only=True)
+        if plan is None:
+            return False
+        self.fftw[i], self.level[i], self.wisdom[i] = plan, level, wisdom
+        if self.raw is not None:
+            self._replace_raw(i)
+        return True
+
+    def _improve_exact(self, i: int) -> None:
+        """One ``exact`` planning step for transform ``i``: search a timed plan, keep it if it rounds the same."""
+        budget = self.budget
+        key = self._key(i)
+        entry = _exact_plans.get(key)
+        if entry is not None:  # another transform of the same shape searched already
+            if entry[0] == "rejected" or not self._adopt_exact(i):
+                budget.stuck.add(i)
+            return
+        if not budget.allows(_step_cost["measure"]):
+            return
+        timelimit = min(STEP_SECONDS, max(budget.allowance(), 2 * _step_cost["measure"]))
+        start = time.perf_counter()
+        try:
+            same, wisdom = self._rounds_exactly(i, "measure", timelimit=timelimit)
+        except RuntimeError:  # an improvement is optional: keep the plans in use
+            same, wisdom = False, None
+        seconds = time.perf_counter() - start
+        budget.spent += seconds
+        _step_cost["measure"] = 0.5 * _step_cost["measure"] + 0.5 * seconds
+        if wisdom is not None:
+            _exact_plans[key] = ("measure", wisdom) if same else ("rejected", "measure")
+            _exact_checked.add(key)
+            if same and self._adopt_exact(i):
+                _save_exact()
+                return
+            if not same:
+                _save_exact()
+                budget.stuck.add(i)
+                return
+            del _exact_plans[key]  # the search was cut short: FFTW kept no wisdom of it
+        if timelimit >= STEP_SECONDS:
+            budget.stuck.add(i)
+        else:
+            _step_cost["measure"] = max(_step_cost["measure"], 2 * seconds)
+
     def _plan_all(self, effort: str) -> None:
         with PLANNER_LOCK:
+            if self.exact:
+                self._plan_exact()
+                return
             if effort != "estimate":  # estimated plans never see the wisdom: the same plans on every run
                 _load_wisdom()
             n = len(self.specs)
@@ -452,7 +670,11 @@ class PlanSet:
         library = _fftw_library()
         spec = self.specs[i]
         view = spec.view(self.buffer)
-        plan = _raw_plan(library, view, spec, self.level[i]) or _raw_plan(library, view, spec, "estimate")
+        if self.exact:  # from the plan's own wisdom, or with none (then the estimated plan of a fresh process)
+            with _wisdom_held(self.wisdom[i]):
+                plan = _raw_plan(library, view, spec, self.level[i])
+        else:
+            plan = _raw_plan(library, view, spec, self.level[i]) or _raw_plan(library, view, spec, "estimate")
         if not plan:
             raise RuntimeError("FFTW could not plan a transform")
         old, self.raw[i] = self.raw[i], plan
@@ -485,14 +707,18 @@ class PlanSet:
         a plan another transform of the same shape already found is adopted for free.
         """
         budget = self.budget
+        top = "measure" if self.exact else "patient"
         pending = [i for i in range(len(self.specs))
-                   if self.uses[i] and self.level[i] != "patient" and i not in budget.stuck]
+                   if self.uses[i] and self.level[i] != top and i not in budget.stuck]
         if not pending:
             budget.next_check = budget.busy + _step_cost["measure"] / UPGRADE_SHARE
             return
         i = max(pending, key=lambda j: (-_LEVELS.index(self.level[j]), self.uses[j]))
         target = _LEVELS[_LEVELS.index(self.level[i]) + 1]
         with PLANNER_LOCK:
+            if self.exact:
+                self._improve_exact(i)
+                return
             if self._adopt(i, target) or not budget.allows(_step_cost[target]):
                 return
             # The budget caps the step, though not below twice its expected cost (a search cut

@@ -3,8 +3,8 @@
 ========================  ==========================================  ===============================
 variable                  values (default first)                      effect
 ========================  ==========================================  ===============================
-``CCA_FFTW_PLANNING``     ``estimate``, ``auto``, ``measure``,        how FFTW plans (see
-                          ``patient``                                 :mod:`cca_cli.optics.fftw_plans`)
+``CCA_FFTW_PLANNING``     ``exact``, ``estimate``, ``auto``,          how FFTW plans (see
+                          ``measure``, ``patient``                    :mod:`cca_cli.optics.fftw_plans`)
 ``CCA_FFT_BACKEND``       ``pyfftw``, ``scipy``                       ``scipy``: run without pyfftw
 ``CCA_KERNELS``           ``numba``, ``numpy``                        ``numpy``: run without numba
 ``CCA_RAW_FFTW``          ``on``, ``off``                             ``off``: run as where FFTW's
@@ -26,7 +26,7 @@ from cca_cli.errors import ConfigError
 __all__ = ["PLANNING_EFFORTS", "choice", "read_at_import", "check", "planning_effort", "raw_fftw_enabled"]
 
 #: Accepted values of ``CCA_FFTW_PLANNING``.
-PLANNING_EFFORTS = ("estimate", "auto", "measure", "patient")
+PLANNING_EFFORTS = ("exact", "estimate", "auto", "measure", "patient")
 
 _import_errors: list[ConfigError] = []
 
@@ -69,14 +69,14 @@ def check() -> None:
 
 
 def planning_effort() -> str:
-    """How FFTW plans: ``$CCA_FFTW_PLANNING``, default ``"estimate"`` (see :mod:`cca_cli.optics.fftw_plans`).
+    """How FFTW plans: ``$CCA_FFTW_PLANNING``, default ``"exact"`` (see :mod:`cca_cli.optics.fftw_plans`).
 
     Raises
     ------
     ConfigError
         If the variable names an unknown effort (one line naming the variable and the accepted values).
     """
-    return choice("CCA_FFTW_PLANNING", "estimate", PLANNING_EFFORTS)
+    return choice("CCA_FFTW_PLANNING", "exact", PLANNING_EFFORTS)
 
 
 def raw_fftw_enabled() -> bool:

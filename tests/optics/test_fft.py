@@ -122,9 +122,9 @@ def test_planning_effort_comes_from_the_environment(monkeypatch):
     monkeypatch.setenv("CCA_FFTW_PLANNING", "Estimate")
     assert fft.planning_effort() == "estimate"
     monkeypatch.delenv("CCA_FFTW_PLANNING")
-    assert fft.planning_effort() == "estimate"
+    assert fft.planning_effort() == "exact"
     monkeypatch.setenv("CCA_FFTW_PLANNING", "hard")
-    with pytest.raises(ConfigError, match="CCA_FFTW_PLANNING='hard' is not one of estimate, auto, measure, patient"):
+    with pytest.raises(ConfigError, match="CCA_FFTW_PLANNING='hard' is not one of exact, estimate, auto, measure, patient"):
         fft.planning_effort()
     with pytest.raises(ConfigError, match="CCA_FFTW_PLANNING"):
         fft.BandedFFT2(fft.zeros((2, 8, 8)), 2, 6, threads=1)

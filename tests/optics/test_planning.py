@@ -97,6 +97,123 @@ def test_short_runs_plan_next_to_nothing(cold_cache):
     assert transform._plans.budget.spent == 0.0 and set(transform._plans.level) == {"estimate"}
 
 
+@pytest.fixture
+def cold_exact(cold_cache, monkeypatch):
+    """``exact`` planning on a fresh machine: no checked plans in memory or in the cache."""
+    monkeypatch.setenv("CCA_FFTW_PLANNING", "exact")
+    monkeypatch.setattr(fftw_plans, "_exact_plans", {})
+    monkeypatch.setattr(fftw_plans, "_exact_checked", set())
+    monkeypatch.setattr(fftw_plans, "_exact_loaded", False)
+    monkeypatch.setattr(fftw_plans, "UPGRADE_SHARE", 50.0)  # improve eagerly: the mechanism is tested, not the budget
+    return cold_cache
+
+
+def _transformed(transform, data, rounds):
+    """The inverse then forward transform of ``data`` (count 2), ``rounds`` times: each round's result."""
+    results = []
+    for _ in range(rounds):
+        transform.buffer[...] = data
+        transform.inverse(2)
+        inverse = transform.buffer.copy()
+        transform.forward(2)
+        results.append((inverse, transform.buffer.copy()))
+    return results
+
+
+@pytest.mark.parametrize("size", [48, 54])
+def test_exact_planning_keeps_only_timed_plans_that_round_as_the_estimated_ones(cold_exact, size):
+    import pyfftw
+
+    band = (size // 4, size - size // 4)
+    data = _band_data((2, size, size), band)
+    reference = fft.BandedFFT2(fft.zeros((2, size, size)), *band, threads=1, effort="estimate")
+    expected = _transformed(reference, data, 1)[0]
+    transform = fft.BandedFFT2(fft.zeros((2, size, size)), *band, threads=1)
+    plans = transform._plans
+    assert plans.exact and set(plans.level) == {"estimate"}
+    deadline = time.perf_counter() + 60
+    while time.perf_counter() < deadline:
+        for inverse, forward in _transformed(transform, data, 5):  # bit for bit, before and after each step
+            np.testing.assert_array_equal(inverse, expected[0])
+            np.testing.assert_array_equal(forward, expected[1])
+        if all(plans.level[i] == "measure" or i in plans.budget.stuck for i in range(4, 8)):
+            break
+    verdicts = [fftw_plans._exact_plans[plans._key(i)][0] for i in range(4, 8)]
+    assert set(verdicts) <= {"measure", "rejected"}
+    assert [plans.level[i] for i in range(4, 8)] == ["measure" if v == "measure" else "estimate" for v in verdicts]
+    assert plans.level[:4] == ["estimate"] * 4  # the count-1 transforms never ran
+    with fft.PLANNER_LOCK:  # nothing timed is left in FFTW's wisdom for a later estimated plan to pick up
+        assert pyfftw.export_wisdom() == _empty_wisdom()
+    saved = fftw_plans._read_exact_file()
+    assert {key: entry[0] for key, entry in saved.items()} == {plans._key(i): v for i, v in zip(range(4, 8), verdicts)}
+
+
+def _empty_wisdom():
+    import pyfftw
+
+    pyfftw.forget_wisdom()
+    return pyfftw.export_wisdom()
+
+
+def test_a_timed_plan_that_rounds_otherwise_is_never_used(cold_exact, monkeypatch):
+    data = _band_data((2, 32, 32), (8, 24))
+    expected = _transformed(fft.BandedFFT2(fft.zeros((2, 32, 32)), 8, 24, threads=1, effort="estimate"), data, 1)[0]
+    real_plan = fftw_plans._pyfftw_plan
+
+    def other_algorithm(view, spec, threads, level, **options):  # a timed "plan" that transforms otherwise
+        if level == "measure" and not options.get("wisdom_only"):
+            return real_plan(view, spec._replace(sign=-spec.sign), threads, "estimate")
+        return real_plan(view, spec, threads, level, **options)
+
+    monkeypatch.setattr(fftw_plans, "_pyfftw_plan", other_algorithm)
+    transform = fft.BandedFFT2(fft.zeros((2, 32, 32)), 8, 24, threads=1)
+    plans = transform._plans
+    deadline = time.perf_counter() + 60
+    while time.perf_counter() < deadline and not set(range(4, 8)) <= plans.budget.stuck:
+        for inverse, forward in _transformed(transform, data, 5):
+            np.testing.assert_array_equal(inverse, expected[0])
+            np.testing.assert_array_equal(forward, expected[1])
+    assert set(range(4, 8)) <= plans.budget.stuck and set(plans.level) == {"estimate"}
+    assert {fftw_plans._exact_plans[plans._key(i)] for i in range(4, 8)} == {("rejected", "measure")}
+
+
+def test_a_cached_plan_is_checked_again_before_use(cold_exact):
+    buffer = fft.zeros((2, 24, 24))  # both transforms share one buffer, and so their keys
+    transform = fft.BandedFFT2(buffer, 6, 18, threads=1)
+    key = transform._plans._key(4)
+    wrong = transform._plans._key(7)  # another transform's wisdom cannot make this one's plan
+    fftw_plans._exact_plans.clear()
+    with fft.PLANNER_LOCK:
+        import pyfftw
+
+        pyfftw.forget_wisdom()
+        scratch = fftw_plans._scratch_like(transform.buffer)
+        spec = transform._plans.specs[7]
+        fftw_plans._pyfftw_plan(spec.view(scratch), spec, 1, "measure")
+        foreign = pyfftw.export_wisdom()
+        pyfftw.forget_wisdom()
+    fftw_plans._exact_plans[key] = ("measure", foreign)
+    fftw_plans._exact_plans[wrong] = ("measure", foreign)
+    own_verdict = transform._plans._rounds_exactly(7, "measure", foreign)[0]
+    again = fft.BandedFFT2(buffer, 6, 18, threads=1)
+    assert again._plans.level[4] == "estimate" and 4 in again._plans.budget.stuck
+    assert fftw_plans._exact_plans[key] == ("rejected", "measure")
+    # Its own wisdom: checked, then used if it rounds as the estimated plan (FFTW's choice on this machine).
+    assert again._plans.level[7] == ("measure" if own_verdict else "estimate")
+
+
+def test_a_damaged_exact_cache_only_costs_planning_time(cold_exact):
+    fftw_plans._exact_path().parent.mkdir(parents=True, exist_ok=True)
+    fftw_plans._exact_path().write_bytes(b"not a pickle")
+    assert fftw_plans._read_exact_file() == {}
+    import pickle
+
+    fftw_plans._exact_path().write_bytes(pickle.dumps({("a",): ("measure", "not bytes"), ("b",): ("rejected", "x")}))
+    assert fftw_plans._read_exact_file() == {}
+    transform = fft.BandedFFT2(fft.zeros((2, 16, 16)), 4, 12, threads=1)
+    assert set(transform._plans.level) == {"estimate"}
+
+
 CACHE_CHILD = textwrap.dedent('''
     import time
     from cca_cli.optics import fft
@@ -160,6 +277,26 @@ def test_an_unknown_planning_effort_is_one_line_naming_the_variable(tmp_path, wr
     result = CliRunner().invoke(app, ["simulate", str(write_config()), "-o", str(captures), "--quiet"])
     assert result.exit_code == 2
     lines = [line for line in result.stderr.splitlines() if line.strip()]
-    assert lines == ["error: environment variable CCA_FFTW_PLANNING='bogus' is not one of estimate, auto, "
-                     "measure, patient; unset it or pick one"]
+    assert lines == ["error: environment variable CCA_FFTW_PLANNING='bogus' is not one of exact, estimate, "
+                     "auto, measure, patient; unset it or pick one"]
     assert not captures.exists()
+
+
+def test_a_recovery_with_exact_planning_equals_the_estimated_one_bit_for_bit(cold_exact, monkeypatch):
+    import cca_cli as cca
+
+    geometry = cca.led_array(cca.led_grid_sines(5, pitch_m=4e-3, height_m=60e-3), wavelength_m=532e-9,
+                             numerical_aperture=0.1, pixel_pitch_object_m=1.845e-6, image_pixels=48)
+    chart = cca.resolution_chart(48 * 3, widths=(6, 4, 3, 2)).image
+    captures = cca.CaptureSet(cca.simulate(chart, geometry, snr_db=35), geometry, units="counts/s", boundary="open")
+    runs = {}
+    for effort in ("estimate", "exact"):
+        monkeypatch.setenv("CCA_FFTW_PLANNING", effort)
+        before = fft.planning_seconds()
+        runs[effort] = cca.reconstruct(captures, engine="momentum", iterations=40, threads=1)
+        runs[effort + " timed"] = fft.planning_seconds() - before
+    assert runs["estimate timed"] == 0.0 and runs["exact timed"] > 0.0  # exact mode searched timed plans
+    assert fftw_plans._exact_plans  # and decided on some
+    assert runs["exact"].stopped_by == runs["estimate"].stopped_by
+    np.testing.assert_array_equal(runs["exact"].spectrum, runs["estimate"].spectrum)
+    np.testing.assert_array_equal(runs["exact"].object, runs["estimate"].object)
