@@ -17,8 +17,9 @@ another algorithm on another run, and another algorithm rounds differently.
   only in loop order and buffering (same codelets, same arithmetic), and are
   then up to twice as fast. The plans that passed, and the transforms whose
   timed plans did not, are kept in ``$CCA_CACHE_DIR`` (default
-  ``~/.cache/cca``); a plan read from there is checked again before its
-  first use in a process. FFTW's own wisdom stays empty in between, so every
+  ``~/.cache/cca``) with the machine they were reached on (CPU model and
+  instruction sets, FFTW build); a plan kept by another machine is checked
+  again before its first use. FFTW's own wisdom stays empty in between, so every
   estimated plan is the one a fresh process makes.
 * ``estimate``: FFTW's estimated plans, made without timing and
   without the saved wisdom, so the same inputs and thread count give
@@ -65,6 +66,7 @@ import hashlib
 import importlib.abc
 import os
 import pickle
+import platform
 import sys
 import tempfile
 import threading
@@ -240,45 +242,75 @@ def _valid_exact_entry(key, entry) -> bool:
             and all(isinstance(part, bytes) for part in payload))
 
 
-def _read_exact_file() -> dict:
-    """The ``exact`` plans saved in the cache (a dict), empty when absent, unreadable or malformed."""
+_machine_id = None
+
+
+def _machine() -> str:
+    """What FFTW's plans and their rounding depend on here: the CPU (model, instruction sets) and the FFTW build."""
+    global _machine_id
+    if _machine_id is None:
+        cpu = platform.processor()
+        with contextlib.suppress(OSError):
+            with open("/proc/cpuinfo") as info:
+                lines = [line for line in info if line.startswith(("model name", "flags", "Features", "CPU part"))]
+            cpu = "".join(sorted(set(lines)))
+        text = f"{platform.machine()}|{cpu}|pyfftw {pyfftw.__version__}"
+        _machine_id = hashlib.blake2b(text.encode(), digest_size=12).hexdigest()
+    return _machine_id
+
+
+def _read_exact_file() -> tuple[str | None, dict]:
+    """The machine the saved ``exact`` plans were checked on, and the plans; (None, {}) when absent or unreadable."""
     try:
         with open(_exact_path(), "rb") as handle:
             saved = _BytesOnly(handle).load()
     except Exception:  # noqa: BLE001 - a missing, truncated or foreign file only costs planning time
-        return {}
-    if not isinstance(saved, dict):
-        return {}
-    return {key: entry for key, entry in saved.items() if _valid_exact_entry(key, entry)}
+        return None, {}
+    if not (isinstance(saved, dict) and isinstance(saved.get("machine"), str) and isinstance(saved.get("plans"), dict)):
+        return None, {}
+    plans = {key: entry for key, entry in saved["plans"].items() if _valid_exact_entry(key, entry)}
+    return saved["machine"], plans
 
 
 def _load_exact() -> None:
-    """Read the saved ``exact`` plans once per process (lock held); entries from disk are checked before use."""
+    """Read the saved ``exact`` plans once per process (lock held).
+
+    Plans checked on this machine are used as they are; plans from another machine (a home folder shared
+    by several) are checked again before their first use, and its verdicts against timed plans are ignored.
+    """
     global _exact_loaded
     if _exact_loaded:
         return
     _exact_loaded = True
-    for key, entry in _read_exact_file().items():
-        _exact_plans.setdefault(key, entry)
+    machine, plans = _read_exact_file()
+    for key, entry in plans.items():
+        if key in _exact_plans:
+            continue
+        if machine == _machine():
+            _exact_plans[key] = entry
+            _exact_checked.add(key)
+        elif entry[0] != "rejected":
+            _exact_plans[key] = entry
 
 
 def _save_exact() -> None:
-    """Merge this process's ``exact`` plans into the cache file, written atomically (lock held).
+    """Merge this process's ``exact`` verdicts into the cache file, written atomically (lock held).
 
-    Only plans checked in this process are written over what is on disk.
+    Only verdicts reached on this machine are written; a file from another machine is replaced.
     """
-    merged = _read_exact_file()
+    machine, on_disk = _read_exact_file()
+    merged = dict(on_disk) if machine == _machine() else {}
     before = dict(merged)
     for key, entry in _exact_plans.items():
-        if key in _exact_checked or entry[0] == "rejected":
+        if key in _exact_checked:
             merged[key] = entry
-    if merged == before:
+    if merged == before and machine == _machine():
         return
     try:
         path = _exact_path()
         path.parent.mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile("wb", dir=path.parent, delete=False, suffix=".tmp") as handle:
-            pickle.dump(merged, handle)
+            pickle.dump({"machine": _machine(), "plans": merged}, handle)
         os.replace(handle.name, path)
     except OSError:
         with contextlib.suppress(OSError, NameError):

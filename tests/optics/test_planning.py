@@ -144,7 +144,8 @@ def test_exact_planning_keeps_only_timed_plans_that_round_as_the_estimated_ones(
     assert plans.level[:4] == ["estimate"] * 4  # the count-1 transforms never ran
     with fft.PLANNER_LOCK:  # nothing timed is left in FFTW's wisdom for a later estimated plan to pick up
         assert pyfftw.export_wisdom() == _empty_wisdom()
-    saved = fftw_plans._read_exact_file()
+    machine, saved = fftw_plans._read_exact_file()
+    assert machine == fftw_plans._machine()
     assert {key: entry[0] for key, entry in saved.items()} == {plans._key(i): v for i, v in zip(range(4, 8), verdicts)}
 
 
@@ -202,14 +203,57 @@ def test_a_cached_plan_is_checked_again_before_use(cold_exact):
     assert again._plans.level[7] == ("measure" if own_verdict else "estimate")
 
 
+def _saved_plans_of(transform, i):
+    """Take one ``exact`` planning step for transform ``i`` (saved to the cache), then forget it as a new process would."""
+    plans = transform._plans
+    with fft.PLANNER_LOCK:
+        plans._improve_exact(i)
+    assert fftw_plans._read_exact_file()[1], "no verdict was saved, so this test checks nothing"
+    fftw_plans._exact_plans.clear()
+    fftw_plans._exact_checked.clear()
+    fftw_plans._exact_loaded = False
+
+
+def test_plans_saved_on_this_machine_are_trusted_and_another_machines_are_checked(cold_exact, monkeypatch):
+    import pickle
+
+    buffer = fft.zeros((2, 20, 20))
+    transform = fft.BandedFFT2(buffer, 5, 15, threads=1)
+    transform._plans.budget.busy = 100.0  # the step fits the budget
+    _saved_plans_of(transform, 4)
+    checks = []
+    real_check = fftw_plans.PlanSet._rounds_exactly
+    monkeypatch.setattr(fftw_plans.PlanSet, "_rounds_exactly",
+                        lambda self, *a, **k: checks.append(a) or real_check(self, *a, **k))
+    same_machine = fft.BandedFFT2(buffer, 5, 15, threads=1)
+    assert checks == []  # a verdict reached here is not checked again
+    machine, saved = fftw_plans._read_exact_file()
+    verdict = saved[same_machine._plans._key(4)][0]
+    assert same_machine._plans.level[4] == ("measure" if verdict == "measure" else "estimate")
+    # The same file as written by another machine: its timed plans are checked before use, its rejections ignored.
+    fftw_plans._exact_path().write_bytes(pickle.dumps({"machine": "another", "plans": saved}))
+    fftw_plans._exact_plans.clear()
+    fftw_plans._exact_checked.clear()
+    fftw_plans._exact_loaded = False
+    other = fft.BandedFFT2(buffer, 5, 15, threads=1)
+    assert len(checks) == (1 if verdict == "measure" else 0)
+    assert 4 not in other._plans.budget.stuck  # not rejected here, so still open to a search
+    assert other._plans.level[4] == same_machine._plans.level[4]
+    with fft.PLANNER_LOCK:
+        fftw_plans._save_exact()
+    assert fftw_plans._read_exact_file()[0] == fftw_plans._machine()  # replaced by what this machine checked
+
+
 def test_a_damaged_exact_cache_only_costs_planning_time(cold_exact):
     fftw_plans._exact_path().parent.mkdir(parents=True, exist_ok=True)
     fftw_plans._exact_path().write_bytes(b"not a pickle")
-    assert fftw_plans._read_exact_file() == {}
+    assert fftw_plans._read_exact_file() == (None, {})
     import pickle
 
     fftw_plans._exact_path().write_bytes(pickle.dumps({("a",): ("measure", "not bytes"), ("b",): ("rejected", "x")}))
-    assert fftw_plans._read_exact_file() == {}
+    assert fftw_plans._read_exact_file() == (None, {})
+    fftw_plans._exact_path().write_bytes(pickle.dumps({"machine": "m", "plans": {("a",): ("measure", "not bytes")}}))
+    assert fftw_plans._read_exact_file() == ("m", {})
     transform = fft.BandedFFT2(fft.zeros((2, 16, 16)), 4, 12, threads=1)
     assert set(transform._plans.level) == {"estimate"}
 
