@@ -173,19 +173,36 @@ def _wisdom_path() -> Path:
 
 
 class _BytesOnly(pickle.Unpickler):
-    """Unpickles plain data only: a wisdom file holds a tuple of bytes and never names a class."""
+    """Unpickles plain data only: a cache file holds tuples, dicts, strings and bytes and never names a class."""
 
     def find_class(self, module, name):
-        raise pickle.UnpicklingError(f"unexpected {module}.{name} in an FFTW wisdom file")
+        raise pickle.UnpicklingError(f"unexpected {module}.{name} in an FFTW cache file")
+
+
+def _read_cache_file(path: Path):
+    """The plain data pickled in ``path``, or None when absent or unreadable."""
+    try:
+        with open(path, "rb") as handle:
+            return _BytesOnly(handle).load()
+    except Exception:  # noqa: BLE001 - a missing, truncated or foreign file only costs planning time
+        return None
+
+
+def _write_cache_file(path: Path, data) -> None:
+    """Pickle ``data`` to ``path`` atomically (a temporary file renamed); a read-only or full cache is skipped."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile("wb", dir=path.parent, delete=False, suffix=".tmp") as handle:
+            pickle.dump(data, handle)
+        os.replace(handle.name, path)
+    except OSError:
+        with contextlib.suppress(OSError, NameError):
+            os.unlink(handle.name)  # a read-only or full cache only costs planning time
 
 
 def _read_wisdom_file():
     """The wisdom saved in the cache (a tuple of bytes), or None when absent or unreadable."""
-    try:
-        with open(_wisdom_path(), "rb") as handle:
-            wisdom = _BytesOnly(handle).load()
-    except Exception:  # noqa: BLE001 - a missing, truncated or foreign file only costs planning time
-        return None
+    wisdom = _read_cache_file(_wisdom_path())
     if isinstance(wisdom, tuple) and all(isinstance(part, bytes) for part in wisdom):
         return wisdom
     return None
@@ -214,17 +231,8 @@ def _save_wisdom() -> None:
     if on_disk is not None:
         pyfftw.import_wisdom(on_disk)
     wisdom = pyfftw.export_wisdom()
-    if wisdom == on_disk:
-        return
-    try:
-        path = _wisdom_path()
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile("wb", dir=path.parent, delete=False, suffix=".tmp") as handle:
-            pickle.dump(wisdom, handle)
-        os.replace(handle.name, path)
-    except OSError:
-        with contextlib.suppress(OSError, NameError):
-            os.unlink(handle.name)  # a read-only or full cache only costs planning time
+    if wisdom != on_disk:
+        _write_cache_file(_wisdom_path(), wisdom)
 
 
 def _exact_path() -> Path:
@@ -233,6 +241,7 @@ def _exact_path() -> Path:
 
 
 def _valid_exact_entry(key, entry) -> bool:
+    """Whether a cache entry has the shape ``_exact_plans`` holds (a file may be damaged or foreign)."""
     if not (isinstance(key, tuple) and isinstance(entry, tuple) and len(entry) == 2):
         return False
     verdict, payload = entry
@@ -261,11 +270,7 @@ def _machine() -> str:
 
 def _read_exact_file() -> tuple[str | None, dict]:
     """The machine the saved ``exact`` plans were checked on, and the plans; (None, {}) when absent or unreadable."""
-    try:
-        with open(_exact_path(), "rb") as handle:
-            saved = _BytesOnly(handle).load()
-    except Exception:  # noqa: BLE001 - a missing, truncated or foreign file only costs planning time
-        return None, {}
+    saved = _read_cache_file(_exact_path())
     if not (isinstance(saved, dict) and isinstance(saved.get("machine"), str) and isinstance(saved.get("plans"), dict)):
         return None, {}
     plans = {key: entry for key, entry in saved["plans"].items() if _valid_exact_entry(key, entry)}
@@ -304,17 +309,8 @@ def _save_exact() -> None:
     for key, entry in _exact_plans.items():
         if key in _exact_checked:
             merged[key] = entry
-    if merged == before and machine == _machine():
-        return
-    try:
-        path = _exact_path()
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile("wb", dir=path.parent, delete=False, suffix=".tmp") as handle:
-            pickle.dump({"machine": _machine(), "plans": merged}, handle)
-        os.replace(handle.name, path)
-    except OSError:
-        with contextlib.suppress(OSError, NameError):
-            os.unlink(handle.name)  # a read-only or full cache only costs planning time
+    if merged != before or machine != _machine():
+        _write_cache_file(_exact_path(), {"machine": _machine(), "plans": merged})
 
 
 def _forget_wisdom() -> None:
