@@ -153,7 +153,8 @@ _LEVELS = ("estimate", "measure", "patient")
 #: ``exact`` planning: per transform key, ("measure" | "patient", wisdom) for a timed plan that rounds as the
 #: estimated plan, or ("rejected", level) for one that did not; shared by the process and the cache file.
 _exact_plans: dict = {}
-#: Keys whose ``_exact_plans`` entry was checked in this process (a cached entry is checked before first use).
+#: Keys whose ``_exact_plans`` entry was checked on this machine (entries from another machine's cache are checked
+#: before their first use).
 _exact_checked: set = set()
 _exact_loaded = False
 #: Seed of the probe that a timed plan and the estimated plan must transform to the same bits.
@@ -636,7 +637,7 @@ class PlanSet:
         return _digest(view) == expected, wisdom
 
     def _adopt_exact(self, i: int) -> bool:
-        """Use the timed plan ``_exact_plans`` holds for transform ``i``, checked once per process (lock held)."""
+        """Use the timed plan ``_exact_plans`` holds for transform ``i``, checked first unless this machine did (lock held)."""
         key = self._key(i)
         level, wisdom = _exact_plans[key]
         if key not in _exact_checked:
