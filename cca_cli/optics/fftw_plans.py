@@ -259,11 +259,12 @@ def _machine() -> str:
     """What FFTW's plans and their rounding depend on here: the CPU (model, instruction sets) and the FFTW build."""
     global _machine_id
     if _machine_id is None:
-        cpu = platform.processor()
-        with contextlib.suppress(OSError):
+        try:
             with open("/proc/cpuinfo") as info:
                 lines = [line for line in info if line.startswith(("model name", "flags", "Features", "CPU part"))]
             cpu = "".join(sorted(set(lines)))
+        except OSError:  # not Linux
+            cpu = platform.processor()
         text = f"{platform.machine()}|{cpu}|pyfftw {pyfftw.__version__}"
         _machine_id = hashlib.blake2b(text.encode(), digest_size=12).hexdigest()
     return _machine_id
