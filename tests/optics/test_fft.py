@@ -186,3 +186,11 @@ def test_transforms_refuse_buffers_they_cannot_plan():
         fft.BandedFFT2(fft.zeros((2, 8, 8)), 6, 2)
     with pytest.raises(ValueError, match="unknown FFTW planning effort"):
         fft.BandedFFT2(fft.zeros((2, 8, 8)), 2, 6, effort="exhaustive")
+
+
+@pytest.mark.skipif(not fft.HAVE_PYFFTW, reason="the alignment serves FFTW")
+def test_buffers_are_aligned_to_64_bytes_so_a_shape_has_one_fftw_plan():
+    # FFTW picks (and rounds with) other codelets for other alignments; every SIMD width fits in 64 bytes.
+    for shape in [(1,), (3, 5, 7), (2, 90, 90), (17, 31)]:
+        assert fft.empty(shape).ctypes.data % 64 == 0
+        assert fft.zeros(shape, np.float32).ctypes.data % 64 == 0
