@@ -543,7 +543,7 @@ class PlanSet:
         self.buffer = buffer
         self.specs = specs
         self.threads = threads
-        self.auto = effort in ("auto", "exact")
+        self.improves = effort in ("auto", "exact")  # plans searched for while the transforms run
         self.exact = effort == "exact"
         self.fftw = [None] * len(specs)
         self.level = ["estimate"] * len(specs)
@@ -638,7 +638,7 @@ class PlanSet:
         return _digest(view) == expected, wisdom
 
     def _adopt_exact(self, i: int) -> bool:
-        """Use the timed plan ``_exact_plans`` holds for transform ``i``, checked first unless this machine did (lock held)."""
+        """Use the timed plan ``_exact_plans`` holds for transform ``i``, checked first unless this machine did."""
         key = self._key(i)
         level, wisdom = _exact_plans[key]
         if key not in _exact_checked:
@@ -704,7 +704,7 @@ class PlanSet:
             wanted = "patient" if effort == "auto" else effort
             known = [i for i in range(n) if wanted != "estimate" and self._adopt(i, wanted)]
             missing = [i for i in range(n) if i not in known]
-            if self.auto:  # no timing now: the best plan on file, else an estimate (improved while running)
+            if self.improves:  # auto (exact returned above): the best plan on file, else an estimate; no timing now
                 missing = [i for i in missing if not self._adopt(i, "measure")]
             elif wanted != "estimate" and missing:
                 self._search(missing, wanted, timelimit=None)
@@ -745,7 +745,7 @@ class PlanSet:
             budget.busy = self.busy
         for i in used:
             self.uses[i] += 1
-        if self.auto and budget.busy >= budget.next_check:
+        if self.improves and budget.busy >= budget.next_check:
             self._improve_one()
 
     def _improve_one(self) -> None:
