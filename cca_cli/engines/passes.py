@@ -9,9 +9,13 @@ its own buffer, FFT plan and spectrum accumulator.
 :class:`SequentialPass` (sequential engines): batches of captures update the
 spectrum one after the other, in the phases and lanes of a
 :class:`~cca_cli.engines.schedule.Schedule`. Lanes of a phase touch disjoint
-parts of the spectrum, so two threads run them side by side with the result of
+parts of the spectrum, so threads run them side by side with the result of
 running them in turn; with numba and FFTW a thread's whole lane is one
 compiled, GIL-free call (:func:`~cca_cli.optics.kernels.sequential_lane`).
+The captures of one batch all read the spectrum before any of them updates it,
+so a batch may also be split among threads and its parts added in order: a
+phase of one lane is split among all threads, and a phase with fewer lanes
+than threads gives each lane a group of threads (:func:`thread_groups`).
 """
 
 from __future__ import annotations
@@ -26,7 +30,7 @@ from cca_cli.engines.schedule import Schedule
 from cca_cli.optics import fft, kernels
 from cca_cli.optics.forward import ForwardModel, chunk_slices
 
-__all__ = ["ChunkedPass", "BatchTargets", "SequentialPass"]
+__all__ = ["ChunkedPass", "BatchTargets", "SequentialPass", "thread_groups"]
 
 #: operation(fields, images, scratch (2, k, m, m) float32) -> float statistic summed over chunks
 ChunkOperation = Callable[[np.ndarray, slice, np.ndarray], float]
@@ -134,16 +138,19 @@ AfterStep = Callable[[int, slice, np.ndarray, np.ndarray], None]
 
 
 class SequentialPass:
-    """Runs the batches of a schedule over a spectrum, on one or two threads.
+    """Runs the batches of a schedule over a spectrum, on one or more threads.
 
     Parameters
     ----------
     model : ForwardModel
         Any model of the captures' grids (makes the workspaces).
     threads : int
-        Threads: a phase's lanes run side by side (lane ``i`` on thread ``i mod threads``), and a
-        batch of a phase with one lane is split in ``threads`` parts computed side by side and
-        scattered in order.
+        Threads: a phase's lanes run side by side (the lanes, largest first, dealt to the threads in
+        turn); a batch of a phase with one lane is split in ``threads`` parts computed side by side and
+        scattered in order; a phase with fewer lanes than threads (more than two threads only) gives
+        each lane a group of threads (:func:`thread_groups`) that split each of its batches likewise.
+        Which thread computes which captures depends only on the schedule and ``threads``, so a
+        thread count gives the same result every time.
     """
 
     def __init__(self, model: ForwardModel, threads: int):
@@ -200,6 +207,8 @@ class SequentialPass:
             elif len(phase.lanes) == 1:
                 for sl in phase.lanes[0]:
                     misfit += runner.shared_batch(sl)
+            elif len(phase.lanes) < self.threads:
+                misfit += runner.grouped_lanes(phase.lanes)
             else:
                 # Lanes touch disjoint parts of the spectrum: running them together equals running them in turn.
                 # The calling thread takes the longest lanes: it waits least for the interpreter between kernels.
@@ -227,6 +236,34 @@ def _lane_size(batches: tuple[slice, ...]) -> int:
     return sum(sl.stop - sl.start for sl in batches)
 
 
+def thread_groups(sizes: list[int], threads: int) -> list[list[int]]:
+    """Threads for each lane of a phase: every lane one, the rest by lane size (at most one per capture).
+
+    Parameters
+    ----------
+    sizes : list of int
+        Captures in each lane (at most ``threads`` lanes).
+    threads : int
+
+    Returns
+    -------
+    list of list of int
+        Consecutive thread numbers for each lane, in the order of ``sizes``; the first group starts at 0.
+        The same sizes and thread count always give the same groups.
+    """
+    if not 0 < len(sizes) <= threads:
+        raise ValueError(f"thread_groups: need 1 to {threads} lanes, got {len(sizes)}")
+    counts = [1] * len(sizes)
+    for _ in range(threads - len(sizes)):
+        # the lane with the most captures per thread gets the next one (the first such lane on a tie)
+        lane = max(range(len(sizes)), key=lambda i: (sizes[i] / counts[i], -i))
+        if sizes[lane] <= counts[lane]:
+            break
+        counts[lane] += 1
+    starts = np.cumsum([0] + counts)
+    return [list(range(starts[i], starts[i + 1])) for i in range(len(sizes))]
+
+
 class _PassRun:
     """The batches of one pass: fields, data step and scatter, per thread."""
 
@@ -248,14 +285,17 @@ class _PassRun:
             self.after_step(t, images, self.spectrum, ws.fields[:k])
         return misfit
 
-    def scatter(self, t: int, images: slice, batch: slice) -> None:
-        """Add the weighted update boxes (thread ``t``'s) of ``images``, part of ``batch``, to the spectrum."""
+    def scatter(self, t: int, images: slice, batch: slice, work: int = 0) -> None:
+        """Add the weighted update boxes (thread ``t``'s) of ``images``, part of ``batch``, to the spectrum.
+
+        ``work``: the thread whose work array the map model's scatter may use (the one scattering).
+        """
         k = images.stop - images.start
         if k > 0:
             held = self.owner._boxes[t] if self.owner._fused[t] is not None else self.owner._workspaces[t].fields
             tg = self.targets
-            if tg.map_pupils is not None:   # the calling thread scatters: its work array is free
-                kernels.scatter_map_boxes(held[:k], tg.origins, tg.map_pupils, tg.coverages[0], self.spectrum,
+            if tg.map_pupils is not None:
+                kernels.scatter_map_boxes(held[:k], tg.origins, tg.map_pupils, tg.coverages[work], self.spectrum,
                                           (batch.start, batch.stop), images.start)
             else:
                 kernels.scatter_boxes(held[:k], tg.origins, tg.factors, self.spectrum, images.start)
@@ -290,17 +330,40 @@ class _PassRun:
 
     def shared_batch(self, sl: slice) -> float:
         """One batch computed by every thread (a part each), then scattered in order."""
-        threads = self.owner.threads
+        return self.split_batch(sl, list(range(self.owner.threads)))
+
+    def split_batch(self, sl: slice, group: list[int]) -> float:
+        """One batch computed by the threads of ``group`` (a part each), then scattered in order by the first."""
+        threads = len(group)
         size = sl.stop - sl.start
-        cuts = [sl.start + (size * t + threads - 1) // threads for t in range(threads)] + [sl.stop]
+        cuts = [sl.start + (size * i + threads - 1) // threads for i in range(threads)] + [sl.stop]
         if threads == 2:   # halves as before: the first the larger
             cuts = [sl.start, sl.start + (size + 1) // 2, sl.stop]
-        parts = [slice(a, b) for a, b in zip(cuts[:-1], cuts[1:])]
-        futures = [self.owner._pool.submit(self.part_of_batch, t, part) for t, part in enumerate(parts) if t > 0]
-        misfit = self.part_of_batch(0, parts[0]) + sum(f.result() for f in futures)
-        for t, part in enumerate(parts):  # every part has read the spectrum: now the updates go in, in order
-            self.scatter(t, part, sl)
+        parts = list(zip(group, (slice(a, b) for a, b in zip(cuts[:-1], cuts[1:]))))
+        futures = [self.owner._pool.submit(self.part_of_batch, t, part) for t, part in parts[1:]]
+        misfit = self.part_of_batch(*parts[0]) + sum(f.result() for f in futures)
+        for t, part in parts:  # every part has read the spectrum: now the updates go in, in order
+            self.scatter(t, part, sl, work=group[0])
         return misfit
+
+    def grouped_lanes(self, lanes: tuple[tuple[slice, ...], ...]) -> float:
+        """A phase with fewer lanes than threads: each lane's batches split among its group of threads.
+
+        The groups run side by side (the first on the calling thread); a group leader waits only for
+        its own group's parts, so at most ``threads - 1`` tasks are ever queued on the pool's
+        ``threads - 1`` workers.
+        """
+        ordered = sorted(lanes, key=_lane_size, reverse=True)
+        groups = thread_groups([_lane_size(lane) for lane in ordered], self.owner.threads)
+        futures = [self.owner._pool.submit(self.lane_in_group, group, lane)
+                   for group, lane in zip(groups[1:], ordered[1:])]
+        return self.lane_in_group(groups[0], ordered[0]) + sum(f.result() for f in futures)
+
+    def lane_in_group(self, group: list[int], batches: tuple[slice, ...]) -> float:
+        """Run one lane's batches in turn, each split among the threads of ``group``."""
+        if len(group) == 1:
+            return self.lane(group[0], batches)
+        return sum(self.split_batch(sl, group) for sl in batches)
 
     def part_of_batch(self, t: int, images: slice) -> float:
         """Thread ``t``'s part of a shared batch, up to its update (not yet scattered)."""

@@ -3,7 +3,9 @@
 import numpy as np
 import pytest
 
+from cca_cli.engines import passes
 from cca_cli.engines.momentum import MomentumOptions, SequentialMomentum
+from cca_cli.engines.passes import thread_groups
 from cca_cli.engines.schedule import build_schedule, shell_sizes, split_disjoint
 from cca_cli.sampling.grid import band_layout, square_scan
 from cca_cli.sampling.overlap import step_m
@@ -102,3 +104,33 @@ def test_four_threads_agree_with_two_and_repeat_bit_for_bit():
         spectra.setdefault(threads, []).append(engine.spectrum().copy())
     np.testing.assert_array_equal(spectra[4][0], spectra[4][1])
     np.testing.assert_allclose(spectra[4][0], spectra[2][0], atol=2e-2 * np.abs(spectra[2][0]).max())
+
+
+def test_thread_groups_share_threads_by_lane_size():
+    assert thread_groups([25, 30], 3) == [[0], [1, 2]]
+    assert thread_groups([78, 75], 4) == [[0, 1], [2, 3]]
+    assert thread_groups([17, 6, 11], 8) == [[0, 1, 2, 3], [4, 5], [6, 7]]
+    assert thread_groups([2, 1], 8) == [[0, 1], [2]]            # never more threads than captures
+    assert thread_groups([5], 1) == [[0]]
+    with pytest.raises(ValueError, match="1 to 2 lanes"):
+        thread_groups([1, 2, 3], 2)
+
+
+@pytest.mark.parametrize("pupil", [{}, {"pupil_recovery": "shared", "pupil_model": "full"}])
+def test_three_threads_split_the_lanes_batches_and_give_the_two_thread_result(pupil, monkeypatch):
+    problem, *_ = make_case()
+    grouped = []
+    original = passes._PassRun.grouped_lanes
+    monkeypatch.setattr(passes._PassRun, "grouped_lanes",
+                        lambda self, lanes: grouped.append(len(lanes)) or original(self, lanes))
+    spectra = {}
+    for threads in (2, 3, 3):
+        engine = SequentialMomentum(problem, MomentumOptions(max_iterations=4, tol=0, threads=threads, **pupil))
+        for _ in range(4):
+            engine.update()
+        engine.close()
+        spectra.setdefault(threads, []).append(engine.spectrum().copy())
+    assert grouped and set(grouped) == {2}   # three threads, two lanes: one lane split in two
+    np.testing.assert_array_equal(spectra[3][0], spectra[3][1])
+    # the same visiting order as two threads; only the pupil sums' partial sums are grouped otherwise
+    np.testing.assert_allclose(spectra[3][0], spectra[2][0], rtol=0, atol=1e-5 * np.abs(spectra[2][0]).max())
