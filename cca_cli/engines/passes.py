@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from itertools import accumulate
 from typing import Callable
 
 import numpy as np
@@ -260,7 +261,7 @@ def thread_groups(sizes: list[int], threads: int) -> list[list[int]]:
         if sizes[lane] <= counts[lane]:
             break
         counts[lane] += 1
-    starts = np.cumsum([0] + counts)
+    starts = list(accumulate(counts, initial=0))
     return [list(range(starts[i], starts[i + 1])) for i in range(len(sizes))]
 
 
