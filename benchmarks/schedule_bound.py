@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cca_cli.engines.momentum import MAX_THREADS
+from cca_cli.engines.momentum import MAX_THREADS, lanes_for
 from cca_cli.engines.passes import thread_groups
 from cca_cli.engines.schedule import Schedule, build_schedule
 from cca_cli.io.captures import read_captures
@@ -91,7 +91,7 @@ def main() -> None:
     print("threads  lanes  dealt  groups")
     for threads in (int(t) for t in args.threads.split(",")):
         used = min(threads, MAX_THREADS)
-        lanes = max(2, 1 << (used.bit_length() - 1))   # as SequentialMomentum chooses them
+        lanes = lanes_for(used)
         work = dealt = grouped = 0.0
         for batch, count in zip(batches, passes):
             schedule = build_schedule(layout.box_origins, layout.box_size, distances, batch, lanes=lanes)

@@ -65,10 +65,21 @@ from cca_cli.engines.stopping import StoppingPolicy
 from cca_cli.optics import fft, kernels
 from cca_cli.optics.forward import ForwardModel
 
-__all__ = ["MAX_THREADS", "MomentumOptions", "Calibration", "MomentumBase", "SequentialMomentum", "held_back_captures"]
+__all__ = ["MAX_THREADS", "MAX_LANES", "lanes_for", "MomentumOptions", "Calibration", "MomentumBase", "SequentialMomentum", "held_back_captures"]
 
-#: Most threads a pass uses: lanes of a phase are at most eight (three splits of the spectrum).
-MAX_THREADS = 8
+#: Most threads a pass uses. Lanes of a phase are at most eight (three splits of the spectrum); threads beyond a
+#: phase's lanes split the lanes' batches (:func:`~cca_cli.engines.passes.thread_groups`).
+MAX_THREADS = 16
+#: Most lanes a phase is split into.
+MAX_LANES = 8
+
+
+def lanes_for(threads: int) -> int:
+    """Lanes a phase is split into for ``threads`` threads: the largest power of two up to them, 2 to :data:`MAX_LANES`.
+
+    One and two threads visit the captures in the same order.
+    """
+    return min(MAX_LANES, max(2, 1 << (max(1, threads).bit_length() - 1)))
 
 
 class MomentumBase(CalibratingEngine):
@@ -229,7 +240,7 @@ class SequentialMomentum(MomentumBase):
     def __init__(self, problem: PhaseRetrievalProblem, options: MomentumOptions = MomentumOptions(),
                  spectrum: np.ndarray | None = None):
         threads = max(1, min(options.threads or fft.default_threads(), MAX_THREADS, problem.model.n_images))
-        self._lanes = max(2, 1 << (threads.bit_length() - 1))   # 1 and 2 threads visit in the same order
+        self._lanes = lanes_for(threads)
         self._start(problem, options, spectrum, threads)
         self.passes = SequentialPass(problem.model, threads)
         self._coverages = [np.zeros(problem.model.spectrum_shape, np.float32) for _ in range(threads)]  # work arrays

@@ -205,7 +205,7 @@ class MomentumOptions(EngineOptions):
         the best one (as also at the end of a run that stops otherwise while
         their misfit is above the best).
     threads : int or None
-        Worker threads; None uses the cores the process may use (at most 8).
+        Worker threads; None uses the cores the process may use (at most 16).
         One and two threads visit the captures in the same order and agree to
         float rounding; more threads split the spectrum further, so the
         visiting order (and the result, slightly) depends on their number. The

@@ -213,11 +213,33 @@ def reconstruct_footprint(captures_path: Path, section=None) -> Footprint:
     centres = geometry.spectrum_centres_yx_px
     reach = float(np.max(np.abs(np.rint(centres)))) if centres.size else 0.0
     lowres, hires, box = _grids(reach, geometry.pupil_radius_px, n)
+    threads = _engine_threads(section)
     memory = (reconstruction_memory_bytes(k, n, lowres, hires, box) + (k * n * n * _FLOAT if weighted else 0)
-              + k * n * n * _FLOAT + k * _PER_CAPTURE)  # the images as read, besides the engine's own copy
+              + k * n * n * _FLOAT + k * _PER_CAPTURE  # the images as read, besides the engine's own copy
+              + threads * (hires * hires * _COMPLEX + k * box * box * _COMPLEX))
     disk = hires * hires * (2 * _COMPLEX + _FLOAT) + n * n * _FLOAT + float(truth[0]) * truth[1] * _COMPLEX
-    return Footprint("reconstruct", memory, disk, f"{k:.4g} images of {n:.4g}² px, object {hires:.4g}² px",
-                     "reconstruct fewer or smaller images (crop them, or simulate with simulate.store: band)")
+    return Footprint("reconstruct", memory, disk,
+                     f"{k:.4g} images of {n:.4g}² px, object {hires:.4g}² px, {threads} thread{'s' * (threads != 1)}",
+                     "reconstruct fewer or smaller images (crop them, or simulate with simulate.store: band), "
+                     "or use fewer threads (reconstruct.options.threads)")
+
+
+def _engine_threads(section) -> int:
+    """Threads the engine will run: ``options.threads`` or the cores this process may use, at most the engine's cap.
+
+    Each thread holds its own work arrays: a spectrum-sized accumulator (``altmin``) or coverage, and
+    the update boxes of a whole batch (``momentum``, whose batches may grow to every capture).
+    """
+    from cca_cli.engines.momentum import MAX_THREADS
+    from cca_cli.optics.fft import default_threads
+
+    options = getattr(section, "options", None)
+    asked = options.get("threads") if isinstance(options, dict) else None
+    try:
+        threads = int(asked) if asked else default_threads()
+    except (TypeError, ValueError):
+        threads = default_threads()   # the engine's own check names a bad value
+    return max(1, min(threads, MAX_THREADS))
 
 
 def _check_pupil_fits(captures_path: Path, radius: float, frame: tuple[int, int], boundary) -> None:

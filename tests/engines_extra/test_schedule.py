@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from cca_cli.engines import passes
-from cca_cli.engines.momentum import MomentumOptions, SequentialMomentum
+from cca_cli.engines.momentum import MAX_LANES, MAX_THREADS, MomentumOptions, SequentialMomentum, lanes_for
 from cca_cli.engines.passes import thread_groups
 from cca_cli.engines.schedule import build_schedule, shell_sizes, split_disjoint
 from cca_cli.sampling.grid import band_layout, square_scan
@@ -134,3 +134,18 @@ def test_three_threads_split_the_lanes_batches_and_give_the_two_thread_result(pu
     np.testing.assert_array_equal(spectra[3][0], spectra[3][1])
     # the same visiting order as two threads; only the pupil sums' partial sums are grouped otherwise
     np.testing.assert_allclose(spectra[3][0], spectra[2][0], rtol=0, atol=1e-5 * np.abs(spectra[2][0]).max())
+
+
+def test_threads_beyond_the_lanes_split_batches_and_keep_the_visiting_order():
+    problem, *_ = make_case()
+    assert lanes_for(1) == lanes_for(2) == 2 and lanes_for(4) == 4 and lanes_for(8) == lanes_for(16) == MAX_LANES
+    spectra = {}
+    for threads in (8, 16, 16):
+        engine = SequentialMomentum(problem, MomentumOptions(max_iterations=3, tol=0, threads=threads))
+        assert engine.passes.threads == min(threads, MAX_THREADS, problem.model.n_images)
+        for _ in range(3):
+            engine.update()
+        engine.close()
+        spectra.setdefault(threads, []).append(engine.spectrum().copy())
+    np.testing.assert_array_equal(spectra[16][0], spectra[16][1])
+    np.testing.assert_allclose(spectra[16][0], spectra[8][0], rtol=0, atol=1e-5 * np.abs(spectra[8][0]).max())

@@ -82,3 +82,19 @@ def test_design_plans_any_target_instantly():
     with pytest.raises(ValueError, match="positive number"):
         plan_array(wavelength_m=math.inf, focal_length_m=0.8, aperture_diameter_m=0.018, pixel_pitch_m=2e-6,
                    distance_m=50, sar=3)
+
+
+def test_each_engine_thread_counts_its_own_work_arrays(tiny_run_config, tmp_path):
+    from cca_cli.config.model import ReconstructSection
+    from cca_cli.engines.momentum import MAX_THREADS
+
+    sim = simulate_stage.run(tiny_run_config, tmp_path / "c.h5", provenance=Provenance.make("simulate", "", "x"),
+                             force=True)
+    k, box = sim.layout.n_images, sim.layout.box_size
+    estimates = {t: reconstruct_footprint(tmp_path / "c.h5", ReconstructSection(options={"threads": t}))
+                 for t in (1, 4, 1000)}
+    # every thread beyond the first holds at least a whole batch of update boxes (k of them at the largest)
+    assert estimates[4].memory_bytes - estimates[1].memory_bytes >= 3 * k * box * box * 8
+    assert estimates[1000].memory_bytes == reconstruct_footprint(
+        tmp_path / "c.h5", ReconstructSection(options={"threads": MAX_THREADS})).memory_bytes
+    assert estimates[1].detail.endswith("1 thread") and estimates[4].detail.endswith("4 threads")
