@@ -216,7 +216,7 @@ def reconstruct_footprint(captures_path: Path, section=None) -> Footprint:
     threads = _engine_threads(section)
     memory = (reconstruction_memory_bytes(k, n, lowres, hires, box) + (k * n * n * _FLOAT if weighted else 0)
               + k * n * n * _FLOAT + k * _PER_CAPTURE  # the images as read, besides the engine's own copy
-              + threads * (hires * hires * _COMPLEX + k * box * box * _COMPLEX))
+              + _thread_bytes(threads, k, hires, box))
     disk = hires * hires * (2 * _COMPLEX + _FLOAT) + n * n * _FLOAT + float(truth[0]) * truth[1] * _COMPLEX
     return Footprint("reconstruct", memory, disk,
                      f"{k:.4g} images of {n:.4g}² px, object {hires:.4g}² px, {threads} thread{'s' * (threads != 1)}",
@@ -225,21 +225,24 @@ def reconstruct_footprint(captures_path: Path, section=None) -> Footprint:
 
 
 def _engine_threads(section) -> int:
-    """Threads the engine will run: ``options.threads`` or the cores this process may use, at most the engine's cap.
-
-    Each thread holds its own work arrays: a spectrum-sized accumulator (``altmin``) or coverage, and
-    the update boxes of a whole batch (``momentum``, whose batches may grow to every capture).
-    """
-    from cca_cli.engines.momentum import MAX_THREADS
+    """Threads the engine is asked for: ``options.threads``, or the cores this process may use."""
     from cca_cli.optics.fft import default_threads
 
     options = getattr(section, "options", None)
     asked = options.get("threads") if isinstance(options, dict) else None
     try:
-        threads = int(asked) if asked else default_threads()
+        return max(1, int(asked) if asked else default_threads())
     except (TypeError, ValueError):
-        threads = default_threads()   # the engine's own check names a bad value
-    return max(1, min(threads, MAX_THREADS))
+        return default_threads()   # the engine's own check names a bad value
+
+
+def _thread_bytes(threads: int, k: float, hires: float, box: float) -> float:
+    """Each thread's own work arrays: a spectrum-sized accumulator (``altmin``, on every thread asked for) or
+    coverage, and room for a whole batch of update boxes (``momentum``, on at most its
+    :data:`~cca_cli.engines.momentum.MAX_THREADS`; its batches may grow to every capture)."""
+    from cca_cli.engines.momentum import MAX_THREADS
+
+    return threads * hires * hires * _COMPLEX + min(threads, MAX_THREADS) * k * box * box * _COMPLEX
 
 
 def _check_pupil_fits(captures_path: Path, radius: float, frame: tuple[int, int], boundary) -> None:
