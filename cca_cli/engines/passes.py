@@ -31,7 +31,7 @@ from cca_cli.engines.schedule import Schedule
 from cca_cli.optics import fft, kernels
 from cca_cli.optics.forward import ForwardModel, chunk_slices
 
-__all__ = ["ChunkedPass", "BatchTargets", "SequentialPass", "thread_groups"]
+__all__ = ["ChunkedPass", "BatchTargets", "SequentialPass", "PART_CAPTURES", "thread_groups"]
 
 #: operation(fields, images, scratch (2, k, m, m) float32) -> float statistic summed over chunks
 ChunkOperation = Callable[[np.ndarray, slice, np.ndarray], float]
@@ -237,30 +237,37 @@ def _lane_size(batches: tuple[slice, ...]) -> int:
     return sum(sl.stop - sl.start for sl in batches)
 
 
-def thread_groups(sizes: list[int], threads: int) -> list[list[int]]:
-    """Threads for each lane of a phase: every lane one, the rest by lane size (at most one per capture).
+#: With more than two threads, the fewest captures a thread takes of a split batch: a part of one capture
+#: costs about as much in hand-overs between threads as it saves (a choice to check on a many-core machine).
+PART_CAPTURES = 2
+
+
+def thread_groups(sizes: list[int], threads: int, least: int = PART_CAPTURES) -> list[list[int]]:
+    """Threads for each lane of a phase: every lane one, the rest by lane size, at least ``least`` captures each.
 
     Parameters
     ----------
     sizes : list of int
         Captures in each lane (at most ``threads`` lanes).
     threads : int
+    least : int
+        A lane gets another thread only while each of its threads keeps this many of its captures.
 
     Returns
     -------
     list of list of int
         Consecutive thread numbers for each lane, in the order of ``sizes``; the first group starts at 0.
-        The same sizes and thread count always give the same groups.
+        The same sizes and thread count always give the same groups (threads may be left over).
     """
     if not 0 < len(sizes) <= threads:
         raise ValueError(f"thread_groups: need 1 to {threads} lanes, got {len(sizes)}")
     counts = [1] * len(sizes)
     for _ in range(threads - len(sizes)):
         # the lane with the most captures per thread gets the next one (the first such lane on a tie)
-        lane = max(range(len(sizes)), key=lambda i: (sizes[i] / counts[i], -i))
-        if sizes[lane] <= counts[lane]:
+        open_lanes = [i for i in range(len(sizes)) if sizes[i] >= (counts[i] + 1) * max(1, least)]
+        if not open_lanes:
             break
-        counts[lane] += 1
+        counts[max(open_lanes, key=lambda i: (sizes[i] / counts[i], -i))] += 1
     starts = list(accumulate(counts, initial=0))
     return [list(range(starts[i], starts[i + 1])) for i in range(len(sizes))]
 
@@ -334,9 +341,15 @@ class _PassRun:
         return self.split_batch(sl, list(range(self.owner.threads)))
 
     def split_batch(self, sl: slice, group: list[int]) -> float:
-        """One batch computed by the threads of ``group`` (a part each), then scattered in order by the first."""
-        threads = len(group)
+        """One batch computed by the threads of ``group`` (a part each), then scattered in order by the first.
+
+        More than two threads take at least :data:`PART_CAPTURES` captures each (the first threads of the
+        group; one or two threads always split the batch as before).
+        """
         size = sl.stop - sl.start
+        if len(group) > 2:
+            group = group[:max(2, min(len(group), size // PART_CAPTURES))]
+        threads = len(group)
         cuts = [sl.start + (size * i + threads - 1) // threads for i in range(threads)] + [sl.stop]
         if threads == 2:   # halves as before: the first the larger
             cuts = [sl.start, sl.start + (size + 1) // 2, sl.stop]

@@ -110,7 +110,8 @@ def test_thread_groups_share_threads_by_lane_size():
     assert thread_groups([25, 30], 3) == [[0], [1, 2]]
     assert thread_groups([78, 75], 4) == [[0, 1], [2, 3]]
     assert thread_groups([17, 6, 11], 8) == [[0, 1, 2, 3], [4, 5], [6, 7]]
-    assert thread_groups([2, 1], 8) == [[0, 1], [2]]            # never more threads than captures
+    assert thread_groups([2, 1], 8) == [[0], [1]]               # each thread keeps PART_CAPTURES (2) or more
+    assert thread_groups([2, 1], 8, least=1) == [[0, 1], [2]]
     assert thread_groups([5], 1) == [[0]]
     with pytest.raises(ValueError, match="1 to 2 lanes"):
         thread_groups([1, 2, 3], 2)
