@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from cca_cli.engines.momentum import MAX_THREADS, lanes_for
-from cca_cli.engines.passes import PART_CAPTURES, thread_groups
+from cca_cli.engines.passes import part_threads, thread_groups
 from cca_cli.engines.schedule import Schedule, build_schedule
 from cca_cli.io.captures import read_captures
 from cca_cli.sampling.grid import band_layout
@@ -46,8 +46,7 @@ def _size(lane) -> int:
 
 def _split(batch: int, threads: int, scatter: float) -> float:
     """One batch split among ``threads`` as the engine splits it: the largest part, then every part added in order."""
-    if threads > 2:
-        threads = max(2, min(threads, batch // PART_CAPTURES))
+    threads = part_threads(batch, threads)
     return (1 - scatter) * -(-batch // threads) + scatter * batch if threads > 1 else float(batch)
 
 

@@ -31,7 +31,7 @@ from cca_cli.engines.schedule import Schedule
 from cca_cli.optics import fft, kernels
 from cca_cli.optics.forward import ForwardModel, chunk_slices
 
-__all__ = ["ChunkedPass", "BatchTargets", "SequentialPass", "PART_CAPTURES", "thread_groups"]
+__all__ = ["ChunkedPass", "BatchTargets", "SequentialPass", "PART_CAPTURES", "part_threads", "thread_groups"]
 
 #: operation(fields, images, scratch (2, k, m, m) float32) -> float statistic summed over chunks
 ChunkOperation = Callable[[np.ndarray, slice, np.ndarray], float]
@@ -147,8 +147,8 @@ class SequentialPass:
         Any model of the captures' grids (makes the workspaces).
     threads : int
         Threads: a phase's lanes run side by side (the lanes, largest first, dealt to the threads in
-        turn); a batch of a phase with one lane is split in ``threads`` parts computed side by side and
-        scattered in order; a phase with fewer lanes than threads (more than two threads only) gives
+        turn); a batch of a phase with one lane is split among the threads (:func:`part_threads`), its
+        parts computed side by side and scattered in order; a phase with fewer lanes than threads (more than two threads only) gives
         each lane a group of threads (:func:`thread_groups`) that split each of its batches likewise.
         Which thread computes which captures depends only on the schedule and ``threads``, so a
         thread count gives the same result every time.
@@ -272,6 +272,14 @@ def thread_groups(sizes: list[int], threads: int, least: int = PART_CAPTURES) ->
     return [list(range(starts[i], starts[i + 1])) for i in range(len(sizes))]
 
 
+def part_threads(captures: int, threads: int) -> int:
+    """How many of ``threads`` split a batch of ``captures``: one or two as given, more only while each
+    keeps :data:`PART_CAPTURES` captures (never fewer than two)."""
+    if threads <= 2:
+        return threads
+    return max(2, min(threads, captures // PART_CAPTURES))
+
+
 class _PassRun:
     """The batches of one pass: fields, data step and scatter, per thread."""
 
@@ -347,8 +355,7 @@ class _PassRun:
         group; one or two threads always split the batch as before).
         """
         size = sl.stop - sl.start
-        if len(group) > 2:
-            group = group[:max(2, min(len(group), size // PART_CAPTURES))]
+        group = group[:part_threads(size, len(group))]
         threads = len(group)
         cuts = [sl.start + (size * i + threads - 1) // threads for i in range(threads)] + [sl.stop]
         if threads == 2:   # halves as before: the first the larger
