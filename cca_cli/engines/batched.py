@@ -199,12 +199,15 @@ class BatchedAlternatingMinimization(IterativeEngine):
         Starting spectrum; default :func:`~cca_cli.engines.problem.initial_spectrum`.
     xp : module
         numpy or CuPy: where the arrays live and the work runs.
+    graphs : bool
+        On CuPy, record an iteration as one CUDA graph and replay it
+        (:class:`~cca_cli.optics.backend.GraphedWork`). False launches every step from Python.
     """
 
     name = "altmin"
 
     def __init__(self, problem: PhaseRetrievalProblem, options: AltMinOptions = AltMinOptions(),
-                 spectrum: np.ndarray | None = None, *, xp: ModuleType = np):
+                 spectrum: np.ndarray | None = None, *, xp: ModuleType = np, graphs: bool = True):
         check_options(options)
         self.problem, self.options, self.xp = problem, options, xp
         model = problem.model
@@ -220,24 +223,36 @@ class BatchedAlternatingMinimization(IterativeEngine):
         self._groups = _capture_groups(model.n_images, model.layout.lowres_size)
         self._data_norm = problem.energy
         self._eps = problem.amplitude_floor
+        self._numerator = xp.zeros_like(self._spectrum)
+        self._graphed = backend.GraphedWork(xp, self._iterate, enabled=graphs)
         self.stopping = StoppingPolicy(max_iterations=options.max_iterations, tol=options.tol, plateau=options.plateau,
                                        plateau_window=options.plateau_window)
 
-    def update(self) -> tuple[float, float]:
-        """One iteration: project every capture, then the closed-form Fourier update."""
-        xp, operator = self.xp, self._operator
-        numerator = xp.zeros_like(self._spectrum)
-        misfit = 0.0
+    def _iterate(self) -> tuple:
+        """Queue one iteration, the new spectrum written over the old; device scalars (misfit, ‖new − old‖², ‖old‖²).
+
+        The work :class:`~cca_cli.optics.backend.GraphedWork` records: it never waits for the GPU.
+        """
+        xp, operator, spectrum, numerator = self.xp, self._operator, self._spectrum, self._numerator
+        numerator.fill(0)
+        misfit = None
         for group in self._groups:
-            fields = operator.fields(self._spectrum, group, self._pupils[group])
+            fields = operator.fields(spectrum, group, self._pupils[group])
             weights = None if self._weights is None else self._weights[group]
-            misfit = misfit + project(xp, fields, self._amplitudes[group], weights, self._eps, keep=True)
+            squared = project(xp, fields, self._amplitudes[group], weights, self._eps, keep=True)
+            misfit = squared if misfit is None else misfit + squared
             operator.scatter(operator.spectra(fields), group, numerator, self._adjoint[group])
         numerator *= self._inverse_normal
-        change = float(np.sqrt(_squared_norm(xp, numerator - self._spectrum)
-                               / max(_squared_norm(xp, self._spectrum), 1e-30)))
-        self._spectrum = numerator
-        misfit = float(misfit)
+        change = xp.sum(xp.square(xp.abs(numerator - spectrum)), dtype=xp.float64)
+        norm = xp.sum(xp.square(xp.abs(spectrum)), dtype=xp.float64)
+        spectrum[...] = numerator
+        return misfit, change, norm
+
+    def update(self) -> tuple[float, float]:
+        """One iteration: project every capture, then the closed-form Fourier update."""
+        misfit, change, norm = self._graphed()
+        change = float(np.sqrt(float(change) / max(float(norm), 1e-30)))
+        misfit = 0.0 if misfit is None else float(misfit)
         self.stopping.record(misfit, change)
         return float(np.sqrt(misfit / max(self._data_norm, 1e-30))), change
 
@@ -357,14 +372,18 @@ class BatchedMomentum(MomentumBase):
         How far the schedule splits the spectrum (:func:`~cca_cli.engines.schedule.build_schedule`): more
         lanes put more captures in one call. 2 visits the captures as the CPU engine with one or two
         threads does.
+    graphs : bool
+        On CuPy, record a pass's calls as one CUDA graph and replay it
+        (:class:`~cca_cli.optics.backend.GraphedWork`; recorded afresh whenever batches grow or the
+        captures are laid out again). False launches every step from Python (the same arithmetic).
     """
 
     name = "momentum"
 
     def __init__(self, problem: PhaseRetrievalProblem, options: MomentumOptions = MomentumOptions(),
-                 spectrum: np.ndarray | None = None, *, xp: ModuleType = np, lanes: int = 8):
+                 spectrum: np.ndarray | None = None, *, xp: ModuleType = np, lanes: int = 8, graphs: bool = True):
         check_options(options)
-        self.xp, self._lanes = xp, lanes
+        self.xp, self._lanes, self._graphs = xp, lanes, graphs
         self._start(problem, options, spectrum, threads=1)
         self._arrange()
 
@@ -373,6 +392,8 @@ class BatchedMomentum(MomentumBase):
         """Lay out the captures, build the visiting order and calls, and move the pass's data to the device."""
         xp, problem, calibrator = self.xp, self.problem, self.calibrator
         order = self._lay_out()
+        self._pupils = None   # new arrays for the new arrangement
+        self._graphed = backend.GraphedWork(xp, self._calls, enabled=self._graphs)
         self._operator = BoxOperator(xp, self._layout)
         steps = merged_steps(self._schedule)
         self._steps = [_as_slice(step) for step in steps]
@@ -444,9 +465,18 @@ class BatchedMomentum(MomentumBase):
         self._use_pupils(self._discs * maps[self._map_index])
 
     def _use_pupils(self, pupils) -> None:
-        """Use ``pupils`` (complex64 (K, b, b), on the device): the forward pupils and each capture's rPIE factor."""
+        """Use ``pupils`` (complex64 (K, b, b), on the device): the forward pupils and each capture's rPIE factor.
+
+        Within one arrangement they are written into the same arrays (a recorded pass reads them there).
+        """
+        xp, scale = self.xp, self.xp.float32(1.0 / self._layout.lowres_size)
+        if self._pupils is not None and self._pupils.shape == pupils.shape:
+            self._pupils[...] = pupils
+            xp.multiply(pupils, scale, out=self._pupil_boxes)
+            self._factors[...] = self._rpie(pupils)
+            return
         self._pupils = pupils
-        self._pupil_boxes = pupils * self.xp.float32(1.0 / self._layout.lowres_size)
+        self._pupil_boxes = pupils * scale
         self._factors = self._rpie(pupils)
 
     def _engine_pupils(self) -> np.ndarray:
@@ -502,7 +532,8 @@ class BatchedMomentum(MomentumBase):
             first, index = xp.conj(lit) * residuals, self._pupil_index[step]
         else:
             gradient = xp.imag(xp.conj(self._pupils[step] * seen) * residuals)
-            first = xp.einsum("knp,kp->kn", self._basis[step], gradient.reshape(gradient.shape[0], -1))
+            # a product and a sum, not einsum: cuBLAS calls cannot be recorded into a CUDA graph
+            first = (self._basis[step] * gradient.reshape(gradient.shape[0], 1, -1)).sum(axis=2)
             index = self._mode_index[step]
         if sums_first.shape[0] == 1:
             sums_first[0] += first.sum(axis=0, dtype=sums_first.dtype)
@@ -511,20 +542,31 @@ class BatchedMomentum(MomentumBase):
             backend.scatter_add(xp, sums_first, index, first.astype(sums_first.dtype))
             backend.scatter_add(xp, sums_power, self._pupil_index[step], power.astype(xp.float64))
 
-    def _pass(self) -> float:
-        """One pass over every call of the schedule, updating the spectrum in place; returns the misfit."""
+    def _calls(self):
+        """Queue every call of the schedule, updating the spectrum in place; the misfit (device scalar) or None.
+
+        None when the fused data step writes the misfit to the pass's buffer instead. This is the work
+        :class:`~cca_cli.optics.backend.GraphedWork` records: it never waits for the GPU, and every
+        array it reads stays in place until the next :meth:`_arrange`.
+        """
         operator, spectrum = self._operator, self._spectrum
         recovery = self.calibrator.recovery
-        misfit = 0.0
+        misfit = None
         for step, rows in zip(self._steps, self._misfit_rows):
             fields = operator.fields(spectrum, step, self._pupil_boxes[step])
             squared = self._data_step(fields, step, rows)
             if squared is not None:
-                misfit = misfit + squared
+                misfit = squared if misfit is None else misfit + squared
             residuals = operator.spectra(fields)
             if recovery is not None:
                 self._accumulate_pupil(step, residuals)
             operator.scatter(residuals, step, spectrum, self._factors[step])
+        return misfit
+
+    def _pass(self) -> float:
+        """One pass over every call of the schedule, updating the spectrum in place; returns the misfit."""
+        recovery = self.calibrator.recovery
+        misfit = self._graphed()
         if recovery is not None:   # the pass's sums join the recovery's own (host) sums
             zernike = recovery.zernike_sums(0)
             first, power = (recovery.lane_sums(0)[2:] if zernike is None else zernike[3:])
@@ -534,7 +576,7 @@ class BatchedMomentum(MomentumBase):
                 sums.fill(0)
         if self._misfit_pixels is not None:
             misfit = self._misfit_pixels.sum(dtype=self.xp.float64)
-        return float(misfit)
+        return 0.0 if misfit is None else float(misfit)
 
     def _momentum(self, misfit: float) -> float:
         """The end-of-pass momentum step (after a restart check); returns the pass's relative change."""

@@ -26,7 +26,7 @@ import scipy.fft
 
 __all__ = ["DEVICES", "GPU_INSTALL", "DeviceStatus", "DeviceUnavailable", "cupy_module", "device_status",
            "resolve_device", "array_module", "get_array_module", "to_device", "to_host", "fft2", "ifft2",
-           "PlannedFFT2", "scatter_add", "synchronize"]
+           "PlannedFFT2", "GraphedWork", "scatter_add", "synchronize"]
 
 #: What ``reconstruct.device`` (``--device``, ``device=``) takes.
 DEVICES = ("auto", "cpu", "cuda")
@@ -220,6 +220,83 @@ class PlannedFFT2:
         cufft = xp.cuda.cufft
         plan.fft(array, array, cufft.CUFFT_FORWARD if forward else cufft.CUFFT_INVERSE)
         return array
+
+
+class GraphedWork:
+    """A function that only queues GPU work, replayed as one CUDA graph after its first two calls.
+
+    A batched pass is hundreds of small launches, each costing more Python and driver time than
+    arithmetic. The first call runs ``work`` as it is (kernels compile, FFT plans are made). The
+    second records its launches into a CUDA graph (CuPy's stream capture) and launches the graph;
+    later calls launch the graph only: no Python, one launch.
+
+    A graph replays its launches on the memory they were recorded with, so ``work`` must read and
+    write arrays that stay where they are while this object lives (update them with
+    ``a[...] = b``), and must not wait for the GPU (no ``float(array)``, no copy to the host).
+    What ``work`` allocates while it is recorded comes from a memory pool of this object's own,
+    kept as long as the graph, so nothing else is ever given that memory. The value ``work``
+    returned when it was recorded is returned by every launch: device arrays that each launch
+    refills (read them before the next call).
+
+    On numpy, with ``enabled`` False, or after a recording failed (one warning naming why),
+    every call runs ``work`` directly.
+
+    Parameters
+    ----------
+    xp : module
+        numpy or CuPy.
+    work : callable
+        Takes no arguments; queues GPU work on the current stream.
+    enabled : bool
+        Whether to record a graph at all.
+    """
+
+    def __init__(self, xp: ModuleType, work, *, enabled: bool = True):
+        self.xp, self._work = xp, work
+        self._enabled = enabled and xp is not np
+        self._calls = 0
+        self._graph = self._pool = self._result = None
+
+    @property
+    def recorded(self) -> bool:
+        """Whether calls now launch a recorded graph."""
+        return self._graph is not None
+
+    def __call__(self):
+        self._calls += 1
+        if self._graph is not None:
+            self._graph.launch()
+            return self._result
+        if not self._enabled or self._calls < 2:
+            return self._work()
+        try:
+            self._record()
+        except Exception as exc:  # noqa: BLE001 - any capture failure leaves the plain launches, which work
+            import warnings
+
+            self._enabled, self._graph, self._pool, self._result = False, None, None, None
+            warnings.warn(f"CUDA graph not recorded ({type(exc).__name__}: {_first_line(exc)[:160]}); "
+                          "launching each step as it comes", RuntimeWarning, stacklevel=2)
+            return self._work()
+        self._graph.launch()
+        return self._result
+
+    def _record(self) -> None:
+        cuda = self.xp.cuda
+        pool = cuda.MemoryPool()
+        stream = cuda.Stream(non_blocking=True)
+        with cuda.using_allocator(pool.malloc), stream:
+            stream.begin_capture()
+            try:
+                result = self._work()
+            except BaseException:
+                try:
+                    stream.end_capture()
+                except Exception:  # noqa: BLE001 - the first error is the one to report
+                    pass
+                raise
+            graph = stream.end_capture()
+        self._graph, self._pool, self._result = graph, pool, result
 
 
 def _cupy_fft() -> ModuleType:

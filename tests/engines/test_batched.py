@@ -222,3 +222,47 @@ def test_gpu_momentum_agrees_with_the_cpu_engine(simulated, options):
     cpu, _ = run_engine(SequentialMomentum(problem, opts))
     gpu, _ = run_engine(BatchedMomentum(problem, opts, xp=cupy, lanes=2))
     assert _relative(cpu, gpu) <= 1e-4
+
+
+GROWING = {"pupil_recovery": "shared", "pupil_model": "smooth", "pupil_tilt": "pinned", "alpha": 0.3,
+           "hold_back": 0.1, "batch": 3, "batch_growth": 2, "plateau": 0.5, "plateau_window": 1}
+
+
+def test_the_growing_options_grow_batches_and_step_the_pupil(simulated):
+    """The options the recorded-pass test below uses lay the captures out again mid-run (numpy, no graph)."""
+    model, images, _, _, _ = simulated
+    problem = PhaseRetrievalProblem.from_sensor_images(model, images)
+    engine = BatchedMomentum(problem, MomentumOptions(max_iterations=12, tol=0.0, threads=1, **GROWING), xp=np)
+    run_engine(engine)
+    assert engine.batch >= 4 * GROWING["batch"]
+    assert not engine._graphed.recorded
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("engine_class", ["altmin", "momentum"])
+def test_gpu_recorded_passes_are_the_launched_ones(simulated, engine_class, monkeypatch):
+    """Replayed CUDA graphs give the passes launched step by step, through pupil steps and growing batches."""
+    cupy = _cupy()
+    recordings = []
+    record = backend.GraphedWork._record
+    monkeypatch.setattr(backend.GraphedWork, "_record", lambda self: (recordings.append(1), record(self))[1])
+    model, images, weights, _, _ = simulated
+    problem = PhaseRetrievalProblem.from_sensor_images(model, images, weights)
+    if engine_class == "altmin":
+        options = AltMinOptions(max_iterations=10, tol=0.0, threads=1)
+        make = lambda graphs: BatchedAlternatingMinimization(problem, options, xp=cupy, graphs=graphs)  # noqa: E731
+    else:
+        options = MomentumOptions(max_iterations=12, tol=0.0, threads=1, **GROWING)
+        make = lambda graphs: BatchedMomentum(problem, options, xp=cupy, graphs=graphs)  # noqa: E731
+    recorded_engine, launched_engine = make(True), make(False)
+    recorded, recorded_history = run_engine(recorded_engine)
+    launched, launched_history = run_engine(launched_engine)
+    # altmin records once; momentum once per arrangement that lasts two passes (growing batches lay out again)
+    assert (len(recordings) == 1 if engine_class == "altmin" else len(recordings) >= 2)
+    assert not launched_engine._graphed.recorded
+    assert _relative(launched, recorded) <= 1e-5
+    np.testing.assert_allclose(recorded_history["residual"], launched_history["residual"], rtol=1e-4)
+    if engine_class == "momentum":
+        assert recorded_engine.batch == launched_engine.batch > GROWING["batch"]
+        np.testing.assert_allclose(recorded_engine.calibration().pupils, launched_engine.calibration().pupils,
+                                   atol=1e-5)

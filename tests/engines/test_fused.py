@@ -132,3 +132,98 @@ def test_a_cupy_that_cannot_compile_them_runs_the_plain_operations_after_one_war
     with pytest.warns(RuntimeWarning, match=r"fused GPU kernels unavailable \(RuntimeError: nvrtc: compilation "
                                             r"failed\); running each step's operations one by one"):
         assert fused.available(module) is False
+
+
+# ----------------------------------------------------------------------------- recorded passes (CUDA graphs)
+class _FakeCapture:
+    """A stand-in for CuPy's stream capture: counts recordings and launches; ``fail`` makes recording raise."""
+
+    def __init__(self, fail: bool = False):
+        self.recordings = self.launches = 0
+        self.fail = fail
+        self.capturing = False
+        fake = self
+
+        class Graph:
+            def __init__(self, work):
+                self.work = work
+
+            def launch(self):
+                fake.launches += 1
+
+        class Stream:
+            def __init__(self, non_blocking=False):
+                pass
+
+            def __enter__(self):
+                return self
+
+            def __exit__(self, *exc):
+                return False
+
+            def begin_capture(self):
+                fake.capturing = True
+
+            def end_capture(self):
+                fake.capturing = False
+                fake.recordings += 1
+                return Graph(None)
+
+        class Pool:
+            def malloc(self, size):
+                raise AssertionError("not called by the fake")
+
+        class Cuda:
+            MemoryPool = Pool
+
+            @staticmethod
+            def using_allocator(allocator):
+                import contextlib
+                return contextlib.nullcontext()
+
+        Cuda.Stream = Stream
+        self.cuda = Cuda
+
+
+def test_graphed_work_runs_twice_then_records_once_and_launches():
+    fake = _FakeCapture()
+    seen = []
+
+    def work():
+        seen.append(fake.capturing)
+        return "result"
+
+    graphed = backend.GraphedWork(fake, work)
+    assert [graphed() for _ in range(5)] == ["result"] * 5
+    # first call plain, second recorded (the work runs once, capturing) and launched, then launches only
+    assert seen == [False, True]
+    assert fake.recordings == 1 and fake.launches == 4 and graphed.recorded
+
+
+def test_graphed_work_on_numpy_or_disabled_always_runs_the_work():
+    calls = []
+    for graphed in (backend.GraphedWork(np, lambda: calls.append(1)),
+                    backend.GraphedWork(_FakeCapture(), lambda: calls.append(1), enabled=False)):
+        for _ in range(4):
+            graphed()
+        assert not graphed.recorded
+    assert len(calls) == 8
+
+
+def test_a_failed_recording_warns_once_and_runs_the_work_from_then_on():
+    fake = _FakeCapture()
+    calls = []
+
+    def work():
+        calls.append(fake.capturing)
+        if fake.capturing:
+            raise RuntimeError("operation not permitted when stream is capturing\nmore")
+        return len(calls)
+
+    graphed = backend.GraphedWork(fake, work)
+    assert graphed() == 1
+    with pytest.warns(RuntimeWarning, match=r"CUDA graph not recorded \(RuntimeError: operation not permitted when "
+                                            r"stream is capturing\); launching each step as it comes"):
+        assert graphed() == 3   # the failed recording, then the work itself
+    assert not fake.capturing   # the capture was ended
+    assert graphed() == 4 and not graphed.recorded and fake.launches == 0
