@@ -67,9 +67,11 @@ from cca_cli.optics.forward import ForwardModel
 
 __all__ = ["MAX_THREADS", "MAX_LANES", "lanes_for", "MomentumOptions", "Calibration", "MomentumBase", "SequentialMomentum", "held_back_captures"]
 
-#: Most threads a pass uses. Lanes of a phase are at most eight (three splits of the spectrum); threads beyond a
-#: phase's lanes split the lanes' batches (:func:`~cca_cli.engines.passes.thread_groups`).
-MAX_THREADS = 16
+#: Most threads a pass uses; a larger ``threads`` runs as this many. Threads beyond a phase's lanes split the
+#: lanes' batches (:func:`~cca_cli.engines.passes.thread_groups`). On a 16-core machine the blood smear's
+#: passes took 0.054, 0.055, 0.062 and 0.072 s with 2, 4, 8 and 16 threads (benchmarks/bench_threads.py):
+#: beyond four the hand-overs between threads cost more than the split saves.
+MAX_THREADS = 4
 #: Most lanes a phase is split into.
 MAX_LANES = 8
 
