@@ -82,17 +82,14 @@ def split_disjoint(starts: np.ndarray, size: int, members: np.ndarray) -> tuple[
         The line is chosen to minimise ``max(len(before), len(after)) + len(seam) / 2``.
     """
     first = starts[members]
-    best, best_cost = None, np.inf
-    for line in np.unique(np.concatenate([first, first + size])):
-        before = first + size <= line
-        after = first >= line
-        n_before, n_after = int(before.sum()), int(after.sum())
-        cost = max(n_before, n_after) + _SEAM_COST * (members.size - n_before - n_after)
-        if cost < best_cost:
-            best, best_cost = (before, after), cost
-    if best is None:
+    if first.size == 0:
         return members[:0], members[:0], members
-    before, after = best
+    lines = np.unique(np.concatenate([first, first + size]))   # every line worth trying, in increasing order
+    n_before = np.searchsorted(np.sort(first + size), lines, side="right")   # boxes ending at or before it
+    n_after = first.size - np.searchsorted(np.sort(first), lines, side="left")   # boxes starting at or after it
+    cost = np.maximum(n_before, n_after) + _SEAM_COST * (members.size - n_before - n_after)
+    line = lines[int(np.argmin(cost))]   # the first line of least cost
+    before, after = first + size <= line, first >= line
     return members[before], members[after], members[~(before | after)]
 
 
