@@ -14,7 +14,8 @@ captures at once, in complex64, with the array module ``xp`` they are given
   scatter-add the boxes back into the spectrum.
 
 On CuPy the gather and placement of the boxes, the amplitude data step, a shared map pupil's
-sums and the scatter-add run as one fused kernel each (:mod:`cca_cli.engines.fused`), and the
+sums and the scatter-add run as one fused kernel each (:mod:`cca_cli.engines.fused`; the scatter-add
+takes each spectrum pixel's terms in capture order, so a GPU run repeats bit for bit), and the
 rPIE factors are formed on the device (:class:`RpieFactors`): a pupil step of a map model sends
 only the pupil maps across. A call of a few captures costs more in launching than in arithmetic, so
 the transforms run through cuFFT plans kept per batch shape (:class:`~cca_cli.optics.backend.PlannedFFT2`)
@@ -155,12 +156,23 @@ class BoxOperator:
         s, b = self.start, self.b
         return self._fft.forward(fields)[:, s:s + b, s:s + b]
 
-    def scatter(self, boxes, captures, out, factors=None) -> None:
-        """Add ``boxes · factors`` (k, b, b; ``factors`` None: 1) into the spectrum ``out`` at the boxes of ``captures``."""
+    def gather_plan(self, captures) -> fused.GatherPlan | None:
+        """The order in which :meth:`scatter` adds the boxes of ``captures`` (fused kernels only, else None).
+
+        Making it waits for the GPU, so a recorded pass takes plans made beforehand.
+        """
+        return fused.gather_plan(self.xp, self.index[captures]) if self.fused else None
+
+    def scatter(self, boxes, captures, out, factors, plan: fused.GatherPlan | None = None) -> None:
+        """Add ``boxes · factors`` (k, b, b) into the spectrum ``out`` at the boxes of ``captures``.
+
+        Each spectrum pixel takes its terms in capture order, so the sums repeat bit for bit; on CuPy
+        ``plan`` (:meth:`gather_plan` of the same ``captures``) says which terms, made here when None.
+        """
         if self.fused:
-            fused.scatter(self.xp, out, self.index[captures], boxes, factors)
+            fused.gather_add(self.xp, out, self.gather_plan(captures) if plan is None else plan, boxes, factors)
         else:
-            backend.scatter_add(self.xp, out, self.index[captures], boxes if factors is None else boxes * factors)
+            backend.scatter_add(self.xp, out, self.index[captures], boxes * factors)
 
 
 def project(xp: ModuleType, fields, amplitudes, weights, eps: float, *, keep: bool):
@@ -221,6 +233,7 @@ class BatchedAlternatingMinimization(IterativeEngine):
         self._amplitudes = backend.to_device(problem.amplitudes, xp, xp.float32)
         self._weights = None if problem.weights is None else backend.to_device(problem.weights, xp, xp.float32)
         self._groups = _capture_groups(model.n_images, model.layout.lowres_size)
+        self._plans = [self._operator.gather_plan(group) for group in self._groups]
         self._data_norm = problem.energy
         self._eps = problem.amplitude_floor
         self._numerator = xp.zeros_like(self._spectrum)
@@ -236,12 +249,12 @@ class BatchedAlternatingMinimization(IterativeEngine):
         xp, operator, spectrum, numerator = self.xp, self._operator, self._spectrum, self._numerator
         numerator.fill(0)
         misfit = None
-        for group in self._groups:
+        for group, plan in zip(self._groups, self._plans):
             fields = operator.fields(spectrum, group, self._pupils[group])
             weights = None if self._weights is None else self._weights[group]
             squared = project(xp, fields, self._amplitudes[group], weights, self._eps, keep=True)
             misfit = squared if misfit is None else misfit + squared
-            operator.scatter(operator.spectra(fields), group, numerator, self._adjoint[group])
+            operator.scatter(operator.spectra(fields), group, numerator, self._adjoint[group], plan)
         numerator *= self._inverse_normal
         change = xp.sum(xp.square(xp.abs(numerator - spectrum)), dtype=xp.float64)
         norm = xp.sum(xp.square(xp.abs(spectrum)), dtype=xp.float64)
@@ -335,17 +348,21 @@ class RpieFactors:
             if not isinstance(selection, slice):
                 selection = backend.to_device(selection, xp)
             target = backend.to_device(local[:, None, None] * area, xp) + operator.index[selection]
-            self._groups.append((selection, len(group) * area, target, backend.to_device(members, xp),
+            plan = fused.gather_plan(xp, target) if operator.fused else None   # sums in capture order
+            self._groups.append((selection, len(group) * area, target, plan, backend.to_device(members, xp),
                                  backend.to_device(local, xp)))
 
     def __call__(self, pupils):
         """The factors of ``pupils`` (complex64 (K, b, b), on the device), complex64 (K, b, b)."""
         xp = self.xp
         factors = xp.zeros_like(pupils)
-        for selection, size, target, members, local in self._groups:
+        for selection, size, target, plan, members, local in self._groups:
             group = pupils[selection]
             coverage = xp.zeros(size, xp.float32)
-            backend.scatter_add(xp, coverage, target, xp.square(xp.abs(group)))
+            if plan is None:
+                backend.scatter_add(xp, coverage, target, xp.square(xp.abs(group)))
+            else:
+                fused.gather_add(xp, coverage, plan, xp.square(xp.abs(group)))
             boxes = coverage[target]
             peaks = xp.concatenate([boxes.reshape(boxes.shape[0], -1).max(axis=1), xp.zeros(1, xp.float32)])
             peak = peaks[members].max(axis=1)[local]
@@ -398,6 +415,7 @@ class BatchedMomentum(MomentumBase):
         steps = merged_steps(self._schedule)
         self._steps = [_as_slice(step) for step in steps]
         self._steps = [step if isinstance(step, slice) else backend.to_device(step, xp) for step in self._steps]
+        self._plans = [self._operator.gather_plan(step) for step in self._steps]
         # The fused data step writes each call's per-pixel misfit into its rows of one buffer, summed once a pass.
         ends = np.cumsum([step.size for step in steps])
         self._misfit_rows = [slice(int(end - step.size), int(end)) for step, end in zip(steps, ends)]
@@ -552,7 +570,7 @@ class BatchedMomentum(MomentumBase):
         operator, spectrum = self._operator, self._spectrum
         recovery = self.calibrator.recovery
         misfit = None
-        for step, rows in zip(self._steps, self._misfit_rows):
+        for step, rows, plan in zip(self._steps, self._misfit_rows, self._plans):
             fields = operator.fields(spectrum, step, self._pupil_boxes[step])
             squared = self._data_step(fields, step, rows)
             if squared is not None:
@@ -560,7 +578,7 @@ class BatchedMomentum(MomentumBase):
             residuals = operator.spectra(fields)
             if recovery is not None:
                 self._accumulate_pupil(step, residuals)
-            operator.scatter(residuals, step, spectrum, self._factors[step])
+            operator.scatter(residuals, step, spectrum, self._factors[step], plan)
         return misfit
 
     def _pass(self) -> float:

@@ -12,8 +12,10 @@ which is one launch. The kernels here fuse them:
 * :func:`add_pupil_sums`: a shared map pupil's sums ``Σ_k conj(D_k S_k) r_k / m`` and
   ``Σ_k |D_k S_k|²``, one thread per pupil pixel looping over the call's captures, added in
   float64 into the sums in place;
-* :func:`scatter`: multiply by the rPIE factors (or the adjoint pupils) and add the boxes into the
-  spectrum with atomic adds (a product and two ``cupyx.scatter_add`` calls before).
+* :func:`gather_add`: multiply by the rPIE factors (or the adjoint pupils) and add the boxes into the
+  spectrum, one thread per spectrum pixel adding the boxes that cover it in capture order (a
+  :class:`GatherPlan` made once per arrangement says which). Atomic adds would be as fast, but
+  their order, and so the rounding, changes from run to run; this way a GPU run repeats bit for bit.
 
 The kernels are compiled on first use; :func:`available` compiles them and checks them against
 the numpy-style operations once per process, and the engine uses them only where that check
@@ -25,11 +27,12 @@ from __future__ import annotations
 
 import functools
 import warnings
+from dataclasses import dataclass
 from types import ModuleType
 
 import numpy as np
 
-__all__ = ["available", "box_fields", "data_step", "add_pupil_sums", "scatter"]
+__all__ = ["available", "box_fields", "data_step", "add_pupil_sums", "GatherPlan", "gather_plan", "gather_add"]
 
 _DATA_STEP = ("float32 target, float32 weight, float32 eps", "complex64 field, float32 squared", """
     const float magnitude = abs(field);
@@ -50,10 +53,24 @@ _FIELDS = ("raw complex64 spectrum, raw int64 index, raw complex64 pupils, int32
     }
 """)
 
-_SCATTER = ("complex64 value, complex64 factor, int64 index", "raw float32 target", """
-    const complex<float> v = value * factor;
-    atomicAdd(&target[2 * index], v.real());
-    atomicAdd(&target[2 * index + 1], v.imag());
+_GATHER_PRODUCTS = ("raw complex64 values, raw complex64 factors, raw int64 order, raw int64 starts, "
+                    "raw int64 pixels", "raw complex64 target", """
+    const ptrdiff_t pixel = pixels[i];
+    complex<float> sum = target[pixel];
+    for (ptrdiff_t e = starts[i]; e < starts[i + 1]; ++e) {
+        const ptrdiff_t q = order[e];
+        sum += values[q] * factors[q];
+    }
+    target[pixel] = sum;
+""")
+
+_GATHER_VALUES = ("raw float32 values, raw int64 order, raw int64 starts, raw int64 pixels", "raw float32 target", """
+    const ptrdiff_t pixel = pixels[i];
+    float sum = target[pixel];
+    for (ptrdiff_t e = starts[i]; e < starts[i + 1]; ++e) {
+        sum += values[order[e]];
+    }
+    target[pixel] = sum;
 """)
 
 _PUPIL_SUMS = ("raw float32 discs, raw complex64 spectrum, raw int64 index, raw complex64 residuals, int32 count, "
@@ -77,7 +94,8 @@ def _kernels(xp: ModuleType) -> tuple:
     return (xp.ElementwiseKernel(*_DATA_STEP, "cca_data_step"),
             xp.ElementwiseKernel(*_PUPIL_SUMS, "cca_pupil_sums"),
             xp.ElementwiseKernel(*_FIELDS, "cca_fields"),
-            xp.ElementwiseKernel(*_SCATTER, "cca_scatter"))
+            xp.ElementwiseKernel(*_GATHER_PRODUCTS, "cca_gather_products"),
+            xp.ElementwiseKernel(*_GATHER_VALUES, "cca_gather_values"))
 
 
 def box_fields(xp: ModuleType, spectrum, index, pupils, m: int):
@@ -105,21 +123,69 @@ def box_fields(xp: ModuleType, spectrum, index, pupils, m: int):
     return out
 
 
-def scatter(xp: ModuleType, target, index, values, factors=None) -> None:
-    """``target.flat[index] += values · factors`` by atomic adds (repeated indices add up).
+@dataclass(frozen=True)
+class GatherPlan:
+    """Which box pixels add into which target pixel, in capture order (:func:`gather_plan`).
+
+    Attributes
+    ----------
+    order : int64 (n,)
+        Flat positions into the boxes (``(k, b, b)``), grouped by target pixel; within a group in
+        increasing position, so in capture order.
+    starts : int64 (p + 1,)
+        Where each target pixel's group begins in ``order`` (and the end).
+    pixels : int64 (p,)
+        The flat target index of each group.
+    """
+
+    order: object
+    starts: object
+    pixels: object
+
+
+def gather_plan(xp: ModuleType, index) -> GatherPlan:
+    """The :class:`GatherPlan` of boxes whose pixels add into ``target.flat[index]``.
+
+    Parameters
+    ----------
+    xp : module
+        numpy or CuPy (the plan's arrays live there).
+    index : int64 (k, b, b)
+        Flat target index of every box pixel.
+    """
+    flat = index.reshape(-1)
+    order = xp.argsort(flat, kind="stable")
+    ordered = flat[order]
+    first = xp.ones(ordered.shape, bool)
+    first[1:] = ordered[1:] != ordered[:-1]
+    starts = xp.nonzero(first)[0].astype(xp.int64)
+    pixels = ordered[starts]
+    return GatherPlan(order.astype(xp.int64), xp.concatenate([starts, xp.asarray([flat.size], xp.int64)]),
+                      xp.ascontiguousarray(pixels))
+
+
+def gather_add(xp: ModuleType, target, plan: GatherPlan, values, factors=None) -> None:
+    """``target.flat[index] += values · factors``, each target pixel's terms added in capture order.
 
     Parameters
     ----------
     xp : module
         CuPy.
-    target : complex64, C-contiguous
-    index : int64 (k, b, b)
-    values, factors : complex64 (k, b, b), any strides (``factors`` None: 1)
+    target : complex64 (with ``factors``) or float32 (without), C-contiguous
+    plan : GatherPlan
+        From :func:`gather_plan` of the boxes' target index.
+    values : complex64 or float32 (k, b, b), any strides
+    factors : complex64 (k, b, b), any strides, or None
     """
     if not target.flags.c_contiguous:   # a copy would take the sums and drop them
-        raise ValueError("fused.scatter: target must be C-contiguous")
-    factor = np.complex64(1.0) if factors is None else factors
-    _kernels(xp)[3](values, factor, index, target.reshape(-1).view(xp.float32))
+        raise ValueError("fused.gather_add: target must be C-contiguous")
+    size, flat = int(plan.pixels.size), target.reshape(-1)
+    if not size:
+        return
+    if factors is None:
+        _kernels(xp)[4](values, plan.order, plan.starts, plan.pixels, flat, size=size)
+    else:
+        _kernels(xp)[3](values, factors, plan.order, plan.starts, plan.pixels, flat, size=size)
 
 
 def data_step(xp: ModuleType, fields, targets, weights, eps: float, squared=None):
@@ -226,11 +292,18 @@ def available(xp: ModuleType) -> bool:
         lit = discs * seen
         ok = ok and np.allclose(xp.asnumpy(first), (np.conj(lit) * residuals).sum(axis=0) * 0.5, rtol=1e-5, atol=1e-5)
         ok = ok and np.allclose(xp.asnumpy(power), np.square(np.abs(lit)).sum(axis=0), rtol=1e-5, atol=1e-5)
-        target = xp.zeros((16, 16), xp.complex64)
-        scatter(xp, target, xp.asarray(index), xp.asarray(wide)[:, 2:10, 2:10], xp.asarray(pupils))
-        added = np.zeros(256, np.complex64)
+        start = (rng.standard_normal((16, 16)) + 1j * rng.standard_normal((16, 16))).astype(np.complex64)
+        target = xp.asarray(start)
+        plan = gather_plan(xp, xp.asarray(index))
+        gather_add(xp, target, plan, xp.asarray(wide)[:, 2:10, 2:10], xp.asarray(pupils))
+        added = start.reshape(-1).copy()
         np.add.at(added, index.reshape(-1), (residuals * pupils).reshape(-1))
         ok = ok and np.allclose(xp.asnumpy(target).reshape(-1), added, rtol=1e-5, atol=1e-5)
+        coverage = xp.zeros(256, xp.float32)
+        gather_add(xp, coverage, plan, xp.asarray(discs))
+        summed = np.zeros(256, np.float32)
+        np.add.at(summed, index.reshape(-1), discs.reshape(-1))
+        ok = ok and np.allclose(xp.asnumpy(coverage), summed, rtol=1e-5, atol=1e-6)
         if not ok:
             raise ValueError("the fused kernels disagree with the operations they replace")
         return True

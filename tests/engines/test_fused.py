@@ -72,11 +72,18 @@ def test_gpu_fused_kernels_are_the_operations_they_replace(cupy, weighted):
     want_fields[:, 20:124, 20:124] = seen * pupils
     np.testing.assert_allclose(cupy.asnumpy(placed), want_fields, rtol=1e-6, atol=1e-6 * np.abs(want_fields).max())
 
-    target = cupy.zeros((420, 420), cupy.complex64)
-    fused.scatter(cupy, target, cupy.asarray(index), cupy.asarray(expected)[:, 20:124, 20:124], cupy.asarray(pupils))
+    plan = fused.gather_plan(cupy, cupy.asarray(index))
+    sums = []
+    for _ in range(2):   # the same terms in the same order: the same bits
+        target = cupy.zeros((420, 420), cupy.complex64)
+        fused.gather_add(cupy, target, plan, cupy.asarray(expected)[:, 20:124, 20:124], cupy.asarray(pupils))
+        sums.append(cupy.asnumpy(target))
+    np.testing.assert_array_equal(sums[0], sums[1])
     added = np.zeros(420 * 420, np.complex128)
     np.add.at(added, index.reshape(-1), (residuals.astype(np.complex128) * pupils).reshape(-1))
-    np.testing.assert_allclose(cupy.asnumpy(target).reshape(-1), added, atol=1e-5 * np.abs(added).max())
+    np.testing.assert_allclose(sums[0].reshape(-1), added, atol=1e-5 * np.abs(added).max())
+    np.testing.assert_allclose(sums[0].reshape(-1), _ordered_sum(index, residuals * pupils, np.zeros(420 * 420)),
+                               atol=1e-6 * np.abs(added).max())
 
 
 @pytest.mark.gpu
@@ -227,3 +234,42 @@ def test_a_failed_recording_warns_once_and_runs_the_work_from_then_on():
         assert graphed() == 3   # the failed recording, then the work itself
     assert not fake.capturing   # the capture was ended
     assert graphed() == 4 and not graphed.recorded and fake.launches == 0
+
+
+# ----------------------------------------------------------------------------- ordered scatter-add
+def _ordered_sum(index, terms, start):
+    """``start.flat[index] += terms`` one capture after another in float32 (what the gather kernel does)."""
+    out = np.array(start, np.complex64 if np.iscomplexobj(terms) else np.float32).reshape(-1)
+    for capture in range(index.shape[0]):   # a capture's own pixels never repeat
+        out[index[capture].reshape(-1)] += terms[capture].reshape(-1).astype(out.dtype)
+    return out
+
+
+def test_a_gather_plan_groups_each_target_pixel_s_terms_in_capture_order():
+    rng = np.random.default_rng(7)
+    origins = rng.integers(0, 9, (6, 2))
+    index = ((origins[:, 0, None, None] + np.arange(8)[None, :, None]) * 16
+             + origins[:, 1, None, None] + np.arange(8)[None, None, :]).astype(np.int64)
+    plan = fused.gather_plan(np, index)
+    flat = index.reshape(-1)
+    assert np.array_equal(np.sort(plan.order), np.arange(flat.size))     # every box pixel once
+    assert np.array_equal(plan.pixels, np.unique(flat))
+    assert plan.starts[0] == 0 and plan.starts[-1] == flat.size
+    for group, pixel in enumerate(plan.pixels):
+        members = plan.order[plan.starts[group]:plan.starts[group + 1]]
+        assert np.all(flat[members] == pixel) and np.all(np.diff(members) > 0)   # capture order
+    # the kernel's loop, run here: start from the target, add each group's terms in order
+    terms = (rng.standard_normal(index.shape) + 1j * rng.standard_normal(index.shape)).astype(np.complex64)
+    start = (rng.standard_normal(256) + 1j * rng.standard_normal(256)).astype(np.complex64)
+    out = start.copy()
+    for group, pixel in enumerate(plan.pixels):
+        total = out[pixel]
+        for q in plan.order[plan.starts[group]:plan.starts[group + 1]]:
+            total = np.complex64(total + terms.reshape(-1)[q])
+        out[pixel] = total
+    np.testing.assert_array_equal(out, _ordered_sum(index, terms, start))
+
+
+def test_boxes_of_no_captures_give_an_empty_gather_plan():
+    plan = fused.gather_plan(np, np.zeros((0, 4, 4), np.int64))
+    assert plan.pixels.size == 0 and list(plan.starts) == [0]
