@@ -49,7 +49,7 @@ import numpy as np
 
 from cca_cli.engines import fused
 from cca_cli.engines.base import IterativeEngine
-from cca_cli.engines.momentum import MomentumBase
+from cca_cli.engines.momentum import MAX_LANES, MAX_THREADS, MomentumBase, lanes_for
 from cca_cli.engines.options import AltMinOptions, EngineOptions, MomentumOptions
 from cca_cli.engines.problem import PhaseRetrievalProblem, initial_spectrum
 from cca_cli.engines.schedule import Schedule
@@ -380,15 +380,16 @@ class BatchedMomentum(MomentumBase):
     problem : PhaseRetrievalProblem
     options : MomentumOptions
         As :class:`~cca_cli.engines.momentum.SequentialMomentum` reads them, except those
-        :func:`unsupported_options` names (refused) and ``threads`` (not read).
+        :func:`unsupported_options` names (refused); ``threads`` only sets the default ``lanes``.
     spectrum : ndarray, complex64, (M, M), optional
         Starting spectrum; default :func:`~cca_cli.engines.problem.initial_spectrum`.
     xp : module
         numpy or CuPy.
-    lanes : {1, 2, 4, 8}
+    lanes : {1, 2, 4, 8}, optional
         How far the schedule splits the spectrum (:func:`~cca_cli.engines.schedule.build_schedule`): more
         lanes put more captures in one call. 2 visits the captures as the CPU engine with one or two
-        threads does.
+        threads does. Default: as the CPU engine would for ``options.threads`` when that is set (the same
+        visiting order, so the two agree to float32 rounding), else 8.
     graphs : bool
         On CuPy, record a pass's calls as one CUDA graph and replay it
         (:class:`~cca_cli.optics.backend.GraphedWork`; recorded afresh whenever batches grow or the
@@ -398,8 +399,11 @@ class BatchedMomentum(MomentumBase):
     name = "momentum"
 
     def __init__(self, problem: PhaseRetrievalProblem, options: MomentumOptions = MomentumOptions(),
-                 spectrum: np.ndarray | None = None, *, xp: ModuleType = np, lanes: int = 8, graphs: bool = True):
+                 spectrum: np.ndarray | None = None, *, xp: ModuleType = np, lanes: int | None = None,
+                 graphs: bool = True):
         check_options(options)
+        if lanes is None:
+            lanes = lanes_for(min(options.threads, MAX_THREADS)) if options.threads else MAX_LANES
         self.xp, self._lanes, self._graphs = xp, lanes, graphs
         self._start(problem, options, spectrum, threads=1)
         self._arrange()

@@ -205,11 +205,14 @@ class MomentumOptions(EngineOptions):
         the best one (as also at the end of a run that stops otherwise while
         their misfit is above the best).
     threads : int or None
-        Worker threads; None uses the cores the process may use (at most 16).
+        Worker threads; None uses the cores the process may use (a pass uses at
+        most 4: beyond that the hand-overs cost more than they save).
         One and two threads visit the captures in the same order and agree to
         float rounding; more threads split the spectrum further, so the
         visiting order (and the result, slightly) depends on their number. The
-        same inputs and thread count give the same result.
+        same inputs and thread count give the same result. On a GPU, a given
+        ``threads`` makes the engine visit the captures in the CPU engine's
+        order for that count (unset: 8 lanes, the most captures per call).
     """
 
     max_iterations: int = 200

@@ -8,7 +8,7 @@ from cca_cli.engines.base import run_engine
 from cca_cli.engines import batched
 from cca_cli.engines.batched import (BatchedAlternatingMinimization, BatchedMomentum, BoxOperator, RpieFactors,
                                      merged_steps, unsupported_options)
-from cca_cli.engines.momentum import MomentumOptions, SequentialMomentum
+from cca_cli.engines.momentum import MAX_LANES, MAX_THREADS, MomentumOptions, SequentialMomentum, lanes_for
 from cca_cli.engines.problem import PhaseRetrievalProblem
 from cca_cli.engines.schedule import build_schedule
 from cca_cli.metrics import rmse
@@ -73,6 +73,21 @@ def test_batched_momentum_in_the_cpu_order_is_the_cpu_engine(simulated, options)
         np.testing.assert_allclose(history["held_back"], cpu_history["held_back"], rtol=1e-4)
     if opts.pupil_recovery != "none":
         np.testing.assert_allclose(engine.calibration().pupils, cpu_engine.calibration().pupils, atol=1e-5)
+
+
+@pytest.mark.parametrize("threads", [1, 4, 16])
+def test_batched_momentum_given_threads_visits_as_the_cpu_engine_with_them(simulated, threads):
+    """``threads`` set: the batched engine takes the CPU engine's lanes for that count, so the two agree."""
+    model, images, _, _, _ = simulated
+    problem = PhaseRetrievalProblem.from_sensor_images(model, images)
+    opts = MomentumOptions(max_iterations=6, tol=0.0, threads=threads, pupil_recovery="shared", pupil_model="smooth")
+    cpu, _ = run_engine(SequentialMomentum(problem, opts))
+    engine = BatchedMomentum(problem, opts, xp=np)
+    assert engine._lanes == lanes_for(min(threads, MAX_THREADS))
+    batched, _ = run_engine(engine)
+    assert _relative(cpu, batched) < 1e-5
+    unset = BatchedMomentum(problem, MomentumOptions(max_iterations=1, tol=0.0), xp=np)
+    assert unset._lanes == MAX_LANES
 
 
 @pytest.mark.parametrize("pupil_model", ["full", "zernike"])
