@@ -21,6 +21,8 @@ Usage::
     cca ingest configs/bloodsmear_green_manifest.yaml -o blood_raw.h5
     python benchmarks/schedule_bound.py blood_raw.h5 --batches 24,48,96,0 --passes 44,6,5,42
 
+Thread counts above ``MAX_THREADS`` (4) count as ``MAX_THREADS``, as the engine runs them.
+
 ``--batches`` 0 stands for one batch of every capture (where the default's growing batches end);
 ``--passes`` weighs the batch sizes by the passes the default run spent at each (the blood smear's
 are shown; ``history`` of a recon.h5 does not record them).
