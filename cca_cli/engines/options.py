@@ -173,6 +173,11 @@ class MomentumOptions(EngineOptions):
         object stays where the captures put it (as in mPIE and EPRY); is handed
         to the object, which then moves with it (the predictions are the same);
         or is dropped.
+    pupil_lattice : {"free", "filtered"}
+        Map models, captures whose pupil centres lie on a lattice (an LED grid):
+        the map may take any pattern, or after each step loses the patterns
+        periodic on that lattice, which the data cannot tell from the object
+        (:mod:`cca_cli.engines.lattice`).
     pupil_order : {2, 3, 4}
         Highest Zernike radial order fitted (``zernike``) or reported (``full``).
     pupil_amplitude : bool
@@ -231,6 +236,7 @@ class MomentumOptions(EngineOptions):
     pupil_model: Literal["full", "smooth", "zernike"] = "zernike"
     pupil_smoothing: float = 0.25
     pupil_tilt: Literal["pupil", "object", "pinned"] = "pupil"
+    pupil_lattice: Literal["free", "filtered"] = "free"
     pupil_order: Literal[2, 3, 4] = 4
     pupil_amplitude: bool = True
     pupil_start: int = 1

@@ -45,6 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cca_cli.engines.lattice import capture_lattice, periodic_filter
 from cca_cli.engines.options import PUPIL_MODELS
 from cca_cli.optics import kernels
 from cca_cli.optics.pupil import circular_pupils
@@ -159,15 +160,22 @@ class PupilRecovery:
     smoothing : float
         ``smooth`` model: width (in pupil radii) of the Gaussian the phase left over by
         the Zernike modes is smoothed with.
+    lattice : {"free", "filtered"}
+        Map models: ``filtered`` removes from the maps, after each step, the patterns
+        periodic on the lattice of the pupil centres, where they lie on one
+        (:func:`~cca_cli.engines.lattice.periodic_filter`).
     """
 
     def __init__(self, layout: BandLayout, pupil_index: np.ndarray, *, model: str = "full", order: int = 4,
                  coefficients: np.ndarray | None = None, amplitude: bool = True, step: float = 1.0,
                  threads: int = 1, offsets: np.ndarray | None = None, maps: np.ndarray | None = None,
-                 tilt: str = "pupil", smoothing: float = 0.25):
+                 tilt: str = "pupil", smoothing: float = 0.25, lattice: str = "free"):
         if model not in PUPIL_MODELS:
             raise ValueError(f"pupil model must be one of {', '.join(PUPIL_MODELS)}, got {model!r}")
+        if lattice not in ("free", "filtered"):
+            raise ValueError(f"pupil lattice must be free or filtered, got {lattice!r}")
         self.model = model
+        self.lattice = lattice
         self.tilt = tilt
         self.smoothing = float(smoothing)
         self.order = order
@@ -216,6 +224,11 @@ class PupilRecovery:
         self._centres = centres
         self._discs = self._discs_at(layout, centres)
         self._smooth_designs = {}   # per pupil: what the smooth model's fit needs that only the geometry sets
+        self._periodic = None       # the map filter of ``lattice="filtered"``, where the centres form a lattice
+        if self.lattice == "filtered" and self.model != "zernike":
+            vectors = capture_lattice(layout.centres_px)
+            if vectors is not None:
+                self._periodic = periodic_filter(layout.box_size, vectors)
         self._basis = None
         if self.model == "zernike":
             self._basis = zernike_basis(layout.box_size, centres, layout.pupil_radius_px, order=self.order)
@@ -466,6 +479,11 @@ class PupilRecovery:
         if not self.amplitude:
             maps = np.where(seen, np.exp(1j * np.angle(maps)), maps)
         maps = np.where(seen, maps, 1).astype(np.complex64)
+        if self._periodic is not None:
+            for p in range(self.n_pupils):   # the map's departure from 1, less its lattice-periodic patterns
+                departure = np.where(seen[p], maps[p] - 1, 0)
+                kept = np.fft.ifft2(np.fft.fft2(departure) * self._periodic)
+                maps[p] = np.where(seen[p], 1 + kept, 1)
         if self.model == "smooth":
             maps = self._smooth_maps(maps, denominator)
         # The object absorbs a common scale and piston of the pupils. Their mean tilt stays in them ("pupil"), goes

@@ -1,0 +1,108 @@
+"""The lattice of pupil centres, and the pupil patterns it leaves undetermined.
+
+When the captures' pupil centres ``c_i`` lie on a lattice (an LED grid, a camera
+array), a pupil pattern ``g`` periodic on that lattice, and its inverse in the
+spectrum, predict every capture alike: capture ``i`` sees ``S(u + c_i) P(u)``,
+and ``S(k) g(k) · P(u) / g(u + c_i)`` is the same product when ``g(u + c_i) =
+g(u)`` for every ``i``. The data do not tell such a pattern from the object
+(ptychography's raster-grid ambiguity), so a pupil map recovered freely lets one
+grow slowly: a checkerboard with the lattice's period in the map, and its
+opposite in the object as a grid-like texture. :func:`periodic_filter` makes the
+filter that removes the lattice's harmonics from a map.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["capture_lattice", "periodic_filter"]
+
+
+def capture_lattice(centres_px: np.ndarray, tolerance: float = 0.25) -> np.ndarray | None:
+    """The two primitive vectors of the lattice the pupil centres lie on, or None if they lie on none.
+
+    Parameters
+    ----------
+    centres_px : ndarray, (K, 2)
+        Pupil centres ``[y, x]`` (spectrum pixels).
+    tolerance : float
+        Largest root-mean-square distance of the inner half of the centres from their lattice points,
+        as a fraction of the shorter lattice vector (tilted LED boards, and the sine of the
+        illumination angle, bend a grid a little; centres at random miss by about 0.4).
+
+    Returns
+    -------
+    ndarray, float64, (2, 2) or None
+        Rows: the shortest vector between neighbouring centres, and the shortest one not parallel to it.
+    """
+    centres = np.asarray(centres_px, np.float64).reshape(-1, 2)
+    if centres.shape[0] < 4:
+        return None
+    origin = centres[np.argmin(np.hypot(centres[:, 0], centres[:, 1]))]
+    offsets = centres - origin
+    lengths = np.hypot(offsets[:, 0], offsets[:, 1])
+    order = np.argsort(lengths, kind="stable")
+    order = order[lengths[order] > 1e-9]
+    if order.size < 2:
+        return None
+    first = offsets[order[0]]
+    second = None
+    for i in order[1:]:
+        cross = first[0] * offsets[i, 1] - first[1] * offsets[i, 0]
+        if abs(cross) > 0.5 * lengths[order[0]] * lengths[i]:   # more than 30° from the first
+            second = offsets[i]
+            break
+    if second is None:
+        return None
+    vectors = np.stack([first, second])
+    # Fitted to the inner half of the centres: at large angles the sine of the illumination angle bends
+    # an LED grid's outer rows, and the patterns that matter are those the many inner captures share.
+    inner = order[:max(4, order.size // 2)]
+    indices = np.round(offsets[inner] @ np.linalg.inv(vectors))          # each centre's lattice point
+    vectors, *_ = np.linalg.lstsq(indices, offsets[inner], rcond=None)   # refitted to them
+    if abs(np.linalg.det(vectors)) < 1e-9:
+        return None
+    misfit = np.sqrt(np.mean(np.sum((indices @ vectors - offsets[inner]) ** 2, axis=1)))
+    shortest = min(np.hypot(*vectors[0]), np.hypot(*vectors[1]))
+    return vectors if misfit <= tolerance * shortest else None
+
+
+def periodic_filter(box_size: int, vectors: np.ndarray, width: float = 0.75) -> np.ndarray:
+    """A factor on the ``fft2`` of a (box_size, box_size) map that removes patterns periodic on a lattice.
+
+    Each harmonic of the lattice (every frequency ``h`` with ``h · v`` a whole number for both lattice
+    vectors ``v``, but zero) up to the box's Nyquist frequency is notched out by a Gaussian of
+    ``width`` frequency bins; everything far from the harmonics passes unchanged.
+
+    Parameters
+    ----------
+    box_size : int
+    vectors : ndarray, (2, 2)
+        The lattice's vectors (rows, pixels), as :func:`capture_lattice` gives them.
+    width : float
+        Standard deviation of each notch, in bins of the box's transform.
+
+    Returns
+    -------
+    ndarray, float64, (box_size, box_size)
+        In ``numpy.fft.fftfreq`` order; 1 (to rounding) far from the harmonics and at zero frequency.
+    """
+    reciprocal = np.linalg.inv(np.asarray(vectors, np.float64)).T * box_size   # harmonic steps, in bins
+    limit = box_size / 2.0
+    steps = np.hypot(reciprocal[:, 0], reciprocal[:, 1])
+    reach = int(np.ceil(np.sqrt(2) * limit / max(min(steps), 1e-9))) + 1
+    bins = np.fft.fftfreq(box_size, 1.0 / box_size)
+    ky, kx = np.meshgrid(bins, bins, indexing="ij")
+    factor = np.ones((box_size, box_size))
+    for n1 in range(-reach, reach + 1):
+        for n2 in range(-reach, reach + 1):
+            if n1 == 0 and n2 == 0:
+                continue
+            hy, hx = n1 * reciprocal[0] + n2 * reciprocal[1]
+            if abs(hy) > limit + 3 * width or abs(hx) > limit + 3 * width:
+                continue
+            # distance to the harmonic on the periodic frequency grid
+            dy = (ky - hy + limit) % box_size - limit
+            dx = (kx - hx + limit) % box_size - limit
+            factor *= 1.0 - np.exp(-(dy * dy + dx * dx) / (2.0 * width * width))
+    return factor

@@ -1,0 +1,78 @@
+"""The lattice of pupil centres and the filter that takes its periodic patterns out of a pupil map."""
+
+import numpy as np
+import pytest
+
+from cca_cli.engines.lattice import capture_lattice, periodic_filter
+from cca_cli.engines.pupil_recovery import PupilRecovery
+from cca_cli.optics.pupil import circular_pupils
+from cca_cli.sampling.grid import band_layout, square_scan
+
+
+def _grid(vectors, n=7, jitter=0.0, seed=0):
+    rng = np.random.default_rng(seed)
+    i, j = np.meshgrid(np.arange(n) - n // 2, np.arange(n) - n // 2, indexing="ij")
+    points = np.stack([i.ravel(), j.ravel()], axis=1) @ np.asarray(vectors, float)
+    return points + rng.normal(0, jitter, points.shape)
+
+
+def test_a_rotated_jittered_grid_is_found_and_random_centres_are_not():
+    angle = np.deg2rad(20)
+    vectors = 18.0 * np.array([[np.cos(angle), np.sin(angle)], [-np.sin(angle), np.cos(angle)]])
+    found = capture_lattice(_grid(vectors, jitter=0.5))
+    assert found is not None
+    # the same lattice: each found vector is a whole combination of the given ones, and the cell area agrees
+    combination = found @ np.linalg.inv(vectors)
+    np.testing.assert_allclose(combination, np.round(combination), atol=0.05)
+    assert abs(np.linalg.det(found)) == pytest.approx(18.0 ** 2, rel=0.02)
+    rng = np.random.default_rng(3)
+    assert all(capture_lattice(rng.uniform(-100, 100, (n, 2))) is None for n in (20, 60, 150))
+    assert capture_lattice(np.zeros((3, 2))) is None                     # too few centres
+    assert capture_lattice(np.array([[0, 0], [0, 5], [0, 10], [0, 15], [0, 20.0]])) is None   # a line
+
+
+def test_the_filter_removes_a_lattice_periodic_pattern_and_keeps_a_smooth_one():
+    box, spacing = 96, 16.0
+    factor = periodic_filter(box, np.array([[spacing, 0], [0, spacing]]))
+    assert factor[0, 0] == pytest.approx(1.0) and factor.min() < 1e-3
+    y, x = np.mgrid[:box, :box].astype(float)
+    pattern = 0.1 * np.cos(2 * np.pi * y / spacing) + 0.05 * np.cos(2 * np.pi * (x + y) / spacing)
+    smooth = 0.4 * np.exp(-((y - box / 2) ** 2 + (x - box / 2) ** 2) / (2 * (box / 6) ** 2))   # a smooth bump
+    filtered = np.real(np.fft.ifft2(np.fft.fft2(smooth + pattern) * factor))
+    left = filtered - smooth
+    assert np.abs(left[8:-8, 8:-8]).max() < 0.1 * np.abs(pattern).max()
+    kept = np.real(np.fft.ifft2(np.fft.fft2(smooth) * factor))
+    assert np.abs(kept - smooth).max() < 0.01 * smooth.max()
+
+
+@pytest.mark.parametrize("lattice", ["free", "filtered"])
+def test_a_filtered_map_step_loses_most_of_the_lattice_pattern(lattice):
+    """A pupil step on a scan's square lattice: ``filtered`` keeps a quarter of a lattice pattern, ``free`` all of it.
+
+    (The disc's edge spreads the pattern beyond the notches; what a step leaves, the next steps take on.)
+    """
+    radius = 30.0
+    scan = square_scan(5, 2 * radius * (1 - 0.6))
+    layout = band_layout(scan.centres_yx_m, radius, sensor_size=160)
+    recovery = PupilRecovery(layout, np.zeros(layout.n_images, np.int64), model="full", lattice=lattice)
+    b = layout.box_size
+    spacing = np.diff(np.unique(np.round(layout.centres_px[:, 0], 6)))[0]
+    y = np.mgrid[:b, :b][0].astype(float)
+    pattern = 0.2 * np.exp(2j * np.pi * y / spacing)
+    disc = circular_pupils(b, np.array([[b / 2 - 0.5, b / 2 - 0.5]]), radius)[0] > 0
+    light = np.where(disc, 1.0, 0.0)
+    recovery._num[0], recovery._den[0] = (pattern * light * (light + 1e-3))[None], light[None]
+    recovery.step(1.0)
+    departure = np.where(disc, recovery.maps[0] * recovery._previous.scale - 1, 0)
+    kept = abs(np.sum(departure * np.conj(pattern) * disc)) / np.sum(np.abs(pattern) ** 2 * disc)
+    if lattice == "free":
+        assert kept > 0.95
+    else:
+        assert kept < 0.35
+
+
+def test_an_unknown_lattice_choice_is_refused():
+    scan = square_scan(3, 8.0)
+    layout = band_layout(scan.centres_yx_m, 10.0, sensor_size=64)
+    with pytest.raises(ValueError, match="pupil lattice must be free or filtered"):
+        PupilRecovery(layout, np.zeros(layout.n_images, np.int64), lattice="periodic")
