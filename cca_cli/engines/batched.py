@@ -403,7 +403,9 @@ class BatchedMomentum(MomentumBase):
                  graphs: bool = True):
         check_options(options)
         if lanes is None:
-            lanes = lanes_for(min(options.threads, MAX_THREADS)) if options.threads else MAX_LANES
+            # the CPU engine's rule (momentum.SequentialMomentum), so that the two visit the captures alike
+            threads = max(1, min(options.threads, MAX_THREADS, problem.model.n_images)) if options.threads else 0
+            lanes = lanes_for(threads) if threads else MAX_LANES
         self.xp, self._lanes, self._graphs = xp, lanes, graphs
         self._start(problem, options, spectrum, threads=1)
         self._arrange()

@@ -67,12 +67,14 @@ def capture_lattice(centres_px: np.ndarray, tolerance: float = 0.25) -> np.ndarr
     return vectors if misfit <= tolerance * shortest else None
 
 
-def periodic_filter(box_size: int, vectors: np.ndarray, width: float = 0.75) -> np.ndarray:
+def periodic_filter(box_size: int, vectors: np.ndarray, width: float = 0.75) -> np.ndarray | None:
     """A factor on the ``fft2`` of a (box_size, box_size) map that removes patterns periodic on a lattice.
 
     Each harmonic of the lattice (every frequency ``h`` with ``h · v`` a whole number for both lattice
     vectors ``v``, but zero) up to the box's Nyquist frequency is notched out by a Gaussian of
-    ``width`` frequency bins; everything far from the harmonics passes unchanged.
+    ``width`` frequency bins; everything far from the harmonics passes unchanged. None where the
+    harmonics lie so close to zero frequency that the notches would take more than 1% of it (pupils
+    that barely overlap): the map's smooth aberration would be damped with the pattern.
 
     Parameters
     ----------
@@ -84,8 +86,9 @@ def periodic_filter(box_size: int, vectors: np.ndarray, width: float = 0.75) -> 
 
     Returns
     -------
-    ndarray, float64, (box_size, box_size)
-        In ``numpy.fft.fftfreq`` order; 1 (to rounding) far from the harmonics and at zero frequency.
+    ndarray, float64, (box_size, box_size), or None
+        In ``numpy.fft.fftfreq`` order; 1 (to rounding) far from the harmonics, at least 0.99 at zero
+        frequency.
     """
     reciprocal = np.linalg.inv(np.asarray(vectors, np.float64)).T * box_size   # harmonic steps, in bins
     limit = box_size / 2.0
@@ -105,4 +108,4 @@ def periodic_filter(box_size: int, vectors: np.ndarray, width: float = 0.75) -> 
             dy = (ky - hy + limit) % box_size - limit
             dx = (kx - hx + limit) % box_size - limit
             factor *= 1.0 - np.exp(-(dy * dy + dx * dx) / (2.0 * width * width))
-    return factor
+    return factor if factor[0, 0] >= 0.99 else None

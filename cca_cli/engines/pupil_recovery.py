@@ -476,14 +476,13 @@ class PupilRecovery:
         seen = denominator > 0
         change = numerator / (denominator + _MAP_DAMPING * peak)
         maps = self.maps + (self._step * change).astype(np.complex64)
-        if not self.amplitude:
-            maps = np.where(seen, np.exp(1j * np.angle(maps)), maps)
-        maps = np.where(seen, maps, 1).astype(np.complex64)
         if self._periodic is not None:
             for p in range(self.n_pupils):   # the map's departure from 1, less its lattice-periodic patterns
                 departure = np.where(seen[p], maps[p] - 1, 0)
-                kept = np.fft.ifft2(np.fft.fft2(departure) * self._periodic)
-                maps[p] = np.where(seen[p], 1 + kept, 1)
+                maps[p] = 1 + np.fft.ifft2(np.fft.fft2(departure) * self._periodic)
+        if not self.amplitude:
+            maps = np.where(seen, np.exp(1j * np.angle(maps)), maps)
+        maps = np.where(seen, maps, 1).astype(np.complex64)
         if self.model == "smooth":
             maps = self._smooth_maps(maps, denominator)
         # The object absorbs a common scale and piston of the pupils. Their mean tilt stays in them ("pupil"), goes

@@ -222,6 +222,10 @@ class PlannedFFT2:
         return array
 
 
+#: Array modules on which a CUDA graph recording failed in this process (later work is not recorded).
+_RECORDING_FAILED: set = set()
+
+
 class GraphedWork:
     """A function that only queues GPU work, replayed as one CUDA graph after its first two calls.
 
@@ -236,10 +240,11 @@ class GraphedWork:
     What ``work`` allocates while it is recorded comes from a memory pool of this object's own,
     kept as long as the graph, so nothing else is ever given that memory. The value ``work``
     returned when it was recorded is returned by every launch: device arrays that each launch
-    refills (read them before the next call).
+    refills (read them before the next call, and not after this object is dropped: their memory
+    goes with its pool).
 
-    On numpy, with ``enabled`` False, or after a recording failed (one warning naming why),
-    every call runs ``work`` directly.
+    On numpy, with ``enabled`` False, or once a recording on the same array module has failed in
+    this process (one warning naming why), every call runs ``work`` directly.
 
     Parameters
     ----------
@@ -253,7 +258,7 @@ class GraphedWork:
 
     def __init__(self, xp: ModuleType, work, *, enabled: bool = True):
         self.xp, self._work = xp, work
-        self._enabled = enabled and xp is not np
+        self._enabled = enabled and xp is not np and xp not in _RECORDING_FAILED
         self._calls = 0
         self._graph = self._pool = self._result = None
 
@@ -275,6 +280,7 @@ class GraphedWork:
             import warnings
 
             self._enabled, self._graph, self._pool, self._result = False, None, None, None
+            _RECORDING_FAILED.add(self.xp)
             warnings.warn(f"CUDA graph not recorded ({type(exc).__name__}: {_first_line(exc)[:160]}); "
                           "launching each step as it comes", RuntimeWarning, stacklevel=2)
             return self._work()

@@ -8,6 +8,7 @@ from cca_cli.engines.base import run_engine
 from cca_cli.engines import batched
 from cca_cli.engines.batched import (BatchedAlternatingMinimization, BatchedMomentum, BoxOperator, RpieFactors,
                                      merged_steps, unsupported_options)
+from cca_cli.engines.calibrator import subset_layout
 from cca_cli.engines.momentum import MAX_LANES, MAX_THREADS, MomentumOptions, SequentialMomentum, lanes_for
 from cca_cli.engines.problem import PhaseRetrievalProblem
 from cca_cli.engines.schedule import build_schedule
@@ -88,6 +89,19 @@ def test_batched_momentum_given_threads_visits_as_the_cpu_engine_with_them(simul
     assert _relative(cpu, batched) < 1e-5
     unset = BatchedMomentum(problem, MomentumOptions(max_iterations=1, tol=0.0), xp=np)
     assert unset._lanes == MAX_LANES
+
+
+@pytest.mark.parametrize("threads", [1, 4, 16])
+def test_batched_momentum_takes_the_cpu_engine_s_lanes_for_few_captures_too(simulated, threads):
+    """The CPU engine uses no more threads than captures; the batched engine's lanes follow the same rule."""
+    model, images, _, _, _ = simulated
+    few = [0, 1, 2]
+    small = ForwardModel(subset_layout(model.layout, np.array(few)), model.pupil_boxes[few])
+    problem = PhaseRetrievalProblem.from_sensor_images(small, images[few])
+    opts = MomentumOptions(max_iterations=1, tol=0.0, threads=threads)
+    cpu = SequentialMomentum(problem, opts)
+    assert BatchedMomentum(problem, opts, xp=np)._lanes == cpu._lanes
+    cpu.close()
 
 
 @pytest.mark.parametrize("pupil_model", ["full", "zernike"])

@@ -234,6 +234,13 @@ def test_a_failed_recording_warns_once_and_runs_the_work_from_then_on():
         assert graphed() == 3   # the failed recording, then the work itself
     assert not fake.capturing   # the capture was ended
     assert graphed() == 4 and not graphed.recorded and fake.launches == 0
+    # later work on the same module is not recorded (no second warning); another module still is
+    ended = fake.recordings   # the failed capture was ended
+    again = backend.GraphedWork(fake, lambda: "plain")
+    assert [again() for _ in range(3)] == ["plain"] * 3 and not again.recorded and fake.recordings == ended
+    other = _FakeCapture()
+    fresh = backend.GraphedWork(other, lambda: "work")
+    assert [fresh() for _ in range(3)] == ["work"] * 3 and fresh.recorded
 
 
 # ----------------------------------------------------------------------------- ordered scatter-add

@@ -71,6 +71,29 @@ def test_a_filtered_map_step_loses_most_of_the_lattice_pattern(lattice):
         assert kept < 0.35
 
 
+def test_no_filter_where_the_harmonics_crowd_zero_frequency():
+    """Pupils that barely overlap: the notches would damp the smooth aberration too, so there is none."""
+    assert periodic_filter(64, np.array([[32.0, 0], [0, 32.0]])) is None
+    kept = periodic_filter(64, np.array([[16.0, 0], [0, 16.0]]))
+    assert kept is not None and kept[0, 0] >= 0.99
+
+
+def test_a_phase_only_map_stays_phase_only_when_filtered():
+    radius = 30.0
+    scan = square_scan(5, 2 * radius * (1 - 0.6))
+    layout = band_layout(scan.centres_yx_m, radius, sensor_size=160)
+    recovery = PupilRecovery(layout, np.zeros(layout.n_images, np.int64), model="full", amplitude=False,
+                             lattice="filtered")
+    b = layout.box_size
+    y = np.mgrid[:b, :b][0].astype(float)
+    disc = circular_pupils(b, np.array([[b / 2 - 0.5, b / 2 - 0.5]]), radius)[0] > 0
+    light = np.where(disc, 1.0, 0.0)
+    recovery._num[0] = (0.3 * np.exp(2j * np.pi * y / 17.0) * light)[None]
+    recovery._den[0] = light[None]
+    recovery.step(1.0)
+    np.testing.assert_allclose(np.abs(recovery.maps[0][disc]), np.abs(recovery.maps[0][disc]).mean(), rtol=1e-5)
+
+
 def test_an_unknown_lattice_choice_is_refused():
     scan = square_scan(3, 8.0)
     layout = band_layout(scan.centres_yx_m, 10.0, sensor_size=64)
