@@ -72,6 +72,7 @@ sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(HERE / "corpus"))
 
 import rebuild
+from collect import EXTRA, SOURCES
 from real_data import (
     SHARED,
     DatasetSpec,
@@ -150,7 +151,9 @@ class CorpusSet:
 
     @property
     def readme(self) -> Path:
-        return SHARED / self.name / "README.md"
+        """The data folder's README: ``../shared/datasets/<set>`` or, for the sets collected by
+        ``corpus/collect.py``, ``../corpus_extra/<set>``."""
+        return (EXTRA if self.name in SOURCES else SHARED) / self.name / "README.md"
 
 
 def margin_px(n: int) -> int:
@@ -200,6 +203,10 @@ def brightness_check(data: Prepared) -> dict:
 
 def load_set(entry: CorpusSet, workdir: Path, reuse: bool = False) -> tuple[Prepared, FrameModel, int]:
     """Ingest one set (rebuilding a converted copy first if needed); its frame model and object upsampling."""
+    if entry.name in SOURCES and not (EXTRA / entry.name).is_dir() and not (reuse and (workdir / "raw.h5").is_file()):
+        raise SystemExit(f"{EXTRA / entry.name}: not there; copy the set's files with "
+                         f"`python benchmarks/corpus/collect.py --clones DIR {entry.name}` "
+                         "(benchmarks/corpus/README.md)")
     try:
         rebuild.ensure(entry.name)
     except (FileNotFoundError, RuntimeError):

@@ -25,10 +25,10 @@ Three sets need a conversion that a `cca ingest` manifest cannot express:
   benchmark on 2 cores; the crop holds the 190–270 lp/mm groups.
 
 The copies go to ``benchmarks/results/corpus_data/<set>/`` (git-ignored) and are
-made from ``/work/shared/datasets`` (``../shared/datasets`` beside the
-checkout); nothing is written into the repository. How the shared folders
-themselves are rebuilt from their source repositories is in
-``benchmarks/corpus/README.md``.
+made from the upstream files in ``../corpus_extra/<set>/`` beside the checkout
+(``collect.py`` copies them there from clones of the source repositories) and
+the illumination table beside each manifest (``benchmarks/corpus/<set>/illumination.csv``);
+nothing is written into the repository.
 
 Usage::
 
@@ -40,6 +40,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -47,9 +48,9 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent.parent
 OUT = ROOT / "benchmarks" / "results" / "corpus_data"
-SHARED = ROOT.parent / "shared" / "datasets"
-if not SHARED.is_dir():  # a worktree elsewhere than beside shared/
-    SHARED = Path("/work/shared/datasets")
+sys.path.insert(0, str(HERE))
+
+from collect import EXTRA  # noqa: E402  (the folder beside the checkout that holds the upstream files)
 
 FDPR_CROP = (384, 640)   # rows = columns, of 1024
 EUV_CROP = (38, 294)     # rows = columns, of 332
@@ -81,10 +82,10 @@ def rebuild_fdpr(out: Path) -> Path:
     """
     from PIL import Image
 
-    src = SHARED / "fpm-fdpr-ring93"
+    src = EXTRA / "fpm-fdpr-ring93"
     lo, hi = FDPR_CROP
     (out / "frames").mkdir(parents=True, exist_ok=True)
-    rows = _read_table(src / "illumination.csv")
+    rows = _read_table(HERE / src.name / "illumination.csv")
     table = out / "images.csv"
     with open(table, "w", newline="") as handle:
         writer = csv.writer(handle)
@@ -116,10 +117,10 @@ def rebuild_euv(out: Path) -> Path:
     from PIL import Image
     from scipy.io import savemat
 
-    src = SHARED / "fpm-euv-sharp-lines81"
+    src = EXTRA / "fpm-euv-sharp-lines81"
     lo, hi = EUV_CROP
     out.mkdir(parents=True, exist_ok=True)
-    rows = _read_table(src / "illumination.csv")
+    rows = _read_table(HERE / src.name / "illumination.csv")
     frames = np.stack([np.asarray(Image.open(src / row["path"]), np.float64) for row in rows])
     if frames.shape[1:] != (332, 332):
         raise SystemExit(f"{src}: expected 332² frames, got {frames.shape[1:]}")
@@ -153,7 +154,7 @@ def rebuild_janxu(out: Path) -> Path:
     """
     from scipy.io import loadmat, savemat
 
-    src = SHARED / "fpm-janxu-target100"
+    src = EXTRA / "fpm-janxu-target100"
     lo, hi = JANXU_CROP
     out.mkdir(parents=True, exist_ok=True)
     stack = np.asarray(loadmat(src / "FPM_RawData_3HDR.mat", variable_names=["imlow_HDR"])["imlow_HDR"])
@@ -161,7 +162,7 @@ def rebuild_janxu(out: Path) -> Path:
         raise SystemExit(f"{src}: expected imlow_HDR of shape (300, 300, 100), got {stack.shape}")
     savemat(out / "frames.mat", {"imlow_HDR": np.ascontiguousarray(stack[lo:hi, lo:hi]).astype(np.float32)},
             do_compression=True)
-    rows = _read_table(src / "illumination.csv")
+    rows = _read_table(HERE / src.name / "illumination.csv")
     with open(out / "illumination.csv", "w", newline="") as handle:
         writer = csv.writer(handle)
         writer.writerow(["kx_norm", "ky_norm"])
@@ -185,7 +186,7 @@ def ensure(name: str, *, force: bool = False) -> Path | None:
     Parameters
     ----------
     name : str
-        Corpus set name (the folder name in ``../shared/datasets``).
+        Corpus set name (its folder in ``benchmarks/corpus``).
     force : bool, optional
         Rebuild even if the copy exists.
 
