@@ -123,7 +123,8 @@ class Calibrator:
                 self.nominal, self.pupil_index, model=options.pupil_model, order=options.pupil_order,
                 coefficients=self._fixed_coefficients, amplitude=options.pupil_amplitude,
                 step=options.pupil_step, threads=threads, maps=self._fixed_map, tilt=options.pupil_tilt,
-                smoothing=options.pupil_smoothing, lattice=options.pupil_lattice)
+                smoothing=options.pupil_smoothing, lattice=options.pupil_lattice,
+                damping=options.pupil_damping)
         self._workspace = None
 
     def _starting_coefficients(self) -> np.ndarray | None:

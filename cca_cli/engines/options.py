@@ -186,6 +186,11 @@ class MomentumOptions(EngineOptions):
         Passes before the first pupil step.
     pupil_step : float
         Initial pupil step fraction in (0, 1].
+    pupil_damping : float
+        Map models: each pupil pixel's step divides its sum of corrections by
+        the light it saw plus this fraction of the most light any pixel saw,
+        so pixels that saw little light (the object's weak spatial
+        frequencies, noise) move the map less than those that saw much.
     pupil_estimate : bool
         Start the quadratic modes from the neighbour-shift estimate
         (:func:`~cca_cli.engines.calibration.estimate_quadratic_aberration`)
@@ -241,6 +246,7 @@ class MomentumOptions(EngineOptions):
     pupil_amplitude: bool = True
     pupil_start: int = 1
     pupil_step: float = 1.0
+    pupil_damping: float = 1e-3
     pupil_estimate: bool = True
     position_refinement: Literal["none", "global", "per_image", "both"] = "none"
     brightness: bool = False
@@ -280,6 +286,7 @@ class MomentumOptions(EngineOptions):
             (0 < self.poisson_step <= 1, f"poisson_step must be in (0, 1], got {self.poisson_step}"),
             (self.pupil_start >= 0, f"pupil_start must be ≥ 0, got {self.pupil_start}"),
             (0 < self.pupil_step <= 1, f"pupil_step must be in (0, 1], got {self.pupil_step}"),
+            (0 < self.pupil_damping <= 1, f"pupil_damping must be in (0, 1], got {self.pupil_damping}"),
             (0 < self.pupil_smoothing <= 2, f"pupil_smoothing must be in (0, 2], got {self.pupil_smoothing}"),
             (self.calibration_start >= 0, f"calibration_start must be ≥ 0, got {self.calibration_start}"),
             (self.calibration_every >= 1, f"calibration_every must be ≥ 1, got {self.calibration_every}"),

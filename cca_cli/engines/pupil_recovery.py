@@ -56,8 +56,6 @@ __all__ = ["PUPIL_MODELS", "PupilEstimate", "PupilRecovery", "tilt_of", "untilt_
 
 #: Largest change of any Zernike coefficient in one step (waves): the linearisation holds within ~0.05.
 _MAX_ZERNIKE_STEP = 0.1
-#: Damping of the full-map step, relative to the largest pupil power: pixels seen by little light move little.
-_MAP_DAMPING = 1e-3
 
 
 @dataclass(frozen=True)
@@ -164,12 +162,16 @@ class PupilRecovery:
         Map models: ``filtered`` removes from the maps, after each step, the patterns
         periodic on the lattice of the pupil centres, where they lie on one
         (:func:`~cca_cli.engines.lattice.periodic_filter`).
+    damping : float
+        Map models: a pixel's step is its sum of corrections over the light it saw
+        plus ``damping`` times the most light any pixel saw (the Tikhonov weight of
+        the averaged EPRY step): the larger, the less pixels that saw little light move.
     """
 
     def __init__(self, layout: BandLayout, pupil_index: np.ndarray, *, model: str = "full", order: int = 4,
                  coefficients: np.ndarray | None = None, amplitude: bool = True, step: float = 1.0,
                  threads: int = 1, offsets: np.ndarray | None = None, maps: np.ndarray | None = None,
-                 tilt: str = "pupil", smoothing: float = 0.25, lattice: str = "free"):
+                 tilt: str = "pupil", smoothing: float = 0.25, lattice: str = "free", damping: float = 1e-3):
         if model not in PUPIL_MODELS:
             raise ValueError(f"pupil model must be one of {', '.join(PUPIL_MODELS)}, got {model!r}")
         if lattice not in ("free", "filtered"):
@@ -178,6 +180,9 @@ class PupilRecovery:
         self.lattice = lattice
         self.tilt = tilt
         self.smoothing = float(smoothing)
+        if not 0 < damping <= 1:
+            raise ValueError(f"pupil damping must be in (0, 1], got {damping!r}")
+        self.damping = float(damping)
         self.order = order
         self.modes = zernike_modes(order)
         self.amplitude = amplitude
@@ -474,7 +479,7 @@ class PupilRecovery:
 
     def _map_step(self, numerator: np.ndarray, denominator: np.ndarray, peak: float) -> tuple[complex, np.ndarray]:
         seen = denominator > 0
-        change = numerator / (denominator + _MAP_DAMPING * peak)
+        change = numerator / (denominator + self.damping * peak)
         maps = self.maps + (self._step * change).astype(np.complex64)
         if self._periodic is not None:
             for p in range(self.n_pupils):   # the map's departure from 1, less its lattice-periodic patterns

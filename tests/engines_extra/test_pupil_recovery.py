@@ -115,7 +115,8 @@ def test_large_quadratic_aberration_is_aliased_on_a_lattice():
 
 
 def test_pupil_options_validated():
-    for bad in (dict(pupil_recovery="per_lens"), dict(pupil_order=5), dict(pupil_step=0.0)):
+    for bad in (dict(pupil_recovery="per_lens"), dict(pupil_order=5), dict(pupil_step=0.0), dict(pupil_damping=0.0),
+                dict(pupil_damping=1.5)):
         with pytest.raises(ValueError):
             MomentumOptions(**bad)
 
@@ -156,6 +157,37 @@ def test_a_tilt_the_pupil_step_finds_stays_in_the_map_moves_the_object_or_is_dro
         np.testing.assert_allclose(left_in_map, 0.0, atol=close / 2 * np.abs(wanted).max())
         np.testing.assert_allclose(given_to_object, wanted if mode == "object" else 0.0, rtol=close, atol=1e-12)
     assert np.abs(recovery.project_zernike()).max() < 0.01  # a tilt is no aberration (waves)
+
+
+@pytest.mark.parametrize("damping", [1e-3, 1e-2, 1e-1])
+def test_the_map_step_moves_a_pixel_by_its_light_over_its_light_plus_the_damping(damping):
+    # One capture asks for the pupil times 1.1 everywhere. A pixel that saw the brightest light (power p) takes
+    # the step 0.1·p/(p + δ·p); one that saw a hundredth of it 0.1·0.01/(0.01 + δ): the damping δ holds back the
+    # pixels that saw little light. The common scale the step takes off leaves their ratio alone.
+    from cca_cli.engines.pupil_recovery import PupilRecovery
+    from cca_cli.optics.pupil import circular_pupils
+
+    layout = band_layout(np.zeros((1, 2)), RADIUS, hires_size=64)
+    b, m = layout.box_size, layout.lowres_size
+    disc = circular_pupils(b, layout.box_centres, RADIUS)[0]
+    y0, x0 = layout.box_origins[0]
+    spectrum = np.ones((64, 64), np.complex64)
+    spectrum[y0:y0 + b // 2] = 0.1                      # the box's upper half sees a hundredth of the power
+    seen = spectrum[y0:y0 + b, x0:x0 + b]
+    fields = np.zeros((1, m, m), np.complex64)
+    s = m // 2 - b // 2
+    fields[0, s:s + b, s:s + b] = m * 0.1 * disc * seen   # raw transform of the data step ψ' − ψ = 0.1 P S
+    recovery = PupilRecovery(layout, np.zeros(1, int), damping=damping)
+    recovery.accumulate(0, slice(0, 1), spectrum, layout.box_origins, fields, disc[None].astype(np.complex64))
+    recovery.step(misfit=1.0)
+    inside = circular_pupils(b, layout.box_centres, RADIUS - 2)[0] > 0.999
+    dim, bright = inside.copy(), inside.copy()
+    dim[b // 2:], bright[:b // 2 + 1] = False, False
+    ratio = recovery.maps[0][dim].mean() / recovery.maps[0][bright].mean()
+    expected = (1 + 0.1 * 0.01 / (0.01 + damping)) / (1 + 0.1 / (1 + damping))
+    np.testing.assert_allclose(ratio, expected, rtol=1e-4)
+    with pytest.raises(ValueError, match="pupil damping"):
+        PupilRecovery(layout, np.zeros(1, int), damping=0.0)
 
 
 def test_a_new_visiting_order_reuses_the_discs_and_a_moved_capture_gets_a_new_one():
