@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import fnmatch
 import subprocess
-import sys
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
@@ -81,7 +80,8 @@ def collect(name: str, clones: Path) -> int:
         for path in matches:
             data = _git(clone, "show", f"{commit}:{path}")
             if data.startswith(b"version https://git-lfs"):
-                raise SystemExit(f"{repository}@{commit[:8]}:{path} is a Git LFS pointer: run `git lfs pull` in {clone}")
+                raise SystemExit(f"{repository}@{commit[:8]}:{path} is a Git LFS pointer: "
+                                 f"run `git lfs pull` in {clone}")
             target = destination / Path(path).name
             if target.exists():
                 if target.read_bytes() != data:
@@ -103,7 +103,7 @@ def main() -> None:
     for name in args.sets:
         if name not in SOURCES:
             raise SystemExit(f"{name}: not a set this script collects ({', '.join(SOURCES)})")
-        print(f"{name}: {collect(name, args.clones)} files written to {EXTRA / name}", file=sys.stdout)
+        print(f"{name}: {collect(name, args.clones)} files written to {EXTRA / name}")
 
 
 if __name__ == "__main__":

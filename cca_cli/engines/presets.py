@@ -14,9 +14,9 @@ the light varies, so they get the sequential engine with calibration.
 
 Both stop when the data misfit falls by less than 2% over 10 passes (5 for
 LED arrays, below; a few seconds on the sets in the README), or after 150
-passes (300 for LED arrays). Momentum is moderate (η = 0.3): on recorded data a larger η makes the
-low spatial frequencies oscillate, on simulations η = 0.3 converges as fast as
-0.7. Batches are 24 captures, not 12: averaging each step over more captures
+passes (300 for LED arrays). Momentum is moderate (η = 0.3): on recorded data
+a larger η makes the low spatial frequencies oscillate, on simulations
+η = 0.3 converges as fast as 0.7. Batches are 24 captures, not 12: averaging each step over more captures
 fitted both real LED-array sets better and sooner (blood smear: residual
 0.076 / 0.070 over all / bright-field images after 30 passes, against
 0.078 / 0.076 after 60 with 12).
