@@ -209,7 +209,10 @@ def test_fused_lanes_give_the_same_spectrum_whatever_their_chunk(monkeypatch):
             engine.update()
         engine.close()
         spectra.append(engine.spectrum().copy())
-    np.testing.assert_allclose(spectra[0], spectra[1], rtol=0, atol=1e-6 * np.abs(spectra[1]).max())
+    # FFTW's plans for one transform and for a batch of many may round differently (pyFFTW 0.15.0's FFTW does),
+    # and four passes of pupil steps carry that to 1.6e-6 of the peak; a capture placed or scattered wrongly
+    # would differ by its whole share of the spectrum.
+    np.testing.assert_allclose(spectra[0], spectra[1], rtol=0, atol=1e-5 * np.abs(spectra[1]).max())
 
 
 def test_pupils_from_maps_and_rpie_factors_agree_and_match_the_formulas():
