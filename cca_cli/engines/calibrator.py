@@ -141,7 +141,7 @@ class Calibrator:
             return None
         estimate = np.zeros((n_pupils, n_modes))
         # Shifts are measured on the captures with light to spare: noise-dominated dark-field images only add cost.
-        energy = np.sum(np.square(problem.amplitudes, dtype=np.float64), axis=(1, 2))
+        energy = problem.capture_energies
         lit = energy >= _ESTIMATE_LIGHT * energy.max()
         for p in range(n_pupils):
             members = np.flatnonzero((self.pupil_index == p) & lit)

@@ -66,10 +66,9 @@ class HeldBack:
         self.problem = problem
         self.captures = held_back_captures(layout.centres_px, layout.pupil_radius_px, share)
         self.trained = np.setdiff1d(np.arange(problem.model.n_images), self.captures)
-        amplitudes = problem.amplitudes
-        self.trained_norm = (problem.energy if not self.captures.size
-                             else float(np.sum(np.square(amplitudes[self.trained], dtype=np.float64))))
-        self._norm = float(np.sum(np.square(amplitudes[self.captures], dtype=np.float64)))
+        energies = problem.capture_energies
+        self.trained_norm = problem.energy if not self.captures.size else float(energies[self.trained].sum())
+        self._norm = float(energies[self.captures].sum())
         self._workspace = None
         self._best = None
 

@@ -19,9 +19,15 @@ class MeasuredAmplitudes:
     """What every engine needs from measured amplitudes ``self.amplitudes``, computed once."""
 
     @cached_property
+    def capture_energies(self) -> np.ndarray:
+        """``Σ A²`` of each capture (float64, (K,)), summed without a double-precision copy of the data."""
+        flat = self.amplitudes.reshape(self.amplitudes.shape[0], -1)
+        return np.einsum("ki,ki->k", flat, flat, dtype=np.float64)
+
+    @cached_property
     def energy(self) -> float:
         """``Σ A²`` over all measurements (float64): the norm the data misfit is relative to."""
-        return float(np.sum(np.square(self.amplitudes, dtype=np.float64)))
+        return float(self.capture_energies.sum())
 
     @cached_property
     def amplitude_floor(self) -> float:

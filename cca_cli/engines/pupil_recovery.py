@@ -41,6 +41,7 @@ Express 5(7) (2014) (Gauss–Newton pupil update).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -198,7 +199,8 @@ class PupilRecovery:
         self._num = np.zeros((threads, self.n_pupils, b, b), np.complex128)
         self._den = np.zeros((threads, self.n_pupils, b, b), np.float64)
         self._rhs = np.zeros((threads, self.n_pupils, len(self.modes)), np.float64)
-        self._known_discs_key, self._known_discs = None, {}   # the last geometry's discs (see _discs_at)
+        self._known_discs_key, self._known_discs = None, (None, {})   # the last geometry's discs (see _discs_at)
+        self._box_basis_key = None   # what the modes on the box grid were made for (see set_geometry)
         self.set_geometry(layout, self.index, offsets)
         self.maps = np.ones((self.n_pupils, b, b), np.complex64)
         if maps is not None:  # a known pupil: the map starts from it, the modes from its phase
@@ -237,30 +239,40 @@ class PupilRecovery:
         self._basis = None
         if self.model == "zernike":
             self._basis = zernike_basis(layout.box_size, centres, layout.pupil_radius_px, order=self.order)
-        # Each pupil's modes on the box grid (for the curvature and for projections), at the mean centre.
-        self._box_basis = np.empty((self.n_pupils, len(self.modes), layout.box_size, layout.box_size), np.float32)
-        for p in range(self.n_pupils):
-            members = self.index == p
-            centre = centres[members].mean(axis=0) if np.any(members) else centres.mean(axis=0)
-            self._box_basis[p] = zernike_basis(layout.box_size, centre[None], layout.pupil_radius_px,
-                                                   order=self.order)[:, 0]
+        # Each pupil's modes on the box grid (for the curvature and for projections), at the mean centre
+        # (summed in a fixed order, so that a new visiting order keeps the same basis).
+        mean_centres = [self._mean_centre(p) for p in range(self.n_pupils)]
+        basis_key = (layout.box_size, float(layout.pupil_radius_px), self.order, tuple(mean_centres))
+        if self._box_basis_key != basis_key:
+            self._box_basis = np.empty((self.n_pupils, len(self.modes), layout.box_size, layout.box_size),
+                                       np.float32)
+            for p, centre in enumerate(mean_centres):
+                self._box_basis[p] = zernike_basis(layout.box_size, np.array([centre]), layout.pupil_radius_px,
+                                                       order=self.order)[:, 0]
+            self._box_basis_key = basis_key
+
+    def _mean_centre(self, pupil: int) -> tuple[float, float]:
+        """Mean box centre of ``pupil``'s captures (all captures' for a pupil without any), in any visiting order."""
+        members = self.index == pupil
+        centres = self._centres[members] if np.any(members) else self._centres
+        return tuple(math.fsum(axis) / len(centres) for axis in centres.T.tolist())
 
     def _discs_at(self, layout: BandLayout, centres: np.ndarray) -> np.ndarray:
         """Every capture's NA disc at ``centres`` (float32, (K, b, b)).
 
-        A new visiting order (each time the batches grow) only permutes the captures: a disc already
-        made for the same centre, box and radius is reused (the same values as made anew), the rest
-        are made. Only the last call's discs are kept.
+        A new visiting order (each time the batches grow) only permutes the captures: when every centre
+        was among the last discs made (same box and radius), those are gathered in the new order (the
+        same values as made anew); otherwise all are made afresh and kept for the next call.
         """
         key = (layout.box_size, float(layout.pupil_radius_px))
-        known = self._known_discs if self._known_discs_key == key else {}
+        known, where = self._known_discs if self._known_discs_key == key else (None, {})
         rows = [tuple(centre) for centre in centres.tolist()]
-        missing = [i for i, row in enumerate(rows) if row not in known]
-        if missing:
-            fresh = circular_pupils(layout.box_size, centres[missing], layout.pupil_radius_px)
-            known = {**known, **{rows[i]: disc for i, disc in zip(missing, fresh)}}
-        discs = np.stack([known[row] for row in rows]) if rows else np.zeros((0, key[0], key[0]), np.float32)
-        self._known_discs_key, self._known_discs = key, dict(zip(rows, discs.copy()))   # its own copy: callers own discs
+        found = [where.get(row, -1) for row in rows]
+        if known is not None and min(found, default=0) >= 0:
+            return known[found]   # a new array: the kept discs stay the recovery's own
+        discs = circular_pupils(layout.box_size, centres, layout.pupil_radius_px)
+        self._known_discs_key = key
+        self._known_discs = (discs.copy(), {row: i for i, row in enumerate(rows)})
         return discs
 
     def _zernike_maps(self, coefficients: np.ndarray) -> np.ndarray:
@@ -452,9 +464,7 @@ class PupilRecovery:
             from scipy import ndimage
 
             b = self.layout.box_size
-            members = self.index == p
-            centre = self._centres[members].mean(axis=0) if np.any(members) else self._centres.mean(axis=0)
-            disc = circular_pupils(b, centre[None], self.layout.pupil_radius_px)[0] > 0
+            disc = circular_pupils(b, np.array([self._mean_centre(p)]), self.layout.pupil_radius_px)[0] > 0
             modes = self._box_basis[p].astype(np.float64)
             grid = np.arange(b, dtype=np.float64)
             columns = np.stack([m[disc] for m in modes] + [np.ones(disc.sum()), (grid[:, None] * np.ones(b))[disc],
@@ -519,9 +529,7 @@ class PupilRecovery:
         b = self.layout.box_size
         grid = np.arange(b, dtype=np.float64)
         for p in range(self.n_pupils):
-            members = self.index == p
-            centre = self._centres[members].mean(axis=0) if np.any(members) else self._centres.mean(axis=0)
-            disc = circular_pupils(b, centre[None], self.layout.pupil_radius_px)[0] > 0
+            disc = circular_pupils(b, np.array([self._mean_centre(p)]), self.layout.pupil_radius_px)[0] > 0
             tilt = tilt_of(self.maps[p], disc.astype(np.float64))  # off first, so that a large tilt cannot wrap
             flat = self.maps[p] * untilt_ramp(tilt, b)
             phase = np.angle(flat * np.conj(flat[disc].mean()))

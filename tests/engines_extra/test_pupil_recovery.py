@@ -209,3 +209,33 @@ def test_a_new_visiting_order_reuses_the_discs_and_a_moved_capture_gets_a_new_on
     moved = circular_pupils(layout.box_size, layout.box_centres + offsets, layout.pupil_radius_px)
     assert np.array_equal(recovery.map_parts()[0], moved)
     assert not np.array_equal(moved[order[0]], fresh[0])
+
+
+def test_a_new_visiting_order_keeps_the_modes_the_maps_are_read_in():
+    # The modes on the box grid sit at the mean centre of a pupil's captures; a new visiting order (the
+    # batches grew) must give the same mean to the last bit, so the same map reads the same coefficients.
+    from cca_cli.engines.calibrator import subset_layout
+    from cca_cli.engines.pupil_recovery import PupilRecovery
+
+    layout, _ = layout_and_chart()
+    index = np.zeros(layout.n_images, np.int64)
+    aberration = np.zeros((1, 12))
+    aberration[0, 3:6] = (0.15, -0.05, 0.08)   # defocus and astigmatism, waves
+    recovery = PupilRecovery(layout, index, coefficients=aberration)
+    before = recovery.project_zernike()
+    np.testing.assert_allclose(before[0, 3:6], aberration[0, 3:6], atol=0.01)
+    for seed in range(3):
+        order = np.random.default_rng(seed).permutation(layout.n_images)
+        recovery.set_geometry(subset_layout(layout, order), index)
+        assert np.array_equal(recovery.project_zernike(), before)
+
+
+def test_capture_energies_are_each_captures_squared_amplitudes_summed_in_double_precision():
+    layout, _ = layout_and_chart()
+    model = ForwardModel.unaberrated(layout)
+    rng = np.random.default_rng(4)
+    amplitudes = (1e3 * rng.random((layout.n_images,) + model.field_shape)).astype(np.float32)
+    problem = PhaseRetrievalProblem(model=model, amplitudes=amplitudes)
+    wanted = np.array([np.sum(a.astype(np.float64) ** 2) for a in amplitudes])
+    np.testing.assert_allclose(problem.capture_energies, wanted, rtol=1e-12)
+    np.testing.assert_allclose(problem.energy, wanted.sum(), rtol=1e-12)
