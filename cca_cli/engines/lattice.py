@@ -18,7 +18,7 @@ import numpy as np
 __all__ = ["capture_lattice", "periodic_filter"]
 
 
-def capture_lattice(centres_px: np.ndarray, tolerance: float = 0.25) -> np.ndarray | None:
+def capture_lattice(centres_px: np.ndarray, tolerance: float = 0.1) -> np.ndarray | None:
     """The two primitive vectors of the lattice the pupil centres lie on, or None if they lie on none.
 
     Parameters
@@ -26,9 +26,11 @@ def capture_lattice(centres_px: np.ndarray, tolerance: float = 0.25) -> np.ndarr
     centres_px : ndarray, (K, 2)
         Pupil centres ``[y, x]`` (spectrum pixels).
     tolerance : float
-        Largest root-mean-square distance of the inner half of the centres from their lattice points,
-        as a fraction of the shorter lattice vector (tilted LED boards, and the sine of the
-        illumination angle, bend a grid a little; centres at random miss by about 0.4).
+        Largest root-mean-square distance of the inner quarter of the centres (at least eight) from
+        their lattice points, as a fraction of the shorter lattice vector. Tilted LED boards, and the
+        sine of the illumination angle, bend a grid a little: the recorded grids of the benchmark
+        corpus miss by 0.00–0.04, a 15 × 15 grid reaching 39° by 0.04. LEDs on concentric rings miss
+        by 0.2 (the corpus's ring board) to 0.4, centres at random by about 0.4.
 
     Returns
     -------
@@ -55,9 +57,9 @@ def capture_lattice(centres_px: np.ndarray, tolerance: float = 0.25) -> np.ndarr
     if second is None:
         return None
     vectors = np.stack([first, second])
-    # Fitted to the inner half of the centres: at large angles the sine of the illumination angle bends
-    # an LED grid's outer rows, and the patterns that matter are those the many inner captures share.
-    inner = order[:max(4, order.size // 2)]
+    # Fitted to the inner quarter of the centres: at large angles the sine of the illumination angle bends
+    # an LED grid's outer rows (half the centres of a wide grid miss their points as far as rings do).
+    inner = order[:max(8, order.size // 4)]
     indices = np.round(offsets[inner] @ np.linalg.inv(vectors))          # each centre's lattice point
     vectors, *_ = np.linalg.lstsq(indices, offsets[inner], rcond=None)   # refitted to them
     if abs(np.linalg.det(vectors)) < 1e-9:
@@ -95,7 +97,9 @@ def periodic_filter(box_size: int, vectors: np.ndarray, width: float = 0.75) -> 
     steps = np.hypot(reciprocal[:, 0], reciprocal[:, 1])
     reach = int(np.ceil(np.sqrt(2) * limit / max(min(steps), 1e-9))) + 1
     bins = np.fft.fftfreq(box_size, 1.0 / box_size)
-    ky, kx = np.meshgrid(bins, bins, indexing="ij")
+    # Each notch is worked out on the bins within 6 widths of its harmonic (beyond, it is 1 to 1e-7).
+    half = int(np.ceil(6 * width))
+    near = np.arange(-half, half + 1) if 2 * half + 1 < box_size else None
     factor = np.ones((box_size, box_size))
     for n1 in range(-reach, reach + 1):
         for n2 in range(-reach, reach + 1):
@@ -104,8 +108,11 @@ def periodic_filter(box_size: int, vectors: np.ndarray, width: float = 0.75) -> 
             hy, hx = n1 * reciprocal[0] + n2 * reciprocal[1]
             if abs(hy) > limit + 3 * width or abs(hx) > limit + 3 * width:
                 continue
+            rows = np.arange(box_size) if near is None else (int(round(hy)) + near) % box_size
+            cols = np.arange(box_size) if near is None else (int(round(hx)) + near) % box_size
             # distance to the harmonic on the periodic frequency grid
-            dy = (ky - hy + limit) % box_size - limit
-            dx = (kx - hx + limit) % box_size - limit
-            factor *= 1.0 - np.exp(-(dy * dy + dx * dx) / (2.0 * width * width))
+            dy = (bins[rows] - hy + limit) % box_size - limit
+            dx = (bins[cols] - hx + limit) % box_size - limit
+            notch = 1.0 - np.exp(-(dy[:, None] ** 2 + dx[None, :] ** 2) / (2.0 * width * width))
+            factor[np.ix_(rows, cols)] *= notch
     return factor if factor[0, 0] >= 0.99 else None

@@ -201,6 +201,7 @@ class PupilRecovery:
         self._rhs = np.zeros((threads, self.n_pupils, len(self.modes)), np.float64)
         self._known_discs_key, self._known_discs = None, (None, {})   # the last geometry's discs (see _discs_at)
         self._box_basis_key = None   # what the modes on the box grid were made for (see set_geometry)
+        self._periodic, self._periodic_key = None, None   # the lattice filter and the centres it was made for
         self.set_geometry(layout, self.index, offsets)
         self.maps = np.ones((self.n_pupils, b, b), np.complex64)
         if maps is not None:  # a known pupil: the map starts from it, the modes from its phase
@@ -231,11 +232,18 @@ class PupilRecovery:
         self._centres = centres
         self._discs = self._discs_at(layout, centres)
         self._smooth_designs = {}   # per pupil: what the smooth model's fit needs that only the geometry sets
-        self._periodic = None       # the map filter of ``lattice="filtered"``, where the centres form a lattice
         if self.lattice == "filtered" and self.model != "zernike":
-            vectors = capture_lattice(layout.centres_px)
-            if vectors is not None:
-                self._periodic = periodic_filter(layout.box_size, vectors)
+            # the map filter of ``lattice="filtered"``, where the centres form a lattice; found from the
+            # centres in a fixed order, so that a new visiting order keeps it
+            centres_px = np.asarray(layout.centres_px, np.float64)
+            ordered = centres_px[np.lexsort(centres_px.T[::-1])]
+            key = (layout.box_size, ordered.tobytes())
+            if key != self._periodic_key:
+                vectors = capture_lattice(ordered)
+                self._periodic = None if vectors is None else periodic_filter(layout.box_size, vectors)
+                self._periodic_key = key
+        else:
+            self._periodic = None
         self._basis = None
         if self.model == "zernike":
             self._basis = zernike_basis(layout.box_size, centres, layout.pupil_radius_px, order=self.order)
@@ -380,6 +388,10 @@ class PupilRecovery:
     def step(self, misfit: float) -> tuple[complex, np.ndarray] | None:
         """End-of-pass update; undoes the last one instead if this pass fit the data worse.
 
+        A map whose lattice patterns are filtered out (``lattice="filtered"`` on a lattice) is never
+        undone: the filter takes from each step what the data cannot tell from the object, so the
+        misfit may rise after a sound step, and undoing (and halving) it would stall the map.
+
         Parameters
         ----------
         misfit : float
@@ -400,7 +412,7 @@ class PupilRecovery:
         self._den[:] = 0
         self._rhs[:] = 0
         previous = self._previous
-        if previous is not None and misfit > previous.misfit:
+        if previous is not None and misfit > previous.misfit and self._periodic is None:
             self.maps, self.coefficients = previous.maps, previous.coefficients
             self._step *= 0.5
             self._previous = None

@@ -99,3 +99,41 @@ def test_an_unknown_lattice_choice_is_refused():
     layout = band_layout(scan.centres_yx_m, 10.0, sensor_size=64)
     with pytest.raises(ValueError, match="pupil lattice must be free or filtered"):
         PupilRecovery(layout, np.zeros(layout.n_images, np.int64), lattice="periodic")
+
+
+def test_leds_on_concentric_rings_are_no_lattice():
+    # A ring board (1 + 8 + 12 + 16 + 24 + 32 LEDs, rings 9 mm apart, 110 mm from the sample) puts its inner
+    # centres near a square grid's points, but not on them: a lattice filter there would notch real pupil detail.
+    points = [(0.0, 0.0)]
+    for ring, count in enumerate((8, 12, 16, 24, 32), start=1):
+        angles = 2 * np.pi * np.arange(count) / count
+        points += [(9.0 * ring * np.cos(a), 9.0 * ring * np.sin(a)) for a in angles]
+    positions = np.array(points)
+    sines = positions / np.sqrt(110.0 ** 2 + np.sum(positions ** 2, axis=1, keepdims=True))
+    assert capture_lattice(400.0 * sines) is None
+    # a grid bent by the sine of the angle (the same pitch and distance, 15 × 15 LEDs out to 39°) still is one
+    i, j = np.meshgrid(np.arange(15) - 7, np.arange(15) - 7, indexing="ij")
+    grid = 9.0 * np.stack([i.ravel(), j.ravel()], axis=1)
+    bent = 400.0 * grid / np.sqrt(110.0 ** 2 + np.sum(grid ** 2, axis=1, keepdims=True))
+    assert capture_lattice(bent) is not None
+
+
+def test_a_filtered_map_step_is_kept_when_the_next_pass_fits_worse():
+    # Without a filter a step followed by a worse pass is undone (and the step halved); with the lattice filter
+    # the misfit may rise after a sound step (the filter takes part of it), so the step stays.
+    layout = band_layout(square_scan(5, 6.0).centres_yx_m, 8.0, hires_size=96)
+    spectrum = np.ones((96, 96), np.complex64)
+    fields = np.zeros((layout.n_images, layout.lowres_size, layout.lowres_size), np.complex64)
+    discs = circular_pupils(layout.box_size, layout.box_centres, 8.0).astype(np.complex64)
+    s = layout.lowres_size // 2 - layout.box_size // 2
+    fields[:, s:s + layout.box_size, s:s + layout.box_size] = 0.1 * layout.lowres_size * discs
+    kept = {}
+    for lattice in ("free", "filtered"):
+        recovery = PupilRecovery(layout, np.zeros(layout.n_images, int), lattice=lattice)
+        recovery.accumulate(0, slice(0, layout.n_images), spectrum, layout.box_origins, fields, discs)
+        recovery.step(misfit=1.0)
+        after_first = recovery.maps.copy()
+        recovery.step(misfit=2.0)   # the next pass fit worse
+        kept[lattice] = (np.array_equal(recovery.maps, after_first), recovery.step_size)
+    assert kept["free"] == (False, 0.5)
+    assert kept["filtered"] == (True, 1.0)
