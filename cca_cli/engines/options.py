@@ -177,7 +177,8 @@ class MomentumOptions(EngineOptions):
         Map models, captures whose pupil centres lie on a lattice (an LED grid):
         the map may take any pattern, or after each step loses the patterns
         periodic on that lattice, which the data cannot tell from the object
-        (:mod:`cca_cli.engines.lattice`).
+        (:mod:`cca_cli.engines.lattice`); a filtered step is never undone.
+        ``filtered`` in the LED-array preset.
     pupil_order : {2, 3, 4}
         Highest Zernike radial order fitted (``zernike``) or reported (``full``).
     pupil_amplitude : bool

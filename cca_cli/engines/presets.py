@@ -76,6 +76,24 @@ ring set (0.1754 → 0.1786) and the slowly converging line-pair chart (0.2474 �
 0.2738, 71 passes instead of 201) worse; both stay below PtyLab's best there
 (benchmarks/README.md, "Damping the pupil step").
 
+On LED arrays the pupil map also loses, after each step, the patterns periodic
+on the lattice of the pupil centres (``pupil_lattice: filtered``): such a
+pattern and its opposite in the object predict the same captures (the
+raster-grid ambiguity), so a free map grows a checkerboard. A filtered step is
+never undone (the filter takes from it what the data cannot decide, so the
+misfit may rise after a sound step; undoing and halving it stalled the map),
+and a board whose LEDs lie on rings has no lattice and no filter. On the
+corpus's tuning half (common reading, all / bright-field images, passes) this
+gave 0.0663 / 0.0577 against 0.0657 / 0.0564 (blood smear, 53 passes instead
+of 79), 0.1247 / 0.0628 against 0.1253 / 0.0647 (32² USAF tile, 47 instead of
+58) and 0.0985 / 0.0439 against 0.0981 / 0.0441 (8-bit USAF set, 31 instead of
+35): as good, in 24% fewer passes. It was found while looking into the EUV
+lines of the validation half (0.1057 → 0.0918: the undone steps had left that
+map a quarter of its step after four passes), so that half is no blind check
+of it: red cells 0.0536 / 0.0261 → 0.0524 / 0.0243, line pairs 0.2738 /
+0.2580 → 0.2816 / 0.2601, ring set unchanged, new USAF 0.1129 / 0.0944 →
+0.1134 / 0.0941 (benchmarks/README.md, "Filtering the lattice's patterns").
+
 A candidate chosen on the tuning half of the recorded-set corpus
 (``benchmarks/real_corpus.py``) did not hold on its validation half, so it is
 not the default: the smooth pupil model with its tilt pinned, α = 0.3 and 5%
