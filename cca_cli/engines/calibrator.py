@@ -124,7 +124,7 @@ class Calibrator:
                 coefficients=self._fixed_coefficients, amplitude=options.pupil_amplitude,
                 step=options.pupil_step, threads=threads, maps=self._fixed_map, tilt=options.pupil_tilt,
                 smoothing=options.pupil_smoothing, lattice=options.pupil_lattice,
-                damping=options.pupil_damping)
+                damping=options.pupil_damping, momentum=options.pupil_momentum)
         self._workspace = None
 
     def _starting_coefficients(self) -> np.ndarray | None:
@@ -292,7 +292,7 @@ class Calibrator:
             position_parameters=position_parameters)
 
     def state(self) -> dict:
-        """Brightness, offsets, global parameters and the pupil recovery's maps, coefficients and step size.
+        """Brightness, offsets, global parameters and the pupil recovery's maps, coefficients, step size and momentum.
 
         Not kept: the pupil recovery's record of its last step (after a restore the
         next pass cannot undo that step if it fits worse; the step size is kept).
@@ -303,6 +303,8 @@ class Calibrator:
         if self.recovery is not None:
             out.update(pupil_maps=self.recovery.maps, pupil_coefficients=self.recovery.coefficients,
                        pupil_step=self.recovery.step_size)
+            if self.recovery.velocity is not None:
+                out["pupil_velocity"] = self.recovery.velocity
         return out
 
     def restore(self, state: dict) -> None:
@@ -313,4 +315,6 @@ class Calibrator:
             self.parameters = np.array(state["parameters"], np.float64)
         if self.recovery is not None and "pupil_maps" in state:
             self.recovery.restore(np.array(state["pupil_maps"], np.complex64),
-                                  np.array(state["pupil_coefficients"], np.float64), float(state["pupil_step"]))
+                                  np.array(state["pupil_coefficients"], np.float64), float(state["pupil_step"]),
+                                  velocity=None if "pupil_velocity" not in state
+                                  else np.array(state["pupil_velocity"], np.complex64))

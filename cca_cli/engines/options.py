@@ -192,6 +192,11 @@ class MomentumOptions(EngineOptions):
         the light it saw plus this fraction of the most light any pixel saw,
         so pixels that saw little light (the object's weak spatial
         frequencies, noise) move the map less than those that saw much.
+    pupil_momentum : float
+        Map models: momentum of the pupil step in [0, 1), as mPIE gives its probe:
+        each step adds this fraction of the steps before it (summed with the same
+        decay), so a map that keeps moving one way converges in fewer passes. The
+        momentum restarts when a pass fits worse than the one before. 0: none.
     pupil_estimate : bool
         Start the quadratic modes from the neighbour-shift estimate
         (:func:`~cca_cli.engines.calibration.estimate_quadratic_aberration`)
@@ -248,6 +253,7 @@ class MomentumOptions(EngineOptions):
     pupil_start: int = 1
     pupil_step: float = 1.0
     pupil_damping: float = 1e-3
+    pupil_momentum: float = 0.0
     pupil_estimate: bool = True
     position_refinement: Literal["none", "global", "per_image", "both"] = "none"
     brightness: bool = False
@@ -288,6 +294,7 @@ class MomentumOptions(EngineOptions):
             (self.pupil_start >= 0, f"pupil_start must be ≥ 0, got {self.pupil_start}"),
             (0 < self.pupil_step <= 1, f"pupil_step must be in (0, 1], got {self.pupil_step}"),
             (0 < self.pupil_damping <= 1, f"pupil_damping must be in (0, 1], got {self.pupil_damping}"),
+            (0 <= self.pupil_momentum < 1, f"pupil_momentum must be in [0, 1), got {self.pupil_momentum}"),
             (0 < self.pupil_smoothing <= 2, f"pupil_smoothing must be in (0, 2], got {self.pupil_smoothing}"),
             (self.calibration_start >= 0, f"calibration_start must be ≥ 0, got {self.calibration_start}"),
             (self.calibration_every >= 1, f"calibration_every must be ≥ 1, got {self.calibration_every}"),

@@ -132,7 +132,8 @@ _PRESETS = {
     "simulation": ("altmin", {}),
     "led_array": ("momentum", dict(_REAL_DATA, max_iterations=300, batch_growth=2, growth_window=3,
                                    plateau_window=5, pupil_recovery="shared", pupil_model="full",
-                                   pupil_damping=1e-2, pupil_lattice="filtered", alpha=0.3)),
+                                   pupil_damping=1e-2, pupil_lattice="filtered", pupil_momentum=0.3,
+                                   alpha=0.3)),
     "camera_scan": ("momentum", dict(_REAL_DATA, pupil_recovery="per_camera", pupil_model="zernike")),
 }
 

@@ -167,12 +167,17 @@ class PupilRecovery:
         Map models: a pixel's step is its sum of corrections over the light it saw
         plus ``damping`` times the most light any pixel saw (the Tikhonov weight of
         the averaged EPRY step): the larger, the less pixels that saw little light move.
+    momentum : float
+        Map models: each step adds ``momentum`` times the running sum of the steps
+        before it (each decayed by ``momentum``), as mPIE does for its probe; the sum
+        restarts when a pass fits worse than the one before. 0: plain steps.
     """
 
     def __init__(self, layout: BandLayout, pupil_index: np.ndarray, *, model: str = "full", order: int = 4,
                  coefficients: np.ndarray | None = None, amplitude: bool = True, step: float = 1.0,
                  threads: int = 1, offsets: np.ndarray | None = None, maps: np.ndarray | None = None,
-                 tilt: str = "pupil", smoothing: float = 0.25, lattice: str = "free", damping: float = 1e-3):
+                 tilt: str = "pupil", smoothing: float = 0.25, lattice: str = "free", damping: float = 1e-3,
+                 momentum: float = 0.0):
         if model not in PUPIL_MODELS:
             raise ValueError(f"pupil model must be one of {', '.join(PUPIL_MODELS)}, got {model!r}")
         if lattice not in ("free", "filtered"):
@@ -184,6 +189,10 @@ class PupilRecovery:
         if not 0 < damping <= 1:
             raise ValueError(f"pupil damping must be in (0, 1], got {damping!r}")
         self.damping = float(damping)
+        if not 0 <= momentum < 1:
+            raise ValueError(f"pupil momentum must be in [0, 1), got {momentum!r}")
+        self.momentum = float(momentum)
+        self.velocity = None   # the decayed sum of the map's steps (momentum > 0), on the maps' normalisation
         self.order = order
         self.modes = zernike_modes(order)
         self.amplitude = amplitude
@@ -218,9 +227,12 @@ class PupilRecovery:
         """The current step fraction (halved each time a step is undone)."""
         return self._step
 
-    def restore(self, maps: np.ndarray, coefficients: np.ndarray, step_size: float) -> None:
-        """Continue from saved maps, coefficients and step size (a checkpoint); the last step cannot be undone."""
+    def restore(self, maps: np.ndarray, coefficients: np.ndarray, step_size: float,
+                velocity: np.ndarray | None = None) -> None:
+        """Continue from saved maps, coefficients, step size and momentum (a checkpoint); the last step cannot be
+        undone."""
         self.maps, self.coefficients, self._step = maps, coefficients, float(step_size)
+        self.velocity = velocity
         self._previous = None
 
     # ------------------------------------------------------------------ geometry
@@ -412,11 +424,13 @@ class PupilRecovery:
         self._den[:] = 0
         self._rhs[:] = 0
         previous = self._previous
-        if previous is not None and misfit > previous.misfit and self._periodic is None:
-            self.maps, self.coefficients = previous.maps, previous.coefficients
-            self._step *= 0.5
-            self._previous = None
-            return 1.0 / previous.scale, -previous.tilt
+        if previous is not None and misfit > previous.misfit:
+            self.velocity = None
+            if self._periodic is None:
+                self.maps, self.coefficients = previous.maps, previous.coefficients
+                self._step *= 0.5
+                self._previous = None
+                return 1.0 / previous.scale, -previous.tilt
         peak = float(denominator.max()) if denominator.size else 0.0
         if not peak > 0:
             return None
@@ -426,8 +440,27 @@ class PupilRecovery:
             scale, tilt = 1.0, np.zeros(2)
         else:
             scale, tilt = self._map_step(numerator, denominator, peak)
+            if self.momentum:
+                self._add_momentum(maps, scale, tilt, denominator > 0)
         self._previous = _Step(maps, coefficients, misfit, scale, tilt)
         return scale, tilt
+
+    def _add_momentum(self, before: np.ndarray, scale: complex, tilt: np.ndarray, seen: np.ndarray) -> None:
+        """Add the decayed sum of the steps so far to the step just made (from ``before``), where light was seen.
+
+        The step divided the maps by ``scale`` and took the ramp ``exp(-i tilt·k)`` off them; the map before
+        and the sum are put on the same footing first.
+        """
+        footing = (untilt_ramp(tilt, before.shape[-1])[None] / scale).astype(np.complex64)
+        step = np.where(seen, self.maps - before * footing, 0)
+        if self.velocity is None:
+            self.velocity = step.astype(np.complex64)
+        else:
+            self.velocity = (self.momentum * self.velocity * footing + step).astype(np.complex64)
+        maps = self.maps + np.float32(self.momentum) * self.velocity
+        if not self.amplitude:
+            maps = np.where(seen, np.exp(1j * np.angle(maps)), maps)
+        self.maps = maps.astype(np.complex64)
 
     def _smooth_maps(self, maps: np.ndarray, light: np.ndarray) -> np.ndarray:
         """Each map's phase as Zernike modes plus a smooth remainder, its amplitude 1 (or smoothed too).

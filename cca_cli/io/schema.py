@@ -124,6 +124,8 @@ DATASETS: tuple[DatasetSpec, ...] = (
                 "Checkpoint of the momentum engine: parameters of the global position model."),
     DatasetSpec("/checkpoint/pupil_maps", "complex64", "(P, b, b)", "1",
                 "Checkpoint of the momentum engine: recovered pupil maps (pupil recovery)."),
+    DatasetSpec("/checkpoint/pupil_velocity", "complex64", "(P, b, b)", "1",
+                "Checkpoint of the momentum engine: momentum of the pupil maps' steps (pupil_momentum > 0)."),
     DatasetSpec("/checkpoint/pupil_coefficients", "float64", "(P, Z)", "waves",
                 "Checkpoint of the momentum engine: recovered Zernike coefficients (pupil recovery)."),
     DatasetSpec("/multiplex/camera_centres_px", "float64", "(P, 2)", "spectrum px",

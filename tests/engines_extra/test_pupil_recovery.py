@@ -239,3 +239,66 @@ def test_capture_energies_are_each_captures_squared_amplitudes_summed_in_double_
     wanted = np.array([np.sum(a.astype(np.float64) ** 2) for a in amplitudes])
     np.testing.assert_allclose(problem.capture_energies, wanted, rtol=1e-12)
     np.testing.assert_allclose(problem.energy, wanted.sum(), rtol=1e-12)
+
+
+def _dim_over_bright(momentum, misfits, lattice="free"):
+    """Map steps that each ask for the pupil times 1.1 where the box's upper half saw a hundredth of the power:
+    the ratio of the map's mean over the dim and the bright half after each step (it falls as the map moves)."""
+    from cca_cli.engines.pupil_recovery import PupilRecovery
+    from cca_cli.optics.pupil import circular_pupils
+
+    layout = band_layout(np.zeros((1, 2)), RADIUS, hires_size=64)
+    b, m = layout.box_size, layout.lowres_size
+    disc = circular_pupils(b, layout.box_centres, RADIUS)[0]
+    y0, x0 = layout.box_origins[0]
+    spectrum = np.ones((64, 64), np.complex64)
+    spectrum[y0:y0 + b // 2] = 0.1
+    inside = circular_pupils(b, layout.box_centres, RADIUS - 2)[0] > 0.999
+    dim, bright = inside.copy(), inside.copy()
+    dim[b // 2:], bright[:b // 2 + 1] = False, False
+    recovery = PupilRecovery(layout, np.zeros(1, int), damping=1e-2, momentum=momentum, lattice=lattice)
+    ratios, velocities = [], []
+    for misfit in misfits:
+        pupil = (disc * recovery.maps[0]).astype(np.complex64)
+        fields = np.zeros((1, m, m), np.complex64)
+        s = m // 2 - b // 2
+        fields[0, s:s + b, s:s + b] = m * 0.1 * pupil * spectrum[y0:y0 + b, x0:x0 + b]
+        recovery.accumulate(0, slice(0, 1), spectrum, layout.box_origins, fields, pupil[None])
+        recovery.step(misfit=misfit)
+        ratios.append(abs(recovery.maps[0][dim].mean() / recovery.maps[0][bright].mean()))
+        velocities.append(recovery.velocity)
+    return np.array(ratios), velocities
+
+
+def test_pupil_momentum_adds_the_decayed_steps_before_and_restarts_when_a_pass_fits_worse():
+    plain, none = _dim_over_bright(0.0, [1.0, 0.9, 0.8])
+    assert all(v is None for v in none)
+    fast, velocities = _dim_over_bright(0.3, [1.0, 0.9, 0.8])
+    # The first step is (1 + η) times the plain one (to first order: the common scale comes off each), and each
+    # later one adds the steps before: the map moves further at every pass.
+    np.testing.assert_allclose((1 - fast[0]) / (1 - plain[0]), 1.3, rtol=0.05)
+    assert np.all(1 - fast > 1.2 * (1 - plain))
+    assert all(v is not None and v.dtype == np.complex64 for v in velocities)
+    # A pass that fits worse undoes the (free) map's step and forgets the momentum.
+    undone, velocities = _dim_over_bright(0.3, [1.0, 0.9, 1.5])
+    assert undone[2] == pytest.approx(fast[0], rel=1e-6) and velocities[2] is None
+    with pytest.raises(ValueError, match="pupil momentum"):
+        _dim_over_bright(1.0, [1.0])
+
+
+def test_the_pupil_momentum_survives_a_checkpoint_restore():
+    problem, _ = make_case(np.array([0.1, -0.05, 0.0]))
+    options = MomentumOptions(max_iterations=10, tol=0, pupil_recovery="shared", pupil_model="full",
+                              pupil_momentum=0.3)
+    engine = SequentialMomentum(problem, options)
+    for _ in range(4):
+        engine.update()
+    state = engine.state()
+    engine.close()
+    assert state["pupil_velocity"].shape == engine.calibrator.recovery.maps.shape
+    resumed = SequentialMomentum(problem, options)
+    resumed.restore(state)
+    assert np.array_equal(resumed.calibrator.recovery.velocity, state["pupil_velocity"])
+    resumed.close()
+    with pytest.raises(ValueError, match="pupil_momentum must be in"):
+        MomentumOptions(pupil_momentum=-0.1)

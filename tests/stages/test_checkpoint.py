@@ -94,7 +94,8 @@ def test_kill_9_mid_run_then_the_rerun_resumes_from_the_checkpoint_and_matches_a
 
 
 @pytest.mark.parametrize("options", [{}, {"pupil_recovery": "shared", "pupil_model": "full", "brightness": True,
-                                      "position_refinement": "per_image"}], ids=["plain", "calibrating"])
+                                      "position_refinement": "per_image", "pupil_momentum": 0.3}],
+                         ids=["plain", "calibrating"])
 def test_momentum_resumes_with_its_velocity_and_ends_as_well_as_an_uninterrupted_run(tiny, tmp_path, caplog, options):
     captures, section = tiny
     section = section.model_copy(update={"engine": "momentum", "iterations": 40, "tol": 0.0, "checkpoint_every": 3,
