@@ -22,22 +22,16 @@ from dataclasses import dataclass
 from types import ModuleType
 
 import numpy as np
+import scipy.fft
 
 __all__ = ["DEVICES", "GPU_INSTALL", "DeviceStatus", "DeviceUnavailable", "cupy_module", "device_status",
            "resolve_device", "array_module", "get_array_module", "to_device", "to_host", "fft2", "ifft2",
-           "PlannedFFT2", "GraphedWork", "scatter_add", "synchronize", "scipy_fft"]
+           "PlannedFFT2", "GraphedWork", "scatter_add", "synchronize"]
 
 #: What ``reconstruct.device`` (``--device``, ``device=``) takes.
 DEVICES = ("auto", "cpu", "cuda")
 #: How to get CuPy for cca.
 GPU_INSTALL = "pip install 'cca[gpu]'"
-
-
-def scipy_fft() -> ModuleType:
-    """``scipy.fft``, imported at first use (it brings ``scipy.special`` with it; FFTW runs without either)."""
-    import scipy.fft
-
-    return scipy.fft
 
 
 class DeviceUnavailable(ValueError):
@@ -173,7 +167,7 @@ def fft2(xp: ModuleType, array):
     may overwrite ``array``.
     """
     if xp is np:
-        return scipy_fft().fft2(array, norm="backward", overwrite_x=True, workers=_workers())
+        return scipy.fft.fft2(array, norm="backward", overwrite_x=True, workers=_workers())
     return _cupy_fft().fft2(array, norm="backward", overwrite_x=True)
 
 
@@ -183,7 +177,7 @@ def ifft2(xp: ModuleType, array):
     May overwrite ``array``.
     """
     if xp is np:
-        return scipy_fft().ifft2(array, norm="forward", overwrite_x=True, workers=_workers())
+        return scipy.fft.ifft2(array, norm="forward", overwrite_x=True, workers=_workers())
     return _cupy_fft().ifft2(array, norm="forward", overwrite_x=True)
 
 

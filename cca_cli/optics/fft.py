@@ -26,9 +26,9 @@ import os
 import time
 
 import numpy as np
+import scipy.fft
 
 from cca_cli.optics import fftw_plans, switches
-from cca_cli.optics.backend import scipy_fft
 from cca_cli.optics.fftw_plans import HAVE_PYFFTW, PLANNER_LOCK, RawFFTPlans, Spec, pyfftw, raw_fftw_available
 from cca_cli.optics.switches import planning_effort
 
@@ -63,7 +63,6 @@ __all__ = [
 xp = np
 
 _backend = "pyfftw" if HAVE_PYFFTW else "scipy"
-
 
 
 def check_settings() -> None:
@@ -147,26 +146,26 @@ def zeros(shape, dtype=np.complex64) -> np.ndarray:
 
 def fft2(array, *, workers: int | None = None) -> np.ndarray:
     """Plain (uncentred, unnormalised) 2-D FFT over the last two axes."""
-    return scipy_fft().fft2(array, workers=workers or default_threads())
+    return scipy.fft.fft2(array, workers=workers or default_threads())
 
 
 def ifft2(array, *, workers: int | None = None) -> np.ndarray:
     """Plain (uncentred) inverse 2-D FFT over the last two axes, normalised by 1/n."""
-    return scipy_fft().ifft2(array, workers=workers or default_threads())
+    return scipy.fft.ifft2(array, workers=workers or default_threads())
 
 
 def fft2c(array, *, workers: int | None = None) -> np.ndarray:
     """Centred orthonormal 2-D FFT over the last two axes (DC at ``n // 2``)."""
     workers = workers or default_threads()
-    shifted = scipy_fft().ifftshift(array, axes=(-2, -1))
-    return scipy_fft().fftshift(scipy_fft().fft2(shifted, norm="ortho", workers=workers), axes=(-2, -1))
+    shifted = scipy.fft.ifftshift(array, axes=(-2, -1))
+    return scipy.fft.fftshift(scipy.fft.fft2(shifted, norm="ortho", workers=workers), axes=(-2, -1))
 
 
 def ifft2c(array, *, workers: int | None = None) -> np.ndarray:
     """Centred orthonormal inverse 2-D FFT over the last two axes."""
     workers = workers or default_threads()
-    shifted = scipy_fft().ifftshift(array, axes=(-2, -1))
-    return scipy_fft().fftshift(scipy_fft().ifft2(shifted, norm="ortho", workers=workers), axes=(-2, -1))
+    shifted = scipy.fft.ifftshift(array, axes=(-2, -1))
+    return scipy.fft.fftshift(scipy.fft.ifft2(shifted, norm="ortho", workers=workers), axes=(-2, -1))
 
 
 def resize_spectrum(spectrum, shape) -> np.ndarray:
@@ -274,7 +273,7 @@ class InPlaceFFT2:
         if self.backend == "pyfftw":
             self._execute(0)
         else:
-            self.buffer[...] = scipy_fft().fft2(self.buffer, norm="backward", overwrite_x=True, workers=self.threads)
+            self.buffer[...] = scipy.fft.fft2(self.buffer, norm="backward", overwrite_x=True, workers=self.threads)
         return self.buffer
 
     def inverse(self) -> np.ndarray:
@@ -282,7 +281,7 @@ class InPlaceFFT2:
         if self.backend == "pyfftw":
             self._execute(1)
         else:
-            self.buffer[...] = scipy_fft().ifft2(self.buffer, norm="forward", overwrite_x=True, workers=self.threads)
+            self.buffer[...] = scipy.fft.ifft2(self.buffer, norm="forward", overwrite_x=True, workers=self.threads)
         return self.buffer
 
     def close(self) -> None:
@@ -401,8 +400,8 @@ class BandedFFT2:
             self._execute(count, _INVERSE_ROWS, _INVERSE_COLUMNS)
         else:
             band, whole = self.band[:count], self.buffer[:count]
-            band[...] = scipy_fft().ifft(band, axis=-1, norm="forward", workers=self.threads)
-            whole[...] = scipy_fft().ifft(whole, axis=-2, norm="forward", overwrite_x=True, workers=self.threads)
+            band[...] = scipy.fft.ifft(band, axis=-1, norm="forward", workers=self.threads)
+            whole[...] = scipy.fft.ifft(whole, axis=-2, norm="forward", overwrite_x=True, workers=self.threads)
         return self.buffer
 
     def forward(self, count: int | None = None) -> np.ndarray:
@@ -414,8 +413,8 @@ class BandedFFT2:
             self._execute(count, _FORWARD_COLUMNS, _FORWARD_ROWS)
         else:
             band, whole = self.band[:count], self.buffer[:count]
-            whole[...] = scipy_fft().fft(whole, axis=-2, norm="backward", overwrite_x=True, workers=self.threads)
-            band[...] = scipy_fft().fft(band, axis=-1, norm="backward", workers=self.threads)
+            whole[...] = scipy.fft.fft(whole, axis=-2, norm="backward", overwrite_x=True, workers=self.threads)
+            band[...] = scipy.fft.fft(band, axis=-1, norm="backward", workers=self.threads)
         return self.buffer
 
     def close(self) -> None:

@@ -83,35 +83,32 @@ __all__ = ["HAVE_PYFFTW", "PLANNER_LOCK", "STEP_SECONDS", "UPGRADE_SHARE", "SHAP
            "planning_seconds", "raw_fftw_available", "Spec", "PlanSet", "owned_plans", "release", "RawFFTPlans"]
 
 
-class _HiddenFromThread(importlib.abc.MetaPathFinder):
-    """Makes importing the given packages fail in one thread (others import them as usual)."""
+class _DaskHiddenFromThread(importlib.abc.MetaPathFinder):
+    """Makes ``import dask`` fail in one thread (others import it as usual)."""
 
-    def __init__(self, thread: int, packages: tuple[str, ...] = ("dask",)):
+    def __init__(self, thread: int):
         self.thread = thread
-        self.packages = packages
 
     def find_spec(self, name, path, target=None):
-        if threading.get_ident() == self.thread and name.split(".", 1)[0] in self.packages:
-            raise ModuleNotFoundError(f"{name.split('.', 1)[0]} is hidden while pyfftw loads ({name})", name=name)
+        if threading.get_ident() == self.thread and (name == "dask" or name.startswith("dask.")):
+            raise ModuleNotFoundError(f"dask is hidden while pyfftw loads ({name})", name=name)
         return None
 
 
 def _import_pyfftw():
     """pyfftw, or None where it is not installed.
 
-    pyfftw's package imports its optional dask and scipy interfaces whenever those are
-    installed: ``dask.array`` takes about half a second and ``scipy.fftpack`` (which loads
-    ``scipy.fft`` and ``scipy.special``) up to 0.2 s, on every ``cca`` command; cca never uses
-    those interfaces. So the importing thread cannot find the packages not loaded yet while
-    pyfftw loads (pyfftw then leaves those interfaces out); other threads, and this one
-    afterwards, import them as usual. Should pyfftw ever need them to load, it is imported again
-    with them in view.
+    pyfftw's package imports its optional dask interface whenever dask is installed, and
+    importing ``dask.array`` takes about half a second, on every ``cca`` command; cca never
+    uses that interface. So unless dask is loaded already, the importing thread cannot find
+    dask while pyfftw loads (pyfftw then leaves the interface out); other threads, and this
+    one afterwards, import dask as usual. Should pyfftw ever need dask to load, it is imported
+    again with dask in view.
     """
-    hidden = tuple(name for name in ("dask", "scipy") if name not in sys.modules)
-    if not hidden:
+    if "dask" in sys.modules:
         finder = None
     else:
-        finder = _HiddenFromThread(threading.get_ident(), hidden)
+        finder = _DaskHiddenFromThread(threading.get_ident())
         sys.meta_path.insert(0, finder)
     try:
         import pyfftw as module
