@@ -97,22 +97,28 @@ def periodic_filter(box_size: int, vectors: np.ndarray, width: float = 0.75) -> 
     steps = np.hypot(reciprocal[:, 0], reciprocal[:, 1])
     reach = int(np.ceil(np.sqrt(2) * limit / max(min(steps), 1e-9))) + 1
     bins = np.fft.fftfreq(box_size, 1.0 / box_size)
+    # Every harmonic n1·r1 + n2·r2 (but zero) within the box's band, n1 then n2 ascending.
+    orders = np.arange(-reach, reach + 1)
+    n1, n2 = (a.ravel() for a in np.meshgrid(orders, orders, indexing="ij"))
+    hy = n1 * reciprocal[0, 0] + n2 * reciprocal[1, 0]
+    hx = n1 * reciprocal[0, 1] + n2 * reciprocal[1, 1]
+    keep = ((n1 != 0) | (n2 != 0)) & (np.abs(hy) <= limit + 3 * width) & (np.abs(hx) <= limit + 3 * width)
+    hy, hx = hy[keep], hx[keep]
     # Each notch is worked out on the bins within 6 widths of its harmonic (beyond, it is 1 to 1e-7).
     half = int(np.ceil(6 * width))
-    near = np.arange(-half, half + 1) if 2 * half + 1 < box_size else None
+    if 2 * half + 1 < box_size:
+        near = np.arange(-half, half + 1)
+        rows = (np.round(hy).astype(np.int64)[:, None] + near) % box_size
+        cols = (np.round(hx).astype(np.int64)[:, None] + near) % box_size
+    else:
+        rows = cols = np.broadcast_to(np.arange(box_size), (hy.size, box_size))
+    # distance to each harmonic on the periodic frequency grid
+    dy = (bins[rows] - hy[:, None] + limit) % box_size - limit
+    dx = (bins[cols] - hx[:, None] + limit) % box_size - limit
+    notches = 1.0 - np.exp(-(dy[:, :, None] ** 2 + dx[:, None, :] ** 2) / (2.0 * width * width))
+    # Overlapping notches multiply; ``multiply.at`` applies them one after another in the order above,
+    # so the product rounds the same on every run.
     factor = np.ones((box_size, box_size))
-    for n1 in range(-reach, reach + 1):
-        for n2 in range(-reach, reach + 1):
-            if n1 == 0 and n2 == 0:
-                continue
-            hy, hx = n1 * reciprocal[0] + n2 * reciprocal[1]
-            if abs(hy) > limit + 3 * width or abs(hx) > limit + 3 * width:
-                continue
-            rows = np.arange(box_size) if near is None else (int(round(hy)) + near) % box_size
-            cols = np.arange(box_size) if near is None else (int(round(hx)) + near) % box_size
-            # distance to the harmonic on the periodic frequency grid
-            dy = (bins[rows] - hy + limit) % box_size - limit
-            dx = (bins[cols] - hx + limit) % box_size - limit
-            notch = 1.0 - np.exp(-(dy[:, None] ** 2 + dx[None, :] ** 2) / (2.0 * width * width))
-            factor[np.ix_(rows, cols)] *= notch
+    where = rows[:, :, None] * box_size + cols[:, None, :]
+    np.multiply.at(factor.reshape(-1), where.ravel(), notches.ravel())
     return factor if factor[0, 0] >= 0.99 else None
