@@ -208,18 +208,26 @@ def reconstruct_footprint(captures_path: Path, section=None) -> Footprint:
         raise InputError(f"{captures_path}: /measurements/intensity has shape {shape}, expected 3 dimensions")
     if section is not None and getattr(section, "tiles", None) is not None:
         return _tiled_footprint(captures_path, section, shape, geometry, truth)
-    _check_pupil_fits(captures_path, geometry.pupil_radius_px, shape[1:], boundary)
-    k, n = float(shape[0]), float(shape[-1])
+    grid = _check_pupil_fits(captures_path, geometry.pupil_radius_px, shape[1:], boundary, section)
+    k, h, w = (float(v) for v in shape)
+    n = float(grid)
+    scale = n / w   # a guard band widens the field: spectrum centres and pupil radius grow with it
     centres = geometry.spectrum_centres_yx_px
-    reach = float(np.max(np.abs(np.rint(centres)))) if centres.size else 0.0
-    lowres, hires, box = _grids(reach, geometry.pupil_radius_px, n)
+    reach = float(np.max(np.abs(np.rint(centres * scale)))) if centres.size else 0.0
+    lowres, hires, box = _grids(reach, geometry.pupil_radius_px * scale, n)
     threads = _engine_threads(section)
     memory = (reconstruction_memory_bytes(k, n, lowres, hires, box) + (k * n * n * _FLOAT if weighted else 0)
-              + k * n * n * _FLOAT + k * _PER_CAPTURE  # the images as read, besides the engine's own copy
+              + k * h * w * _FLOAT + k * _PER_CAPTURE  # the images as read, besides the engine's own copy
               + _thread_bytes(threads, k, hires, box))
-    disk = hires * hires * (2 * _COMPLEX + _FLOAT) + n * n * _FLOAT + float(truth[0]) * truth[1] * _COMPLEX
+    output = hires * hires * (2 * _COMPLEX + _FLOAT) + h * w * _FLOAT + float(truth[0]) * truth[1] * _COMPLEX
+    # A checkpoint (the momentum engines' spectrum, velocity and anchor) lies beside the output until it is
+    # written, and a new checkpoint beside the old one until it replaces it.
+    checkpoint = 3 * hires * hires * _COMPLEX if getattr(section, "checkpoint_every", 50) else 0.0
+    disk = max(output + checkpoint, 2 * checkpoint)
+    grid_text = f" (on a {n:.4g}² grid with its guard band)" if n != w or h != w else ""
     return Footprint("reconstruct", memory, disk,
-                     f"{k:.4g} images of {n:.4g}² px, object {hires:.4g}² px, {threads} thread{'s' * (threads != 1)}",
+                     f"{k:.4g} images of {w:.4g} x {h:.4g} px{grid_text}, object {hires:.4g}² px, "
+                     f"{threads} thread{'s' * (threads != 1)}",
                      "reconstruct fewer or smaller images (crop them, or simulate with simulate.store: band), "
                      "or use fewer threads (reconstruct.options.threads)")
 
@@ -245,20 +253,26 @@ def _thread_bytes(threads: int, k: float, hires: float, box: float) -> float:
     return threads * hires * hires * _COMPLEX + min(threads, MAX_THREADS) * k * box * box * _COMPLEX
 
 
-def _check_pupil_fits(captures_path: Path, radius: float, frame: tuple[int, int], boundary) -> None:
-    """A pupil the images cannot hold is a wrong geometry, not a memory question: say so before estimating."""
+def _check_pupil_fits(captures_path: Path, radius: float, frame: tuple[int, int], boundary, section=None) -> int:
+    """The side of the square grid the images are recovered on (with the guard band recorded or non-square
+    frames get, as :func:`~cca_cli.library.recovery.embed_region` places them).
+
+    A pupil the images cannot hold is a wrong geometry, not a memory question: say so before estimating.
+    """
     from cca_cli.sampling.region import plan_embedding
 
     h, w = frame
     boundary = boundary.decode() if isinstance(boundary, bytes) else str(boundary)
+    padding = getattr(section, "padding", None)
     grid = w
-    if (h != w or boundary == "open") and radius >= 1:
-        grid = plan_embedding((h, w), radius).size  # recorded frames get a guard band, so a wider grid
+    if (h != w or boundary == "open") and radius >= 1 and getattr(padding, "mode", "auto") != "off":
+        grid = plan_embedding((h, w), radius, guard_px=getattr(padding, "guard_px", None)).size
     try:
-        band_sizes(0.0, radius, sensor_size=grid)
+        band_sizes(0.0, radius * grid / w, sensor_size=grid)
     except ValueError as exc:
         raise InputError(f"{captures_path}: /geometry pupil_radius_px is {radius:.4g}: {exc}; the geometry does not "
                          "belong to these images (re-run the stage that wrote the file)") from None
+    return grid
 
 
 def _tiled_footprint(captures_path: Path, section, shape, geometry, truth) -> Footprint:

@@ -99,3 +99,31 @@ def test_each_engine_thread_counts_its_own_work_arrays(tiny_run_config, tmp_path
     # beyond momentum's cap only the spectrum-sized arrays grow (altmin uses every thread asked for)
     assert 0 < estimates[1000].memory_bytes - capped.memory_bytes < (1000 - MAX_THREADS) * k * box * box * 8
     assert estimates[1].detail.endswith("1 thread") and estimates[4].detail.endswith("4 threads")
+
+
+def test_recorded_frames_are_estimated_on_the_guard_banded_grid_with_the_checkpoint(tmp_path):
+    """Recorded frames are recovered on a wider grid (their guard band): the estimate is the recovery's own
+    grid, and the disk counts the checkpoint that lies beside the output (and beside its successor)."""
+    import cca_cli as cca
+    from cca_cli.config.model import ReconstructSection
+    from cca_cli.library.recovery import build_model, embed_region
+
+    geometry = cca.led_array(cca.led_grid_sines(7, pitch_m=4e-3, height_m=60e-3), wavelength_m=532e-9,
+                             numerical_aperture=0.1, pixel_pitch_object_m=1.845e-6, image_pixels=48)
+    images = cca.simulate(cca.resolution_chart(48 * 4, widths=(6, 4, 3, 2)).image, geometry, snr_db=35)
+    path = tmp_path / "raw.h5"
+    cca.save(cca.CaptureSet(images, geometry, units="counts/s", boundary="open"), path)
+    padded, region = embed_region(cca.load(path), padding="auto")
+    assert region is not None and region.size > 48
+    hires = build_model(padded.geometry, region.size).layout.hires_size
+
+    estimate = reconstruct_footprint(path, ReconstructSection())
+    assert f"object {hires}² px" in estimate.detail and f"on a {region.size}² grid" in estimate.detail
+    output = hires * hires * 20 + 48 * 48 * 4
+    checkpoint = 3 * hires * hires * 8
+    assert estimate.disk_bytes == max(output + checkpoint, 2 * checkpoint)
+    without = reconstruct_footprint(path, ReconstructSection(checkpoint_every=0))
+    assert without.disk_bytes == output
+    # padding off: the frames' own grid
+    unpadded = reconstruct_footprint(path, ReconstructSection(padding={"mode": "off"}))
+    assert "grid" not in unpadded.detail and unpadded.memory_bytes < estimate.memory_bytes
