@@ -330,6 +330,7 @@ def ingest(manifest_path: Path, *, progress: ProgressFn = silent) -> Ingested:
                                       pixel_pitch_object_m=pitch, field_width_m=w * pitch, sign=il.sign,
                                       grid_indices=plan.grid_indices)
     check_geometry(plan, geometry, (h, w))
+    notes += stray_positions(plan, geometry)
     seen: set[str] = set()
     unique_notes = [n for n in notes if not (n in seen or seen.add(n))]
     for note in unique_notes:
@@ -353,7 +354,7 @@ def check_geometry(plan: CapturePlan, geometry: CaptureGeometry, frame_shape: tu
     """
     radius = geometry.pupil_radius_px
     if plan.kind == "camera_scan":
-        optics = "optics.aperture_diameter_m, pixel_pitch_m, focal_length_m and distance_m"
+        optics = "optics.aperture_diameter_m, pixel_pitch_m, focal_length_m, distance_m and wavelength_m (all in metres)"
     else:
         optics = "illumination.numerical_aperture, pixel_pitch_object_m and wavelength_m"
     width = frame_shape[1]
@@ -372,6 +373,35 @@ def check_geometry(plan: CapturePlan, geometry: CaptureGeometry, frame_shape: tu
         raise ConfigError(f"{plan.path}: {plan.labels[far]} lies {reach[far]:.3g} spectrum px from the axis, so "
                           f"the recovery grid would be {needed:.3g} px wide (at most {MAX_GRID_PX}); "
                           f"{_position_fix(plan, optics)}")
+
+
+#: A capture whose nearest neighbour lies this many times the usual spacing away is reported (a mistyped position).
+STRAY_SPACINGS = 10.0
+
+
+def stray_positions(plan: CapturePlan, geometry: CaptureGeometry) -> list[str]:
+    """Notes on captures far from every other one (more than :data:`STRAY_SPACINGS` times the median distance
+    between neighbours): a position typed in the wrong unit or with a slipped decimal point.
+
+    Returns
+    -------
+    list of str
+        One note per such capture, naming its row and what sets its position.
+    """
+    centres = np.asarray(geometry.spectrum_centres_yx_px, np.float64)
+    if len(centres) < 4:
+        return []
+    gaps = np.hypot(*(centres[:, None, :] - centres[None, :, :]).transpose(2, 0, 1))
+    np.fill_diagonal(gaps, np.inf)
+    nearest = gaps.min(axis=1)
+    spacing = float(np.median(nearest))
+    if not spacing > 0:
+        return []
+    optics = "the optics" if plan.kind == "led_array" else "the stage readings"
+    return [f"{plan.labels[i]} lies {nearest[i] / spacing:.3g} times the usual spacing of the captures from any "
+            f"other ({nearest[i]:.4g} against {spacing:.4g} spectrum px), which widens the recovery grid to reach "
+            f"it; a mistyped position? {_position_fix(plan, optics)}"
+            for i in np.flatnonzero(nearest > STRAY_SPACINGS * spacing)]
 
 
 def _position_fix(plan: CapturePlan, optics: str) -> str:

@@ -358,3 +358,26 @@ def test_non_square_led_array_frames_are_recovered_whole(tmp_path):
         assert f["/recon/intensity"].shape == tuple(region[0, 2:])
         assert f["/recon/intensity"].shape[1] / f["/recon/intensity"].shape[0] == pytest.approx(40 / 24, rel=0.05)
         assert f["/observed/centre"].shape == (24, 40)
+
+
+@pytest.mark.parametrize("slip", [1.0, 20.0])
+def test_a_position_far_from_every_other_is_reported(tmp_path, slip):
+    """A slipped decimal point (one stage reading 20× too far out) is ingested with a note naming its row."""
+    rows = []
+    for r in range(3):
+        for c in range(3):
+            name = f"p{r}{c}.png"
+            write_image(tmp_path / name, _codes(800), bit_depth=16)
+            x, y = 0.5 * (c - 1), 0.5 * (r - 1)
+            if (r, c) == (2, 2):
+                x *= slip
+            rows.append({"path": name, "exposure_s": 0.01, "stage_x_mm": x, "stage_y_mm": y})
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump({"optics": OPTICS, "images": rows}))
+    result = _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
+    assert result.exit_code == 0, result.output
+    text = " ".join(result.output.split())
+    if slip == 1.0:
+        assert "usual spacing" not in text
+    else:
+        assert text.count("usual spacing") == 1
+        assert "p22.png" in text and "a mistyped position? check that row's stage position" in text
