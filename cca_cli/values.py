@@ -121,8 +121,40 @@ class StrictModel(BaseModel):
 
 
 def error_message(error: dict) -> str:
-    """The message of one pydantic error, without pydantic's ``Value error,`` prefix."""
-    return error["msg"].removeprefix("Value error, ")
+    """The message of one pydantic error, without pydantic's ``Value error,`` prefix.
+
+    pydantic's ``Input should be …`` reads ``must be …``; a bound on a key named for its unit (``…_m``,
+    ``…_s``, ``…_mm``) says the unit too.
+    """
+    text = error["msg"].removeprefix("Value error, ")
+    if text.startswith("Input should be "):
+        text = "must be " + text.removeprefix("Input should be ")
+        if error["type"] in _BOUNDS and error.get("loc"):
+            text += _unit_hint(str(error["loc"][-1]))
+    return text
+
+
+def shown_value(value) -> str:
+    """A value given, for a message: a number that YAML read as text (``-550e-9``) is shown as the number."""
+    if isinstance(value, str):
+        try:
+            float(value)
+        except ValueError:
+            return short(value)
+        return value.strip()
+    return short(value)
+
+
+_BOUNDS = ("greater_than", "greater_than_equal", "less_than", "less_than_equal")
+_UNITS = (("_mm", "millimetres"), ("_um", "micrometres"), ("_nm", "nanometres"), ("_m", "metres"), ("_s", "seconds"))
+
+
+def _unit_hint(name: str) -> str:
+    """`` (in metres)`` for a key named ``…_m``, and so on."""
+    for suffix, unit in _UNITS:
+        if name.endswith(suffix):
+            return f" (in {unit})"
+    return ""
 
 
 def validation_message(exc: ValidationError, *, prefix: str = "", accepted: list[str] | None = None) -> str:
@@ -140,5 +172,5 @@ def validation_message(exc: ValidationError, *, prefix: str = "", accepted: list
         choices = str(error.get("ctx", {}).get("expected", "")).replace("'", "").replace(" or ", ", ")
         return f"{key}: must be one of {choices} (got {short(error.get('input'))})"
     shown = "input" in error and not isinstance(error["input"], dict) and error["type"] != "value_error"
-    got = f" (got {short(error['input'])})" if shown else ""
+    got = f" (got {shown_value(error['input'])})" if shown else ""
     return f"{key}: {error_message(error)}{got}" if key != prefix else f"{prefix}{error_message(error)}{got}"

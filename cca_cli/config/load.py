@@ -9,7 +9,7 @@ from typing import Any
 import yaml
 from pydantic import BaseModel, ValidationError
 
-from cca_cli.config.messages import accepted_keys, error_message
+from cca_cli.config.messages import accepted_keys, error_message, shown_value
 from cca_cli.config.model import RunConfig
 from cca_cli.config.yaml_text import read_yaml_file
 from cca_cli.errors import ConfigError, short
@@ -43,7 +43,7 @@ def _describe(error: dict, source: str) -> str:
     message = error_message(error)
     if kind.startswith(("float", "int", "bool", "finite")) or kind in (
             "greater_than", "less_than", "greater_than_equal", "less_than_equal", "literal_error"):
-        return f"{source}: {key}: {message} (got {short(value)})"
+        return f"{source}: {key}: {message} (got {shown_value(value)})"
     return f"{source}: {key}: {message}"
 
 

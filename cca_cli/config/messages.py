@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from pydantic import BaseModel
 
-from cca_cli.values import error_message
+from cca_cli.values import error_message, shown_value
 
-__all__ = ["model_in", "accepted_keys", "error_message"]
+__all__ = ["model_in", "accepted_keys", "error_message", "shown_value"]
 
 
 def model_in(annotation) -> type[BaseModel] | None:

@@ -25,7 +25,7 @@ import numpy as np
 from pydantic import (BaseModel, ConfigDict, Field, PositiveFloat, PositiveInt, ValidationError, field_validator,
                       model_validator)
 
-from cca_cli.config.messages import accepted_keys, error_message
+from cca_cli.config.messages import accepted_keys, error_message, shown_value
 from cca_cli.config.yaml_text import read_text_file, read_yaml_file
 from cca_cli.errors import ConfigError, InputError, short
 
@@ -288,7 +288,7 @@ def _describe(error: dict, source: str) -> str:
         keys = ", ".join(accepted_keys(Manifest, error["loc"])) or "see the README"
         return f"{source}: {loc}: unknown key; accepted keys here: {keys}"
     value = error.get("input")
-    suffix = f" (got {short(value)})" if not isinstance(value, dict) else ""
+    suffix = f" (got {shown_value(value)})" if not isinstance(value, dict) else ""
     return f"{source}: {loc}: {error_message(error)}{suffix}"
 
 

@@ -381,3 +381,12 @@ def test_a_position_far_from_every_other_is_reported(tmp_path, slip):
     else:
         assert text.count("usual spacing") == 1
         assert "p22.png" in text and "a mistyped position? check that row's stage position" in text
+
+
+def test_a_negative_wavelength_is_named_with_its_unit(tmp_path):
+    """YAML reads ``-550e-9`` (no decimal point) as text: the message shows the number and the unit the key is in."""
+    write_image(tmp_path / "a.png", np.full((16, 16), 100, np.uint16), bit_depth=16)
+    (tmp_path / "lab.yaml").write_text("optics: {wavelength_m: -550e-9, focal_length_m: 0.05, aperture_diameter_m: "
+                                       "1.5e-3, pixel_pitch_m: 2.5e-6, distance_m: 5.0}\n"
+                                       "images: [{path: a.png, exposure_s: 0.01, stage_x_mm: 0, stage_y_mm: 0}]\n")
+    _refused(tmp_path, "lab.yaml", "optics.wavelength_m: must be greater than 0 (in metres) (got -550e-9)")

@@ -88,6 +88,10 @@ def test_scientific_notation_without_a_dot_is_a_float(tmp_path):
     assert isinstance(config.optics.wavelength_m, float)
     assert config.optics.wavelength_m == pytest.approx(550e-9)
     assert config.optics.aperture_diameter_m == pytest.approx(18e-3)
+    path.write_text("optics:\n  wavelength_m: -550e-9\n")
+    with pytest.raises(ConfigError) as excinfo:
+        load_config(path)
+    assert str(excinfo.value).endswith("optics.wavelength_m: must be greater than 0 (in metres) (got -550e-9)")
 
 
 def test_configs_headline_equals_the_builtin_preset():
