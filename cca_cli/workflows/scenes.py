@@ -99,7 +99,7 @@ def _base_scene(section: SceneSection, grid_size: int) -> Scene:
         try:
             chart = resolution_chart(section.size_px, widths=widths) if widths else resolution_chart(section.size_px)
         except ValueError as exc:
-            raise ConfigError(f"scene: {exc}") from None
+            raise ConfigError(_scene_message(exc, size="scene.size_px", widths="scene.widths_px")) from None
         amplitude = _resample_amplitude(np.asarray(chart.image, np.float32), grid_size)
         bars = chart.groups if grid_size == chart.size else chart_groups_for_grid(chart, grid_size)
         return Scene(field=amplitude.astype(np.complex64), bars=tuple(bars))
@@ -111,7 +111,7 @@ def _base_scene(section: SceneSection, grid_size: int) -> Scene:
             groups = tuple(section.usaf_groups) if section.usaf_groups else (-2, -1, 0, 1, 2, 3)
             chart = usaf1951_chart(section.size_px, pixel_pitch_m=pitch, groups=groups)
         except ValueError as exc:
-            raise ConfigError(f"scene: {exc}") from None
+            raise ConfigError(_scene_message(exc, size="scene.size_px", groups="scene.usaf_groups")) from None
         amplitude = _resample_amplitude(np.asarray(chart.image, np.float32), grid_size)
         return Scene(field=amplitude.astype(np.complex64), usaf=tuple(chart.elements), usaf_size=chart.size)
     if section.kind in ("fingerprint", "face", "label"):
@@ -210,6 +210,17 @@ def _synthetic_scene(section: SceneSection, grid_size: int) -> Scene:
         bars = shifted if grid_size == n else chart_groups_for_grid(full, grid_size)
     amplitude = np.clip(_resample_amplitude(image, grid_size), 0, None)
     return Scene(field=amplitude.astype(np.complex64), bars=tuple(bars))
+
+
+def _scene_message(exc: ValueError, **keys: str) -> str:
+    """A chart maker's message in the config's words: its argument names (``size``) become the keys
+    (``scene.size_px``) that set them."""
+    import re
+
+    text = str(exc)
+    for name, key in keys.items():
+        text = re.sub(rf"\b{name}\b", key, text)
+    return text if text.startswith("scene") else f"scene: {text}"
 
 
 def _shift(box, offset: int):

@@ -186,3 +186,16 @@ def test_usaf_chart_errors():
         usaf1951_chart(256, pixel_pitch_m=1e-2)  # every bar < 1 px (widest 0.2 px)
     with pytest.raises(ValueError, match="size"):
         usaf1951_chart(16, pixel_pitch_m=10e-6, groups=(0,))  # 50 px bars in 16 px
+
+
+def test_a_chart_that_does_not_fit_names_the_config_keys():
+    """The config's words, not the chart maker's: ``scene.size_px`` and ``scene.widths_px``."""
+    from cca_cli.config.model import SceneSection
+    from cca_cli.errors import ConfigError
+    from cca_cli.workflows.scenes import build_scene
+
+    with pytest.raises(ConfigError) as caught:
+        build_scene(SceneSection(size_px=64, widths_px=[12, 10, 8]), 64)
+    message = str(caught.value)
+    assert message.startswith("scene.size_px: a chart with scene.widths_px [12, 10, 8]")
+    assert message.endswith("use a larger scene.size_px or fewer/smaller scene.widths_px")
