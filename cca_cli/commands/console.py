@@ -149,11 +149,19 @@ def length_text(metres: float) -> str:
     return f"{metres:.3g} m"
 
 
-def stop_note(stopped_by: str | None, iterations: int | None, change: float | None, tol: float | None) -> str | None:
-    """One line warning that the iteration cap ended a reconstruction before ``tol`` (None otherwise)."""
+def stop_note(stopped_by: str | None, iterations: int | None, change: float | None, tol: float | None,
+              plateau: float | None = None, plateau_window: int | None = None) -> str | None:
+    """One line warning that the iteration cap ended a reconstruction before its stopping rules did (None otherwise).
+
+    A run that also stops on a misfit plateau (``plateau`` > 0) was still improving by more than that.
+    """
     if stopped_by != "cap":
         return None
     reached = f" (last change {change:.3g} > tol {tol:.3g})" if change is not None and tol is not None else ""
+    if plateau:
+        window = f" over {plateau_window} iterations" if plateau_window else ""
+        return (f"reconstruct stopped at the iteration cap ({iterations}) while the misfit was still falling by "
+                f"more than {100 * plateau:.3g}%{window}; raise reconstruct.iterations (--iterations) to go on")
     return (f"reconstruct stopped at the iteration cap ({iterations}) before the change reached "
             f"tol{reached}; raise reconstruct.iterations (--iterations) to go on")
 
@@ -167,7 +175,8 @@ def recovery_stop_note(recovery) -> str | None:
     """:func:`stop_note` of a stage's :class:`~cca_cli.stages.reconstruct.Recovery`."""
     records = recovery.history.records
     return stop_note(getattr(recovery, "stopped_by", None), recovery.history.iterations,
-                     records[-1].change if records else None, recovery.options.get("tol"))
+                     records[-1].change if records else None, recovery.options.get("tol"),
+                     recovery.options.get("plateau"), recovery.options.get("plateau_window"))
 
 
 def summary_table(summary: dict, title: str = "Result") -> Table:
@@ -204,7 +213,8 @@ def summary_table(summary: dict, title: str = "Result") -> Table:
         ("spectral energy beyond 1-camera cutoff, observed", "energy_beyond_cutoff_observed", "{:.2%}"),
         ("spectral energy beyond 1-camera cutoff, recovered", "energy_beyond_cutoff_recovered", "{:.2%}"),
         ("registration RMS max (px)", "registration_rms_px_max", "{:.3f}"),
-        ("registration error over the object, max (px)", "registration_object_rms_px_max", "{:.3f}"),
+        ("registration error over the object, RMS, worst view (px)", "registration_object_rms_px_max", "{:.3f}"),
+        ("registration error over the object, max (px)", "registration_object_max_px", "{:.3f}"),
         ("HDR flux ratio, worst view", "hdr_flux_ratio_worst", "{:.3f}"),
         ("HDR dynamic-range gain (median)", "hdr_dynamic_range_gain_median", "{:.1f}"),
         ("data residual, all images", "residual_all", "{:.4f}"),

@@ -82,7 +82,13 @@ def test_registration_error_in_the_object_region(lab_run):
     out, _ = lab_run
     report = json.loads((out / "report" / "report.json").read_text())
     assert report["registration_object_rms_px_max"] <= 0.15
+    assert report["registration_object_max_px"] >= report["registration_object_rms_px_max"]
     assert report["registration_object_in_board_hull"] == 1.0
+    from cca_cli.commands.console import summary_table
+
+    labels = list(summary_table(report).columns[0].cells)
+    assert "registration error over the object, RMS, worst view (px)" in labels
+    assert "registration error over the object, max (px)" in labels
     with h5py.File(out / "registered.h5") as f:
         estimated = f["/registration/homography"][()]
         reported = f["/registration/object_rms_px"][()]

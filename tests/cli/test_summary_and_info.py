@@ -104,3 +104,13 @@ def test_summary_table_shows_usaf_baselines_and_speckle():
                    "speckle contrast passive incoherent │ 0.330", "stopped by │ tol",
                    "spot size at object │ 927 µm"):
         assert needle in text, (needle, text)
+
+
+def test_a_run_that_also_stops_on_a_plateau_is_told_so_at_the_cap():
+    """The recorded-data presets stop on a misfit plateau; their cap note speaks of it, not of a tol never set."""
+    from cca_cli.commands.console import stop_note
+
+    note = stop_note("cap", 150, 0.00143, 1e-7, 0.02, 5)
+    assert note == ("reconstruct stopped at the iteration cap (150) while the misfit was still falling by more than "
+                    "2% over 5 iterations; raise reconstruct.iterations (--iterations) to go on")
+    assert "tol" in stop_note("cap", 150, 0.00143, 1e-7) and stop_note("plateau", 40, 0.01, 1e-7, 0.02, 5) is None
