@@ -92,7 +92,8 @@ def handle_errors(func):
             print_error(" ".join(str(exc).split()))
             raise typer.Exit(exc.exit_code) from None
         except KeyboardInterrupt:
-            err_console.print(styled("interrupted:", "bold red", "no partial output was kept; re-run to resume"),
+            err_console.print(styled("interrupted:", "bold red", "no partial output was kept; run the command again to go "
+                                     "on from the stages it finished and its last checkpoint, if it wrote one"),
                               highlight=False, soft_wrap=True)
             raise typer.Exit(130) from None
         except MemoryError:
