@@ -372,7 +372,18 @@ class SequentialMomentum(MomentumBase):
         if self.options.restart and misfit > self._previous_misfit:
             self._velocity[:] = 0
             eta = 0.0
-        change, norm = kernels.momentum_step(self._spectrum, self._anchor, self._velocity, eta)
+        # Each thread steps its own band of rows (the step is per pixel); the sums add in thread order.
+        bands = np.array_split(np.arange(self._spectrum.shape[0]), self.passes.threads)
+        sums = [(0.0, 0.0)] * len(bands)
+
+        def band_step(t: int) -> None:
+            if not len(bands[t]):
+                return
+            rows = slice(int(bands[t][0]), int(bands[t][-1]) + 1)
+            sums[t] = kernels.momentum_step(self._spectrum[rows], self._anchor[rows], self._velocity[rows], eta)
+
+        self.passes.on_every_thread(band_step)
+        change, norm = (sum(parts) for parts in zip(*sums))
         return float(np.sqrt(change / max(norm, 1e-30)))
 
     def _calibrate(self) -> None:

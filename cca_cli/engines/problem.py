@@ -91,8 +91,8 @@ class PhaseRetrievalProblem(MeasuredAmplitudes):
         return np.unique(np.asarray(self.pupil_index), return_inverse=True)[1].astype(np.int64).ravel()
 
     @classmethod
-    def from_sensor_images(cls, model: ForwardModel, images: np.ndarray, weights: np.ndarray | None = None,
-                           **calibration) -> "PhaseRetrievalProblem":
+    def from_sensor_images(cls, model: ForwardModel, images: np.ndarray, weights: np.ndarray | None = None, *,
+                           threads: int = 1, **calibration) -> "PhaseRetrievalProblem":
         """Prepare captures recorded on the sensor grid.
 
         Parameters
@@ -105,10 +105,13 @@ class PhaseRetrievalProblem(MeasuredAmplitudes):
             are clipped to 0.
         weights : ndarray, (K, N, N), optional
             Validity weights in [0, 1] on the same grid (resampled by area when N > m).
+        threads : int
+            Threads that resample the weights (the same result for any count).
         **calibration
             ``pupil_index``, ``position_model``, ``aberration``, ``initial_pupil`` (see the class).
         """
-        amplitudes, resampled_weights = sensor_amplitudes(model, images, weights, count=model.n_images)
+        amplitudes, resampled_weights = sensor_amplitudes(model, images, weights, count=model.n_images,
+                                                          threads=threads)
         return cls(model=model, amplitudes=amplitudes, weights=resampled_weights, **calibration)
 
     def sensor_intensities(self) -> np.ndarray:
@@ -117,7 +120,7 @@ class PhaseRetrievalProblem(MeasuredAmplitudes):
 
 
 def sensor_amplitudes(model: ForwardModel, images: np.ndarray, weights: np.ndarray | None = None, *,
-                      count: int | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+                      count: int | None = None, threads: int = 1) -> tuple[np.ndarray, np.ndarray | None]:
     """Sensor images (and weights) → amplitudes ``√I`` in model units and field layout on the m grid.
 
     Parameters
@@ -131,6 +134,8 @@ def sensor_amplitudes(model: ForwardModel, images: np.ndarray, weights: np.ndarr
         Validity weights in [0, 1], resampled by area when ``N > m``.
     count : int, optional
         Required number of images k.
+    threads : int
+        Threads that resample the weights, a contiguous share of the images each (the same result for any count).
 
     Returns
     -------
@@ -154,19 +159,36 @@ def sensor_amplitudes(model: ForwardModel, images: np.ndarray, weights: np.ndarr
         amplitudes[start:start + block_size] = to_model_layout(np.sqrt(block * scale))
     resampled_weights = None
     if weights is not None:
-        resampled_weights = to_model_layout(_area_resample(np.asarray(weights, np.float32), m))
+        resampled_weights = to_model_layout(_area_resample(np.asarray(weights, np.float32), m, threads))
     return amplitudes, resampled_weights
 
 
-def _area_resample(weights: np.ndarray, size: int) -> np.ndarray:
+def _area_resample(weights: np.ndarray, size: int, threads: int = 1) -> np.ndarray:
     n = weights.shape[-1]
     if n == size:
         return np.clip(weights, 0, 1)
+    from concurrent.futures import ThreadPoolExecutor
+
     from scipy import ndimage
 
     factor = size / n
-    out = np.stack([ndimage.zoom(w, factor, order=1, grid_mode=True, mode="nearest") for w in weights])
-    return np.clip(out[:, :size, :size], 0, 1).astype(np.float32)
+    out = np.empty((len(weights), size, size), np.float32)
+
+    def share(images: np.ndarray) -> None:   # scipy.ndimage lets go of the GIL: shares run side by side
+        for i in images:
+            out[i] = np.clip(ndimage.zoom(weights[i], factor, order=1, grid_mode=True, mode="nearest")[:size, :size],
+                             0, 1)
+
+    shares = np.array_split(np.arange(len(weights)), max(1, min(int(threads), len(weights))))
+    if len(shares) == 1:
+        share(shares[0])
+    else:
+        with ThreadPoolExecutor(len(shares) - 1) as pool:
+            futures = [pool.submit(share, part) for part in shares[1:]]
+            share(shares[0])
+            for future in futures:
+                future.result()
+    return out
 
 
 def initial_spectrum(problem: PhaseRetrievalProblem) -> np.ndarray:

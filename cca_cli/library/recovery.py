@@ -364,7 +364,9 @@ def recover(captures: CaptureSet, engine: str, options: EngineOptions, *, progre
     calibration = problem_calibration(captures.geometry, model.layout, captures.initial_pupil)
     if aberration is not None:
         calibration["aberration"] = np.asarray(aberration, np.float64)
-    problem = PhaseRetrievalProblem.from_sensor_images(model, captures.intensity, captures.weight, **calibration)
+    problem = PhaseRetrievalProblem.from_sensor_images(model, captures.intensity, captures.weight,
+                                                       threads=getattr(options, "threads", None) or fft.default_threads(),
+                                                       **calibration)
     start = None
     if init is not None:
         start = np.asarray(init, np.complex64)

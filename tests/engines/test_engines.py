@@ -103,6 +103,24 @@ def test_threads_and_chunks_do_not_change_the_result(captures):
     np.testing.assert_allclose(a, b, atol=1e-4 * np.max(np.abs(a)))
 
 
+def test_weights_resampled_on_any_number_of_threads_are_the_same(captures):
+    """Sensor-grid weights (a guard band, a few dead pixels per image) resampled to the model grid by area: the
+    same values, bit for bit, on one thread or several, within [0, 1], a band of zeros kept zero."""
+    model, _, _, _, sensor = captures
+    rng = np.random.default_rng(3)
+    weights = np.ones(sensor.shape, np.float32)
+    weights[:, :8], weights[:, -8:] = 0, 0
+    weights[rng.random(sensor.shape) < 0.01] = 0
+    one = PhaseRetrievalProblem.from_sensor_images(model, sensor, weights, threads=1).weights
+    for threads in (2, 3, 64):
+        assert np.array_equal(PhaseRetrievalProblem.from_sensor_images(model, sensor, weights, threads=threads).weights,
+                              one)
+    m = model.layout.lowres_size
+    assert one.shape == (len(sensor), m, m) and one.dtype == np.float32 and 0 <= one.min() and one.max() <= 1
+    centred = np.fft.fftshift(one, axes=(-2, -1))    # back to the sensor's layout
+    assert np.all(centred[:, :2] == 0) and centred[:, m // 2].mean() > 0.9
+
+
 def test_weights_of_zero_leave_fields_untouched():
     rng = np.random.default_rng(0)
     fields = (rng.standard_normal((2, 8, 8)) + 1j * rng.standard_normal((2, 8, 8))).astype(np.complex64)
