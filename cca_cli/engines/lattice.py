@@ -69,6 +69,20 @@ def capture_lattice(centres_px: np.ndarray, tolerance: float = 0.1) -> np.ndarra
     return vectors if misfit <= tolerance * shortest else None
 
 
+def _harmonics_in_band(reciprocal: np.ndarray, reach: int, bound: float) -> tuple[np.ndarray, np.ndarray]:
+    """Every harmonic ``n1·r1 + n2·r2`` (but zero) with both coordinates within ``bound`` bins, ``|n| ≤ reach``,
+    ordered by n1 then n2; built a row of n1 at a time (a coarse lattice has a great many candidates)."""
+    orders = np.arange(-reach, reach + 1)
+    found_y, found_x = [], []
+    for n1 in orders:
+        hy = n1 * reciprocal[0, 0] + orders * reciprocal[1, 0]
+        hx = n1 * reciprocal[0, 1] + orders * reciprocal[1, 1]
+        keep = ((n1 != 0) | (orders != 0)) & (np.abs(hy) <= bound) & (np.abs(hx) <= bound)
+        found_y.append(hy[keep])
+        found_x.append(hx[keep])
+    return np.concatenate(found_y), np.concatenate(found_x)
+
+
 def periodic_filter(box_size: int, vectors: np.ndarray, width: float = 0.75) -> np.ndarray | None:
     """A factor on the ``fft2`` of a (box_size, box_size) map that removes patterns periodic on a lattice.
 
@@ -97,28 +111,38 @@ def periodic_filter(box_size: int, vectors: np.ndarray, width: float = 0.75) -> 
     steps = np.hypot(reciprocal[:, 0], reciprocal[:, 1])
     reach = int(np.ceil(np.sqrt(2) * limit / max(min(steps), 1e-9))) + 1
     bins = np.fft.fftfreq(box_size, 1.0 / box_size)
-    # Every harmonic n1·r1 + n2·r2 (but zero) within the box's band, n1 then n2 ascending.
-    orders = np.arange(-reach, reach + 1)
-    n1, n2 = (a.ravel() for a in np.meshgrid(orders, orders, indexing="ij"))
-    hy = n1 * reciprocal[0, 0] + n2 * reciprocal[1, 0]
-    hx = n1 * reciprocal[0, 1] + n2 * reciprocal[1, 1]
-    keep = ((n1 != 0) | (n2 != 0)) & (np.abs(hy) <= limit + 3 * width) & (np.abs(hx) <= limit + 3 * width)
-    hy, hx = hy[keep], hx[keep]
+    hy, hx = _harmonics_in_band(reciprocal, reach, limit + 3 * width)
     # Each notch is worked out on the bins within 6 widths of its harmonic (beyond, it is 1 to 1e-7).
     half = int(np.ceil(6 * width))
-    if 2 * half + 1 < box_size:
-        near = np.arange(-half, half + 1)
-        rows = (np.round(hy).astype(np.int64)[:, None] + near) % box_size
-        cols = (np.round(hx).astype(np.int64)[:, None] + near) % box_size
+    near = np.arange(-half, half + 1) if 2 * half + 1 < box_size else None
+
+    def notches(hy: np.ndarray, hx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Flat indices into the factor and the notch values there, harmonic by harmonic."""
+        if near is None:
+            rows = cols = np.broadcast_to(np.arange(box_size), (hy.size, box_size))
+        else:
+            rows = (np.round(hy).astype(np.int64)[:, None] + near) % box_size
+            cols = (np.round(hx).astype(np.int64)[:, None] + near) % box_size
+        dy = (bins[rows] - hy[:, None] + limit) % box_size - limit   # distance on the periodic frequency grid
+        dx = (bins[cols] - hx[:, None] + limit) % box_size - limit
+        values = 1.0 - np.exp(-(dy[:, :, None] ** 2 + dx[:, None, :] ** 2) / (2.0 * width * width))
+        return (rows[:, :, None] * box_size + cols[:, None, :]).ravel(), values.ravel()
+
+    # Overlapping notches multiply; ``multiply.at`` applies them one after another in the order of the
+    # harmonics, so the product rounds the same on every run. Zero frequency first: harmonics that crowd it
+    # (pupils that barely overlap, whose lattice may have a great many harmonics) end it there.
+    if near is None:
+        at_zero = np.ones(hy.size, bool)
     else:
-        rows = cols = np.broadcast_to(np.arange(box_size), (hy.size, box_size))
-    # distance to each harmonic on the periodic frequency grid
-    dy = (bins[rows] - hy[:, None] + limit) % box_size - limit
-    dx = (bins[cols] - hx[:, None] + limit) % box_size - limit
-    notches = 1.0 - np.exp(-(dy[:, :, None] ** 2 + dx[:, None, :] ** 2) / (2.0 * width * width))
-    # Overlapping notches multiply; ``multiply.at`` applies them one after another in the order above,
-    # so the product rounds the same on every run.
+        at_zero = (np.abs(np.round(hy)) <= half) & (np.abs(np.round(hx)) <= half)
+    where, values = notches(hy[at_zero], hx[at_zero])
+    zero = np.ones(1)
+    np.multiply.at(zero, np.zeros(np.count_nonzero(where == 0), np.int64), values[where == 0])
+    if not zero[0] >= 0.99:
+        return None
     factor = np.ones((box_size, box_size))
-    where = rows[:, :, None] * box_size + cols[:, None, :]
-    np.multiply.at(factor.reshape(-1), where.ravel(), notches.ravel())
+    chunk = max(1, 2 ** 20 // (box_size if near is None else near.size) ** 2)   # bounded work arrays
+    for start in range(0, hy.size, chunk):
+        where, values = notches(hy[start:start + chunk], hx[start:start + chunk])
+        np.multiply.at(factor.reshape(-1), where, values)
     return factor if factor[0, 0] >= 0.99 else None
