@@ -375,33 +375,50 @@ def check_geometry(plan: CapturePlan, geometry: CaptureGeometry, frame_shape: tu
                           f"{_position_fix(plan, optics)}")
 
 
-#: A capture whose nearest neighbour lies this many times the usual spacing away is reported (a mistyped position).
+#: A capture is reported when its nearest neighbour lies this many times the usual spacing away and it reaches
+#: that much beyond every other capture (a mistyped position).
 STRAY_SPACINGS = 10.0
 
 
 def stray_positions(plan: CapturePlan, geometry: CaptureGeometry) -> list[str]:
-    """Notes on captures far from every other one (more than :data:`STRAY_SPACINGS` times the median distance
-    between neighbours): a position typed in the wrong unit or with a slipped decimal point.
+    """Notes on captures that lie apart from every other one and widen the recovery grid to reach them.
+
+    A capture is stray when its nearest neighbour is more than :data:`STRAY_SPACINGS` times the median
+    distance between neighbours away and it lies that much farther from the axis than every capture that is
+    not (a position typed in the wrong unit, or with a slipped decimal point). A centre LED inside a ring, or
+    a ring of sparse dark-field LEDs around a dense grid, are not.
 
     Returns
     -------
     list of str
-        One note per such capture, naming its row and what sets its position.
+        One note per such capture, naming its row and what to check there.
     """
+    from scipy.spatial import cKDTree
+
     centres = np.asarray(geometry.spectrum_centres_yx_px, np.float64)
     if len(centres) < 4:
         return []
-    gaps = np.hypot(*(centres[:, None, :] - centres[None, :, :]).transpose(2, 0, 1))
-    np.fill_diagonal(gaps, np.inf)
-    nearest = gaps.min(axis=1)
+    nearest = cKDTree(centres).query(centres, k=2)[0][:, 1]
     spacing = float(np.median(nearest))
     if not spacing > 0:
         return []
-    optics = "the optics" if plan.kind == "led_array" else "the stage readings"
+    apart = nearest > STRAY_SPACINGS * spacing
+    if apart.all():
+        return []
+    reach = np.max(np.abs(centres), axis=1)
+    beyond = apart & (reach > reach[~apart].max() + STRAY_SPACINGS * spacing)
+    if beyond.sum() > 2:   # more than a slip or two: a layout (sparse outer LEDs), not a typo
+        return []
+    if plan.kind == "led_array":
+        fix = "check that row's kx_norm/ky_norm"
+    elif all(e.position_kind == "grid" for e in plan.manifest.images if e.kind == "coherent"):
+        fix = "check that row's grid: [row, col]"
+    else:
+        fix = "check that row's stage position (stage_x_mm/stage_y_mm, or a table's columns and units.position)"
     return [f"{plan.labels[i]} lies {nearest[i] / spacing:.3g} times the usual spacing of the captures from any "
-            f"other ({nearest[i]:.4g} against {spacing:.4g} spectrum px), which widens the recovery grid to reach "
-            f"it; a mistyped position? {_position_fix(plan, optics)}"
-            for i in np.flatnonzero(nearest > STRAY_SPACINGS * spacing)]
+            f"other ({nearest[i]:.4g} against {spacing:.4g} spectrum px) and widens the recovery grid to reach "
+            f"it; a mistyped position? {fix}"
+            for i in np.flatnonzero(beyond)]
 
 
 def _position_fix(plan: CapturePlan, optics: str) -> str:

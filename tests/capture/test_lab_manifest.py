@@ -390,3 +390,28 @@ def test_a_negative_wavelength_is_named_with_its_unit(tmp_path):
                                        "1.5e-3, pixel_pitch_m: 2.5e-6, distance_m: 5.0}\n"
                                        "images: [{path: a.png, exposure_s: 0.01, stage_x_mm: 0, stage_y_mm: 0}]\n")
     _refused(tmp_path, "lab.yaml", "optics.wavelength_m: must be greater than 0 (in metres) (got -550e-9)")
+
+
+def test_designed_layouts_are_not_reported_as_stray():
+    """A centre LED inside a ring, sparse outer LEDs around a dense grid, repeated positions: no note; a slipped
+    LED row is named with the columns to check."""
+    from types import SimpleNamespace
+
+    from cca_cli.stages.ingest import stray_positions
+
+    def notes(centres, kind="led_array"):
+        plan = SimpleNamespace(kind=kind, labels=[f"row {i}" for i in range(len(centres))],
+                               manifest=SimpleNamespace(images=[]))
+        return stray_positions(plan, SimpleNamespace(spectrum_centres_yx_px=np.asarray(centres, float)))
+
+    angles = np.linspace(0, 2 * np.pi, 100, endpoint=False)
+    ring = 100 * np.stack([np.sin(angles), np.cos(angles)], axis=1)
+    assert notes(np.vstack([[0, 0], ring])) == []
+    yy, xx = np.mgrid[-7:8, -7:8]
+    dense = 5.0 * np.stack([yy.ravel(), xx.ravel()], axis=1)
+    assert notes(np.vstack([dense, [[0, 120], [0, -120], [120, 0], [-120, 0]]])) == []
+    assert notes(np.vstack([dense, dense])) == []
+    slipped = dense.copy()
+    slipped[3] *= 30
+    found = notes(slipped)
+    assert len(found) == 1 and found[0].startswith("row 3 lies") and found[0].endswith("check that row's kx_norm/ky_norm")
