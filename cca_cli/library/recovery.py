@@ -239,7 +239,7 @@ def embed_region(captures: CaptureSet, *, padding: str = "auto", guard_px: int |
     if padding == "off" or (captures.boundary != "open" and h == w):
         if h != w:
             why = "with padding off" if captures.boundary == "open" else "simulated (periodic) captures"
-            raise ValueError(f"the images are {w}x{h} px; {why} must be square (crop them, e.g. register.crop_xywh)")
+            raise ValueError(f"the images are {w}x{h} px; {why} must be square (crop them, e.g. registration.crop_xywh)")
         return captures, None
     region = plan_embedding((h, w), captures.geometry.pupil_radius_px, guard_px=guard_px, apodize_px=apodize_px)
     images, weights = region.embed(captures.intensity, captures.weight)

@@ -224,7 +224,7 @@ def reconstruct_footprint(captures_path: Path, section=None) -> Footprint:
     # written, and a new checkpoint beside the old one until it replaces it.
     checkpoint = 3 * hires * hires * _COMPLEX if getattr(section, "checkpoint_every", 50) else 0.0
     disk = max(output + checkpoint, 2 * checkpoint)
-    grid_text = f" (on a {n:.4g}² grid with its guard band)" if n != w or h != w else ""
+    grid_text = f" (recovered on a {n:.4g}² grid)" if n != w or h != w else ""
     return Footprint("reconstruct", memory, disk,
                      f"{k:.4g} images of {w:.4g} x {h:.4g} px{grid_text}, object {hires:.4g}² px, "
                      f"{threads} thread{'s' * (threads != 1)}",
@@ -264,14 +264,20 @@ def _check_pupil_fits(captures_path: Path, radius: float, frame: tuple[int, int]
     h, w = frame
     boundary = boundary.decode() if isinstance(boundary, bytes) else str(boundary)
     padding = getattr(section, "padding", None)
+    padded = getattr(padding, "mode", "auto") != "off"
+    if h != w and not padded:
+        raise InputError(f"{captures_path}: the images are {w}x{h} px; with reconstruct.padding.mode off they must "
+                         "be square (crop them, e.g. registration.crop_xywh, or pad them: mode auto)")
     grid = w
-    if (h != w or boundary == "open") and radius >= 1 and getattr(padding, "mode", "auto") != "off":
+    if (h != w or boundary == "open") and radius >= 1 and padded:
         grid = plan_embedding((h, w), radius, guard_px=getattr(padding, "guard_px", None)).size
     try:
         band_sizes(0.0, radius * grid / w, sensor_size=grid)
     except ValueError as exc:
-        raise InputError(f"{captures_path}: /geometry pupil_radius_px is {radius:.4g}: {exc}; the geometry does not "
-                         "belong to these images (re-run the stage that wrote the file)") from None
+        where = f" ({radius * grid / w:.4g} px on the {grid}-px grid they are recovered on)" if grid != w else ""
+        raise InputError(f"{captures_path}: /geometry pupil_radius_px is {radius:.4g} on the {w}-px images{where}: "
+                         f"{exc}; the geometry does not belong to these images (re-run the stage that wrote the file)"
+                         ) from None
     return grid
 
 

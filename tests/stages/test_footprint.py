@@ -118,7 +118,7 @@ def test_recorded_frames_are_estimated_on_the_guard_banded_grid_with_the_checkpo
     hires = build_model(padded.geometry, region.size).layout.hires_size
 
     estimate = reconstruct_footprint(path, ReconstructSection())
-    assert f"object {hires}² px" in estimate.detail and f"on a {region.size}² grid" in estimate.detail
+    assert f"object {hires}² px" in estimate.detail and f"recovered on a {region.size}² grid" in estimate.detail
     output = hires * hires * 20 + 48 * 48 * 4
     checkpoint = 3 * hires * hires * 8
     assert estimate.disk_bytes == max(output + checkpoint, 2 * checkpoint)
