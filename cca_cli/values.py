@@ -127,6 +127,8 @@ def error_message(error: dict) -> str:
     ``…_s``, ``…_mm``) says the unit too.
     """
     text = error["msg"].removeprefix("Value error, ")
+    if error["type"] in _PLAIN:
+        return _PLAIN[error["type"]]
     if text.startswith("Input should be "):
         text = "must be " + text.removeprefix("Input should be ")
         if error["type"] in _BOUNDS and error.get("loc"):
@@ -138,11 +140,16 @@ def shown_value(value) -> str:
     """A value given, for a message: a number that YAML read as text (``-550e-9``) is shown as the number."""
     if isinstance(value, str):
         try:
-            float(value)
+            number = float(value)
         except ValueError:
             return short(value)
-        return value.strip()
+        return value.strip() if math.isfinite(number) else short(value)
     return short(value)
+
+
+#: pydantic's messages for a number that is not one, in the project's words.
+_PLAIN = {"int_from_float": "must be a whole number", "int_parsing": "must be a whole number",
+          "float_parsing": "must be a number"}
 
 
 _BOUNDS = ("greater_than", "greater_than_equal", "less_than", "less_than_equal")

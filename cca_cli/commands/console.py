@@ -92,8 +92,8 @@ def handle_errors(func):
             print_error(" ".join(str(exc).split()))
             raise typer.Exit(exc.exit_code) from None
         except KeyboardInterrupt:
-            err_console.print(styled("interrupted:", "bold red", "no partial output was kept; run the command again to go "
-                                     "on from the stages it finished and its last checkpoint, if it wrote one"),
+            err_console.print(styled("interrupted:", "bold red", "every output is whole or absent (a reconstruction "
+                                     "keeps its last checkpoint); run the command again to go on from there"),
                               highlight=False, soft_wrap=True)
             raise typer.Exit(130) from None
         except MemoryError:
@@ -154,15 +154,16 @@ def stop_note(stopped_by: str | None, iterations: int | None, change: float | No
               plateau: float | None = None, plateau_window: int | None = None) -> str | None:
     """One line warning that the iteration cap ended a reconstruction before its stopping rules did (None otherwise).
 
-    A run that also stops on a misfit plateau (``plateau`` > 0) was still improving by more than that.
+    A run that also stops on a misfit plateau (``plateau`` > 0) is told that the plateau was not reached.
     """
     if stopped_by != "cap":
         return None
     reached = f" (last change {change:.3g} > tol {tol:.3g})" if change is not None and tol is not None else ""
     if plateau:
         window = f" over {plateau_window} iterations" if plateau_window else ""
-        return (f"reconstruct stopped at the iteration cap ({iterations}) while the misfit was still falling by "
-                f"more than {100 * plateau:.3g}%{window}; raise reconstruct.iterations (--iterations) to go on")
+        return (f"reconstruct stopped at the iteration cap ({iterations}) before its misfit plateau (less than "
+                f"{100 * plateau:.3g}% better{window}) was reached; raise reconstruct.iterations (--iterations) "
+                "to go on")
     return (f"reconstruct stopped at the iteration cap ({iterations}) before the change reached "
             f"tol{reached}; raise reconstruct.iterations (--iterations) to go on")
 

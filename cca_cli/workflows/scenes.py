@@ -111,7 +111,8 @@ def _base_scene(section: SceneSection, grid_size: int) -> Scene:
             groups = tuple(section.usaf_groups) if section.usaf_groups else (-2, -1, 0, 1, 2, 3)
             chart = usaf1951_chart(section.size_px, pixel_pitch_m=pitch, groups=groups)
         except ValueError as exc:
-            raise ConfigError(_scene_message(exc, size="scene.size_px", groups="scene.usaf_groups")) from None
+            raise ConfigError(_scene_message(exc, size="scene.size_px", groups="scene.usaf_groups",
+                                             pixel_pitch_m="the pixel (scene.field_width_m / scene.size_px)")) from None
         amplitude = _resample_amplitude(np.asarray(chart.image, np.float32), grid_size)
         return Scene(field=amplitude.astype(np.complex64), usaf=tuple(chart.elements), usaf_size=chart.size)
     if section.kind in ("fingerprint", "face", "label"):

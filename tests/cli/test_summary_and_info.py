@@ -111,6 +111,6 @@ def test_a_run_that_also_stops_on_a_plateau_is_told_so_at_the_cap():
     from cca_cli.commands.console import stop_note
 
     note = stop_note("cap", 150, 0.00143, 1e-7, 0.02, 5)
-    assert note == ("reconstruct stopped at the iteration cap (150) while the misfit was still falling by more than "
-                    "2% over 5 iterations; raise reconstruct.iterations (--iterations) to go on")
+    assert note == ("reconstruct stopped at the iteration cap (150) before its misfit plateau (less than 2% better "
+                    "over 5 iterations) was reached; raise reconstruct.iterations (--iterations) to go on")
     assert "tol" in stop_note("cap", 150, 0.00143, 1e-7) and stop_note("plateau", 40, 0.01, 1e-7, 0.02, 5) is None

@@ -64,7 +64,7 @@ def test_a_new_engine_needs_no_config_code(monkeypatch):
     section = ReconstructSection(engine="future", options={"window": "5e0", "adaptive": True, "weights": [1, "2"],
                                                            "cap": 4.0})
     assert section.options == {"window": 5, "adaptive": True, "weights": (1.0, 2.0), "cap": 4}
-    for options, message in (({"window": 2.5}, "window: must be a valid integer"),
+    for options, message in (({"window": 2.5}, "window: must be a whole number \\(got 2.5\\)"),
                              ({"adaptive": "no"}, "adaptive: expected true or false"),
                              ({"window": 0}, "window must be ≥ 1"),
                              ({"mode": True}, "mode: expected text"),
@@ -100,7 +100,7 @@ def test_the_api_and_a_config_read_an_option_alike(given, read, tmp_path):
 
 
 @pytest.mark.parametrize(("given", "message"), [
-    ({"batch": 1.5}, "batch: must be a valid integer"), ({"tau": "-1"}, "tau must be ≥ 0"),
+    ({"batch": 1.5}, "batch: must be a whole number \\(got 1.5\\)"), ({"tau": "-1"}, "tau must be ≥ 0"),
     ({"beta": 3}, r"beta must be in \(0, 2\)"), ({"cost": "l2"}, "cost: must be one of amplitude, poisson"),
     ({"batsh": 3}, "unknown option.*batsh.*accepted: .*batch"), ({"restart": "yes"}, "restart: expected true or false"),
 ])
