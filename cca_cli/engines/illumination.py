@@ -31,12 +31,12 @@ Tian et al., Biomed. Opt. Express 5(7) (2014).
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 
 from cca_cli.engines.options import POSITION_MODES
+from cca_cli.engines.side_by_side import run_side_by_side
 from cca_cli.optics.forward import ForwardModel, Workspace, chunk_slices
 
 __all__ = ["POSITION_MODES", "CaptureStatistics", "PositionModel", "StageModel", "LedArrayModel",
@@ -239,11 +239,7 @@ def capture_statistics(model: ForwardModel, spectrum: np.ndarray, amplitudes: np
         chunks(slices, model.workspace(min(32, k)))
     else:   # each thread its own workspace and chunks; every capture's figures land in its own rows
         spaces = [model.workspace(min(32, k), threads=1) for _ in range(count)]
-        with ThreadPoolExecutor(count - 1) as pool:
-            futures = [pool.submit(chunks, slices[t::count], spaces[t]) for t in range(1, count)]
-            chunks(slices[0::count], spaces[0])
-            for future in futures:
-                future.result()
+        run_side_by_side(lambda t: chunks(slices[t::count], spaces[t]), count)
     return CaptureStatistics(misfit, power, cross, energy, gradient, curvature)
 
 

@@ -8,6 +8,7 @@ from functools import cached_property
 import numpy as np
 
 from cca_cli.engines.illumination import PositionModel, StageModel
+from cca_cli.engines.side_by_side import run_side_by_side
 from cca_cli.optics import fft
 from cca_cli.optics.forward import ForwardModel, to_model_layout, to_sensor_layout
 
@@ -167,27 +168,18 @@ def _area_resample(weights: np.ndarray, size: int, threads: int = 1) -> np.ndarr
     n = weights.shape[-1]
     if n == size:
         return np.clip(weights, 0, 1)
-    from concurrent.futures import ThreadPoolExecutor
-
     from scipy import ndimage
 
     factor = size / n
     out = np.empty((len(weights), size, size), np.float32)
+    shares = np.array_split(np.arange(len(weights)), max(1, min(int(threads), len(weights))))
 
-    def share(images: np.ndarray) -> None:   # scipy.ndimage lets go of the GIL: shares run side by side
-        for i in images:
+    def share(t: int) -> None:   # scipy.ndimage lets go of the GIL
+        for i in shares[t]:
             out[i] = np.clip(ndimage.zoom(weights[i], factor, order=1, grid_mode=True, mode="nearest")[:size, :size],
                              0, 1)
 
-    shares = np.array_split(np.arange(len(weights)), max(1, min(int(threads), len(weights))))
-    if len(shares) == 1:
-        share(shares[0])
-    else:
-        with ThreadPoolExecutor(len(shares) - 1) as pool:
-            futures = [pool.submit(share, part) for part in shares[1:]]
-            share(shares[0])
-            for future in futures:
-                future.result()
+    run_side_by_side(share, len(shares))
     return out
 
 
