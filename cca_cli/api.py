@@ -491,7 +491,8 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
         raise ValueError(f"intensities must be (K, N, N) or (K, H, W) with K = {geometry.n_images} images of the "
                          f"geometry, got shape {images.shape}")
     kind = captures.kind if captures is not None else geometry.kind
-    engine, engine_options = resolve(engine, kind, options)
+    frame_scale = captures.frame_scale if captures is not None else "shared"
+    engine, engine_options = resolve(engine, kind, options, frame_scale=frame_scale)
     check_intensity(images, "intensities")
     weights = None if weight is None else _real_images(weight, "weight")
     if weights is not None:

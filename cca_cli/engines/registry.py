@@ -135,7 +135,8 @@ def _auto_for_checking(given: dict) -> str:
     raise ValueError(f"unknown option(s) {', '.join(unknown)} for engine auto; accepted: {', '.join(accepted)}")
 
 
-def resolve(engine: str, kind: str | None, given: Mapping | None = None) -> tuple[str, EngineOptions]:
+def resolve(engine: str, kind: str | None, given: Mapping | None = None, *,
+            frame_scale: str = "shared") -> tuple[str, EngineOptions]:
     """The engine an engine name stands for on a kind of data, and its options.
 
     ``engine: auto`` takes the preset of the kind (:mod:`cca_cli.engines.presets`),
@@ -153,6 +154,9 @@ def resolve(engine: str, kind: str | None, given: Mapping | None = None) -> tupl
         The options the user set, by name: ``tau``, ``iterations`` (or
         ``max_iterations``), ``tol`` and the engine's own. Values are read as a
         config reads them (``"1e-3"`` → 0.001, ``2.0`` → 2).
+    frame_scale : {"shared", "per_frame"}
+        How the captures' images were scaled (:attr:`~cca_cli.library.data.CaptureSet.frame_scale`):
+        on recorded captures, ``per_frame`` starts an engine that fits brightness with ``brightness: true``.
 
     Returns
     -------
@@ -174,6 +178,8 @@ def resolve(engine: str, kind: str | None, given: Mapping | None = None) -> tupl
     else:
         name, start = presets.starting_options(engine, kind)
     spec = ENGINES[name]
+    if frame_scale == "per_frame" and kind not in (None, "simulation") and "brightness" in spec.option_names():
+        start = {**start, "brightness": True}   # images scaled each on its own: their brightness is unknown
     unknown = sorted(set(given) - set(spec.option_names()))
     if unknown:
         alias, full = ITERATIONS_ALIAS

@@ -15,13 +15,23 @@ from cca_cli.io.h5 import atomic_h5, describe, open_input, write_dataset
 from cca_cli.io.measurements import INTENSITY, WEIGHT, read_intensity, read_weight
 from cca_cli.io.records import read_sensor_records
 from cca_cli.io.schema import spec_for
-from cca_cli.library.data import CaptureSet
+from cca_cli.library.data import FRAME_SCALES, CaptureSet
 
-__all__ = ["BOUNDARY_OPEN", "read_measurements", "read_captures", "write_capture_set", "SensorCalibration",
+__all__ = ["BOUNDARY_OPEN", "read_frame_scale", "read_measurements", "read_captures", "write_capture_set", "SensorCalibration",
            "read_sensor", "write_labels", "read_labels", "write_strings"]
 
 #: /measurements attribute ``boundary`` of recorded images: a window on a larger scene (not periodic).
 BOUNDARY_OPEN = "open"
+
+
+def read_frame_scale(attrs, path: Path, dataset: str = INTENSITY) -> str:
+    """The ``frame_scale`` attribute of ``dataset`` (its ``attrs``; ``shared`` when absent), checked."""
+    value = attrs.get("frame_scale", "shared")
+    value = value.decode() if isinstance(value, bytes) else str(value)
+    if value not in FRAME_SCALES:
+        raise InputError(f"{path}: {dataset} says frame_scale {value!r}; it must be 'shared' or "
+                         "'per_frame' (re-run ingest)")
+    return value
 
 
 def read_measurements(handle, path: Path) -> CaptureSet:
@@ -37,8 +47,10 @@ def read_measurements(handle, path: Path) -> CaptureSet:
     # Recorded frames say "open"; a file without the attribute is a window on a larger scene unless square.
     boundary = handle["/measurements/intensity"].attrs.get("boundary", "periodic" if h == w else "open")
     pupil = np.asarray(handle["/calibration/initial_pupil"]) if "/calibration/initial_pupil" in handle else None
+    frame_scale = read_frame_scale(handle["/measurements/intensity"].attrs, path)
     return CaptureSet(intensity=intensity, weight=weight, geometry=geometry, truth=truth, units=units,
-                      boundary=boundary.decode() if isinstance(boundary, bytes) else str(boundary), initial_pupil=pupil)
+                      boundary=boundary.decode() if isinstance(boundary, bytes) else str(boundary), initial_pupil=pupil,
+                      frame_scale=frame_scale)
 
 
 def read_captures(path: Path) -> CaptureSet:
@@ -56,6 +68,8 @@ def write_capture_set(path: Path, captures: CaptureSet, provenance, *, force: bo
     with atomic_h5(path, provenance, force=force) as handle:
         images = write_dataset(handle, INTENSITY, np.asarray(captures.intensity, np.float32), units=captures.units)
         images.attrs["boundary"] = captures.boundary
+        if captures.frame_scale != "shared":
+            images.attrs["frame_scale"] = captures.frame_scale
         if captures.initial_pupil is not None:
             write_dataset(handle, "/calibration/initial_pupil", np.asarray(captures.initial_pupil, np.complex64))
         if captures.weight is not None:

@@ -105,6 +105,9 @@ class SensorSpec(_Strict):
                                                                "or the exposure brackets).")
     electrons_per_count: PositiveFloat | None = Field(None, description="Conversion gain (default: from flat "
                                                                         "pairs or the exposure brackets).")
+    frame_scale: Literal["shared", "per_frame"] = Field(
+        "shared", description="per_frame: each image was scaled on its own (to its own maximum, by an automatic "
+                              "exposure), so the captures' relative brightness is unknown and the recovery fits it.")
 
     @model_validator(mode="after")
     def _one_colour_rule(self):

@@ -38,7 +38,8 @@ DATASETS: tuple[DatasetSpec, ...] = (
     DatasetSpec("/measurements/intensity", "float32", "(K, N, N)", "irradiance (unit plane wave = 1)",
                 "Captured images on the sensor pixel grid, centred on the optical axis, linear. Recorded captures "
                 "(counts/s) may be (K, H, W), any aspect; attribute boundary 'open' marks a window on a larger scene, "
-                "which reconstruct places on a square grid with a guard band (reconstruct.padding)."),
+                "which reconstruct places on a square grid with a guard band (reconstruct.padding); attribute frame_scale "
+                "'per_frame' marks images each scaled on its own (their relative brightness is fitted)."),
     DatasetSpec("/measurements/weight", "float32", "(K, N, N)", "1",
                 "Optional per-pixel confidence in [0, 1]; 0 = pixel ignored by the magnitude update."),
     DatasetSpec("/geometry/aperture_centres_yx_m", "float64", "(K, 2)", "m",

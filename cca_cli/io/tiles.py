@@ -20,7 +20,7 @@ import h5py
 import numpy as np
 
 from cca_cli.errors import InputError
-from cca_cli.io.captures import BOUNDARY_OPEN
+from cca_cli.io.captures import BOUNDARY_OPEN, read_frame_scale
 from cca_cli.library.data import CaptureSet
 from cca_cli.io.geometry import read_geometry
 from cca_cli.io.h5 import Provenance, atomic_h5, open_input, require, write_dataset
@@ -43,10 +43,11 @@ class FrameInfo:
     boundary: str
     units: str | None
     has_weight: bool
+    frame_scale: str = "shared"
 
 
 def read_frame_info(path: Path) -> FrameInfo:
-    """Image count, frame shape, boundary and units of a captures file's /measurements/intensity."""
+    """Image count, frame shape, boundary, units and frame scale of a captures file's /measurements/intensity."""
     with open_input(path) as handle:
         dataset = require(handle, INTENSITY, ndim=3)
         k, h, w = dataset.shape
@@ -54,7 +55,8 @@ def read_frame_info(path: Path) -> FrameInfo:
         units = _text(dataset.attrs.get("units"))
         units = None if units in (None, "", spec_for(INTENSITY).units) else units
         has_weight = WEIGHT in handle
-    return FrameInfo(int(k), (int(h), int(w)), _text(boundary), units, has_weight)
+        frame_scale = read_frame_scale(dataset.attrs, path)
+    return FrameInfo(int(k), (int(h), int(w)), _text(boundary), units, has_weight, frame_scale)
 
 
 def read_frame_centre(path: Path, centre_index: int) -> tuple[np.ndarray, dict]:
@@ -91,12 +93,13 @@ def read_tile_captures(path: Path, box: tuple[int, int, int, int]) -> CaptureSet
         units = _text(dataset.attrs.get("units"))
         units = None if units in (None, "", spec_for(INTENSITY).units) else units
         pupil = np.asarray(handle["/calibration/initial_pupil"]) if "/calibration/initial_pupil" in handle else None
+        frame_scale = read_frame_scale(dataset.attrs, path)
     bad = ~np.isfinite(intensity).reshape(intensity.shape[0], -1).all(axis=1)
     if bad.any():
         raise InputError(f"{path}: image {int(np.argmax(bad))} of {INTENSITY} contains NaN or Inf in the tile at "
                          f"({y0}, {x0}); fix or mask it")
     return CaptureSet(intensity=intensity, weight=weight, geometry=geometry, truth={}, units=units,
-                      boundary=BOUNDARY_OPEN, initial_pupil=pupil)
+                      boundary=BOUNDARY_OPEN, initial_pupil=pupil, frame_scale=frame_scale)
 
 
 @dataclass(frozen=True)

@@ -25,11 +25,14 @@ from cca_cli.engines.fit import FitReport
 from cca_cli.sampling.geometry import CaptureGeometry
 from cca_cli.sampling.region import RegionEmbedding
 
-__all__ = ["BOUNDARIES", "CaptureSet", "data_kind", "Reconstruction", "TiledReconstruction", "check_intensity", "check_weight",
+__all__ = ["BOUNDARIES", "FRAME_SCALES", "CaptureSet", "data_kind", "Reconstruction", "TiledReconstruction", "check_intensity", "check_weight",
            "constant_images"]
 
 #: ``periodic``: simulated images that wrap; ``open``: windows on a larger scene (recorded frames).
 BOUNDARIES = ("periodic", "open")
+#: ``shared``: every image on one intensity scale; ``per_frame``: each image was scaled on its own (to its own
+#: maximum, by an automatic exposure), so the captures' relative brightness is unknown and a recovery fits it.
+FRAME_SCALES = ("shared", "per_frame")
 
 
 def data_kind(has_truth: bool, geometry_kind: str) -> str:
@@ -61,6 +64,9 @@ class CaptureSet:
         A known pupil on the NA disc (from the manifest's pupil file), the start of pupil recovery.
     dropped : tuple of int
         Images of the source left out as dead (constant) captures.
+    frame_scale : {"shared", "per_frame"}
+        ``per_frame``: each image was scaled on its own (to its own maximum, by an automatic exposure);
+        the engine that ``auto`` picks for recorded captures then fits each capture's brightness.
     """
 
     intensity: np.ndarray
@@ -71,10 +77,13 @@ class CaptureSet:
     boundary: str = "periodic"
     initial_pupil: np.ndarray | None = None
     dropped: tuple[int, ...] = ()
+    frame_scale: str = "shared"
 
     def __post_init__(self):
         if self.boundary not in BOUNDARIES:
             raise ValueError(f"boundary must be 'periodic' or 'open', got {self.boundary!r}")
+        if self.frame_scale not in FRAME_SCALES:
+            raise ValueError(f"frame_scale must be 'shared' or 'per_frame', got {self.frame_scale!r}")
 
     @property
     def kind(self) -> str:

@@ -104,7 +104,7 @@ def reconstruct(captures: CaptureSet, *, engine: str = "auto", options: dict | E
     if isinstance(options, EngineOptions):
         engine_options = options
     else:
-        engine, engine_options = resolve(engine, captures.kind, options or {})
+        engine, engine_options = resolve(engine, captures.kind, options or {}, frame_scale=captures.frame_scale)
     device = engine_device(device, engine, engine_options)
     live = without_dead_captures(captures, name=name, source=source)
     padded, region = embed_region(live, padding=padding, guard_px=guard_px, apodize_px=apodize_px)

@@ -22,7 +22,7 @@ from cca_cli.hdr.merge import NoiseModel, estimate_noise, merge_exposures
 from cca_cli.io.geometry import read_geometry, write_geometry
 from cca_cli.io.h5 import Provenance, atomic_h5, check_output, open_input, require, write_dataset
 from cca_cli.io.records import carry_capture_records
-from cca_cli.io.captures import BOUNDARY_OPEN, read_labels, read_sensor, write_labels
+from cca_cli.io.captures import BOUNDARY_OPEN, read_frame_scale, read_labels, read_sensor, write_labels
 from cca_cli.stages.progress import ProgressEvent, ProgressFn, silent
 
 __all__ = ["SECTIONS", "HdrOutcome", "run"]
@@ -86,6 +86,7 @@ def run(raw_path: Path, section: HdrSection | None, output: Path, *, provenance:
         frames = np.asarray(frames_ds, np.float32)
         exposure = np.asarray(require(src, "/raw/exposure_s", ndim=2), np.float64)
         values = str(frames_ds.attrs.get("values", "intensity"))
+        frame_scale = read_frame_scale(frames_ds.attrs, raw_path, "/raw/frames")
         geometry = read_geometry(src)
         labels = read_labels(src, frames.shape[0])
         k, e = frames.shape[:2]
@@ -122,6 +123,7 @@ def run(raw_path: Path, section: HdrSection | None, output: Path, *, provenance:
         with atomic_h5(output, provenance, force=force) as handle:
             ds = write_dataset(handle, "/measurements/intensity", radiance, units="counts/s")
             ds.attrs["boundary"] = BOUNDARY_OPEN
+            ds.attrs["frame_scale"] = frame_scale
             write_dataset(handle, "/measurements/weight", weight)
             write_dataset(handle, "/hdr/dynamic_range_gain", gain)
             write_dataset(handle, "/hdr/dynamic_range", dynamic_range)

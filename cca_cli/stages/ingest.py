@@ -331,6 +331,9 @@ def ingest(manifest_path: Path, *, progress: ProgressFn = silent) -> Ingested:
                                       grid_indices=plan.grid_indices)
     check_geometry(plan, geometry, (h, w))
     notes += stray_positions(plan, geometry)
+    if manifest.sensor.frame_scale == "per_frame":
+        notes.append("sensor.frame_scale is per_frame: the images' relative brightness is unknown, so reconstruct "
+                     "fits each capture's brightness (brightness: true)")
     seen: set[str] = set()
     unique_notes = [n for n in notes if not (n in seen or seen.add(n))]
     for note in unique_notes:
@@ -447,6 +450,7 @@ def write_raw(path: Path, data: Ingested, provenance: Provenance, *, force: bool
         frames.attrs["saturation_level"] = data.saturation_level
         frames.attrs["black_level"] = manifest.sensor.black_level
         frames.attrs["values"] = manifest.values
+        frames.attrs["frame_scale"] = manifest.sensor.frame_scale
         write_dataset(handle, "/raw/exposure_s", data.exposure_s)
         write_labels(handle, data.plan.labels)
         write_geometry(handle, data.geometry)
@@ -480,6 +484,7 @@ def write_raw(path: Path, data: Ingested, provenance: Provenance, *, force: bool
                 weight = (counts < np.float32(data.saturation_level * 0.99)).astype(np.float32)
             ds = write_dataset(handle, "/measurements/intensity", intensity.astype(np.float32), units="counts/s")
             ds.attrs["boundary"] = BOUNDARY_OPEN
+            ds.attrs["frame_scale"] = manifest.sensor.frame_scale
             write_dataset(handle, "/measurements/weight", weight)
 
 

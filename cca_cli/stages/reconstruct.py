@@ -13,11 +13,12 @@ from pathlib import Path
 from cca_cli.config.model import ReconstructSection
 from cca_cli.engines.base import History
 from cca_cli.errors import CcaError, ConfigError, InputError
-from cca_cli.io.captures import read_captures
+from cca_cli.io.captures import read_captures, read_frame_scale
 from cca_cli.io.checkpoint import (checkpoint_damage, checkpoint_path, read_checkpoint, remove_checkpoint,
                                    write_checkpoint)
 from cca_cli.io.geometry import read_geometry
-from cca_cli.io.h5 import Provenance, check_output, file_sha256, open_input
+from cca_cli.io.h5 import Provenance, check_output, file_sha256, open_input, require
+from cca_cli.io.measurements import INTENSITY
 from cca_cli.io.multiplex import is_multiplexed_file
 from cca_cli.io.outputs import is_cca_hdf5
 from cca_cli.io.recon import write_recon
@@ -119,10 +120,12 @@ def checkpoint_fingerprint(section: ReconstructSection, provenance: Provenance, 
     return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
 
 
-def captures_kind(captures_path: Path) -> str:
-    """What a captures file holds, as :attr:`~cca_cli.library.data.CaptureSet.kind` says, from its geometry alone."""
+def captures_kind_and_scale(captures_path: Path) -> tuple[str, str]:
+    """What a captures file holds, as :attr:`~cca_cli.library.data.CaptureSet.kind` says (from its geometry
+    alone), and its images' :attr:`~cca_cli.library.data.CaptureSet.frame_scale`."""
     with open_input(captures_path) as handle:
-        return data_kind("truth" in handle and len(handle["truth"]) > 0, read_geometry(handle).kind)
+        kind = data_kind("truth" in handle and len(handle["truth"]) > 0, read_geometry(handle).kind)
+        return kind, read_frame_scale(require(handle, INTENSITY).attrs, captures_path)
 
 
 def engine_recipe(captures_path: Path, section: ReconstructSection) -> str:
@@ -143,7 +146,8 @@ def engine_recipe(captures_path: Path, section: ReconstructSection) -> str:
 
             data = tile_recipe(section, captures_path)
         else:
-            data = recipe_of(*engine_options(section, captures_kind(captures_path)))
+            kind, frame_scale = captures_kind_and_scale(captures_path)
+            data = recipe_of(*engine_options(section, kind, frame_scale=frame_scale))
     except (CcaError, OSError, KeyError, ValueError):
         return ""
     return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()

@@ -27,7 +27,7 @@ from cca_cli.registration.checkerboard import find_checkerboard
 from cca_cli.registration.homography import crop, estimate_homography, warp_views
 from cca_cli.sampling.capture import object_pixel_m, with_field_width
 from cca_cli.io.records import carry_capture_records
-from cca_cli.io.captures import BOUNDARY_OPEN, read_labels, write_labels, write_strings
+from cca_cli.io.captures import BOUNDARY_OPEN, read_frame_scale, read_labels, write_labels, write_strings
 from cca_cli.stages.progress import ProgressEvent, ProgressFn, silent
 
 __all__ = ["SECTIONS", "Registration", "register_views", "run"]
@@ -163,6 +163,7 @@ def run(captures_path: Path, section: RegisterSection | None, output: Path, *, p
             units = src["/measurements/intensity"].attrs.get("units", "")
             ds = write_dataset(handle, "/measurements/intensity", reg.intensity, units=units)
             ds.attrs["boundary"] = BOUNDARY_OPEN
+            ds.attrs["frame_scale"] = read_frame_scale(src["/measurements/intensity"].attrs, captures_path)
             write_dataset(handle, "/measurements/weight", reg.weight)
             write_dataset(handle, "/registration/homography", reg.homographies)
             write_dataset(handle, "/registration/rms_px", reg.rms_px)

@@ -24,15 +24,17 @@ from cca_cli.sampling.region import RegionEmbedding
 __all__ = ["engine_options", "recipe_of", "check_device", "reconstruct_captures", "embed_region", "without_dead_captures"]
 
 
-def engine_options(section: ReconstructSection, kind: str = "simulation", **overrides) -> tuple[str, EngineOptions]:
+def engine_options(section: ReconstructSection, kind: str = "simulation", *, frame_scale: str = "shared",
+                   **overrides) -> tuple[str, EngineOptions]:
     """The engine the section's ``engine`` stands for on ``kind`` of data, and its options object.
 
+    ``frame_scale`` is the captures' (:attr:`~cca_cli.library.data.CaptureSet.frame_scale`);
     ``overrides`` go on top of what the section gives. One line naming
     ``reconstruct.options`` when the options do not fit the engine
     (:func:`cca_cli.engines.registry.resolve`).
     """
     try:
-        return resolve(section.engine, kind, {**section.given(), **overrides})
+        return resolve(section.engine, kind, {**section.given(), **overrides}, frame_scale=frame_scale)
     except ValueError as exc:
         raise ConfigError(f"reconstruct.options: {exc}") from None
 
@@ -67,7 +69,7 @@ def reconstruct_captures(captures: CaptureSet, section: ReconstructSection, *, s
     ``checkpoint`` the run continues from a matching checkpoint and writes new ones. ``section.device``
     says where the engine runs; a device that cannot run it is a ConfigError naming ``reconstruct.device``.
     """
-    name, options = engine_options(section, captures.kind)
+    name, options = engine_options(section, captures.kind, frame_scale=captures.frame_scale)
     init = init_pixel = None
     if section.init is not None:
         init, attrs = read_spectrum(Path(section.init))

@@ -247,23 +247,24 @@ def plan_tiled(captures_path: Path, section: ReconstructSection) -> TiledPlan:
     return TiledPlan(Path(captures_path), frame, geometry, tiles, int(math.ceil(ratio - 1e-9)))
 
 
-def tile_engine(section: ReconstructSection, kind: str, *, fixed: bool = False) -> tuple[str, EngineOptions]:
+def tile_engine(section: ReconstructSection, kind: str, *, fixed: bool = False,
+                frame_scale: str = "shared") -> tuple[str, EngineOptions]:
     """Engine and options a tile runs: ``auto`` takes the calibrating preset of the geometry's kind.
 
     Simulated captures included: a tiled reconstruction exists to recover a pupil per tile. Each tile
     runs single-threaded (``threads: 1``) unless the options say otherwise: the tiles are the parallelism.
-    ``fixed`` holds the pupil the tile starts from (no pupil recovery).
+    ``fixed`` holds the pupil the tile starts from (no pupil recovery); ``frame_scale`` is the captures'.
     """
     if section.engine == "auto" and kind not in ("led_array", "camera_scan"):
         kind = "camera_scan"
-    name, _ = engine_options(section, kind)
+    name, _ = engine_options(section, kind, frame_scale=frame_scale)
     names = get_engine(name).option_names()
     overrides = {}
     if "threads" in names and "threads" not in section.options:
         overrides["threads"] = 1
     if fixed and "pupil_recovery" in names:
         overrides["pupil_recovery"] = "none"
-    return engine_options(section, kind, **overrides)
+    return engine_options(section, kind, frame_scale=frame_scale, **overrides)
 
 
 @dataclass(frozen=True)
@@ -323,7 +324,7 @@ def _recover_tile(task: TileTask, section: ReconstructSection, parent: TileResul
     captures = read_tile_captures(plan.captures_path, tile.box)
     captures = replace(captures, geometry=tile_geometry(plan.geometry, plan.frame.frame_shape, tile))
     padded, region = embed_region(captures, section, source=plan.captures_path)
-    name, options = tile_engine(section, plan.geometry.kind, fixed=fixed)
+    name, options = tile_engine(section, plan.geometry.kind, fixed=fixed, frame_scale=plan.frame.frame_scale)
     start = None
     if parent is not None and parent.zernike_waves is not None:
         start = np.asarray(parent.zernike_waves, np.float64)
@@ -483,7 +484,7 @@ def reconstruct_tiled(captures_path: Path, section: ReconstructSection, output: 
 
     plan = plan_tiled(captures_path, section)
     start = time.perf_counter()
-    name, options = tile_engine(section, plan.geometry.kind)
+    name, options = tile_engine(section, plan.geometry.kind, frame_scale=plan.frame.frame_scale)
     order = tile_order(plan.tiles)
     total = len(order)
     finished: dict[int, TileResult] = {}
@@ -632,9 +633,11 @@ def tile_recipe(section: ReconstructSection, captures_path: Path) -> dict:
     """
     from cca_cli.io.geometry import read_geometry
     from cca_cli.io.h5 import open_input
+    from cca_cli.io.tiles import read_frame_info
 
+    frame_scale = read_frame_info(captures_path).frame_scale
     with open_input(captures_path) as handle:
-        return recipe_of(*tile_engine(section, read_geometry(handle).kind))
+        return recipe_of(*tile_engine(section, read_geometry(handle).kind, frame_scale=frame_scale))
 
 
 def run_fingerprint(section: ReconstructSection, inputs: list[str], captures_path: Path) -> str:

@@ -415,3 +415,24 @@ def test_designed_layouts_are_not_reported_as_stray():
     slipped[3] *= 30
     found = notes(slipped)
     assert len(found) == 1 and found[0].startswith("row 3 lies") and found[0].endswith("check that row's kx_norm/ky_norm")
+
+
+def test_images_scaled_each_on_its_own_reach_reconstruct_with_brightness_fitted(tmp_path):
+    from cca_cli.config.model import ReconstructSection
+    from cca_cli.workflows.recovery import engine_options
+
+    _lab(tmp_path, sensor={"bit_depth": 12, "container_bits": 16, "alignment": "msb", "black_level": 64,
+                           "frame_scale": "per_frame"})
+    assert _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5").exit_code == 0
+    result = runner.invoke(app, ["hdr", str(tmp_path / "raw.h5"), "-o", str(tmp_path / "hdr.h5"), "-q"])
+    assert result.exit_code == 0, result.output
+    captures = read_captures(tmp_path / "hdr.h5")
+    assert captures.frame_scale == "per_frame"
+    _, options = engine_options(ReconstructSection(), captures.kind, frame_scale=captures.frame_scale)
+    assert options.brightness is True
+    _, told = engine_options(ReconstructSection(options={"brightness": False}), captures.kind,
+                             frame_scale=captures.frame_scale)
+    assert told.brightness is False
+    (tmp_path / "raw.h5").unlink()
+    _lab(tmp_path, sensor={"frame_scale": "each"})
+    _refused(tmp_path, "sensor.frame_scale", "per_frame")

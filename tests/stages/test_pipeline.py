@@ -158,7 +158,7 @@ def test_a_recon_from_other_engine_defaults_is_recomputed(finished_run, tiny_run
     if how == "defaults changed":
         name, options = reconstruct_stage.engine_options(tiny_run_config.reconstruct, "simulation")
         changed = options.model_copy(update={"tau": options.tau * 2 + 1e-3})
-        monkeypatch.setattr(reconstruct_stage, "engine_options", lambda section, kind: (name, changed))
+        monkeypatch.setattr(reconstruct_stage, "engine_options", lambda section, kind, **_: (name, changed))
     else:
         with h5py.File(out / "recon.h5", "a") as handle:
             del handle.attrs["engine_recipe"]
