@@ -152,6 +152,13 @@ the map kept every set within 0.5 px but the EUV lines (6 px; 0.9 px with
 of the four validation sets (red cells 0.058 both, EUV lines 0.151 → 0.134,
 defocused ring set 0.201 → 0.175; line-pair chart 0.246 → 0.249).
 
+Where the captures' images were scaled each on its own (``frame_scale:
+per_frame``, a statement of the manifest), the engine also fits each capture's
+brightness (:func:`~cca_cli.engines.registry.resolve`): on the corpus's EUV
+lines, released so, 0.0892 → 0.0801. As a default for every set it was
+rejected: it fitted the tuning half's bright-field frames better and its
+dark-field frames worse (blood smear 0.0656 / 0.0565 → 0.0839 / 0.0622).
+
 The engine the preset picks keeps these settings when a user names it outright
 on recorded captures (:func:`engine_defaults`): ``engine: momentum`` on an
 LED-array set recovers the pupil, as PtyLab's mPIE and fpm-rs's EPRY do by
