@@ -79,7 +79,8 @@ def unsupported_options(options: EngineOptions) -> list[str]:
     if options.position_refinement != "none":
         found.append(f"position_refinement: {options.position_refinement} (set none)")
     if options.brightness:
-        found.append("brightness: true (set false)")
+        found.append("brightness: true (set false; captures whose frame_scale is per_frame turn it on, "
+                     "and they need it: run those on the CPU)")
     return found
 
 

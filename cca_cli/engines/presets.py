@@ -156,8 +156,8 @@ Where the captures' images were scaled each on its own (``frame_scale:
 per_frame``, a statement of the manifest), the engine also fits each capture's
 brightness (:func:`~cca_cli.engines.registry.resolve`): on the corpus's EUV
 lines, released so, 0.0892 → 0.0801. As a default for every set it was
-rejected: it fitted the tuning half's bright-field frames better and its
-dark-field frames worse (blood smear 0.0656 / 0.0565 → 0.0839 / 0.0622).
+rejected: over all frames it fitted every set of the tuning half worse (blood
+smear 0.0656 / 0.0565 → 0.0839 / 0.0622, all / bright-field frames).
 
 The engine the preset picks keeps these settings when a user names it outright
 on recorded captures (:func:`engine_defaults`): ``engine: momentum`` on an
@@ -167,7 +167,7 @@ default.
 
 from __future__ import annotations
 
-__all__ = ["DATA_KINDS", "preset", "engine_defaults", "starting_options", "summary"]
+__all__ = ["DATA_KINDS", "FRAME_SCALES", "preset", "engine_defaults", "starting_options", "summary"]
 
 _REAL_DATA = dict(max_iterations=150, tol=1e-7, plateau=0.02, plateau_window=10, eta=0.3, batch=24)
 
@@ -182,6 +182,9 @@ _PRESETS = {
 
 #: The kinds of data ``engine: auto`` tells apart.
 DATA_KINDS = tuple(_PRESETS)
+#: How captured images were scaled: ``shared`` (one intensity scale) or ``per_frame`` (each on its own, to its own
+#: maximum or by an automatic exposure: the captures' relative brightness is unknown and is fitted).
+FRAME_SCALES = ("shared", "per_frame")
 
 
 def preset(kind: str) -> tuple[str, dict]:

@@ -156,7 +156,7 @@ def resolve(engine: str, kind: str | None, given: Mapping | None = None, *,
         config reads them (``"1e-3"`` → 0.001, ``2.0`` → 2).
     frame_scale : {"shared", "per_frame"}
         How the captures' images were scaled (:attr:`~cca_cli.library.data.CaptureSet.frame_scale`):
-        on recorded captures, ``per_frame`` starts an engine that fits brightness with ``brightness: true``.
+        ``per_frame`` starts an engine that can fit each capture's brightness with ``brightness: true``.
 
     Returns
     -------
@@ -178,7 +178,9 @@ def resolve(engine: str, kind: str | None, given: Mapping | None = None, *,
     else:
         name, start = presets.starting_options(engine, kind)
     spec = ENGINES[name]
-    if frame_scale == "per_frame" and kind not in (None, "simulation") and "brightness" in spec.option_names():
+    if frame_scale not in presets.FRAME_SCALES:
+        raise ValueError(f"frame_scale must be 'shared' or 'per_frame', got {frame_scale!r}")
+    if frame_scale == "per_frame" and kind is not None and "brightness" in spec.option_names():
         start = {**start, "brightness": True}   # images scaled each on its own: their brightness is unknown
     unknown = sorted(set(given) - set(spec.option_names()))
     if unknown:

@@ -25,12 +25,32 @@ BOUNDARY_OPEN = "open"
 
 
 def read_frame_scale(attrs, path: Path, dataset: str = INTENSITY) -> str:
-    """The ``frame_scale`` attribute of ``dataset`` (its ``attrs``; ``shared`` when absent), checked."""
+    """How the images of a file were scaled: the ``frame_scale`` attribute of ``dataset``, checked.
+
+    Parameters
+    ----------
+    attrs : h5py AttributeManager or mapping
+        The dataset's attributes.
+    path : Path
+        The file (named in the error).
+    dataset : str
+        The dataset's name in the file (named in the error).
+
+    Returns
+    -------
+    str
+        ``shared`` (also when the attribute is absent) or ``per_frame``.
+
+    Raises
+    ------
+    InputError
+        Any other value; one line naming the file, the dataset and the fix.
+    """
     value = attrs.get("frame_scale", "shared")
     value = value.decode() if isinstance(value, bytes) else str(value)
     if value not in FRAME_SCALES:
-        raise InputError(f"{path}: {dataset} says frame_scale {value!r}; it must be 'shared' or "
-                         "'per_frame' (re-run ingest)")
+        raise InputError(f"{path}: {dataset} says frame_scale {value!r}; it must be 'shared' or 'per_frame': "
+                         "set the attribute so (or re-run ingest, for a file it wrote)")
     return value
 
 

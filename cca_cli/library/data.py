@@ -22,6 +22,7 @@ import numpy as np
 from cca_cli.engines.base import History
 from cca_cli.engines.calibrator import Calibration
 from cca_cli.engines.fit import FitReport
+from cca_cli.engines.presets import FRAME_SCALES
 from cca_cli.sampling.geometry import CaptureGeometry
 from cca_cli.sampling.region import RegionEmbedding
 
@@ -30,9 +31,6 @@ __all__ = ["BOUNDARIES", "FRAME_SCALES", "CaptureSet", "data_kind", "Reconstruct
 
 #: ``periodic``: simulated images that wrap; ``open``: windows on a larger scene (recorded frames).
 BOUNDARIES = ("periodic", "open")
-#: ``shared``: every image on one intensity scale; ``per_frame``: each image was scaled on its own (to its own
-#: maximum, by an automatic exposure), so the captures' relative brightness is unknown and a recovery fits it.
-FRAME_SCALES = ("shared", "per_frame")
 
 
 def data_kind(has_truth: bool, geometry_kind: str) -> str:
@@ -66,7 +64,8 @@ class CaptureSet:
         Images of the source left out as dead (constant) captures.
     frame_scale : {"shared", "per_frame"}
         ``per_frame``: each image was scaled on its own (to its own maximum, by an automatic exposure);
-        the engine that ``auto`` picks for recorded captures then fits each capture's brightness.
+        an engine that can fit each capture's brightness (``momentum``, which ``auto`` picks for recorded
+        captures) then does (``brightness: true``, on the CPU).
     """
 
     intensity: np.ndarray

@@ -105,6 +105,9 @@ def reconstruct(captures: CaptureSet, *, engine: str = "auto", options: dict | E
         engine_options = options
     else:
         engine, engine_options = resolve(engine, captures.kind, options or {}, frame_scale=captures.frame_scale)
+    if captures.frame_scale == "per_frame" and not hasattr(engine_options, "brightness"):
+        _log.warning("note: the images were scaled each on its own (frame_scale per_frame) but engine %s fits no "
+                     "brightness; engine momentum does", engine)
     device = engine_device(device, engine, engine_options)
     live = without_dead_captures(captures, name=name, source=source)
     padded, region = embed_region(live, padding=padding, guard_px=guard_px, apodize_px=apodize_px)

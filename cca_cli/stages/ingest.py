@@ -332,8 +332,9 @@ def ingest(manifest_path: Path, *, progress: ProgressFn = silent) -> Ingested:
     check_geometry(plan, geometry, (h, w))
     notes += stray_positions(plan, geometry)
     if manifest.sensor.frame_scale == "per_frame":
-        notes.append("sensor.frame_scale is per_frame: the images' relative brightness is unknown, so reconstruct "
-                     "fits each capture's brightness (brightness: true)")
+        notes.append("sensor.frame_scale is per_frame: the images' relative brightness is unknown, so reconstruct's "
+                     "momentum engine (engine: auto on recorded captures) fits each capture's brightness "
+                     "(brightness: true)")
     seen: set[str] = set()
     unique_notes = [n for n in notes if not (n in seen or seen.add(n))]
     for note in unique_notes:

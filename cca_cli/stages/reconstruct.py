@@ -121,8 +121,7 @@ def checkpoint_fingerprint(section: ReconstructSection, provenance: Provenance, 
 
 
 def captures_kind_and_scale(captures_path: Path) -> tuple[str, str]:
-    """What a captures file holds, as :attr:`~cca_cli.library.data.CaptureSet.kind` says (from its geometry
-    alone), and its images' :attr:`~cca_cli.library.data.CaptureSet.frame_scale`."""
+    """A captures file's :attr:`~cca_cli.library.data.CaptureSet.kind` (from its geometry) and ``frame_scale``."""
     with open_input(captures_path) as handle:
         kind = data_kind("truth" in handle and len(handle["truth"]) > 0, read_geometry(handle).kind)
         return kind, read_frame_scale(require(handle, INTENSITY).attrs, captures_path)

@@ -146,6 +146,7 @@ def run(captures_path: Path, section: RegisterSection | None, output: Path, *, p
         weight = np.asarray(src["/measurements/weight"], np.float32) if "/measurements/weight" in src else None
         geometry = read_geometry(src)
         labels = read_labels(src, intensity.shape[0])
+        frame_scale = read_frame_scale(src["/measurements/intensity"].attrs, captures_path)
         if "registration/board" not in src:
             raise InputError(f"{captures_path}: no checkerboard pattern recorded; add checkerboard: {{pattern: [9, 6]}} "
                              "to the manifest and re-run ingest")
@@ -163,7 +164,7 @@ def run(captures_path: Path, section: RegisterSection | None, output: Path, *, p
             units = src["/measurements/intensity"].attrs.get("units", "")
             ds = write_dataset(handle, "/measurements/intensity", reg.intensity, units=units)
             ds.attrs["boundary"] = BOUNDARY_OPEN
-            ds.attrs["frame_scale"] = read_frame_scale(src["/measurements/intensity"].attrs, captures_path)
+            ds.attrs["frame_scale"] = frame_scale
             write_dataset(handle, "/measurements/weight", reg.weight)
             write_dataset(handle, "/registration/homography", reg.homographies)
             write_dataset(handle, "/registration/rms_px", reg.rms_px)

@@ -88,6 +88,7 @@ def reconstruct_captures(captures: CaptureSet, section: ReconstructSection, *, s
     except ValueError as exc:
         where = f"{section.init}: reconstruct.init: " if str(exc).startswith("init:") else f"{source}: "
         message = str(exc).removeprefix("init: ") if str(exc).startswith("init:") else str(exc)
+        message = message.removeprefix(f"{source}: ")   # a message naming the file already (dead captures)
         raise InputError(f"{where}{message}") from None
 
 

@@ -37,13 +37,12 @@ def test_each_capture_s_brightness_is_found_when_the_frames_were_scaled_on_their
     assert told.options["brightness"] is False
 
 
-def test_the_frame_scale_is_kept_by_files_and_leaves_simulations_alone(rescaled_frames, tmp_path):
+def test_the_frame_scale_is_kept_by_files_and_holds_for_simulations_too(rescaled_frames, tmp_path):
     captures, _ = rescaled_frames
     cca.save(captures, tmp_path / "raw.h5")
     assert cca.load(tmp_path / "raw.h5").frame_scale == "per_frame"
     cca.save(replace(captures, frame_scale="shared"), tmp_path / "shared.h5")
     assert cca.load(tmp_path / "shared.h5").frame_scale == "shared"
-    _, options = resolve("auto", "simulation", {}, frame_scale="per_frame")
-    assert not hasattr(options, "brightness")
+    assert resolve("momentum", "simulation", {}, frame_scale="per_frame")[1].brightness is True
     with pytest.raises(ValueError, match="frame_scale must be"):
         cca.CaptureSet(captures.intensity, captures.geometry, frame_scale="each")
