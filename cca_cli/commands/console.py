@@ -222,6 +222,8 @@ def summary_table(summary: dict, title: str = "Result") -> Table:
         ("data residual, all images", "residual_all", "{:.4f}"),
         ("data residual, bright-field images", "residual_bright_field", "{:.4f}"),
         ("data residual, dark-field images", "residual_dark_field", "{:.4f}"),
+        ("data residual, all, brightness 1", "residual_all_without_brightness", "{:.4f}"),
+        ("capture brightness min / median / max", "brightness_min_median_max", "triple"),
         ("pupil model", "pupil_model", "{}"),
         ("position change rms / max (spectrum px)", None, "positions"),
         ("defocus equivalent of the pupil", "defocus_m_equivalent", "length"),
@@ -241,6 +243,8 @@ def summary_table(summary: dict, title: str = "Result") -> Table:
             text = "—"
         elif fmt == "length":
             text = length_text(value)
+        elif fmt == "triple":
+            text = " / ".join(f"{v:.3f}" for v in value)
         elif fmt == "image":
             text = f"{value[1]} x {value[0]} px"
             if summary.get("recovered_field_m"):

@@ -15,7 +15,7 @@ __all__ = ["open_hdf5", "visit_datasets", "is_group"]
 def open_hdf5(path: Path) -> h5py.File:
     """Open ``path`` read-only, or raise :class:`~cca_cli.errors.InputError` when it is no (readable) HDF5 file."""
     if not h5py.is_hdf5(path):
-        raise InputError(f"{path}: not an HDF5 file")
+        raise InputError(f"{path}: not an HDF5 file; give an HDF5 file (one cca wrote: captures.h5, recon.h5 …)")
     try:
         return h5py.File(path, "r")
     except OSError as exc:

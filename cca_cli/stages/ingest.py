@@ -291,6 +291,10 @@ def ingest(manifest_path: Path, *, progress: ProgressFn = silent) -> Ingested:
     loaded = read_manifest(manifest_path)
     manifest = loaded.manifest
     plan = plan_captures(manifest, manifest_path, notes=loaded.notes)
+    if manifest.sensor.frame_scale == "per_frame" and plan.exposure_s.shape[1] > 1:
+        raise ConfigError(f"{manifest_path}: sensor.frame_scale is per_frame but the positions have "
+                          f"{plan.exposure_s.shape[1]} exposures each: frames scaled each on its own cannot be merged "
+                          "by their exposure times; give one exposure per position, or frame_scale: shared")
     notes = list(plan.notes)
     boards = None
     calibration = None
@@ -478,7 +482,9 @@ def write_raw(path: Path, data: Ingested, provenance: Provenance, *, force: bool
             if manifest.values == "amplitude":
                 intensity = intensity * intensity
             weight = np.ones_like(counts)
-            if data.sensor is not None and data.sensor.white_level is not None:
+            if manifest.sensor.frame_scale == "per_frame" and manifest.sensor.white_level is None:
+                pass   # each frame was scaled so that its brightest pixel sits at full scale: nothing clipped there
+            elif data.sensor is not None and data.sensor.white_level is not None:
                 for i in range(k):
                     weight[i] = counts[i] < np.float32(0.99) * data.sensor.saturation_at(float(data.exposure_s[i, 0]))
             else:

@@ -183,7 +183,7 @@ def calibration_summary(calibration: dict, geometry) -> dict:
     if "position_model" in calibration:
         out["position_model"] = calibration["position_model"]
         out["position_parameters"] = {k: round(v, 6) for k, v in calibration["position_parameters"].items()}
-    if calibration.get("brightness") is not None:
+    if calibration.get("brightness") is not None and np.any(calibration["brightness"] != 1):   # fitted
         b = calibration["brightness"]
         out["brightness_min_median_max"] = [round(float(v), 4) for v in (b.min(), np.median(b), b.max())]
     if "zernike" in calibration:

@@ -421,12 +421,13 @@ def test_images_scaled_each_on_its_own_reach_reconstruct_with_brightness_fitted(
     from cca_cli.config.model import ReconstructSection
     from cca_cli.workflows.recovery import engine_options
 
-    _lab(tmp_path, sensor={"bit_depth": 12, "container_bits": 16, "alignment": "msb", "black_level": 64,
-                           "frame_scale": "per_frame"})
-    assert _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5").exit_code == 0
-    result = runner.invoke(app, ["hdr", str(tmp_path / "raw.h5"), "-o", str(tmp_path / "hdr.h5"), "-q"])
+    per_frame = {"bit_depth": 12, "container_bits": 16, "alignment": "msb", "black_level": 64,
+                 "frame_scale": "per_frame"}
+    one_exposure = lambda rows: [row for row in rows if row[2] == 1.0]   # noqa: E731
+    _lab(tmp_path, sensor=per_frame, edit=one_exposure)
+    result = _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
     assert result.exit_code == 0, result.output
-    captures = read_captures(tmp_path / "hdr.h5")
+    captures = read_captures(tmp_path / "raw.h5")
     assert captures.frame_scale == "per_frame"
     _, options = engine_options(ReconstructSection(), captures.kind, frame_scale=captures.frame_scale)
     assert options.brightness is True
@@ -434,5 +435,7 @@ def test_images_scaled_each_on_its_own_reach_reconstruct_with_brightness_fitted(
                              frame_scale=captures.frame_scale)
     assert told.brightness is False
     (tmp_path / "raw.h5").unlink()
+    _lab(tmp_path, sensor=per_frame)   # two exposures a position: their times mean nothing then
+    _refused(tmp_path, "sensor.frame_scale is per_frame", "2 exposures", "frame_scale: shared")
     _lab(tmp_path, sensor={"frame_scale": "each"})
     _refused(tmp_path, "sensor.frame_scale", "per_frame")

@@ -107,7 +107,8 @@ def test_single_exposures_ingest_with_the_frame_scale(tmp_path):
 
 def test_register_keeps_the_frame_scale(tmp_path):
     manifest = yaml.safe_load((SAMPLE / "manifest.yaml").read_text())
-    chosen = [m for m in manifest["images"] if m["path"].startswith(("view_r2c2_", "view_r2c3_"))]
+    # one exposure a position: frames scaled each on its own have no exposure brackets
+    chosen = [m for m in manifest["images"] if m["path"] in ("view_r2c2_e1.png", "view_r2c3_e1.png")]
     for entry in chosen:
         shutil.copy(SAMPLE / entry["path"], tmp_path / entry["path"])
     manifest["images"] = chosen
@@ -124,9 +125,12 @@ def test_register_keeps_the_frame_scale(tmp_path):
 def test_cca_reconstruct_fits_the_brightness_of_images_scaled_each_on_its_own(paths, tmp_path):
     for scale, path in paths.items():
         out = tmp_path / f"{scale}_recon.h5"
-        result = _cli("reconstruct", path, "-o", out, "--iterations", 2, "-q")
+        result = _cli("reconstruct", path, "-o", out, "--iterations", 6, "-q")
         assert result.exit_code == 0, result.output
         assert cca.load(out).options["brightness"] is (scale == "per_frame")
+        printed = _cli("report", out, "-o", tmp_path / f"{scale}_report", "--no-figures")
+        assert printed.exit_code == 0, printed.output
+        assert ("capture brightness min / median / max" in printed.output) is (scale == "per_frame")
 
 
 def test_any_engine_that_can_fit_the_brightness_does_and_other_engines_say_they_do_not(paths, caplog):
@@ -140,3 +144,22 @@ def test_any_engine_that_can_fit_the_brightness_does_and_other_engines_say_they_
     with caplog.at_level("WARNING", logger="cca"):
         cca.reconstruct(cca.load(paths["per_frame"]), engine="altmin", max_iterations=1)
     assert "fits no brightness" in caplog.text
+
+
+@pytest.mark.parametrize("white_level", [None, 65535])
+def test_frames_scaled_to_their_own_maximum_keep_their_brightest_pixel(tmp_path, white_level):
+    images = []
+    for i in range(2):
+        frame = (1 + i + np.arange(256, dtype=np.float64)).reshape(16, 16)
+        write_image(tmp_path / f"v{i}.png", np.round(frame / frame.max() * 65535).astype(np.uint16), bit_depth=16)
+        images.append({"path": f"v{i}.png", "exposure_s": 0.01, "stage_x_mm": float(i), "stage_y_mm": 0.0})
+    optics = {"wavelength_m": 550e-9, "focal_length_m": 0.1, "aperture_diameter_m": 4.6e-3, "pixel_pitch_m": 2.5e-6,
+              "distance_m": 10.0}
+    sensor = {"frame_scale": "per_frame"} if white_level is None else {"frame_scale": "per_frame",
+                                                                       "white_level": white_level}
+    (tmp_path / "m.yaml").write_text(yaml.safe_dump({"optics": optics, "sensor": sensor, "images": images}))
+    result = _cli("ingest", tmp_path / "m.yaml", "-o", tmp_path / "raw.h5", "-q")
+    assert result.exit_code == 0, result.output
+    with h5py.File(tmp_path / "raw.h5") as handle:
+        clipped = int((handle["/measurements/weight"][()] == 0).sum())
+    assert (clipped == 0) is (white_level is None)   # a stated white level still marks what comes near it
