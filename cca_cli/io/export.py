@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -215,6 +216,12 @@ def export_image(image, path: str | Path, *, pixel_size_m: float, quantity: str 
     return path
 
 
+def _latin1(text: str) -> str:
+    """``text`` as a PNG text chunk may hold it (Latin-1): ``√(x)`` / ``√x`` become ``sqrt(x)``."""
+    text = re.sub(r"√(\w+)", r"sqrt(\1)", text.replace("√(", "sqrt("))
+    return text.encode("latin-1", "backslashreplace").decode("latin-1")
+
+
 def _write_oiio(tmp: Path, format_name: str, data: np.ndarray, pixel_type: str, meta: dict, path: Path) -> None:
     import OpenImageIO as oiio
 
@@ -231,7 +238,7 @@ def _write_oiio(tmp: Path, format_name: str, data: np.ndarray, pixel_type: str, 
     else:
         spec.attribute("oiio:ColorSpace", "linear")  # codes are linear in the value, not sRGB-encoded
         for key, value in meta.items():
-            spec.attribute(f"cca:{key}", repr(value) if isinstance(value, float) else str(value))
+            spec.attribute(f"cca:{key}", _latin1(repr(value) if isinstance(value, float) else str(value)))
     out = oiio.ImageOutput.create(format_name)
     if out is None:
         raise CcaError(f"{path}: cannot write {format_name} ({oiio.geterror().strip()})")

@@ -44,6 +44,7 @@ from cca_cli.errors import CcaError, ConfigError, OutputExistsError
 from cca_cli.io.h5 import Provenance, atomic_h5, atomic_path, remove_temporaries, write_dataset
 from cca_cli.io.outputs import is_cca_hdf5, starts_with
 from cca_cli.io.sweep_table import read_table, read_table_layout
+from cca_cli.workflows.scenes import check_scene
 from cca_cli.workflows.cluster import (check_scheduler, check_workers, open_client, scheduler_gone, scheduler_lost,
                                       scheduler_timeout)
 
@@ -281,6 +282,8 @@ def _make_point(base: RunConfig, index: int, point_id: str, overrides: dict[str,
         extra["reconstruct.options.threads"] = 1
     try:
         config = apply_overrides(base, {**overrides, **extra}, source=f"{source} point {point_id}")
+        if "simulate" in config.run.stages:
+            check_scene(config.scene)   # a chart that does not fit fails this point before any runs
         error = None
     except ConfigError as exc:
         config, error = None, str(exc)
@@ -662,6 +665,8 @@ def write_table(rows: list[dict[str, Any]], sweep_dir: Path, *, spec: SweepSecti
             values = [row.get(column) for row in rows]
             name = column.removeprefix("param:")
             kind = _kind(values)
+            if kind == "text" and all(v is None for v in values) and TABLE_COLUMNS.get(column, ("text",))[0] != "text":
+                kind = "float"   # a number column missing in every row: NaN, as in any other row
             units, description = _column_info(column, kind)
             extra = {}
             if kind == "int":

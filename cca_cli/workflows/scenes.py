@@ -11,7 +11,7 @@ from cca_cli.errors import ConfigError
 from cca_cli.optics import fft
 from cca_cli.targets import BarGroup, chart_groups_for_grid, resolution_chart
 
-__all__ = ["Scene", "build_scene", "bars_to_table", "table_to_bars", "usaf_to_table", "table_to_usaf",
+__all__ = ["Scene", "build_scene", "check_scene", "bars_to_table", "table_to_bars", "usaf_to_table", "table_to_usaf",
            "surface_phase"]
 
 
@@ -84,6 +84,40 @@ def surface_phase(size: int, *, roughness_rad: float, correlation_px: float = 0.
         noise = ndimage.gaussian_filter(noise, correlation_px, mode="wrap")
     std = float(noise.std())
     return (noise / std * roughness_rad if std > 0 else noise).astype(np.float32)
+
+
+def check_scene(section: SceneSection) -> None:
+    """Raise the :class:`~cca_cli.errors.ConfigError` :func:`build_scene` would for a chart that does not fit.
+
+    Cheap (the chart is laid out at ``scene.size_px``, nothing is resampled), so a sweep checks every
+    point before any runs. Other kinds of scene are checked when they are built.
+    """
+    if section.kind == "resolution_chart":
+        widths = tuple(section.widths_px) if section.widths_px else None
+        _fits(("resolution_chart", section.size_px, widths), lambda: resolution_chart(section.size_px, widths=widths)
+              if widths else resolution_chart(section.size_px), size="scene.size_px", widths="scene.widths_px")
+    elif section.kind == "usaf":
+        from cca_cli.targets import usaf1951_chart
+
+        pitch = section.field_width_m / section.size_px
+        groups = tuple(section.usaf_groups) if section.usaf_groups else (-2, -1, 0, 1, 2, 3)
+        _fits(("usaf", section.size_px, pitch, groups),
+              lambda: usaf1951_chart(section.size_px, pixel_pitch_m=pitch, groups=groups), size="scene.size_px",
+              groups="scene.usaf_groups", pixel_pitch_m="the pixel (scene.field_width_m / scene.size_px)")
+
+
+_CHECKED: dict[tuple, str | None] = {}   # what each chart layout checked gave (None: it fits)
+
+
+def _fits(key: tuple, make, **names: str) -> None:
+    if key not in _CHECKED:
+        try:
+            make()
+            _CHECKED[key] = None
+        except ValueError as exc:
+            _CHECKED[key] = _scene_message(exc, **names)
+    if _CHECKED[key] is not None:
+        raise ConfigError(_CHECKED[key])
 
 
 def _base_scene(section: SceneSection, grid_size: int) -> Scene:

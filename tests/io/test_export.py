@@ -119,6 +119,23 @@ def test_png_is_16_bit_with_its_scale_and_pixel_size(recon, tmp_path):
     assert 0.0254 / attrs["XResolution"] == pytest.approx(pixel, rel=1e-3)
 
 
+def test_png_text_chunks_are_latin_1_as_the_format_says(recon, tmp_path):
+    import struct
+
+    path = cca.export(recon, tmp_path / "amplitude.png", quantity="amplitude")
+    data, chunks, at = path.read_bytes(), {}, 8
+    while at < len(data):
+        length, kind = struct.unpack(">I4s", data[at:at + 8])
+        if kind == b"tEXt":
+            key, _, value = data[at + 8:at + 8 + length].partition(b"\0")
+            chunks[key.decode("latin-1")] = value.decode("latin-1")
+        at += 12 + length
+    units = read_exported(path).units          # the exact units, from the JSON description
+    assert "√" in units and chunks["cca:units"] == units.replace("√(", "sqrt(").replace("√irradiance",
+                                                                                         "sqrt(irradiance)")
+    assert chunks["cca:units"].isascii()
+
+
 def test_npy_and_arrays_and_results(recon, tmp_path):
     cca.export(recon, tmp_path / "a.npy", quantity="intensity")
     assert np.array_equal(np.load(tmp_path / "a.npy"), _h5(recon, "intensity")[0])

@@ -100,6 +100,20 @@ def test_dry_run_lists_points_and_runs_nothing(tmp_path):
     assert bad.exit_code == 2 and "array.nope" in bad.output
 
 
+def test_a_chart_that_does_not_fit_is_an_invalid_point_before_anything_runs(tmp_path):
+    base = tiny_config()
+    size = base.scene.size_px
+    spec = SweepSection(parameters={"scene.widths_px": [[2], [size]]})
+    fits, too_wide = expand_points(base, spec, tmp_path)
+    assert fits.error is None
+    assert "does not fit" in too_wide.error and "scene.widths_px" in too_wide.error
+    config = tmp_path / "c.yaml"
+    config.write_text(base.model_dump_json())
+    every = CliRunner().invoke(app, ["sweep", "grid", str(config), "--set", f"scene.widths_px=[{size}]", "--dry-run",
+                                     "--out-dir", str(tmp_path / "s")])
+    assert every.exit_code == 2 and "every point of the sweep is invalid" in every.output
+
+
 def test_a_dask_scheduler_is_recognised_and_other_servers_are_refused_in_bounded_time(client):
     import http.server
     import threading
@@ -118,3 +132,20 @@ def test_a_dask_scheduler_is_recognised_and_other_servers_are_refused_in_bounded
         assert time.perf_counter() - start < 5
     finally:
         server.shutdown()
+
+
+def test_a_number_column_missing_in_every_row_is_stored_as_numbers(tmp_path):
+    import h5py
+    import numpy as np
+
+    from cca_cli.stages.sweep import read_table, write_table
+
+    rows = [{"point_id": f"p{i}", "index": i, "status": "ok", "param:noise.snr_db": 10 * (i + 1),
+             "mtf20_observed_px": None, "resolution_gain": None, "mtf20_recovered_px": 2} for i in range(2)]
+    write_table(rows, tmp_path, spec=SweepSection(parameters={"noise.snr_db": [10, 20]}), base=tiny_config())
+    with h5py.File(tmp_path / "sweep.h5") as handle:
+        for name in ("mtf20_observed_px", "resolution_gain"):
+            data = handle[f"table/{name}"]
+            assert data.dtype == np.float64 and np.isnan(data[()]).all(), name
+            assert data.attrs["units"] != "text"
+    assert [r["mtf20_observed_px"] for r in read_table(tmp_path / "sweep.h5")] == [None, None]
