@@ -112,6 +112,16 @@ def test_noise_is_measured_from_the_brackets():
     assert model.electrons_per_count == pytest.approx(GAIN, rel=0.2)
 
 
+def test_brackets_without_shot_noise_give_the_default_gain_not_an_absurd_one():
+    rng = np.random.default_rng(8)
+    radiance = np.kron(rng.uniform(1e3, 2e5, (12, 12)), np.ones((12, 12)))
+    # the same scaled frame in every bracket, plus read noise only: nothing grows with the light
+    frames = np.stack([radiance * t + rng.normal(0, READ_NOISE, radiance.shape) for t in EXPOSURES])
+    model = estimate_noise(frames.astype(np.float32), EXPOSURES, saturation_level=FULL - BLACK)
+    assert model.electrons_per_count == 1.0 and "no shot noise" in model.source
+    assert model.read_noise == pytest.approx(READ_NOISE, rel=0.3)
+
+
 def test_batch_axis_matches_individual_merges():
     rng = np.random.default_rng(1)
     scenes = rng.uniform(1e3, 1e6, (2, 24, 24))
