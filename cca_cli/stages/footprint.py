@@ -204,6 +204,7 @@ def reconstruct_footprint(captures_path: Path, section=None) -> Footprint:
         geometry = read_geometry(handle)
         truth = _shape(handle, "/truth/object") if "/truth/object" in handle else (0, 0)
         boundary = handle["/measurements/intensity"].attrs.get("boundary", "")
+        frame_scale = str(handle["/measurements/intensity"].attrs.get("frame_scale", "shared"))
     if len(shape) != 3:
         raise InputError(f"{captures_path}: /measurements/intensity has shape {shape}, expected 3 dimensions")
     if section is not None and getattr(section, "tiles", None) is not None:
@@ -215,6 +216,9 @@ def reconstruct_footprint(captures_path: Path, section=None) -> Footprint:
     centres = geometry.spectrum_centres_yx_px
     reach = float(np.max(np.abs(np.rint(centres * scale)))) if centres.size else 0.0
     lowres, hires, box = _grids(reach, geometry.pupil_radius_px * scale, n)
+    if _refines_positions(section, bool(truth[0]), geometry.kind, frame_scale):
+        # pupils that may move get a margin on the object grid, as build_model gives them
+        hires = _fft_size(hires + 2 * (math.ceil(geometry.pupil_radius_px * scale / 8) + 2))
     threads = _engine_threads(section)
     memory = (reconstruction_memory_bytes(k, n, lowres, hires, box) + (k * n * n * _FLOAT if weighted else 0)
               + k * h * w * _FLOAT + k * _PER_CAPTURE  # the images as read, besides the engine's own copy
@@ -230,6 +234,21 @@ def reconstruct_footprint(captures_path: Path, section=None) -> Footprint:
                      f"{threads} thread{'s' * (threads != 1)}",
                      "reconstruct fewer or smaller images (crop them, or simulate with simulate.store: band), "
                      "or use fewer threads (reconstruct.options.threads)")
+
+
+def _refines_positions(section, has_truth: bool, geometry_kind: str, frame_scale: str) -> bool:
+    """Whether the engine the section resolves to on these captures moves the pupils (False where it does not
+    resolve: the run itself says why)."""
+    from cca_cli.config.model import ReconstructSection
+    from cca_cli.library.data import data_kind
+    from cca_cli.workflows.recovery import engine_options
+
+    try:
+        _, options = engine_options(section if section is not None else ReconstructSection(),
+                                    data_kind(has_truth, geometry_kind), frame_scale=frame_scale)
+    except (ConfigError, ValueError):
+        return False
+    return bool(getattr(options, "refines_positions", False))
 
 
 def _engine_threads(section) -> int:

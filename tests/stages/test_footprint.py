@@ -127,3 +127,8 @@ def test_recorded_frames_are_estimated_on_the_guard_banded_grid_with_the_checkpo
     # padding off: the frames' own grid
     unpadded = reconstruct_footprint(path, ReconstructSection(padding={"mode": "off"}))
     assert "grid" not in unpadded.detail and unpadded.memory_bytes < estimate.memory_bytes
+    # pupils that may move: the object grid gets the run's margin
+    moving = ReconstructSection(options={"position_refinement": "per_image"})
+    margin = int(np.ceil(padded.geometry.pupil_radius_px / 8)) + 2
+    wider = build_model(padded.geometry, region.size, margin_px=margin).layout.hires_size
+    assert wider > hires and f"object {wider}² px" in reconstruct_footprint(path, moving).detail
