@@ -1199,9 +1199,13 @@ case("sweep-into-another-base-config", "data-loss", SWEEP_MORE,
 case("sweep-into-another-study", "data-loss", SWEEP_MORE,
      {"cfg.yaml": Config(), "sw": SweepFolder({"noise.snr_db": [10, 20]}, study="noise")}, exit=4,
      says=("sweep.h5", "noise study", "--force"))
-case("sweep-points-fail", "traceback",
+case("sweep-points-fail", "traceback",   # points that fail only when they run (a scene image no reader takes)
+     ["sweep", "grid", "cfg.yaml", "--set", "noise.snr_db=20,30", "--out-dir", "sw", "-q", "--workers", "1"],
+     {"cfg.yaml": Config({"scene.kind": "image", "scene.image_path": "scene.png"}), "scene.png": Text("not an image")},
+     exit=1, says=("2 of 2 points failed", "sw/sweep.csv"), writes=("sw",), seconds=120)
+case("sweep-points-invalid", "traceback",   # a chart that fits no point: refused before anything runs
      ["sweep", "grid", "cfg.yaml", "--set", "scene.size_px=20,12.7", "--out-dir", "sw", "-q", "--workers", "1"],
-     {"cfg.yaml": Config()}, exit=1, says=("2 of 2 points failed", "sw/sweep.csv"), writes=("sw",), seconds=120)
+     {"cfg.yaml": Config()}, exit=2, says=("every point of the sweep is invalid", "does not fit"), writes=())
 
 
 def _started_afresh(folder: Path, result) -> None:
