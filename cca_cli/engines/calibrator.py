@@ -217,7 +217,7 @@ class Calibrator:
         relit = False
         if opts.brightness:
             statistics = self.evaluate(spectrum)
-            self.brightness = ill.shrunk_brightness(statistics, self.brightness)
+            self.brightness = ill.shrunk_brightness(statistics, self.brightness, shrinkage=opts.brightness_prior)
             relit = not moved
         return moved, relit
 

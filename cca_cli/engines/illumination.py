@@ -294,7 +294,8 @@ def shrunk_brightness(statistics: CaptureStatistics, current: np.ndarray, *, shr
     """Per-capture brightness ``b_i`` (multiplying the modelled intensity), shrunk towards 1.
 
     ``√b_i = (Σ|ψ|√I + λ) / (Σ|ψ|² + λ)`` with ``λ = shrinkage · median(Σ|ψ|²)``,
-    then divided by its median so the object keeps the overall scale.
+    then divided by its median so the object keeps the overall scale, and held to
+    ``0.2 … 5`` (``0.001 … 1000`` without a prior: images scaled each on its own).
 
     Parameters
     ----------
@@ -303,7 +304,7 @@ def shrunk_brightness(statistics: CaptureStatistics, current: np.ndarray, *, shr
     current : ndarray, (K,)
         The brightness those amplitudes were divided by.
     shrinkage : float
-        Relative weight of the prior ``b = 1``.
+        Relative weight of the prior ``b = 1`` (0: none).
 
     Returns
     -------
@@ -313,4 +314,5 @@ def shrunk_brightness(statistics: CaptureStatistics, current: np.ndarray, *, shr
     cross = statistics.cross * np.sqrt(current)
     root = (cross + prior) / (statistics.power + prior + 1e-300)
     root /= float(np.median(root))
-    return np.clip(root, 0.2, 5.0) ** 2
+    low, high = (0.2, 5.0) if shrinkage > 0 else (1e-3, 1e3)
+    return np.clip(root, low, high) ** 2

@@ -207,6 +207,10 @@ class MomentumOptions(EngineOptions):
         (``true``/``false`` are read as ``both``/``none``).
     brightness : bool
         Fit each capture's illumination brightness.
+    brightness_prior : float
+        Weight of the belief that every capture's brightness is 1, relative to the median capture's
+        modelled power (0: none, for images scaled each on its own; their brightness may then range over
+        six decades instead of 0.04 … 25).
     calibration_start : int
         Passes before the first position / brightness round.
     calibration_every : int
@@ -257,6 +261,7 @@ class MomentumOptions(EngineOptions):
     pupil_estimate: bool = True
     position_refinement: Literal["none", "global", "per_image", "both"] = "none"
     brightness: bool = False
+    brightness_prior: float = 0.05
     calibration_start: int = 3
     calibration_every: int = 2
     hold_back: float = 0.0
@@ -296,6 +301,7 @@ class MomentumOptions(EngineOptions):
             (0 < self.pupil_damping <= 1, f"pupil_damping must be in (0, 1], got {self.pupil_damping}"),
             (0 <= self.pupil_momentum < 1, f"pupil_momentum must be in [0, 1), got {self.pupil_momentum}"),
             (0 < self.pupil_smoothing <= 2, f"pupil_smoothing must be in (0, 2], got {self.pupil_smoothing}"),
+            (self.brightness_prior >= 0, f"brightness_prior must be ≥ 0, got {self.brightness_prior}"),
             (self.calibration_start >= 0, f"calibration_start must be ≥ 0, got {self.calibration_start}"),
             (self.calibration_every >= 1, f"calibration_every must be ≥ 1, got {self.calibration_every}"),
             (0 <= self.hold_back <= 0.25, f"hold_back must be in [0, 0.25], got {self.hold_back}"),

@@ -181,7 +181,8 @@ def resolve(engine: str, kind: str | None, given: Mapping | None = None, *,
     if frame_scale not in presets.FRAME_SCALES:
         raise ValueError(f"frame_scale must be 'shared' or 'per_frame', got {frame_scale!r}")
     if frame_scale == "per_frame" and kind is not None and "brightness" in spec.option_names():
-        start = {**start, "brightness": True}   # images scaled each on its own: their brightness is unknown
+        # images scaled each on its own: their brightness is unknown, and nothing says it is near 1
+        start = {**start, "brightness": True, "brightness_prior": 0.0}
     unknown = sorted(set(given) - set(spec.option_names()))
     if unknown:
         alias, full = ITERATIONS_ALIAS

@@ -286,6 +286,18 @@ def _board_views(plan: CapturePlan, boards: list[list[tuple[np.ndarray, bool]]],
     return out
 
 
+def _same_peak_note(frames: np.ndarray, frame_scale: str) -> list[str]:
+    """A note when every frame (one exposure a position) peaks at exactly one value: frames scaled each to its
+    own maximum look so, and recorded ones do not (unless each clips there)."""
+    if frame_scale != "shared" or frames.shape[1] != 1 or frames.shape[0] < 4:
+        return []
+    peaks = frames.reshape(frames.shape[0], -1).max(axis=1)
+    if not np.all(peaks == peaks[0]):
+        return []
+    return [f"every frame peaks at exactly {float(peaks[0]):g}: if they were scaled each to its own maximum, say "
+            "sensor.frame_scale: per_frame (if each clips there, sensor.white_level)"]
+
+
 def ingest(manifest_path: Path, *, progress: ProgressFn = silent) -> Ingested:
     """Read a manifest and all its images (no file output)."""
     loaded = read_manifest(manifest_path)
@@ -304,6 +316,7 @@ def ingest(manifest_path: Path, *, progress: ProgressFn = silent) -> Ingested:
     else:
         frames, darks, flats, board_frames, decoding = _read_files(plan, progress)
         notes += decoding.notes
+        notes += _same_peak_note(frames, manifest.sensor.frame_scale)
         calibration = _calibrate(plan, decoding, darks, flats, notes)
         _linearise(frames, plan.exposure_s, calibration, notes)
         if plan.calibration is not None and manifest.checkerboard is not None:

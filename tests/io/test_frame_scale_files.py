@@ -149,7 +149,7 @@ def test_any_engine_that_can_fit_the_brightness_does_and_other_engines_say_they_
 @pytest.mark.parametrize("white_level", [None, 65535])
 def test_frames_scaled_to_their_own_maximum_keep_their_brightest_pixel(tmp_path, white_level):
     images = []
-    for i in range(2):
+    for i in range(4):
         frame = (1 + i + np.arange(256, dtype=np.float64)).reshape(16, 16)
         write_image(tmp_path / f"v{i}.png", np.round(frame / frame.max() * 65535).astype(np.uint16), bit_depth=16)
         images.append({"path": f"v{i}.png", "exposure_s": 0.01, "stage_x_mm": float(i), "stage_y_mm": 0.0})
@@ -163,3 +163,19 @@ def test_frames_scaled_to_their_own_maximum_keep_their_brightest_pixel(tmp_path,
     with h5py.File(tmp_path / "raw.h5") as handle:
         clipped = int((handle["/measurements/weight"][()] == 0).sum())
     assert (clipped == 0) is (white_level is None)   # a stated white level still marks what comes near it
+
+
+def test_frames_that_all_peak_at_one_value_are_noted_when_nothing_is_said(tmp_path):
+    images = []
+    for i in range(4):
+        frame = (1 + i + np.arange(256, dtype=np.float64)).reshape(16, 16)
+        write_image(tmp_path / f"v{i}.png", np.round(frame / frame.max() * 65535).astype(np.uint16), bit_depth=16)
+        images.append({"path": f"v{i}.png", "exposure_s": 0.01, "stage_x_mm": float(i), "stage_y_mm": 0.0})
+    optics = {"wavelength_m": 550e-9, "focal_length_m": 0.1, "aperture_diameter_m": 4.6e-3, "pixel_pitch_m": 2.5e-6,
+              "distance_m": 10.0}
+    for sensor, noted in (({}, True), ({"frame_scale": "per_frame"}, False)):
+        (tmp_path / "m.yaml").write_text(yaml.safe_dump({"optics": optics, "sensor": sensor, "images": images}))
+        result = _cli("ingest", tmp_path / "m.yaml", "-o", tmp_path / "raw.h5", "--force")
+        assert result.exit_code == 0, result.output
+        text = " ".join(result.output.split())
+        assert ("every frame peaks at exactly 65535" in text and "sensor.frame_scale: per_frame" in text) is noted
