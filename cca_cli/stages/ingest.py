@@ -347,7 +347,7 @@ def ingest(manifest_path: Path, *, progress: ProgressFn = silent) -> Ingested:
                                       pixel_pitch_object_m=pitch, field_width_m=w * pitch, sign=il.sign,
                                       grid_indices=plan.grid_indices)
     check_geometry(plan, geometry, (h, w))
-    notes += stray_positions(plan, geometry)
+    notes += stray_positions(plan, geometry) + apart_neighbours(plan, geometry)
     if manifest.sensor.frame_scale == "per_frame":
         notes.append("sensor.frame_scale is per_frame: the images' relative brightness is unknown, so reconstruct's "
                      "momentum engine (engine: auto on recorded captures) fits each capture's brightness "
@@ -374,10 +374,7 @@ def check_geometry(plan: CapturePlan, geometry: CaptureGeometry, frame_shape: tu
         One line naming the manifest, the keys to check and, for a position, its row.
     """
     radius = geometry.pupil_radius_px
-    if plan.kind == "camera_scan":
-        optics = "optics.aperture_diameter_m, pixel_pitch_m, focal_length_m, distance_m and wavelength_m (all in metres)"
-    else:
-        optics = "illumination.numerical_aperture, pixel_pitch_object_m and wavelength_m"
+    optics = _optics_keys(plan)
     width = frame_shape[1]
     if radius < 1:
         raise ConfigError(f"{plan.path}: the optics give a pupil of {radius:.3g} spectrum px in radius, less than "
@@ -389,7 +386,9 @@ def check_geometry(plan: CapturePlan, geometry: CaptureGeometry, frame_shape: tu
                           f"{width}-px frames can sample; check {optics}") from None
     reach = np.max(np.abs(geometry.spectrum_centres_yx_px), axis=1)
     far = int(np.argmax(reach))
-    needed = 2.0 * (float(reach[far]) + radius)
+    # reconstruct recovers the frames on a grid with a guard band: spectrum distances grow with it
+    widened = plan_embedding(frame_shape, radius).size / width
+    needed = 2.0 * (float(reach[far]) + radius) * widened
     if needed > MAX_GRID_PX:
         raise ConfigError(f"{plan.path}: {plan.labels[far]} lies {reach[far]:.3g} spectrum px from the axis, so "
                           f"the recovery grid would be {needed:.3g} px wide (at most {MAX_GRID_PX}); "
@@ -440,6 +439,41 @@ def stray_positions(plan: CapturePlan, geometry: CaptureGeometry) -> list[str]:
             f"other ({nearest[i]:.4g} against {spacing:.4g} spectrum px) and widens the recovery grid to reach "
             f"it; a mistyped position? {fix}"
             for i in np.flatnonzero(beyond)]
+
+
+def apart_neighbours(plan: CapturePlan, geometry: CaptureGeometry) -> list[str]:
+    """A note when the captures' usual spacing exceeds the pupil's diameter: no two share any part of the spectrum
+    (a position unit wrong by a thousand, or optics that make the pupil too small).
+
+    Returns
+    -------
+    list of str
+        Empty, or one note naming the spacing, the diameter and what to check.
+    """
+    from scipy.spatial import cKDTree
+
+    centres = np.asarray(geometry.spectrum_centres_yx_px, np.float64)
+    if len(centres) < 2:
+        return []
+    spacing = float(np.median(cKDTree(centres).query(centres, k=2)[0][:, 1]))
+    diameter = 2 * geometry.pupil_radius_px
+    if not spacing > diameter:
+        return []
+    if plan.kind == "led_array":
+        fix = f"check the LEDs' kx_norm/ky_norm and {_optics_keys(plan)}"
+    elif all(e.position_kind == "grid" for e in plan.manifest.images if e.kind == "coherent"):
+        fix = f"check stage_pitch_mm and {_optics_keys(plan)}"
+    else:
+        fix = f"check the positions' unit (units.position, or the columns' suffixes) and {_optics_keys(plan)}"
+    return [f"neighbouring captures lie {spacing:.4g} spectrum px apart, more than the pupil's diameter "
+            f"({diameter:.4g} px): no two overlap, so phase retrieval cannot join them; {fix}"]
+
+
+def _optics_keys(plan: CapturePlan) -> str:
+    """The manifest keys that set the pupil's size in the spectrum."""
+    if plan.kind == "camera_scan":
+        return "optics.aperture_diameter_m, pixel_pitch_m, focal_length_m, distance_m and wavelength_m (all in metres)"
+    return "illumination.numerical_aperture, pixel_pitch_object_m and wavelength_m"
 
 
 def _position_fix(plan: CapturePlan, optics: str) -> str:

@@ -439,3 +439,23 @@ def test_images_scaled_each_on_its_own_reach_reconstruct_with_brightness_fitted(
     _refused(tmp_path, "sensor.frame_scale is per_frame", "2 exposures", "frame_scale: shared")
     _lab(tmp_path, sensor={"frame_scale": "each"})
     _refused(tmp_path, "sensor.frame_scale", "per_frame")
+
+
+@pytest.mark.parametrize("factor", [1000.0, 20000.0])
+def test_positions_in_the_wrong_unit_are_noted_or_refused(tmp_path, factor):
+    """Micrometres read as millimetres: no two captures overlap (a note); far enough out, the recovery grid with
+    its guard band could not hold them (refused, although the pupils alone would fit in 65536 px)."""
+    rows = []
+    for r in range(3):
+        for c in range(3):
+            write_image(tmp_path / f"p{r}{c}.png", _codes(800), bit_depth=16)
+            rows.append({"path": f"p{r}{c}.png", "exposure_s": 0.01, "stage_x_mm": 0.5 * (c - 1) * factor,
+                         "stage_y_mm": 0.5 * (r - 1) * factor})
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump({"optics": OPTICS, "images": rows}))
+    if factor == 1000.0:
+        result = _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
+        assert result.exit_code == 0, result.output
+        text = " ".join(result.output.split())
+        assert "no two overlap" in text and "units.position" in text
+    else:
+        _refused(tmp_path, "lab.yaml", "the recovery grid would be", "at most 65536")
