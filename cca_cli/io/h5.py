@@ -23,6 +23,7 @@ __all__ = [
     "atomic_path",
     "check_input_file",
     "check_output",
+    "missing_dataset",
     "file_sha256",
     "open_input",
     "write_dataset",
@@ -236,10 +237,18 @@ def open_input(path: str | Path, *, stage: str | None = None) -> h5py.File:
     return handle
 
 
+def missing_dataset(handle: h5py.File, path: str) -> InputError:
+    """The one-line error for a dataset ``path`` the open file lacks (exposure brackets not yet merged named so)."""
+    if path.startswith("/measurements") and "/raw/frames" in handle:
+        return InputError(f"{handle.filename}: exposure brackets (/raw/frames) and no {path}: merge them first "
+                          "with cca hdr (or cca run with the hdr stage)")
+    return InputError(f"{handle.filename}: missing dataset {path}; the file is incomplete or from another stage")
+
+
 def require(handle: h5py.File, path: str, *, ndim: int | None = None) -> h5py.Dataset:
     """A dataset that must exist (and have ``ndim`` dimensions), else a one-line InputError."""
     if path not in handle:
-        raise InputError(f"{handle.filename}: missing dataset {path}; the file is incomplete or from another stage")
+        raise missing_dataset(handle, path)
     dataset = handle[path]
     if not isinstance(dataset, h5py.Dataset):
         raise InputError(f"{handle.filename}: {path} is a group, expected a dataset; the file is not a cca file")

@@ -329,9 +329,9 @@ def _resolve(base: Path, p) -> Path:
 def _merge_setup(data: dict, setup_path: Path, source: str, notes: list[str]) -> dict:
     """Sections of a setup file merged into a manifest mapping (a section given twice is an error).
 
-    A setup file that is the optics (or illumination) section itself may
-    carry the lab's other facts too: keys cca does not know are ignored,
-    with a note.
+    A setup file (the optics or illumination section itself, or a file of
+    sections) may carry the lab's other facts too: keys cca does not know
+    are ignored, with a note.
     """
     setup = _read_mapping(setup_path, "setup file")
     if any(k in setup for k in ("images", "images_csv", "source", "setup")):
@@ -344,6 +344,11 @@ def _merge_setup(data: dict, setup_path: Path, source: str, notes: list[str]) ->
         if ignored:
             notes.append(f"{setup_path.name}: keys not used by cca, ignored: {', '.join(ignored)}")
         setup = {name: {k: v for k, v in setup.items() if k in model.model_fields}}
+    else:   # a file of sections: the lab's other facts beside them are ignored alike
+        ignored = [k for k in setup if k not in _SECTION_KEYS]
+        if ignored:
+            notes.append(f"{setup_path.name}: keys not used by cca, ignored: {', '.join(ignored)}")
+        setup = {k: v for k, v in setup.items() if k in _SECTION_KEYS}
     for name in ("optics", "illumination"):
         section = setup.get(name)
         if isinstance(section, dict) and section.get("pupil") is not None:

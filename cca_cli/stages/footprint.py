@@ -185,7 +185,9 @@ def simulate_footprint(config: RunConfig) -> Footprint:
 
 def _shape(handle, name: str) -> tuple[int, ...]:
     if name not in handle or not hasattr(handle[name], "shape"):
-        raise InputError(f"{handle.filename}: missing dataset {name}; the file is incomplete or from another stage")
+        from cca_cli.io.h5 import missing_dataset
+
+        raise missing_dataset(handle, name)
     return tuple(int(n) for n in handle[name].shape)
 
 

@@ -347,7 +347,8 @@ def ingest(manifest_path: Path, *, progress: ProgressFn = silent) -> Ingested:
                                       pixel_pitch_object_m=pitch, field_width_m=w * pitch, sign=il.sign,
                                       grid_indices=plan.grid_indices)
     check_geometry(plan, geometry, (h, w))
-    notes += stray_positions(plan, geometry) + apart_neighbours(plan, geometry)
+    notes += stray_positions(plan, geometry) + apart_neighbours(plan, geometry) + dark_bright_field(plan, geometry,
+                                                                                                  frames)
     if manifest.sensor.frame_scale == "per_frame":
         notes.append("sensor.frame_scale is per_frame: the images' relative brightness is unknown, so reconstruct's "
                      "momentum engine (engine: auto on recorded captures) fits each capture's brightness "
@@ -467,6 +468,34 @@ def apart_neighbours(plan: CapturePlan, geometry: CaptureGeometry) -> list[str]:
         fix = f"check the positions' unit (units.position, or the columns' suffixes) and {_optics_keys(plan)}"
     return [f"neighbouring captures lie {spacing:.4g} spectrum px apart, more than the pupil's diameter "
             f"({diameter:.4g} px): no two overlap, so phase retrieval cannot join them; {fix}"]
+
+
+#: A bright-field LED capture this many times darker than the median bright-field one is named in a note.
+DARK_BRIGHT_FIELD = 10.0
+
+
+def dark_bright_field(plan: CapturePlan, geometry: CaptureGeometry, frames: np.ndarray) -> list[str]:
+    """Notes on LED-array captures the geometry puts in the bright field that recorded far less light than the
+    others there (an LED that did not fire, or a row of the table that names another LED).
+
+    Returns
+    -------
+    list of str
+        One note per such capture, naming its row.
+    """
+    if plan.kind != "led_array":
+        return []
+    centres = np.asarray(geometry.spectrum_centres_yx_px, np.float64)
+    bright = np.flatnonzero(np.hypot(centres[:, 0], centres[:, 1]) < 0.9 * geometry.pupil_radius_px)
+    if bright.size < 3:
+        return []
+    rate = frames[bright, 0].mean(axis=(-2, -1)) / plan.exposure_s[bright, 0]
+    typical = float(np.median(rate))
+    if not typical > 0:
+        return []
+    return [f"{plan.labels[i]} is in the bright field but recorded {typical / max(float(r), 1e-30):.3g} times less "
+            "light than the median bright-field capture: did its LED fire? (check that row, or leave it out)"
+            for i, r in zip(bright, rate) if r * DARK_BRIGHT_FIELD < typical]
 
 
 def _optics_keys(plan: CapturePlan) -> str:

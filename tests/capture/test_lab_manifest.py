@@ -459,3 +459,43 @@ def test_positions_in_the_wrong_unit_are_noted_or_refused(tmp_path, factor):
         assert "no two overlap" in text and "units.position" in text
     else:
         _refused(tmp_path, "lab.yaml", "the recovery grid would be", "at most 65536")
+
+
+def test_reconstructing_unmerged_brackets_says_to_merge_them(tmp_path):
+    _lab(tmp_path)
+    assert _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5").exit_code == 0
+    result = runner.invoke(app, ["reconstruct", str(tmp_path / "raw.h5"), "-o", str(tmp_path / "r.h5"), "-q"])
+    assert result.exit_code == 3
+    assert "merge them first with cca hdr" in " ".join(result.output.split())
+
+
+def test_a_setup_file_of_sections_may_carry_the_lab_s_other_facts(tmp_path):
+    _lab(tmp_path)
+    (tmp_path / "setup.json").write_text(json.dumps({"optics": OPTICS, "operator": "jdoe", "room": "B2"}))
+    result = _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
+    assert result.exit_code == 0, result.output
+    assert "setup.json: keys not used by cca, ignored: operator, room" in " ".join(result.output.split())
+
+
+def test_a_bright_field_led_that_did_not_fire_is_named(tmp_path):
+    import cca_cli as cca
+
+    sines = cca.led_grid_sines(5, pitch_m=4e-3, height_m=60e-3)
+    geometry = cca.led_array(sines, wavelength_m=532e-9, numerical_aperture=0.1, pixel_pitch_object_m=1.845e-6,
+                             image_pixels=32)
+    images = cca.simulate(cca.resolution_chart(64, widths=(4, 3, 2)).image, geometry, snr_db=None)
+    scale = 30000 / float(images.max())
+    bright = np.flatnonzero(np.hypot(*geometry.spectrum_centres_yx_px.T) < 0.5 * geometry.pupil_radius_px)
+    dead = int(bright[-1])
+    rows = []
+    for k, (ky, kx) in enumerate(np.asarray(sines)):
+        codes = RNG.normal(100, 3, images[k].shape) if k == dead else images[k] * scale + 100
+        write_image(tmp_path / f"led{k}.png", np.clip(np.rint(codes), 0, 65535).astype(np.uint16), bit_depth=16)
+        rows.append({"path": f"led{k}.png", "exposure_s": 0.01, "kx_norm": float(kx), "ky_norm": float(ky)})
+    manifest = {"illumination": {"wavelength_m": 532e-9, "numerical_aperture": 0.1, "pixel_pitch_object_m": 1.845e-6},
+                "sensor": {"black_level": 100}, "images": rows}
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump(manifest))
+    result = _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
+    assert result.exit_code == 0, result.output
+    text = " ".join(result.output.split())
+    assert text.count("did its LED fire?") == 1 and f"led{dead}.png" in text
