@@ -268,8 +268,13 @@ def decide_decoding(frames: list[FrameValues], rule: SensorRule, *, white_level:
                           f"({first.path}); fix sensor.bit_depth")
     full = float(2**n - 1)
     shift = container - n
+    zeros = _trailing_zero_bits(low_bits, container - 1)
+    if zeros > shift and low_bits and varied:   # emptier low bits than n-bit codes leave: fewer bits, stated wrong?
+        notes.append(f"every value is a multiple of {2**zeros}, as {container - zeros}-bit data MSB-aligned in "
+                     f"{container}-bit files would be, but sensor.bit_depth says {n}: check sensor.bit_depth "
+                     "(the black and white levels are read in its codes)")
     if shift == 0:
-        return _checked(frames, Decoding(0, n, full, "codes"), white_level, rule)
+        return _checked(frames, Decoding(0, n, full, "codes", notes), white_level, rule)
     alignment = rule.alignment
     if alignment is None:
         if top > full and low_bits % (1 << shift) == 0 and varied:

@@ -499,3 +499,15 @@ def test_a_bright_field_led_that_did_not_fire_is_named(tmp_path):
     assert result.exit_code == 0, result.output
     text = " ".join(result.output.split())
     assert text.count("did its LED fire?") == 1 and f"led{dead}.png" in text
+
+
+@pytest.mark.parametrize("sensor, noted", [({"bit_depth": 12, "container_bits": 16, "alignment": "msb"}, False),
+                                           ({"bit_depth": 14, "alignment": "msb"}, True),
+                                           ({"bit_depth": 16}, True)])
+def test_a_stated_bit_depth_the_empty_low_bits_contradict_is_noted(tmp_path, sensor, noted):
+    unstated = lambda rows: [row[:7] + [""] + row[8:] for row in rows]   # noqa: E731  (no bits column)
+    _lab(tmp_path, sensor={**sensor, "black_level": 64}, edit=unstated)   # 12-bit codes, MSB-aligned in 16 bits
+    result = _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
+    assert result.exit_code == 0, result.output
+    text = " ".join(result.output.split())
+    assert ("every value is a multiple of 16, as 12-bit data" in text and "check sensor.bit_depth" in text) is noted
