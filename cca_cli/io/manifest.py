@@ -464,8 +464,13 @@ def _table_entries(table: Path, manifest: Manifest, source: str) -> tuple[list[d
         except ValidationError as exc:
             err = _first_error(exc)
             loc = ".".join(str(p) for p in err["loc"])
-            raise ConfigError(f"{table}: line {line} ({entry['path']}): {loc + ': ' if loc else ''}"
-                              f"{error_message(err)}") from None
+            # name the table's own column and the value it holds (the entry's keys are cca's)
+            cca_name = next((n for n, key in TABLE_COLUMNS.items() if key == loc), loc)
+            column = f"column {used[cca_name]!r} ({loc})" if cca_name in used and used[cca_name] != loc else loc
+            got = f" (got {entry[loc]:g})" if isinstance(entry.get(loc), float) else ""
+            hint = "; it is sin θ of the illumination, not an angle" if loc in ("kx_norm", "ky_norm") else ""
+            raise ConfigError(f"{table}: line {line} ({entry['path']}): {column + ': ' if loc else ''}"
+                              f"{error_message(err)}{got}{hint}") from None
         out.append(entry)
     return out, notes
 

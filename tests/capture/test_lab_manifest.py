@@ -511,3 +511,13 @@ def test_a_stated_bit_depth_the_empty_low_bits_contradict_is_noted(tmp_path, sen
     assert result.exit_code == 0, result.output
     text = " ".join(result.output.split())
     assert ("every value is a multiple of 16, as 12-bit data" in text and "check sensor.bit_depth" in text) is noted
+
+
+def test_degrees_in_a_sine_column_are_named_with_the_table_s_column_and_value(tmp_path):
+    for i in range(2):
+        write_image(tmp_path / f"a{i}.png", np.full((16, 16), 100 + i, np.uint16), bit_depth=16)
+    (tmp_path / "t.csv").write_text("img,NAx,NAy,t\na0.png,30,0,0.01\na1.png,0,0,0.01\n")
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump(
+        {"images_csv": "t.csv", "columns": {"path": "img", "kx_norm": "NAx", "ky_norm": "NAy", "exposure": "t"},
+         "illumination": {"wavelength_m": 5e-7, "numerical_aperture": 0.1, "pixel_pitch_object_m": 1e-6}}))
+    _refused(tmp_path, "t.csv: line 2 (a0.png): column 'NAx' (kx_norm)", "(got 30)", "sin θ", "not an angle")
