@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import logging
+import math
 from typing import Iterator
 
 import typer
@@ -144,10 +145,12 @@ def progress_reporter(enabled: bool = True) -> Iterator:
 
 def length_text(metres: float) -> str:
     """A length with a readable unit (nm, µm, mm, m)."""
+    if not math.isfinite(metres):
+        return f"{metres}"
     for scale, unit in ((1.0, "m"), (1e-3, "mm"), (1e-6, "µm"), (1e-9, "nm")):
         if abs(metres) >= scale:
             return f"{metres / scale:.3g} {unit}"
-    return f"{metres:.3g} m"
+    return f"{metres / 1e-9:.3g} nm" if metres else "0 m"   # below a nanometre: still in nm, as its neighbours
 
 
 def stop_note(stopped_by: str | None, iterations: int | None, change: float | None, tol: float | None,

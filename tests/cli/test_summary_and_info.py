@@ -114,3 +114,10 @@ def test_a_run_that_also_stops_on_a_plateau_is_told_so_at_the_cap():
     assert note == ("reconstruct stopped at the iteration cap (150) before its misfit plateau (less than 2% better "
                     "over 5 iterations) was reached; raise reconstruct.iterations (--iterations) to go on")
     assert "tol" in stop_note("cap", 150, 0.00143, 1e-7) and stop_note("plateau", 40, 0.01, 1e-7, 0.02, 5) is None
+
+
+def test_lengths_read_in_one_unit_down_to_below_a_nanometre():
+    from cca_cli.commands.console import length_text
+
+    assert [length_text(v) for v in (2e-3, 1.25e-7, 1.42e-10, 0.0)] == ["2 mm", "125 nm", "0.142 nm", "0 m"]
+    assert length_text(float("nan")) == "nan"
