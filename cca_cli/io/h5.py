@@ -50,7 +50,11 @@ class Provenance(dict):
 
     @classmethod
     def make(cls, stage: str, config_yaml: str, config_hash: str, inputs: list[str | Path] = ()) -> "Provenance":
-        """Provenance for a stage run now, hashing its input files."""
+        """Provenance for a stage run now, hashing its input files (each once, in the order first given)."""
+        first: dict[Path, str | Path] = {}
+        for p in inputs:
+            first.setdefault(Path(p).resolve(), p)
+        inputs = list(first.values())
         for p in inputs:
             check_input_file(p)
         return cls(

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import csv
 import json
+from pathlib import Path
+
 import h5py
 import numpy as np
 import OpenImageIO as oiio
@@ -521,3 +523,15 @@ def test_degrees_in_a_sine_column_are_named_with_the_table_s_column_and_value(tm
         {"images_csv": "t.csv", "columns": {"path": "img", "kx_norm": "NAx", "ky_norm": "NAy", "exposure": "t"},
          "illumination": {"wavelength_m": 5e-7, "numerical_aperture": 0.1, "pixel_pitch_object_m": 1e-6}}))
     _refused(tmp_path, "t.csv: line 2 (a0.png): column 'NAx' (kx_norm)", "(got 30)", "sin θ", "not an angle")
+
+
+def test_a_csv_manifest_s_inputs_are_each_recorded_once(tmp_path):
+    for i in range(2):
+        write_image(tmp_path / f"a{i}.png", np.full((16, 16), 100 + i, np.uint16), bit_depth=16)
+    (tmp_path / "c.csv").write_text("img,kx_norm,ky_norm,t\na0.png,0,0,0.01\na1.png,0.05,0,0.01\n")
+    (tmp_path / "c.yaml").write_text("illumination: {wavelength_m: 5.0e-7, numerical_aperture: 0.1, "
+                                     "pixel_pitch_object_m: 1.0e-6}\ncolumns: {path: img, exposure: t}\n")
+    assert _ingest(tmp_path / "c.csv", tmp_path / "raw.h5").exit_code == 0
+    with h5py.File(tmp_path / "raw.h5") as handle:
+        paths = [Path(entry["path"]).resolve() for entry in json.loads(handle.attrs["inputs"])]
+    assert len(paths) == len(set(paths)) == 4
