@@ -247,7 +247,7 @@ def summary_table(summary: dict, title: str = "Result") -> Table:
         elif fmt == "length":
             text = length_text(value)
         elif fmt == "triple":
-            text = " / ".join(f"{v:.3f}" for v in value)
+            text = " / ".join(f"{v:.3g}" for v in value)
         elif fmt == "image":
             text = f"{value[1]} x {value[0]} px"
             if summary.get("recovered_field_m"):

@@ -313,6 +313,9 @@ def shrunk_brightness(statistics: CaptureStatistics, current: np.ndarray, *, shr
     prior = shrinkage * float(np.median(statistics.power))
     cross = statistics.cross * np.sqrt(current)
     root = (cross + prior) / (statistics.power + prior + 1e-300)
-    root /= float(np.median(root))
+    middle = float(np.median(root))
+    if not (middle > 0 and np.isfinite(middle)):   # most captures explained by nothing: keep what they had
+        return np.asarray(current, np.float64)
+    root /= middle
     low, high = (0.2, 5.0) if shrinkage > 0 else (1e-3, 1e3)
     return np.clip(root, low, high) ** 2

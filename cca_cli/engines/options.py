@@ -209,8 +209,9 @@ class MomentumOptions(EngineOptions):
         Fit each capture's illumination brightness.
     brightness_prior : float
         Weight of the belief that every capture's brightness is 1, relative to the median capture's
-        modelled power (0: none, for images scaled each on its own; their brightness may then range over
-        six decades instead of 0.04 … 25).
+        modelled power. With any weight the brightness is also held to 0.04 … 25 (a factor of 5 in
+        amplitude); with 0 (images scaled each on its own) nothing pulls it and it may range over
+        1e-6 … 1e6.
     calibration_start : int
         Passes before the first position / brightness round.
     calibration_every : int

@@ -278,13 +278,16 @@ def estimate_noise(stack, exposure_s, *, saturation_level, saturation_margin: fl
     rhs = np.asarray(rows) * np.sqrt(np.asarray(weights))
     (read_var, inv_gain), *_ = np.linalg.lstsq(a_mat, rhs, rcond=None)
     read_noise = float(np.sqrt(max(read_var, 0.09)))
-    # The shot-noise slope must stand out of its own scatter (three standard errors); brackets that are one frame
-    # scaled (synthetic, or rescaled each on its own) show none, and 1/slope would be an absurd gain.
+    # The shot-noise slope must stand out of its own scatter (three standard errors). Where it does not (a dim
+    # scene, or brackets that are one frame scaled) 1/slope may be absurd (4763 e/count from read noise alone):
+    # the gain is then what the data allow at least, 1 / (slope + 3 standard errors).
     residual = rhs - a_mat @ np.array([read_var, inv_gain])
     dof = max(len(rhs) - 2, 1)
-    covariance = np.linalg.pinv(a_mat.T @ a_mat) * float(residual @ residual) / dof
-    if not inv_gain > 3 * np.sqrt(max(covariance[1, 1], 0.0)):
-        return NoiseModel(read_noise, 1.0, "exposure brackets (read noise; gain default: no shot noise visible)")
+    error = float(np.sqrt(max((np.linalg.pinv(a_mat.T @ a_mat) * float(residual @ residual) / dof)[1, 1], 0.0)))
+    if not inv_gain > 3 * error:
+        bound = max(float(inv_gain), 0.0) + 3 * error
+        gain = 1.0 / bound if bound > 0 else 1.0
+        return NoiseModel(read_noise, gain, "exposure brackets (shot noise barely visible: the gain is a lower bound)")
     return NoiseModel(read_noise, float(1.0 / inv_gain), "exposure brackets")
 
 

@@ -24,6 +24,7 @@ __all__ = [
     "check_input_file",
     "check_output",
     "missing_dataset",
+    "unique_paths",
     "file_sha256",
     "open_input",
     "write_dataset",
@@ -45,16 +46,21 @@ def file_sha256(path: str | Path, *, block: int = 1 << 22) -> str:
     return digest.hexdigest()
 
 
+def unique_paths(paths) -> list:
+    """``paths`` with each file once (compared resolved), in the order first given, as given."""
+    first: dict[Path, str | Path] = {}
+    for p in paths:
+        first.setdefault(Path(p).resolve(), p)
+    return list(first.values())
+
+
 class Provenance(dict):
     """Root attributes every output carries: schema, stage, version, time, config, inputs."""
 
     @classmethod
     def make(cls, stage: str, config_yaml: str, config_hash: str, inputs: list[str | Path] = ()) -> "Provenance":
         """Provenance for a stage run now, hashing its input files (each once, in the order first given)."""
-        first: dict[Path, str | Path] = {}
-        for p in inputs:
-            first.setdefault(Path(p).resolve(), p)
-        inputs = list(first.values())
+        inputs = unique_paths(inputs)
         for p in inputs:
             check_input_file(p)
         return cls(

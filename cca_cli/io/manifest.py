@@ -14,6 +14,7 @@ README section "Real captures" for the format.
 from __future__ import annotations
 
 import csv
+import difflib
 import json
 import math
 import os
@@ -28,6 +29,7 @@ from pydantic import (BaseModel, ConfigDict, Field, PositiveFloat, PositiveInt, 
 from cca_cli.config.messages import accepted_keys, error_message, shown_value
 from cca_cli.config.yaml_text import read_text_file, read_yaml_file
 from cca_cli.errors import ConfigError, InputError, short
+from cca_cli.io.h5 import unique_paths
 
 __all__ = ["Manifest", "ImageEntry", "CapturePlan", "LoadedManifest", "KINDS", "TABLE_COLUMNS", "load_manifest",
            "read_manifest", "plan_captures", "manifest_files", "read_pupil"]
@@ -344,8 +346,17 @@ def _merge_setup(data: dict, setup_path: Path, source: str, notes: list[str]) ->
         if ignored:
             notes.append(f"{setup_path.name}: keys not used by cca, ignored: {', '.join(ignored)}")
         setup = {name: {k: v for k, v in setup.items() if k in model.model_fields}}
-    else:   # a file of sections: the lab's other facts beside them are ignored alike
+    else:   # a file of sections: the lab's other facts beside them are ignored alike, but not cca's own keys
         ignored = [k for k in setup if k not in _SECTION_KEYS]
+        for key in ignored:
+            home = next((name for name, model in (("sensor", SensorSpec), ("optics", OpticsSpec),
+                                                  ("illumination", IlluminationSpec)) if key in model.model_fields),
+                        None)
+            if home is not None:
+                raise ConfigError(f"{setup_path}: {key} belongs in the {home} section; move it there")
+            close = difflib.get_close_matches(key, _SECTION_KEYS, n=1, cutoff=0.8)
+            if close:
+                raise ConfigError(f"{setup_path}: {key} is not a section; did you mean {close[0]}?")
         if ignored:
             notes.append(f"{setup_path.name}: keys not used by cca, ignored: {', '.join(ignored)}")
         setup = {k: v for k, v in setup.items() if k in _SECTION_KEYS}
@@ -456,9 +467,9 @@ def _table_entries(table: Path, manifest: Manifest, source: str) -> tuple[list[d
         bits = number("bit_depth")
         if bits is not None:
             entry["bit_depth"] = bits
-        entries.append((line, entry))
+        entries.append((line, entry, row))
     out = []
-    for line, entry in entries:
+    for line, entry, row in entries:
         try:
             ImageEntry.model_validate(entry)
         except ValidationError as exc:
@@ -467,7 +478,8 @@ def _table_entries(table: Path, manifest: Manifest, source: str) -> tuple[list[d
             # name the table's own column and the value it holds (the entry's keys are cca's)
             cca_name = next((n for n, key in TABLE_COLUMNS.items() if key == loc), loc)
             column = f"column {used[cca_name]!r} ({loc})" if cca_name in used and used[cca_name] != loc else loc
-            got = f" (got {entry[loc]:g})" if isinstance(entry.get(loc), float) else ""
+            text = row.get(used[cca_name], "") if cca_name in used else ""
+            got = f" (got {text})" if text else ""   # as the table holds it (before any unit conversion)
             hint = "; it is sin θ of the illumination, not an angle" if loc in ("kx_norm", "ky_norm") else ""
             raise ConfigError(f"{table}: line {line} ({entry['path']}): {column + ': ' if loc else ''}"
                               f"{error_message(err)}{got}{hint}") from None
@@ -560,7 +572,7 @@ def manifest_files(path: str | Path) -> list[Path]:
         files += [e.path for e in manifest.images]
     if manifest.source is not None:
         files += [manifest.source.mat, manifest.source.illumination_csv]
-    return files
+    return unique_paths(files)   # a CSV manifest is also its own table
 
 
 def read_pupil(path: Path, source: str) -> np.ndarray:

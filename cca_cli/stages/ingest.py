@@ -286,16 +286,19 @@ def _board_views(plan: CapturePlan, boards: list[list[tuple[np.ndarray, bool]]],
     return out
 
 
-def _same_peak_note(frames: np.ndarray, frame_scale: str) -> list[str]:
-    """A note when every frame (one exposure a position) peaks at exactly one value: frames scaled each to its
-    own maximum look so, and recorded ones do not (unless each clips there)."""
-    if frame_scale != "shared" or frames.shape[1] != 1 or frames.shape[0] < 4:
+def _same_peak_note(frames: np.ndarray, sensor, full_scale: float | None) -> list[str]:
+    """A note when every frame (one exposure a position) peaks at exactly one value, at different pixels: frames
+    scaled each to its own maximum look so, and recorded ones do not (unless each clips there, or one hot pixel
+    is every frame's brightest)."""
+    if sensor.frame_scale != "shared" or sensor.white_level is not None or frames.shape[1] != 1 or len(frames) < 4:
         return []
-    peaks = frames.reshape(frames.shape[0], -1).max(axis=1)
-    if not np.all(peaks == peaks[0]):
+    flat = frames[:, 0].reshape(len(frames), -1)
+    peaks = flat.max(axis=1)
+    if not (peaks[0] > 0 and np.all(peaks == peaks[0])) or len(np.unique(flat.argmax(axis=1))) == 1:
         return []
+    clipped = "" if full_scale is not None and peaks[0] >= full_scale else " (if each clips there, sensor.white_level)"
     return [f"every frame peaks at exactly {float(peaks[0]):g}: if they were scaled each to its own maximum, say "
-            "sensor.frame_scale: per_frame (if each clips there, sensor.white_level)"]
+            f"sensor.frame_scale: per_frame{clipped}"]
 
 
 def ingest(manifest_path: Path, *, progress: ProgressFn = silent) -> Ingested:
@@ -316,7 +319,7 @@ def ingest(manifest_path: Path, *, progress: ProgressFn = silent) -> Ingested:
     else:
         frames, darks, flats, board_frames, decoding = _read_files(plan, progress)
         notes += decoding.notes
-        notes += _same_peak_note(frames, manifest.sensor.frame_scale)
+        notes += _same_peak_note(frames, manifest.sensor, decoding.full_scale)
         calibration = _calibrate(plan, decoding, darks, flats, notes)
         _linearise(frames, plan.exposure_s, calibration, notes)
         if plan.calibration is not None and manifest.checkerboard is not None:
@@ -483,7 +486,7 @@ def dark_bright_field(plan: CapturePlan, geometry: CaptureGeometry, frames: np.n
     list of str
         One note per such capture, naming its row.
     """
-    if plan.kind != "led_array":
+    if plan.kind != "led_array" or plan.manifest.sensor.frame_scale != "shared":   # per_frame: brightness unknown
         return []
     centres = np.asarray(geometry.spectrum_centres_yx_px, np.float64)
     bright = np.flatnonzero(np.hypot(centres[:, 0], centres[:, 1]) < 0.9 * geometry.pupil_radius_px)
@@ -493,8 +496,11 @@ def dark_bright_field(plan: CapturePlan, geometry: CaptureGeometry, frames: np.n
     typical = float(np.median(rate))
     if not typical > 0:
         return []
-    return [f"{plan.labels[i]} is in the bright field but recorded {typical / max(float(r), 1e-30):.3g} times less "
-            "light than the median bright-field capture: did its LED fire? (check that row, or leave it out)"
+    def how_much(r: float) -> str:
+        return "no light" if r <= 0 else f"{typical / r:.3g} times less light"
+
+    return [f"{plan.labels[i]} is in the bright field but recorded {how_much(float(r))} than the median bright-field "
+            "capture: did its LED fire? (check that row, or leave it out)"
             for i, r in zip(bright, rate) if r * DARK_BRIGHT_FIELD < typical]
 
 

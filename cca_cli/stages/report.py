@@ -185,7 +185,7 @@ def calibration_summary(calibration: dict, geometry) -> dict:
         out["position_parameters"] = {k: round(v, 6) for k, v in calibration["position_parameters"].items()}
     if calibration.get("brightness") is not None and np.any(calibration["brightness"] != 1):   # fitted
         b = calibration["brightness"]
-        out["brightness_min_median_max"] = [round(float(v), 4) for v in (b.min(), np.median(b), b.max())]
+        out["brightness_min_median_max"] = [float(f"{v:.4g}") for v in (b.min(), np.median(b), b.max())]
     if "zernike" in calibration:
         out["pupil_model"] = calibration["pupil_model"]
         out["zernike_waves"] = {k: round(v, 4) for k, v in calibration["zernike"].items()}

@@ -24,7 +24,7 @@ from pydantic import BaseModel
 
 from cca_cli.config.model import RunConfig
 from cca_cli.errors import OutputError, OutputExistsError, check_interrupt
-from cca_cli.io.h5 import file_sha256, read_provenance
+from cca_cli.io.h5 import file_sha256, read_provenance, unique_paths
 from cca_cli.io.lock import folder_lock
 from cca_cli.io.outputs import check_folder, folder_complete, foreign_part, prepare_folder, remove_stale_temporaries
 from cca_cli.stages import hdr as hdr_stage
@@ -140,7 +140,10 @@ def _state(plan: StagePlan, digest: str, section: BaseModel | None = None) -> st
         return "other"
     try:
         inputs = json.loads(recorded.get("inputs", "[]"))
-        same_inputs = [i["sha256"] for i in inputs] == [_sha256(p) for p in plan.inputs]
+        # each file once on both sides (outputs of older versions may list a CSV manifest twice)
+        recorded_once = unique_paths([i["path"] for i in inputs])
+        hashes = {i["path"]: i["sha256"] for i in inputs}
+        same_inputs = [hashes[p] for p in recorded_once] == [_sha256(p) for p in unique_paths(plan.inputs)]
     except (OSError, ValueError, KeyError, TypeError):
         same_inputs = False
     if not same_inputs:

@@ -629,6 +629,10 @@ def _column_info(column: str, kind: str) -> tuple[str, str]:
     return TABLE_COLUMNS.get(column, ("text" if kind == "text" else "1", f"Sweep table column {column}."))
 
 
+#: Table columns that hold whole numbers (where some rows have them: int64 with ``missing_value``).
+_INT_COLUMNS = ("index", "grid_n", "n_images", "iterations")
+
+
 def _kind(values: list[Any]) -> str:
     """``int`` when every value present is an integer, ``float`` when every one is a number, else ``text``."""
     present = [v for v in values if v is not None]
@@ -666,7 +670,8 @@ def write_table(rows: list[dict[str, Any]], sweep_dir: Path, *, spec: SweepSecti
             name = column.removeprefix("param:")
             kind = _kind(values)
             if kind == "text" and all(v is None for v in values) and TABLE_COLUMNS.get(column, ("text",))[0] != "text":
-                kind = "float"   # a number column missing in every row: NaN, as in any other row
+                # a number column missing in every row: as in a sweep where some rows have it
+                kind = "int" if column in _INT_COLUMNS else "float"
             units, description = _column_info(column, kind)
             extra = {}
             if kind == "int":

@@ -477,6 +477,12 @@ def test_a_setup_file_of_sections_may_carry_the_lab_s_other_facts(tmp_path):
     result = _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
     assert result.exit_code == 0, result.output
     assert "setup.json: keys not used by cca, ignored: operator, room" in " ".join(result.output.split())
+    # but cca's own keys out of their section, or a misspelled section, are not dropped quietly
+    (tmp_path / "raw.h5").unlink()
+    (tmp_path / "setup.json").write_text(json.dumps({"optics": OPTICS, "black_level": 800}))
+    _refused(tmp_path, "setup.json: black_level belongs in the sensor section")
+    (tmp_path / "setup.json").write_text(json.dumps({"optics": OPTICS, "sensors": {"black_level": 800}}))
+    _refused(tmp_path, "setup.json: sensors is not a section; did you mean sensor?")
 
 
 def test_a_bright_field_led_that_did_not_fire_is_named(tmp_path):
@@ -535,3 +541,11 @@ def test_a_csv_manifest_s_inputs_are_each_recorded_once(tmp_path):
     with h5py.File(tmp_path / "raw.h5") as handle:
         paths = [Path(entry["path"]).resolve() for entry in json.loads(handle.attrs["inputs"])]
     assert len(paths) == len(set(paths)) == 4
+    # and a run of it is up to date the second time (its inputs compared each once)
+    from cca_cli.config.model import RunConfig
+    from cca_cli.stages.runner import run_pipeline
+
+    config = RunConfig.model_validate({"run": {"stages": ["ingest"]}, "ingest": {"manifest": str(tmp_path / "c.csv")}})
+    first = run_pipeline(config, tmp_path / "run")
+    again = run_pipeline(config, tmp_path / "run")
+    assert [o.status for o in first] == ["ran"] and [o.status for o in again] == ["skipped"]

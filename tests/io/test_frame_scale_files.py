@@ -168,14 +168,29 @@ def test_frames_scaled_to_their_own_maximum_keep_their_brightest_pixel(tmp_path,
 def test_frames_that_all_peak_at_one_value_are_noted_when_nothing_is_said(tmp_path):
     images = []
     for i in range(4):
-        frame = (1 + i + np.arange(256, dtype=np.float64)).reshape(16, 16)
+        frame = np.roll(1 + i + np.arange(256, dtype=np.float64), 37 * i).reshape(16, 16)   # brightest here and there
         write_image(tmp_path / f"v{i}.png", np.round(frame / frame.max() * 65535).astype(np.uint16), bit_depth=16)
         images.append({"path": f"v{i}.png", "exposure_s": 0.01, "stage_x_mm": float(i), "stage_y_mm": 0.0})
     optics = {"wavelength_m": 550e-9, "focal_length_m": 0.1, "aperture_diameter_m": 4.6e-3, "pixel_pitch_m": 2.5e-6,
               "distance_m": 10.0}
-    for sensor, noted in (({}, True), ({"frame_scale": "per_frame"}, False)):
+    for sensor, noted in (({}, True), ({"frame_scale": "per_frame"}, False), ({"white_level": 65535}, False)):
         (tmp_path / "m.yaml").write_text(yaml.safe_dump({"optics": optics, "sensor": sensor, "images": images}))
         result = _cli("ingest", tmp_path / "m.yaml", "-o", tmp_path / "raw.h5", "--force")
         assert result.exit_code == 0, result.output
         text = " ".join(result.output.split())
         assert ("every frame peaks at exactly 65535" in text and "sensor.frame_scale: per_frame" in text) is noted
+
+
+def test_one_hot_pixel_brightest_in_every_frame_is_not_taken_for_scaled_frames(tmp_path):
+    images = []
+    for i in range(4):
+        frame = np.full((16, 16), 500 + 100 * i, np.uint16)
+        frame[3, 5] = 4095   # a hot pixel: every frame's brightest, at one place
+        write_image(tmp_path / f"v{i}.png", frame, bit_depth=16)
+        images.append({"path": f"v{i}.png", "exposure_s": 0.01, "stage_x_mm": float(i), "stage_y_mm": 0.0})
+    optics = {"wavelength_m": 550e-9, "focal_length_m": 0.1, "aperture_diameter_m": 4.6e-3, "pixel_pitch_m": 2.5e-6,
+              "distance_m": 10.0}
+    (tmp_path / "m.yaml").write_text(yaml.safe_dump({"optics": optics, "images": images}))
+    result = _cli("ingest", tmp_path / "m.yaml", "-o", tmp_path / "raw.h5")
+    assert result.exit_code == 0, result.output
+    assert "peaks at exactly" not in result.output
