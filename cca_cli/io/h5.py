@@ -6,6 +6,7 @@ import contextlib
 import datetime as _dt
 import hashlib
 import json
+import os
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -48,9 +49,13 @@ def file_sha256(path: str | Path, *, block: int = 1 << 22) -> str:
 
 def unique_paths(paths) -> list:
     """``paths`` with each file once (compared resolved), in the order first given, as given."""
-    first: dict[Path, str | Path] = {}
+    first: dict[str, str | Path] = {}
     for p in paths:
-        first.setdefault(Path(p).resolve(), p)
+        try:
+            key = os.path.realpath(p)
+        except (OSError, RuntimeError):   # a link that loops: its own name (the input check names the loop)
+            key = os.path.abspath(p)
+        first.setdefault(key, p)
     return list(first.values())
 
 
