@@ -433,12 +433,9 @@ def stray_positions(plan: CapturePlan, geometry: CaptureGeometry) -> list[str]:
     beyond = apart & (reach > reach[~apart].max() + STRAY_SPACINGS * spacing)
     if beyond.sum() > 2:   # more than a slip or two: a layout (sparse outer LEDs), not a typo
         return []
-    if plan.kind == "led_array":
-        fix = "check that row's kx_norm/ky_norm"
-    elif all(e.position_kind == "grid" for e in plan.manifest.images if e.kind == "coherent"):
-        fix = "check that row's grid: [row, col]"
-    else:
-        fix = "check that row's stage position (stage_x_mm/stage_y_mm, or a table's columns and units.position)"
+    fix = {"led": "check that row's kx_norm/ky_norm", "grid": "check that row's grid: [row, col]",
+           "stage": "check that row's stage position (stage_x_mm/stage_y_mm, or a table's columns and "
+                    "units.position)"}[_positions_from(plan)]
     return [f"{plan.labels[i]} lies {nearest[i] / spacing:.3g} times the usual spacing of the captures from any "
             f"other ({nearest[i]:.4g} against {spacing:.4g} spectrum px) and widens the recovery grid to reach "
             f"it; a mistyped position? {fix}"
@@ -463,12 +460,9 @@ def apart_neighbours(plan: CapturePlan, geometry: CaptureGeometry) -> list[str]:
     diameter = 2 * geometry.pupil_radius_px
     if not spacing > diameter:
         return []
-    if plan.kind == "led_array":
-        fix = f"check the LEDs' kx_norm/ky_norm and {_optics_keys(plan)}"
-    elif all(e.position_kind == "grid" for e in plan.manifest.images if e.kind == "coherent"):
-        fix = f"check stage_pitch_mm and {_optics_keys(plan)}"
-    else:
-        fix = f"check the positions' unit (units.position, or the columns' suffixes) and {_optics_keys(plan)}"
+    fix = {"led": "check the LEDs' kx_norm/ky_norm", "grid": "check stage_pitch_mm",
+           "stage": "check the positions' unit (units.position, or the columns' suffixes)"}[_positions_from(plan)]
+    fix += f" and {_optics_keys(plan)}"
     return [f"neighbouring captures lie {spacing:.4g} spectrum px apart, more than the pupil's diameter "
             f"({diameter:.4g} px): no two overlap, so phase retrieval cannot join them; {fix}"]
 
@@ -511,13 +505,21 @@ def _optics_keys(plan: CapturePlan) -> str:
     return "illumination.numerical_aperture, pixel_pitch_object_m and wavelength_m"
 
 
+def _positions_from(plan: CapturePlan) -> str:
+    """What gives the captures' positions: ``led`` (sines of an LED array), ``grid`` (grid indices and a stage
+    pitch) or ``stage`` (stage readings)."""
+    if plan.kind == "led_array":
+        return "led"
+    if all(e.position_kind == "grid" for e in plan.manifest.images if e.kind == "coherent"):
+        return "grid"
+    return "stage"
+
+
 def _position_fix(plan: CapturePlan, optics: str) -> str:
     """What sets a position's distance from the axis: the stage reading, the stage pitch, or (LED arrays) the optics."""
-    if plan.kind == "led_array":
-        return f"check {optics}"
-    if all(e.position_kind == "grid" for e in plan.manifest.images if e.kind == "coherent"):
-        return "check stage_pitch_mm"
-    return "check that row's stage position (stage_x_mm/stage_y_mm, or a table's columns and units.position)"
+    return {"led": f"check {optics}", "grid": "check stage_pitch_mm",
+            "stage": "check that row's stage position (stage_x_mm/stage_y_mm, or a table's columns and "
+                     "units.position)"}[_positions_from(plan)]
 
 
 def _write_sensor(handle, calibration: SensorCalibration) -> None:
