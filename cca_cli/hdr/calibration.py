@@ -46,13 +46,25 @@ class DarkModel:
         if match.size:
             return self.black[int(match[0])], None
         if t.size == 1:
-            return self.black[0], (f"no dark frames at {exposure_s * 1e3:g} ms; the {t[0] * 1e3:g} ms dark frames "
-                                   "are used as its black level")
+            return self.black[0], self.unmeasured_note([exposure_s])
         design = np.stack([np.ones_like(t), t], axis=1)
         coeffs, *_ = np.linalg.lstsq(design, self.black.reshape(t.size, -1).astype(np.float64), rcond=None)
         level = (coeffs[0] + coeffs[1] * exposure_s).reshape(self.black.shape[1:]).astype(np.float32)
-        return level, (f"no dark frames at {exposure_s * 1e3:g} ms; its black level is the per-pixel line through "
-                       f"the dark frames at {', '.join(f'{v * 1e3:g}' for v in t)} ms")
+        return level, self.unmeasured_note([exposure_s])
+
+    def unmeasured_note(self, exposures_s) -> str:
+        """One note for the exposures (ascending) that have no dark frames of their own: how their black level is found."""
+        t = np.asarray(self.exposure_s)
+        times = [float(v) for v in exposures_s]
+        if len(times) <= 3:
+            where = f"no dark frames at {', '.join(f'{v * 1e3:g}' for v in times)} ms"
+        else:
+            where = f"no dark frames at {len(times)} of the exposures ({times[0] * 1e3:g} … {times[-1] * 1e3:g} ms)"
+        their = "its" if len(times) == 1 else "their"
+        if t.size == 1:
+            return f"{where}; the {t[0] * 1e3:g} ms dark frames are used as {their} black level"
+        return (f"{where}; {their} black level is the per-pixel line through the dark frames at "
+                f"{', '.join(f'{v * 1e3:g}' for v in t)} ms")
 
 
 def dark_model(frames: list[np.ndarray], exposure_s: list[float]) -> DarkModel:

@@ -41,7 +41,9 @@ Kind = Literal["coherent", "calibration", "dark", "flat"]
 #: cca's names for the columns of an image table, with the column read when ``columns:`` does not map them.
 TABLE_COLUMNS = {"path": "path", "kind": "kind", "exposure": "exposure_s", "stage_x": "stage_x_mm",
                  "stage_y": "stage_y_mm", "row": "row", "col": "col", "kx_norm": "kx_norm", "ky_norm": "ky_norm",
-                 "bit_depth": "bit_depth"}
+                 "led_x": "led_x_mm", "led_y": "led_y_mm", "led_z": "led_z_mm", "bit_depth": "bit_depth"}
+#: Position columns of a table, read in ``units.position``.
+_POSITION_COLUMNS = ("stage_x", "stage_y", "led_x", "led_y", "led_z")
 _EXPOSURE_S = {"s": 1.0, "ms": 1e-3, "us": 1e-6}
 _POSITION_MM = {"m": 1e3, "mm": 1.0, "um": 1e-3}
 _SECTION_KEYS = ("optics", "illumination", "sensor", "checkerboard", "stage_pitch_mm", "values", "columns", "units",
@@ -82,7 +84,17 @@ class IlluminationSpec(_KnownPupil):
     led_distance_m: PositiveFloat | None = Field(
         None, allow_inf_nan=False, description="Distance of the LED plane from the sample (m), stored as /geometry "
                                                "led_distance_m: tiled reconstructions then light each tile from its "
-                                               "own angles.")
+                                               "own angles; with LED positions in mm, their distance.")
+    led_axis_m: tuple[float, float] = Field(
+        (0.0, 0.0), description="[x, y] where the optical axis meets the LED plane, in the coordinates of the images' "
+                                "LED positions (m); default: their origin.")
+
+    @field_validator("led_axis_m")
+    @classmethod
+    def _finite_axis(cls, value):
+        if not all(math.isfinite(v) for v in value):
+            raise ValueError("must be two finite numbers [x, y] in metres")
+        return value
 
 
 class BayerSpec(_Strict):
@@ -153,20 +165,30 @@ class ImageEntry(_Strict):
     grid: tuple[int, int] | None = None
     kx_norm: float | None = Field(None, ge=-1, le=1, allow_inf_nan=False)
     ky_norm: float | None = Field(None, ge=-1, le=1, allow_inf_nan=False)
+    led_x_mm: float | None = Field(None, allow_inf_nan=False)
+    led_y_mm: float | None = Field(None, allow_inf_nan=False)
+    led_z_mm: PositiveFloat | None = Field(None, allow_inf_nan=False)
     bit_depth: PositiveInt | None = Field(None, le=32)
 
     @model_validator(mode="after")
     def _one_position(self):
         stage = self.stage_x_mm is not None or self.stage_y_mm is not None
-        led = self.kx_norm is not None or self.ky_norm is not None
+        sines = self.kx_norm is not None or self.ky_norm is not None
+        placed = self.led_x_mm is not None or self.led_y_mm is not None
         if stage and (self.stage_x_mm is None or self.stage_y_mm is None):
             raise ValueError("give both stage_x_mm and stage_y_mm")
-        if led and (self.kx_norm is None or self.ky_norm is None):
+        if sines and (self.kx_norm is None or self.ky_norm is None):
             raise ValueError("give both kx_norm and ky_norm")
-        if stage and led:
+        if placed and (self.led_x_mm is None or self.led_y_mm is None):
+            raise ValueError("give both led_x_mm and led_y_mm")
+        if self.led_z_mm is not None and not placed:
+            raise ValueError("led_z_mm goes with led_x_mm and led_y_mm")
+        if sines and placed:
+            raise ValueError("give the illumination as kx_norm/ky_norm or as led_x_mm/led_y_mm, not both")
+        if stage and (sines or placed):
             raise ValueError("give a stage position or an illumination angle, not both")
-        if self.kind in ("coherent", "calibration") and not (stage or led or self.grid is not None):
-            raise ValueError("give a position: stage_x_mm/stage_y_mm, grid, or kx_norm/ky_norm")
+        if self.kind in ("coherent", "calibration") and not (stage or sines or placed or self.grid is not None):
+            raise ValueError("give a position: stage_x_mm/stage_y_mm, grid, kx_norm/ky_norm or led_x_mm/led_y_mm")
         return self
 
     @property
@@ -174,7 +196,7 @@ class ImageEntry(_Strict):
         """``stage``, ``led``, ``grid`` (grid indices only) or None (dark/flat frames without a position)."""
         if self.stage_x_mm is not None:
             return "stage"
-        if self.kx_norm is not None:
+        if self.kx_norm is not None or self.led_x_mm is not None:
             return "led"
         return "grid" if self.grid is not None else None
 
@@ -405,9 +427,13 @@ def _table_entries(table: Path, manifest: Manifest, source: str) -> tuple[list[d
     if "path" not in used:
         raise ConfigError(f"{table}: no file column (looked for {mapping['path']!r}); "
                           f"map it with columns: {{path: <column>}} in {source}")
+    if "kx_norm" in used or "ky_norm" in used:   # sines given: LED positions in mm are the lab's notes beside them
+        for name in ("led_x", "led_y", "led_z"):
+            if name not in explicit:
+                used.pop(name, None)
     for name, table_units, chosen in (("exposure", _EXPOSURE_S, manifest.units.exposure),
-                                      ("stage_x", _POSITION_MM, manifest.units.position),
-                                      ("stage_y", _POSITION_MM, manifest.units.position)):
+                                      *((column, _POSITION_MM, manifest.units.position)
+                                        for column in _POSITION_COLUMNS)):
         if name in used:
             announced = _unit_of_name(used[name], table_units)
             if announced is not None and announced != chosen:
@@ -464,6 +490,10 @@ def _table_entries(table: Path, manifest: Manifest, source: str) -> tuple[list[d
             value = number(name)
             if value is not None:
                 entry[name] = value
+        for name in ("led_x", "led_y", "led_z"):
+            value = number(name)
+            if value is not None:
+                entry[f"{name}_mm"] = value * position_factor
         bits = number("bit_depth")
         if bits is not None:
             entry["bit_depth"] = bits
@@ -612,6 +642,11 @@ def _position_text(key: tuple) -> str:
     return f"illumination (kx {_fmt(key[2])}, ky {_fmt(key[1])})"
 
 
+def _source(manifest: Manifest, path: Path) -> Path:
+    """The file that lists the images: the manifest's table, else the manifest."""
+    return manifest.images_csv if manifest.images_csv is not None else path
+
+
 def _key(entry: ImageEntry) -> tuple:
     """Group key of a coherent or calibration row: grid indices when given, else the position itself."""
     if entry.grid is not None:
@@ -619,6 +654,37 @@ def _key(entry: ImageEntry) -> tuple:
     if entry.stage_x_mm is not None:
         return ("stage", entry.stage_y_mm, entry.stage_x_mm)
     return ("led", entry.ky_norm, entry.kx_norm)
+
+
+def _led_positions_as_sines(manifest: Manifest, path: Path) -> Manifest:
+    """The manifest with LED positions (mm) turned into the sines of their illumination.
+
+    An LED at ``(x, y)`` in the LED plane, ``z`` from the sample, lights it at ``sin θx = (x − x₀) / r``,
+    ``sin θy = (y − y₀) / r`` with ``r = √((x − x₀)² + (y − y₀)² + z²)`` and ``(x₀, y₀)`` where the optical axis
+    meets the plane (``illumination.led_axis_m``).
+    """
+    placed = [e for e in manifest.images if e.led_x_mm is not None]
+    if not placed:
+        return manifest
+    source = _source(manifest, path)
+    if manifest.illumination is None:
+        raise ConfigError(f"{path}: images give LED positions (led_x_mm/led_y_mm) but the manifest has optics, not "
+                          "illumination")
+    distance = manifest.illumination.led_distance_m
+    if distance is None and any(e.led_z_mm is None for e in placed):
+        first = next(e for e in placed if e.led_z_mm is None)
+        raise ConfigError(f"{source}: {first.path.name} gives its LED's position but not its height above the "
+                          "sample: set illumination.led_distance_m (or give a led_z_mm column)")
+    axis_x, axis_y = (1e3 * v for v in manifest.illumination.led_axis_m)
+    images = []
+    for entry in manifest.images:
+        if entry.led_x_mm is not None:
+            x, y = entry.led_x_mm - axis_x, entry.led_y_mm - axis_y
+            z = entry.led_z_mm if entry.led_z_mm is not None else distance * 1e3
+            r = math.sqrt(x * x + y * y + z * z)
+            entry = entry.model_copy(update={"kx_norm": x / r, "ky_norm": y / r})
+        images.append(entry)
+    return manifest.model_copy(update={"images": images})
 
 
 def _mat_plan(manifest: Manifest, path: Path) -> CapturePlan:
@@ -668,6 +734,7 @@ def plan_captures(manifest: Manifest, path: str | Path, *, notes: list[str] | No
     path = Path(path)
     if manifest.source is not None:
         return _mat_plan(manifest, path)
+    manifest = _led_positions_as_sines(manifest, path)
     notes = list(notes or [])
     by_kind: dict[str, list[ImageEntry]] = {k: [] for k in KINDS}
     for entry in manifest.images:
@@ -701,9 +768,16 @@ def plan_captures(manifest: Manifest, path: str | Path, *, notes: list[str] | No
         entries = sorted(entries, key=lambda e: e.exposure_s)
         times = [e.exposure_s for e in entries]
         where = _position_text(key)
-        for a, b in zip(times[:-1], times[1:]):
-            if a == b:
-                raise ConfigError(f"{path}: exposure {_fmt(a)} s listed twice at {where}")
+        for first_entry, second in zip(entries[:-1], entries[1:]):
+            if first_entry.exposure_s == second.exposure_s:
+                stated = "exposure_s" in first_entry.model_fields_set and "exposure_s" in second.model_fields_set
+                exposure = f"with exposure {_fmt(second.exposure_s)} s" if stated else "with no exposure time stated"
+                if first_entry.path == second.path:
+                    raise ConfigError(f"{_source(manifest, path)}: {second.path.name} is listed twice at {where} "
+                                      f"{exposure}; remove one of the two")
+                raise ConfigError(f"{_source(manifest, path)}: {first_entry.path.name} and {second.path.name} are both "
+                                  f"at {where} {exposure}; each position takes one image per exposure: fix the "
+                                  "position of one (or give their exposure times)")
         if n_exp is None:
             n_exp, first = len(times), where
         elif len(times) != n_exp:

@@ -163,9 +163,19 @@ def engine_device(device: str, engine: str, options: EngineOptions) -> str:
     return resolved
 
 
-def _listed(indices, grid: np.ndarray, limit: int = 6) -> str:
+def _where(geometry, index: int) -> str:
+    """``(row 0, col 3)``, or for an LED array (any layout) where its pupil sits, in sines: ``(pupil at kx +0.0750,
+    ky -0.1300)`` (the illumination's sines times the geometry's sign)."""
+    if geometry.kind == "led_array":
+        ky, kx = np.asarray(geometry.aperture_centres_yx_m, np.float64)[index]
+        return f"(pupil at kx {kx:+.4f}, ky {ky:+.4f})"
+    grid = np.asarray(geometry.grid_indices)
+    return f"(row {int(grid[index, 0])}, col {int(grid[index, 1])})"
+
+
+def _listed(indices, geometry, limit: int = 6) -> str:
     """``image 3 (row 0, col 3), image 7 (row 1, col 2)`` for the first ``limit`` indices."""
-    items = [f"image {int(i)} (row {int(grid[i, 0])}, col {int(grid[i, 1])})" for i in indices[:limit]]
+    items = [f"image {int(i)} {_where(geometry, i)}" for i in indices[:limit]]
     return ", ".join(items) + (", …" if len(indices) > limit else "")
 
 
@@ -197,24 +207,22 @@ def without_dead_captures(captures: CaptureSet, *, name: str = "intensities", so
         return captures
     where = f"{source}: " if source else ""
     geometry = captures.geometry
-    grid = np.asarray(geometry.grid_indices)
     k = captures.intensity.shape[0]
     centre = geometry.centre_index
     holds = "holds" if dead.size == 1 else "hold"
     if centre in dead:
         value = float(captures.intensity[centre].flat[0])
-        raise error(f"{where}image {centre} of {name}, the centre capture (row {int(grid[centre, 0])}, col "
-                    f"{int(grid[centre, 1])}), holds one value (every pixel {value:g}): nothing was recorded there, "
+        raise error(f"{where}image {centre} of {name}, the centre capture {_where(geometry, centre)}, holds one value (every pixel {value:g}): nothing was recorded there, "
                     "and the recovery needs it for the object's lowest frequencies; re-take it")
     allowed = int(MAX_DEAD_FRACTION * k)
     if dead.size > allowed:
         each = "" if dead.size == 1 else " each"
         raise error(f"{where}{dead.size} of {k} images of {name} {holds} one value{each}, so nothing was recorded "
-                    f"there ({_listed(dead, grid)}); at most {MAX_DEAD_FRACTION:.0%} of the captures ({allowed} "
+                    f"there ({_listed(dead, geometry)}); at most {MAX_DEAD_FRACTION:.0%} of the captures ({allowed} "
                     f"here) may be left out: check the camera and re-take them")
     values = ", ".join(f"{float(captures.intensity[i].flat[0]):g}" for i in dead[:6])
     _log.warning("%sleft out %s of %d images of %s: %s %s one value (%s), nothing was recorded there; the "
-                 "recovery uses the other %d", where, dead.size, k, name, _listed(dead, grid), holds, values,
+                 "recovery uses the other %d", where, dead.size, k, name, _listed(dead, geometry), holds, values,
                  k - dead.size)
     keep = np.setdiff1d(np.arange(k), dead)
     weight = None if captures.weight is None else captures.weight[keep]

@@ -223,12 +223,14 @@ def _calibrate(plan: CapturePlan, decoding: Decoding, darks, flats, notes: list[
     calibration = SensorCalibration(white_level=white, black_level=sensor.black_level, darks=model,
                                     read_noise=read_noise, electrons_per_count=epc, noise_source=source)
     if flats:
-        blacks = []
+        blacks, unmeasured = [], []
         for path, t in plan.flats:
             level, note = calibration.black_at(t)
-            if note:
-                notes.append(note)
+            if note and t not in unmeasured:
+                unmeasured.append(t)
             blacks.append(np.broadcast_to(np.asarray(level, np.float32), flats[0].shape))
+        if unmeasured:
+            notes.append(calibration.darks.unmeasured_note(sorted(unmeasured)))
         if white is not None:
             hot = next((p for (p, _), f in zip(plan.flats, flats) if (f >= white * 0.99).any()), None)
             if hot is not None:
@@ -248,11 +250,14 @@ def _calibrate(plan: CapturePlan, decoding: Decoding, darks, flats, notes: list[
 def _linearise(frames: np.ndarray, exposure_s: np.ndarray, calibration: SensorCalibration, notes: list[str]) -> None:
     """Subtract the black level of each frame's exposure and divide by the gain map, in place."""
     levels: dict[float, np.ndarray | float] = {}
+    unmeasured = []
     for t in np.unique(exposure_s):
         level, note = calibration.black_at(float(t))
         if note:
-            notes.append(note)
+            unmeasured.append(float(t))
         levels[float(t)] = np.asarray(level, np.float32)
+    if unmeasured:
+        notes.append(calibration.darks.unmeasured_note(unmeasured))
     inverse_gain = None if calibration.gain is None else (1.0 / calibration.gain).astype(np.float32)
     for i in range(frames.shape[0]):
         for j in range(frames.shape[1]):
@@ -327,8 +332,8 @@ def ingest(manifest_path: Path, *, progress: ProgressFn = silent) -> Ingested:
         saturation = None if calibration.white_level is None else float(calibration.white_level
                                                                             - calibration.black_level)
         binning = 2 if manifest.sensor.bayer is not None else 1
-    if saturation is None:  # float data without a white level: nothing counts as clipped
-        saturation = float(np.max(frames)) * 1.01 + 1e-30
+    if saturation is None:  # float data without a white level: nothing counts as clipped (the brightest value
+        saturation = float(np.max(frames)) * 1.05 + 1e-30   # stays below the 1% saturation margins)
     pupil = None
     known = manifest.known_pupil
     if known.pupil is not None:
@@ -433,7 +438,7 @@ def stray_positions(plan: CapturePlan, geometry: CaptureGeometry) -> list[str]:
     beyond = apart & (reach > reach[~apart].max() + STRAY_SPACINGS * spacing)
     if beyond.sum() > 2:   # more than a slip or two: a layout (sparse outer LEDs), not a typo
         return []
-    fix = {"led": "check that row's kx_norm/ky_norm", "grid": "check that row's grid: [row, col]",
+    fix = {"led": "check that row's kx_norm/ky_norm (or LED position)", "grid": "check that row's grid: [row, col]",
            "stage": "check that row's stage position (stage_x_mm/stage_y_mm, or a table's columns and "
                     "units.position)"}[_positions_from(plan)]
     return [f"{plan.labels[i]} lies {nearest[i] / spacing:.3g} times the usual spacing of the captures from any "
@@ -460,7 +465,8 @@ def apart_neighbours(plan: CapturePlan, geometry: CaptureGeometry) -> list[str]:
     diameter = 2 * geometry.pupil_radius_px
     if not spacing > diameter:
         return []
-    fix = {"led": "check the LEDs' kx_norm/ky_norm", "grid": "check stage_pitch_mm",
+    fix = {"led": "check the LEDs' kx_norm/ky_norm (or their positions' unit and illumination.led_distance_m)",
+           "grid": "check stage_pitch_mm",
            "stage": "check the positions' unit (units.position, or the columns' suffixes)"}[_positions_from(plan)]
     fix += f" and {_optics_keys(plan)}"
     return [f"neighbouring captures lie {spacing:.4g} spectrum px apart, more than the pupil's diameter "
@@ -571,6 +577,8 @@ def write_raw(path: Path, data: Ingested, provenance: Provenance, *, force: bool
             elif data.sensor is not None and data.sensor.white_level is not None:
                 for i in range(k):
                     weight[i] = counts[i] < np.float32(0.99) * data.sensor.saturation_at(float(data.exposure_s[i, 0]))
+            elif data.sensor is not None:
+                pass   # float values with no white level stated: no full scale, nothing clipped
             else:
                 weight = (counts < np.float32(data.saturation_level * 0.99)).astype(np.float32)
             ds = write_dataset(handle, "/measurements/intensity", intensity.astype(np.float32), units="counts/s")

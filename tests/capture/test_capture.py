@@ -155,7 +155,16 @@ def test_exposure_listed_twice(tmp_path):
     data = yaml.safe_load(path.read_text())
     data["images"].append(dict(data["images"][0]))
     path.write_text(yaml.safe_dump(data))
-    _ingest_fails(tmp_path, "m.yaml", "exposure 0.01 s listed twice at position (x 0, y 0)")
+    _ingest_fails(tmp_path, "m.yaml", "v0.png is listed twice at position (x 0, y 0) mm with exposure 0.01 s")
+
+
+def test_two_images_at_one_position_are_both_named(tmp_path):
+    path = _small_set(tmp_path)
+    data = yaml.safe_load(path.read_text())
+    data["images"][1].update(stage_x_mm=data["images"][0]["stage_x_mm"], stage_y_mm=data["images"][0]["stage_y_mm"])
+    path.write_text(yaml.safe_dump(data))
+    _ingest_fails(tmp_path, "m.yaml", "v0.png and v1.png are both at position (x 0, y 0) mm with exposure 0.01 s",
+                  "fix the position of one")
 
 
 def test_misspelled_manifest_key(tmp_path):

@@ -416,7 +416,7 @@ def test_designed_layouts_are_not_reported_as_stray():
     slipped = dense.copy()
     slipped[3] *= 30
     found = notes(slipped)
-    assert len(found) == 1 and found[0].startswith("row 3 lies") and found[0].endswith("check that row's kx_norm/ky_norm")
+    assert len(found) == 1 and found[0].startswith("row 3 lies") and found[0].endswith("check that row's kx_norm/ky_norm (or LED position)")
 
 
 def test_images_scaled_each_on_its_own_reach_reconstruct_with_brightness_fitted(tmp_path):
@@ -549,3 +549,91 @@ def test_a_csv_manifest_s_inputs_are_each_recorded_once(tmp_path):
     first = run_pipeline(config, tmp_path / "run")
     again = run_pipeline(config, tmp_path / "run")
     assert [o.status for o in first] == ["ran"] and [o.status for o in again] == ["skipped"]
+
+
+def _led_table(tmp_path, rows: str, illumination_extra: dict | None = None) -> Path:
+    """A 3 x 3 LED array listed by physical position: the lab's table and its manifest."""
+    for i in range(9):
+        write_image(tmp_path / f"led{i}.png", np.full((32, 32), 2000 if i == 4 else 200, np.uint16), bit_depth=16)
+    (tmp_path / "leds.csv").write_text(rows)
+    illumination = {"wavelength_m": 5e-7, "numerical_aperture": 0.1, "pixel_pitch_object_m": 1e-6,
+                    **(illumination_extra or {})}
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump({"images_csv": "leds.csv", "illumination": illumination}))
+    return tmp_path / "lab.yaml"
+
+
+def _grid_rows(origin_mm=(0.0, 0.0), pitch_mm=4.0, z_column=None) -> str:
+    lines = ["path,led_x_mm,led_y_mm" + (",led_z_mm" if z_column is not None else "")]
+    for i in range(9):
+        x, y = origin_mm[0] + pitch_mm * (i % 3 - 1), origin_mm[1] + pitch_mm * (i // 3 - 1)
+        lines.append(f"led{i}.png,{x},{y}" + (f",{z_column}" if z_column is not None else ""))
+    return "\n".join(lines) + "\n"
+
+
+def _sines(raw: Path) -> np.ndarray:
+    """Where each capture's pupil sits, in sines (the illumination's sines times the sign)."""
+    with h5py.File(raw) as handle:
+        return handle["/geometry/aperture_centres_yx_m"][()]
+
+
+def test_led_positions_in_mm_become_the_sines_of_their_light(tmp_path):
+    """x, y in the LED plane, its height from the sample and where the axis meets it: sin θ = (x − x₀) / r."""
+    _led_table(tmp_path, _grid_rows(origin_mm=(27.0, 18.0)), {"led_distance_m": 0.06, "led_axis_m": [0.025, 0.018]})
+    assert _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5").exit_code == 0
+    offsets = np.array([[4.0 * (i // 3 - 1), 2.0 + 4.0 * (i % 3 - 1)] for i in range(9)])   # [y, x] mm from the axis
+    expected = offsets / np.sqrt(np.sum(offsets ** 2, axis=1, keepdims=True) + 60.0 ** 2)
+    sines = _sines(tmp_path / "raw.h5")
+    assert np.allclose(sines, -expected, atol=1e-12)    # the rows' order; each pupil at sign · sin θ, sign −1
+    # the same from a height column, in metres, with no axis stated (the table's origin on the axis)
+    (tmp_path / "raw.h5").unlink()
+    _led_table(tmp_path, _grid_rows(origin_mm=(0.002, 0.0), pitch_mm=0.004, z_column=0.06).replace("_mm", "_m"))
+    text = (tmp_path / "lab.yaml").read_text()
+    (tmp_path / "lab.yaml").write_text(text + "columns: {led_x: led_x_m, led_y: led_y_m, led_z: led_z_m}\n"
+                                              "units: {position: m}\n")
+    assert _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5").exit_code == 0, "metres"
+    assert np.allclose(_sines(tmp_path / "raw.h5"), sines, atol=1e-12)
+
+
+def test_led_positions_need_their_height_and_not_sines_beside_them(tmp_path):
+    _led_table(tmp_path, _grid_rows())
+    _refused(tmp_path, "leds.csv: led0.png gives its LED's position but not its height above the sample",
+             "illumination.led_distance_m")
+    _led_table(tmp_path, _grid_rows(z_column=-60), {"led_distance_m": 0.06})
+    _refused(tmp_path, "leds.csv: line 2 (led0.png): led_z_mm", "greater than 0")
+    # a table with sines uses them; the LED positions beside them are the lab's notes
+    rows = "path,kx_norm,ky_norm,led_x_mm,led_y_mm\n" + "\n".join(
+        f"led{i}.png,{0.05 * (i % 3 - 1)},{0.05 * (i // 3 - 1)},999,999" for i in range(9)) + "\n"
+    _led_table(tmp_path, rows)
+    result = _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
+    assert result.exit_code == 0, result.output
+    assert "columns not used by cca, ignored: led_x_mm, led_y_mm" in " ".join(result.output.split())
+    assert np.isclose(np.abs(_sines(tmp_path / "raw.h5")).max(), 0.05)
+
+
+def test_float_frames_without_a_white_level_count_no_pixel_as_clipped(tmp_path):
+    values = np.linspace(0.1, 0.75, 16 * 16, dtype=np.float32).reshape(16, 16)
+    images = []
+    for i in range(2):
+        write_image(tmp_path / f"f{i}.tif", values * (1 + i))
+        images.append({"path": f"f{i}.tif", "kx_norm": 0.05 * i, "ky_norm": 0.0})
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump({"illumination": {
+        "wavelength_m": 5e-7, "numerical_aperture": 0.1, "pixel_pitch_object_m": 1e-6}, "images": images}))
+    assert _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5").exit_code == 0
+    with h5py.File(tmp_path / "raw.h5") as handle:
+        assert handle["/measurements/weight"][()].min() == 1.0
+        assert handle["/raw/frames"].attrs["saturation_level"] > 1.5
+
+
+def test_exposures_without_dark_frames_are_named_in_one_note(tmp_path):
+    """Each exposure of a per-frame-exposure scan between two dark exposures: one note, not one per exposure."""
+    def edit(rows):
+        times = iter(np.linspace(1.5, 3.5, 8))
+        return [[r[0], r[1], round(float(next(times)), 3), *r[3:]] if r[1] == "coherent" else r for r in rows]
+
+    _lab(tmp_path, darks=True, edit=edit)
+    result = _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
+    assert result.exit_code == 0, result.output
+    text = " ".join(result.output.split())
+    assert text.count("no dark frames at") == 1, text
+    assert "no dark frames at 8 of the exposures (1.5 … 3.5 ms); their black level is the per-pixel line through " \
+           "the dark frames at 1, 4 ms" in text

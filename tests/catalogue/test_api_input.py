@@ -240,6 +240,21 @@ def test_a_dead_capture_less_its_black_level_is_dead_not_negative(scan, caplog):
     assert "image 20 (row 4, col 0) holds one value (-0.5)" in caplog.text
 
 
+def test_a_dead_led_capture_is_named_by_its_sines_whatever_the_layout(caplog):
+    """An LED array need not be a grid (rings, a hexagonal board): its captures are named by their sines."""
+    rings = [(0.07, 8), (0.14, 16)]    # 25 LEDs: a centre and two rings
+    sines = np.concatenate([[[0.0, 0.0]]] + [radius * np.stack([np.sin(a), np.cos(a)], axis=1)
+                                             for radius, n in rings for a in [np.arange(n) * 2 * np.pi / n]])
+    geometry = cca.led_array(sines, wavelength_m=5e-7, numerical_aperture=0.1, pixel_pitch_object_m=1e-6,
+                             image_pixels=32)
+    images = np.random.default_rng(0).uniform(0.5, 1.5, (25, 32, 32)).astype(np.float32)
+    images[2] = 0.0
+    with caplog.at_level(logging.WARNING, logger="cca"):
+        cca.reconstruct(images, geometry, engine="momentum", iterations=2)
+    ky, kx = -sines[2]                 # the pupil sits at −sin θ (sign −1)
+    assert f"image 2 (pupil at kx {kx:+.4f}, ky {ky:+.4f}) holds one value (0)" in caplog.text
+
+
 def _without(geometry, index):
     return {name: np.delete(getattr(geometry, name), index, axis=0)
             for name in ("aperture_centres_yx_m", "spectrum_centres_yx_px", "grid_indices")}
