@@ -15,6 +15,7 @@ from typer.testing import CliRunner
 
 import cca_cli as cca
 from cca_cli.commands.app import app
+from cca_cli.optics import kernels
 
 DOCUMENTED = ["cca_cli.api", "cca_cli.io.export", "cca_cli.report.figures", "cca_cli.report.regions"]
 
@@ -43,35 +44,54 @@ def test_importing_the_package_loads_no_numerics():
     assert out.strip() == "['cca_cli.version']"
 
 
-def test_the_command_line_starts_without_dask_and_dask_still_imports_after():
-    """pyfftw would import dask.array (about half a second) for an interface cca never uses."""
-    code = ("import sys, cca_cli.commands.app, cca_cli.optics.fft as fft; loaded = 'dask' in sys.modules; "
-            "import dask.array, dask.distributed; print(fft.backend_name(), loaded, dask.array.ones(3).sum().compute())")
+def test_the_command_line_starts_without_dask_or_scipy_fft_and_both_still_import_after():
+    """pyfftw would import dask.array and scipy.fft (about 0.65 s) for interfaces cca never uses."""
+    code = ("import sys, cca_cli.commands.app, cca_cli.optics.fft as fft, cca_cli.stages.reconstruct; "
+            "loaded = [m in sys.modules for m in ('dask', 'scipy.fft', 'scipy.fftpack')]; "
+            "import dask.array, dask.distributed, scipy.fft; "
+            "print(fft.backend_name(), *loaded, dask.array.ones(3).sum().compute(), scipy.fft.fft([1.0, 0.0])[1].real)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
-    assert out[1:] == ["False", "3.0"]
+    assert out[1:] == ["False", "False", "False", "3.0", "1.0"]
 
 
-def test_dask_is_hidden_from_the_thread_loading_pyfftw_only():
-    """Other threads import dask as usual while pyfftw loads."""
+def test_a_hidden_package_is_hidden_from_the_importing_thread_only():
+    """Other threads import it as usual while another package loads, and this one afterwards."""
     code = """
 import sys, threading
-from cca_cli.optics.fftw_plans import _DaskHiddenFromThread
+from cca_cli.optics.hidden_imports import hidden_in_this_thread
 sys.modules.pop("dask", None)
-finder = _DaskHiddenFromThread(threading.get_ident())
-sys.meta_path.insert(0, finder)
-try:
-    import dask
-except ModuleNotFoundError as error:
-    print("hidden here:", "hidden while pyfftw loads" in str(error))
-outcome = []
-thread = threading.Thread(target=lambda: outcome.append(__import__("dask").__name__))
-thread.start()
-thread.join()
-sys.meta_path.remove(finder)
-print("other thread:", outcome)
+with hidden_in_this_thread(("dask", "scipy.fftpack")):
+    try:
+        import dask
+    except ModuleNotFoundError as error:
+        print("hidden here:", "hidden while another package loads" in str(error))
+    outcome = []
+    thread = threading.Thread(target=lambda: outcome.append(__import__("dask").__name__))
+    thread.start()
+    thread.join()
+    print("other thread:", outcome)
+import dask
+print("afterwards:", dask.__name__)
 """
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
-    assert out.split("\n")[:2] == ["hidden here: True", "other thread: ['dask']"]
+    assert out.split("\n")[:3] == ["hidden here: True", "other thread: ['dask']", "afterwards: dask"]
+
+
+@pytest.mark.skipif(kernels.numba is None, reason="numba is not installed or CCA_KERNELS=numpy")
+def test_the_command_leaves_out_numbas_blas_and_a_library_process_keeps_it():
+    """The `cca` command skips scipy.linalg (numba's BLAS, about 0.2 s); importing cca as a library does not."""
+    code = """
+import sys
+from cca_cli.optics import jit, kernels
+if sys.argv[1] == "command":
+    jit.leave_out_blas()
+kernels.warm_up()
+import numba.np.arraymath
+print("scipy.linalg" in sys.modules, numba.np.arraymath._HAVE_BLAS)
+"""
+    out = {mode: subprocess.run([sys.executable, "-c", code, mode], capture_output=True, text=True,
+                                check=True).stdout.split() for mode in ("command", "library")}
+    assert out == {"command": ["False", "False"], "library": ["True", "True"]}
 
 
 def test_the_package_and_the_api_list_the_same_names():

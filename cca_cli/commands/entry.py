@@ -9,6 +9,9 @@ import sys
 def main() -> None:
     """Import the command line (numpy, h5py, numba … take a moment) and run it."""
     try:
+        from cca_cli.optics import jit
+
+        jit.leave_out_blas()  # this process runs cca's code alone: numba need not load scipy.linalg for BLAS
         from cca_cli.commands.app import app
     except KeyboardInterrupt:
         sys.stderr.write("interrupted: nothing was done\n")

@@ -6,10 +6,12 @@ example CuPy) can replace this module without touching the engines.
 Two kinds of transform are offered:
 
 * :func:`fft2c` / :func:`ifft2c`: centred, orthonormal 2-D FFTs over the last
-  two axes, batched over any leading axes. Convenient, not for hot loops.
+  two axes, batched over any leading axes (``numpy.fft``, in the input's
+  precision). Convenient, not for hot loops.
 * :class:`InPlaceFFT2` and :class:`BandedFFT2`: raw (unnormalised) 2-D FFTs
   planned once for one buffer and executed in place. FFTW (pyfftw) when
-  installed, ``scipy.fft`` otherwise. Callers fold the normalisation into
+  installed, ``scipy.fft`` otherwise (imported only then: it costs a
+  command about 0.15 s of start-up). Callers fold the normalisation into
   arrays they multiply anyway. How FFTW plans them (``$CCA_FFTW_PLANNING``,
   bounded and chosen by how long they run), who owns the plans and the one
   planner lock are the business of :mod:`cca_cli.optics.fftw_plans`.
@@ -25,8 +27,9 @@ import contextlib
 import os
 import time
 
+import importlib
+
 import numpy as np
-import scipy.fft
 
 from cca_cli.optics import fftw_plans, switches
 from cca_cli.optics.fftw_plans import HAVE_PYFFTW, PLANNER_LOCK, RawFFTPlans, Spec, pyfftw, raw_fftw_available
@@ -144,28 +147,38 @@ def zeros(shape, dtype=np.complex64) -> np.ndarray:
     return out
 
 
-def fft2(array, *, workers: int | None = None) -> np.ndarray:
-    """Plain (uncentred, unnormalised) 2-D FFT over the last two axes."""
-    return scipy.fft.fft2(array, workers=workers or default_threads())
+def _scipy_fft():
+    """``scipy.fft``, imported on first use (the raw transforms' fallback where FFTW is not used)."""
+    return importlib.import_module("scipy.fft")
 
 
-def ifft2(array, *, workers: int | None = None) -> np.ndarray:
-    """Plain (uncentred) inverse 2-D FFT over the last two axes, normalised by 1/n."""
-    return scipy.fft.ifft2(array, workers=workers or default_threads())
+def _single(result: np.ndarray, array) -> np.ndarray:
+    """``result`` in single precision when ``array`` was (numpy before 2.0 transforms in double)."""
+    if np.asarray(array).dtype in (np.float32, np.complex64) and result.dtype == np.complex128:
+        return result.astype(np.complex64)
+    return result
 
 
-def fft2c(array, *, workers: int | None = None) -> np.ndarray:
+def fft2(array) -> np.ndarray:
+    """Plain (uncentred, unnormalised) 2-D FFT over the last two axes; single precision stays single."""
+    return _single(np.fft.fft2(array), array)
+
+
+def ifft2(array) -> np.ndarray:
+    """Plain (uncentred) inverse 2-D FFT over the last two axes, normalised by 1/n; single precision stays single."""
+    return _single(np.fft.ifft2(array), array)
+
+
+def fft2c(array) -> np.ndarray:
     """Centred orthonormal 2-D FFT over the last two axes (DC at ``n // 2``)."""
-    workers = workers or default_threads()
-    shifted = scipy.fft.ifftshift(array, axes=(-2, -1))
-    return scipy.fft.fftshift(scipy.fft.fft2(shifted, norm="ortho", workers=workers), axes=(-2, -1))
+    shifted = np.fft.ifftshift(array, axes=(-2, -1))
+    return _single(np.fft.fftshift(np.fft.fft2(shifted, norm="ortho"), axes=(-2, -1)), array)
 
 
-def ifft2c(array, *, workers: int | None = None) -> np.ndarray:
+def ifft2c(array) -> np.ndarray:
     """Centred orthonormal inverse 2-D FFT over the last two axes."""
-    workers = workers or default_threads()
-    shifted = scipy.fft.ifftshift(array, axes=(-2, -1))
-    return scipy.fft.fftshift(scipy.fft.ifft2(shifted, norm="ortho", workers=workers), axes=(-2, -1))
+    shifted = np.fft.ifftshift(array, axes=(-2, -1))
+    return _single(np.fft.fftshift(np.fft.ifft2(shifted, norm="ortho"), axes=(-2, -1)), array)
 
 
 def resize_spectrum(spectrum, shape) -> np.ndarray:
@@ -181,7 +194,7 @@ def resize_spectrum(spectrum, shape) -> np.ndarray:
     return out
 
 
-def fourier_interpolate(image, shape, *, workers: int | None = None) -> np.ndarray:
+def fourier_interpolate(image, shape) -> np.ndarray:
     """Band-limited interpolation of an image (real or complex, any aspect) onto ``shape``, values kept, complex64.
 
     The spectrum is cropped or zero-padded about DC, so the centre pixel ``n // 2`` stays the centre and
@@ -189,12 +202,12 @@ def fourier_interpolate(image, shape, *, workers: int | None = None) -> np.ndarr
     """
     image = np.asarray(image)
     shape = tuple(int(v) for v in shape)
-    spectrum = resize_spectrum(fft2c(image.astype(np.complex64, copy=False), workers=workers), shape)
+    spectrum = resize_spectrum(fft2c(image.astype(np.complex64, copy=False)), shape)
     scale = np.float32(np.sqrt(shape[0] * shape[1] / (image.shape[-2] * image.shape[-1])))
-    return (ifft2c(spectrum, workers=workers) * scale).astype(np.complex64, copy=False)
+    return (ifft2c(spectrum) * scale).astype(np.complex64, copy=False)
 
 
-def fourier_resample(images, size: int, *, workers: int | None = None) -> np.ndarray:
+def fourier_resample(images, size: int) -> np.ndarray:
     """Resample real images to ``size x size`` by cropping or zero-padding their spectra.
 
     Sample values are preserved: a constant image stays the same constant. The
@@ -218,8 +231,8 @@ def fourier_resample(images, size: int, *, workers: int | None = None) -> np.nda
         raise ValueError(f"images must be square, got {images.shape[-2:]}")
     if size == n:
         return images.astype(np.float32, copy=True)
-    spectrum = resize_spectrum(fft2c(images.astype(np.complex64, copy=False), workers=workers), (size, size))
-    out = ifft2c(spectrum, workers=workers).real * (size / n)
+    spectrum = resize_spectrum(fft2c(images.astype(np.complex64, copy=False)), (size, size))
+    out = ifft2c(spectrum).real * (size / n)
     return out.astype(np.float32)
 
 
@@ -273,7 +286,7 @@ class InPlaceFFT2:
         if self.backend == "pyfftw":
             self._execute(0)
         else:
-            self.buffer[...] = scipy.fft.fft2(self.buffer, norm="backward", overwrite_x=True, workers=self.threads)
+            self.buffer[...] = _scipy_fft().fft2(self.buffer, norm="backward", overwrite_x=True, workers=self.threads)
         return self.buffer
 
     def inverse(self) -> np.ndarray:
@@ -281,7 +294,7 @@ class InPlaceFFT2:
         if self.backend == "pyfftw":
             self._execute(1)
         else:
-            self.buffer[...] = scipy.fft.ifft2(self.buffer, norm="forward", overwrite_x=True, workers=self.threads)
+            self.buffer[...] = _scipy_fft().ifft2(self.buffer, norm="forward", overwrite_x=True, workers=self.threads)
         return self.buffer
 
     def close(self) -> None:
@@ -400,8 +413,8 @@ class BandedFFT2:
             self._execute(count, _INVERSE_ROWS, _INVERSE_COLUMNS)
         else:
             band, whole = self.band[:count], self.buffer[:count]
-            band[...] = scipy.fft.ifft(band, axis=-1, norm="forward", workers=self.threads)
-            whole[...] = scipy.fft.ifft(whole, axis=-2, norm="forward", overwrite_x=True, workers=self.threads)
+            band[...] = _scipy_fft().ifft(band, axis=-1, norm="forward", workers=self.threads)
+            whole[...] = _scipy_fft().ifft(whole, axis=-2, norm="forward", overwrite_x=True, workers=self.threads)
         return self.buffer
 
     def forward(self, count: int | None = None) -> np.ndarray:
@@ -413,8 +426,8 @@ class BandedFFT2:
             self._execute(count, _FORWARD_COLUMNS, _FORWARD_ROWS)
         else:
             band, whole = self.band[:count], self.buffer[:count]
-            whole[...] = scipy.fft.fft(whole, axis=-2, norm="backward", overwrite_x=True, workers=self.threads)
-            band[...] = scipy.fft.fft(band, axis=-1, norm="backward", workers=self.threads)
+            whole[...] = _scipy_fft().fft(whole, axis=-2, norm="backward", overwrite_x=True, workers=self.threads)
+            band[...] = _scipy_fft().fft(band, axis=-1, norm="backward", workers=self.threads)
         return self.buffer
 
     def close(self) -> None:

@@ -63,11 +63,9 @@ import bisect
 import contextlib
 import ctypes
 import hashlib
-import importlib.abc
 import os
 import pickle
 import platform
-import sys
 import tempfile
 import threading
 import time
@@ -78,52 +76,33 @@ from typing import NamedTuple
 import numpy as np
 
 from cca_cli.optics import switches
+from cca_cli.optics.hidden_imports import hidden_in_this_thread
 
 __all__ = ["HAVE_PYFFTW", "PLANNER_LOCK", "STEP_SECONDS", "UPGRADE_SHARE", "SHAPE_SECONDS", "LONG_RUN_SHARE",
            "planning_seconds", "raw_fftw_available", "Spec", "PlanSet", "owned_plans", "release", "RawFFTPlans"]
 
 
-class _DaskHiddenFromThread(importlib.abc.MetaPathFinder):
-    """Makes ``import dask`` fail in one thread (others import it as usual)."""
-
-    def __init__(self, thread: int):
-        self.thread = thread
-
-    def find_spec(self, name, path, target=None):
-        if threading.get_ident() == self.thread and (name == "dask" or name.startswith("dask.")):
-            raise ModuleNotFoundError(f"dask is hidden while pyfftw loads ({name})", name=name)
-        return None
+#: What pyfftw's package imports for interfaces cca never uses: ``dask.array`` (about 0.5 s) and,
+#: through ``scipy.fftpack``, scipy and ``scipy.fft``, on every ``cca`` command.
+_HIDDEN_WHILE_PYFFTW_LOADS = ("dask", "scipy")
 
 
 def _import_pyfftw():
     """pyfftw, or None where it is not installed.
 
-    pyfftw's package imports its optional dask interface whenever dask is installed, and
-    importing ``dask.array`` takes about half a second, on every ``cca`` command; cca never
-    uses that interface. So unless dask is loaded already, the importing thread cannot find
-    dask while pyfftw loads (pyfftw then leaves the interface out); other threads, and this
-    one afterwards, import dask as usual. Should pyfftw ever need dask to load, it is imported
-    again with dask in view.
+    pyfftw's package imports its optional dask and scipy interfaces whenever those are
+    installed; cca never uses them. So they are hidden from the importing thread while pyfftw
+    loads (:mod:`cca_cli.optics.hidden_imports`), and pyfftw leaves the interfaces out. Should
+    pyfftw ever need them to load, it is imported again with them in view.
     """
-    if "dask" in sys.modules:
-        finder = None
-    else:
-        finder = _DaskHiddenFromThread(threading.get_ident())
-        sys.meta_path.insert(0, finder)
     try:
-        import pyfftw as module
+        with hidden_in_this_thread(_HIDDEN_WHILE_PYFFTW_LOADS):
+            import pyfftw as module
     except ImportError:  # pragma: no cover
-        if finder is None:
-            return None
-        sys.meta_path.remove(finder)
-        finder = None
         try:
             import pyfftw as module
         except ImportError:
             return None
-    finally:
-        if finder is not None:
-            sys.meta_path.remove(finder)
     return module
 
 

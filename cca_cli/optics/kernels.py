@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cca_cli.optics import fft, switches
+from cca_cli.optics import fft, jit, switches
 from cca_cli.optics.jit import cache_enabled
 
 numba = None
@@ -363,6 +363,11 @@ def warm_up() -> None:
     if _warm or not _use_numba:
         return
     _warm = True
+    with jit.first_load():
+        _load_every_kernel()
+
+
+def _load_every_kernel() -> None:
     spectrum = np.zeros((8, 8), np.complex64)
     origins = np.zeros((1, 2), np.int64)
     pupils = np.zeros((1, 4, 4), np.complex64)
