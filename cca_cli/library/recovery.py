@@ -299,6 +299,7 @@ def drive_engine(engine, options: EngineOptions, *, progress: ProgressFn = silen
     spectrum : ndarray
     history : History
     seconds : float
+        Wall time of the iterations, those a restored engine ran before included.
 
     Raises
     ------
@@ -307,6 +308,7 @@ def drive_engine(engine, options: EngineOptions, *, progress: ProgressFn = silen
     """
     total = options.max_iterations
     history = History() if history is None else history
+    before = history.records[-1].seconds if history.records else 0.0
 
     def report(record: IterationRecord) -> None:
         progress(ProgressEvent("reconstruct", "iterations", record.iteration, total,
@@ -322,7 +324,7 @@ def drive_engine(engine, options: EngineOptions, *, progress: ProgressFn = silen
     spectrum, history = run_engine(engine, on_iteration=report, history=history)
     if not np.all(np.isfinite(spectrum)):
         raise DivergedError(history.iterations)
-    return spectrum, history, time.perf_counter() - start
+    return spectrum, history, before + time.perf_counter() - start
 
 
 def recover(captures: CaptureSet, engine: str, options: EngineOptions, *, progress: ProgressFn = silent,

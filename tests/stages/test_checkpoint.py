@@ -88,7 +88,9 @@ def test_kill_9_mid_run_then_the_rerun_resumes_from_the_checkpoint_and_matches_a
         assert handle["/history/residual"].shape == (iterations,)
         assert handle["recon"].attrs["iterations"] == iterations
         seconds = np.asarray(handle["/history/seconds"])
+        total = float(handle["recon"].attrs["seconds"])
     assert np.all(np.diff(seconds) >= 0), "wall time restarted at the resume"
+    assert total >= seconds[-1] > seconds[start - 1] > 0, "the run's time counts the iterations before the resume"
     got, want = _spectrum(tmp_path / "recon.h5"), _spectrum(tmp_path / "plain.h5")
     assert np.linalg.norm(got - want) <= 1e-4 * np.linalg.norm(want)
 
