@@ -9,9 +9,9 @@ import sys
 def main() -> None:
     """Import the command line (numpy, h5py, numba … take a moment) and run it."""
     try:
-        from cca_cli.optics import jit
+        from cca_cli.optics import hidden_imports
 
-        jit.leave_out_blas()  # this process runs cca's code alone: numba need not load scipy.linalg for BLAS
+        hidden_imports.running_the_command()  # cca's code alone: pyfftw and numba need not load scipy's parts
         from cca_cli.commands.app import app
     except KeyboardInterrupt:
         sys.stderr.write("interrupted: nothing was done\n")

@@ -87,7 +87,10 @@ class IlluminationSpec(_KnownPupil):
                                                "own angles; with LED positions in mm, their distance.")
     led_axis_m: tuple[float, float] = Field(
         (0.0, 0.0), description="[x, y] where the optical axis meets the LED plane, in the coordinates of the images' "
-                                "LED positions (m); default: their origin.")
+                                "LED positions (m); default: their origin (for grid indices: the grid's middle).")
+    led_pitch_m: PositiveFloat | None = Field(
+        None, allow_inf_nan=False, description="Spacing of an LED matrix (m): images that give grid indices [row, col] "
+                                               "are then at (col, row) × pitch from the grid's middle.")
 
     @field_validator("led_axis_m")
     @classmethod
@@ -181,7 +184,7 @@ class ImageEntry(_Strict):
             raise ValueError("give both kx_norm and ky_norm")
         if placed and (self.led_x_mm is None or self.led_y_mm is None):
             raise ValueError("give both led_x_mm and led_y_mm")
-        if self.led_z_mm is not None and not placed:
+        if self.led_z_mm is not None and not placed and self.kind in ("coherent", "calibration"):
             raise ValueError("led_z_mm goes with led_x_mm and led_y_mm")
         if sines and placed:
             raise ValueError("give the illumination as kx_norm/ky_norm or as led_x_mm/led_y_mm, not both")
@@ -427,8 +430,8 @@ def _table_entries(table: Path, manifest: Manifest, source: str) -> tuple[list[d
     if "path" not in used:
         raise ConfigError(f"{table}: no file column (looked for {mapping['path']!r}); "
                           f"map it with columns: {{path: <column>}} in {source}")
-    if "kx_norm" in used or "ky_norm" in used:   # sines given: LED positions in mm are the lab's notes beside them
-        for name in ("led_x", "led_y", "led_z"):
+    if any(name in used for name in ("kx_norm", "ky_norm", "stage_x", "stage_y")):
+        for name in ("led_x", "led_y", "led_z"):   # the table's own positions given: LED positions are notes beside
             if name not in explicit:
                 used.pop(name, None)
     for name, table_units, chosen in (("exposure", _EXPOSURE_S, manifest.units.exposure),
@@ -663,6 +666,7 @@ def _led_positions_as_sines(manifest: Manifest, path: Path) -> Manifest:
     ``sin θy = (y − y₀) / r`` with ``r = √((x − x₀)² + (y − y₀)² + z²)`` and ``(x₀, y₀)`` where the optical axis
     meets the plane (``illumination.led_axis_m``).
     """
+    manifest = _led_grid_as_positions(manifest, path)
     placed = [e for e in manifest.images if e.led_x_mm is not None]
     if not placed:
         return manifest
@@ -674,7 +678,7 @@ def _led_positions_as_sines(manifest: Manifest, path: Path) -> Manifest:
     if distance is None and any(e.led_z_mm is None for e in placed):
         first = next(e for e in placed if e.led_z_mm is None)
         raise ConfigError(f"{source}: {first.path.name} gives its LED's position but not its height above the "
-                          "sample: set illumination.led_distance_m (or give a led_z_mm column)")
+                          "sample: set illumination.led_distance_m (or give each image led_z_mm)")
     axis_x, axis_y = (1e3 * v for v in manifest.illumination.led_axis_m)
     images = []
     for entry in manifest.images:
@@ -684,6 +688,30 @@ def _led_positions_as_sines(manifest: Manifest, path: Path) -> Manifest:
             r = math.sqrt(x * x + y * y + z * z)
             entry = entry.model_copy(update={"kx_norm": x / r, "ky_norm": y / r})
         images.append(entry)
+    return manifest.model_copy(update={"images": images})
+
+
+def _led_grid_as_positions(manifest: Manifest, path: Path) -> Manifest:
+    """An LED matrix given by grid indices: each image's LED position (mm) from ``illumination.led_pitch_m``.
+
+    Positions are centred, as a stage grid's: the middle of the coherent rows' grid sits at 0.
+    """
+    illumination = manifest.illumination
+    if illumination is None:
+        return manifest
+    indexed = [e for e in manifest.images if e.position_kind == "grid"]
+    if not indexed:
+        return manifest
+    if illumination.led_pitch_m is None:
+        raise ConfigError(f"{_source(manifest, path)}: {indexed[0].path.name} gives only grid indices [row, col]: "
+                          "set illumination.led_pitch_m (the LEDs' spacing) and led_distance_m, or give each image "
+                          "kx_norm/ky_norm")
+    grid = np.array([e.grid for e in manifest.images if e.kind == "coherent" and e.grid is not None], np.float64)
+    middle = (grid.max(axis=0) + grid.min(axis=0)) / 2.0 if grid.size else np.zeros(2)
+    pitch_mm = illumination.led_pitch_m * 1e3
+    images = [e.model_copy(update={"led_x_mm": (e.grid[1] - middle[1]) * pitch_mm,
+                                   "led_y_mm": (e.grid[0] - middle[0]) * pitch_mm})
+              if e.position_kind == "grid" else e for e in manifest.images]
     return manifest.model_copy(update={"images": images})
 
 
@@ -770,7 +798,7 @@ def plan_captures(manifest: Manifest, path: str | Path, *, notes: list[str] | No
         where = _position_text(key)
         for first_entry, second in zip(entries[:-1], entries[1:]):
             if first_entry.exposure_s == second.exposure_s:
-                stated = "exposure_s" in first_entry.model_fields_set and "exposure_s" in second.model_fields_set
+                stated = "exposure_s" in first_entry.model_fields_set or "exposure_s" in second.model_fields_set
                 exposure = f"with exposure {_fmt(second.exposure_s)} s" if stated else "with no exposure time stated"
                 if first_entry.path == second.path:
                     raise ConfigError(f"{_source(manifest, path)}: {second.path.name} is listed twice at {where} "

@@ -24,10 +24,9 @@ see :mod:`cca_cli.optics.switches`.
 from __future__ import annotations
 
 import contextlib
+import importlib
 import os
 import time
-
-import importlib
 
 import numpy as np
 

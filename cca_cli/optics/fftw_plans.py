@@ -76,15 +76,16 @@ from typing import NamedTuple
 import numpy as np
 
 from cca_cli.optics import switches
-from cca_cli.optics.hidden_imports import hidden_in_this_thread
+from cca_cli.optics.hidden_imports import hidden_in_this_thread, is_the_command
 
 __all__ = ["HAVE_PYFFTW", "PLANNER_LOCK", "STEP_SECONDS", "UPGRADE_SHARE", "SHAPE_SECONDS", "LONG_RUN_SHARE",
            "planning_seconds", "raw_fftw_available", "Spec", "PlanSet", "owned_plans", "release", "RawFFTPlans"]
 
 
-#: What pyfftw's package imports for interfaces cca never uses: ``dask.array`` (about 0.5 s) and,
-#: through ``scipy.fftpack``, scipy and ``scipy.fft``, on every ``cca`` command.
-_HIDDEN_WHILE_PYFFTW_LOADS = ("dask", "scipy")
+#: What pyfftw's package imports for interfaces cca never uses: ``dask.array`` (about 0.5 s), and, in the
+#: ``cca`` command (which runs no one else's code), scipy through ``scipy.fftpack``.
+_HIDDEN_WHILE_PYFFTW_LOADS = ("dask",)
+_HIDDEN_IN_THE_COMMAND = ("scipy",)
 
 
 def _import_pyfftw():
@@ -96,7 +97,8 @@ def _import_pyfftw():
     pyfftw ever need them to load, it is imported again with them in view.
     """
     try:
-        with hidden_in_this_thread(_HIDDEN_WHILE_PYFFTW_LOADS):
+        hidden = _HIDDEN_WHILE_PYFFTW_LOADS + (_HIDDEN_IN_THE_COMMAND if is_the_command() else ())
+        with hidden_in_this_thread(hidden):
             import pyfftw as module
     except ImportError:  # pragma: no cover
         try:

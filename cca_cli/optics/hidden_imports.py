@@ -5,20 +5,39 @@ interfaces, numba its BLAS support (``scipy.linalg``). Each costs a ``cca`` comm
 of a second. :func:`hidden_in_this_thread` makes those imports fail in the importing thread only,
 while the package loads; the package then leaves the feature out, and every other thread, and this
 one afterwards, imports them as usual.
+
+The dask interface is left out in every process (cca never uses it, and dask's import is slow).
+What a library caller's own code might use (pyfftw's scipy interfaces, numba's BLAS) is left out
+only in the ``cca`` command (:func:`running_the_command`), a process that runs cca's code alone.
 """
 
 from __future__ import annotations
 
 import contextlib
-import importlib.abc
 import sys
 import threading
 
-__all__ = ["hidden_in_this_thread"]
+__all__ = ["hidden_in_this_thread", "running_the_command", "is_the_command"]
+
+_command = False
 
 
-class _HiddenFromThread(importlib.abc.MetaPathFinder):
-    """Makes the import of some packages (and their submodules) fail in one thread."""
+def running_the_command() -> None:
+    """Say that this process is the ``cca`` command: its code is cca's alone (called before anything loads)."""
+    global _command
+    _command = True
+
+
+def is_the_command() -> bool:
+    """Whether :func:`running_the_command` was called in this process."""
+    return _command
+
+
+class _HiddenFromThread:
+    """Makes the import of some packages (and their submodules) fail in one thread.
+
+    A finder on ``sys.meta_path`` needs only ``find_spec`` (``importlib.abc`` would cost every command 15 ms).
+    """
 
     def __init__(self, thread: int, names: tuple[str, ...]):
         self.thread = thread
@@ -44,8 +63,9 @@ def hidden_in_this_thread(names: tuple[str, ...]):
         yield
         return
     finder = _HiddenFromThread(threading.get_ident(), hidden)
-    sys.meta_path.insert(0, finder)
+    # The list is replaced, never changed in place: another thread may be walking it in an import.
+    sys.meta_path = [finder, *sys.meta_path]
     try:
         yield
     finally:
-        sys.meta_path.remove(finder)
+        sys.meta_path = [f for f in sys.meta_path if f is not finder]

@@ -15,10 +15,11 @@ Every numba kernel of the package lives in this folder (``cca_cli/optics``),
 so one probe function here answers for all of them.
 
 numba's first compile or load in a process also sets up its BLAS support, which
-imports ``scipy.linalg`` (about 0.2 s); no kernel of cca calls BLAS. The ``cca``
-command, a process that runs only cca's code, calls :func:`leave_out_blas`, and
-the kernels' first load (:func:`first_load`) then hides ``scipy.linalg`` from numba. A
-library caller's process is left as it is: its own numba code may need BLAS.
+imports ``scipy.linalg`` (about 0.2 s); no kernel of cca calls BLAS. In the ``cca``
+command, a process that runs only cca's code
+(:func:`~cca_cli.optics.hidden_imports.running_the_command`), the kernels' first
+load (:func:`first_load`) hides ``scipy.linalg`` from numba. A library caller's
+process is left as it is: its own numba code may need BLAS.
 """
 
 from __future__ import annotations
@@ -31,27 +32,19 @@ import stat
 import sys
 import tempfile
 
-from cca_cli.optics.hidden_imports import hidden_in_this_thread
+from cca_cli.optics.hidden_imports import hidden_in_this_thread, is_the_command
 
-__all__ = ["cache_enabled", "leave_out_blas", "first_load"]
-
-_without_blas = False
-
-
-def leave_out_blas() -> None:
-    """Let numba's first load in this process leave out its BLAS support (only for a process running cca alone)."""
-    global _without_blas
-    _without_blas = True
+__all__ = ["cache_enabled", "first_load"]
 
 
 @contextlib.contextmanager
 def first_load():
-    """The block in which the kernels are first loaded: ``scipy.linalg`` hidden after :func:`leave_out_blas`.
+    """The block in which the kernels are first loaded: ``scipy.linalg`` hidden in the ``cca`` command.
 
     numba sets up its BLAS support once per process, with its first compile or load, and then never
     again; hiding it is only done before that.
     """
-    if _without_blas and "numba.np.arraymath" not in sys.modules:
+    if is_the_command() and "numba.np.arraymath" not in sys.modules:
         with hidden_in_this_thread(("scipy.linalg",)):
             yield
     else:

@@ -230,7 +230,7 @@ def _calibrate(plan: CapturePlan, decoding: Decoding, darks, flats, notes: list[
                 unmeasured.append(t)
             blacks.append(np.broadcast_to(np.asarray(level, np.float32), flats[0].shape))
         if unmeasured:
-            notes.append(calibration.darks.unmeasured_note(sorted(unmeasured)))
+            notes.append(f"flat frames: {calibration.darks.unmeasured_note(sorted(unmeasured))}")
         if white is not None:
             hot = next((p for (p, _), f in zip(plan.flats, flats) if (f >= white * 0.99).any()), None)
             if hot is not None:
@@ -333,7 +333,7 @@ def ingest(manifest_path: Path, *, progress: ProgressFn = silent) -> Ingested:
                                                                             - calibration.black_level)
         binning = 2 if manifest.sensor.bayer is not None else 1
     if saturation is None:  # float data without a white level: nothing counts as clipped (the brightest value
-        saturation = float(np.max(frames)) * 1.05 + 1e-30   # stays below the 1% saturation margins)
+        saturation = float(np.max(frames)) * 2.0 + 1e-30    # stays below any saturation margin under 50%)
     pupil = None
     known = manifest.known_pupil
     if known.pupil is not None:

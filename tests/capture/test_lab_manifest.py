@@ -637,3 +637,16 @@ def test_exposures_without_dark_frames_are_named_in_one_note(tmp_path):
     assert text.count("no dark frames at") == 1, text
     assert "no dark frames at 8 of the exposures (1.5 … 3.5 ms); their black level is the per-pixel line through " \
            "the dark frames at 1, 4 ms" in text
+
+
+def test_an_led_matrix_by_row_and_column_needs_its_pitch(tmp_path):
+    rows = "path,row,col\n" + "\n".join(f"led{i}.png,{10 + i // 3},{4 + i % 3}" for i in range(9)) + "\n"
+    _led_table(tmp_path, rows, {"led_distance_m": 0.06})
+    _refused(tmp_path, "leds.csv: led0.png gives only grid indices [row, col]", "illumination.led_pitch_m")
+    _led_table(tmp_path, rows, {"led_distance_m": 0.06, "led_pitch_m": 0.004})
+    assert _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5").exit_code == 0
+    offsets = np.array([[4.0 * (i // 3 - 1), 4.0 * (i % 3 - 1)] for i in range(9)])      # the grid's middle on axis
+    expected = offsets / np.sqrt(np.sum(offsets ** 2, axis=1, keepdims=True) + 60.0 ** 2)
+    assert np.allclose(_sines(tmp_path / "raw.h5"), -expected, atol=1e-12)
+    with h5py.File(tmp_path / "raw.h5") as handle:
+        assert handle["/geometry/grid_indices"][()].tolist() == [[i // 3, i % 3] for i in range(9)]
