@@ -371,6 +371,9 @@ def simulate(obj, geometry: CaptureGeometry, *, snr_db: float | None = 30.0, pho
     """
     from cca_cli.library.simulation import simulate as simulate_images
 
+    if not isinstance(geometry, CaptureGeometry):
+        raise TypeError(f"geometry: give a CaptureGeometry (camera_scan, stage_scan or led_array), got "
+                        f"{type(geometry).__name__}")
     return simulate_images(_object_field(obj), geometry, noise=_noise(snr_db, photons_per_unit, read_noise_e, seed))
 
 
@@ -490,6 +493,7 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
     if images.ndim != 3 or len(images) != geometry.n_images:
         raise ValueError(f"intensities must be (K, N, N) or (K, H, W) with K = {geometry.n_images} images of the "
                          f"geometry, got shape {images.shape}")
+    _check_frame_width(images.shape[-1], geometry, "intensities")
     kind = captures.kind if captures is not None else geometry.kind
     frame_scale = captures.frame_scale if captures is not None else "shared"
     engine, engine_options = resolve(engine, kind, options, frame_scale=frame_scale)
@@ -656,6 +660,16 @@ def load(path) -> CaptureSet | Reconstruction:
     return read_captures(Path(path))
 
 
+def _check_frame_width(width: int, geometry: CaptureGeometry, name: str) -> None:
+    """Refuse images whose width is not the field the geometry describes (a crop with the uncropped geometry)."""
+    pixel = geometry.pixel_pitch_m * geometry.distance_m / geometry.focal_length_m   # one pixel at the object
+    expected = geometry.field_width_m / pixel
+    if abs(expected - width) > 0.5:
+        raise ValueError(f"{name} are {width} px wide but the geometry's field ({geometry.field_width_m:.6g} m at "
+                         f"{pixel:.6g} m a pixel) is {expected:.6g} px: build the geometry with field_width_m = "
+                         f"{width * pixel:.6g} (the images' own width), or pass the images it was built for")
+
+
 def save(data: CaptureSet | Reconstruction, path, *, force: bool = False) -> Path:
     """Write a :class:`CaptureSet` (as ``captures.h5``) or a :class:`Reconstruction` (as ``recon.h5``).
 
@@ -688,6 +702,11 @@ def save(data: CaptureSet | Reconstruction, path, *, force: bool = False) -> Pat
         write_recon(path, data, provenance, force=force)
         return path
     if isinstance(data, CaptureSet):
+        shape = np.shape(data.intensity)
+        if len(shape) != 3 or shape[0] != data.geometry.n_images:
+            raise ValueError(f"the CaptureSet holds intensities of shape {shape} but its geometry describes "
+                             f"{data.geometry.n_images} captures; give one image per capture")
+        _check_frame_width(shape[-1], data.geometry, "the CaptureSet's intensities")
         write_capture_set(path, data, Provenance.make("api", "", ""), force=force)
         return path
     raise TypeError(f"save takes a CaptureSet or a Reconstruction, got {type(data).__name__}")
@@ -736,6 +755,8 @@ def export(data, path, *, quantity: str = "amplitude", pixel_size_m: float | Non
         units = {"amplitude": f"√({base})", "intensity": base, "phase": "rad"}[quantity]
         return export_image(values, path, pixel_size_m=data.pixel_size_m, quantity=quantity, units=units,
                             format=format, force=force)
+    if quantity not in QUANTITIES:
+        raise ValueError(f"quantity {quantity!r}: choose one of {', '.join(QUANTITIES)}")
     if pixel_size_m is None:
         raise ValueError("pixel_size_m: give the object pixel size (m) when exporting an array")
     return export_image(data, path, pixel_size_m=pixel_size_m, quantity=quantity, format=format, force=force)

@@ -225,13 +225,56 @@ def _refine_peak(cross_power: np.ndarray, coarse: np.ndarray, upsample: int) -> 
     coarse peak, ``upsample`` times finer, by two small matrix products (a
     local DFT) instead of transforming an ``upsample`` times larger array.
     """
-    m = cross_power.shape[-1]
-    frequencies = np.fft.fftfreq(m)
     offsets = np.arange(-1.5 * upsample, 1.5 * upsample + 1) / upsample
-    kernels = [np.exp(2j * np.pi * np.outer(coarse[a] + offsets, frequencies)) for a in range(2)]
+    kernels = [np.exp(2j * np.pi * np.outer(coarse[a] + offsets, np.fft.fftfreq(cross_power.shape[a])))
+               for a in range(2)]
     window = np.dot(np.dot(kernels[0], cross_power), np.ascontiguousarray(kernels[1].T)).real
     best = np.unravel_index(np.argmax(window), window.shape)
     return coarse + offsets[list(best)]
+
+
+def _circular_span(used: np.ndarray) -> tuple[int, int]:
+    """Start and length of the shortest circular run of indices that holds every True of ``used``."""
+    n = used.size
+    if used.all():
+        return 0, n
+    gap_end, longest, run = 0, 0, 0
+    for i in range(2 * n):   # the longest circular run of False ends just before the span starts
+        run = 0 if used[i % n] else run + 1
+        if run > longest:
+            longest, gap_end = run, i
+    start = (gap_end + 1) % n
+    return start, n - min(longest, n)
+
+
+def _recorded_region(images: np.ndarray, weights: np.ndarray | None) -> np.ndarray:
+    """The images over the region their weights record, each less its mean and tapered to zero at the edges.
+
+    A guard band (weight 0 around a recorded frame or tile, which may wrap around the periodic grid) is the
+    same in every capture: left in, its edges would correlate at zero shift and outweigh the object's shifts. Pixels of weight 0 inside the region take
+    the image's mean; a cosine taper over the outer eighth of each side removes the region's own edges.
+    Without weights (a periodic, simulated frame) the images are used as they are.
+    """
+    if weights is None:   # a periodic (simulated) frame: no edges to remove
+        return images
+    weight = np.broadcast_to(np.asarray(weights, np.float32), images.shape)
+    recorded = np.mean(weight > 0, axis=0) > 0.5
+    if not recorded.any():
+        return images * weight
+    for axis, used in ((-2, recorded.any(axis=1)), (-1, recorded.any(axis=0))):
+        start, length = _circular_span(used)
+        keep = (np.arange(length) + start) % used.size   # the region may wrap around the periodic grid
+        images, weight = np.take(images, keep, axis=axis), np.take(weight, keep, axis=axis)
+    total = np.maximum(weight.sum(axis=(1, 2), dtype=np.float64), 1e-30)
+    mean = (np.sum(images * weight, axis=(1, 2), dtype=np.float64) / total).astype(np.float32)[:, None, None]
+    out = np.where(weight > 0, images, mean) - mean
+    for axis, n in ((-2, out.shape[-2]), (-1, out.shape[-1])):
+        taper = np.ones(n, np.float32)
+        edge = max(1, n // 8)
+        ramp = (0.5 - 0.5 * np.cos(np.pi * (np.arange(edge) + 0.5) / edge)).astype(np.float32)
+        taper[:edge], taper[n - edge:] = ramp, ramp[::-1]
+        out *= taper.reshape((-1, 1) if axis == -2 else (1, -1))
+    return out
 
 
 def estimate_quadratic_aberration(layout: BandLayout, amplitudes: np.ndarray,
@@ -268,9 +311,8 @@ def estimate_quadratic_aberration(layout: BandLayout, amplitudes: np.ndarray,
     k, m = layout.n_images, layout.lowres_size
     if k < 3:
         return np.zeros(3)
-    images = np.square(np.asarray(amplitudes, np.float32))
-    if weights is not None:
-        images = images * weights
+    images = _recorded_region(np.square(np.asarray(amplitudes, np.float32)), weights)
+    size = np.array(images.shape[-2:], np.float64)
     spectra = fft.fft2(images).astype(np.complex64)
     spectra[:, 0, 0] = 0.0
     separation = centres[None, :, :] - centres[:, None, :]
@@ -292,7 +334,7 @@ def estimate_quadratic_aberration(layout: BandLayout, amplitudes: np.ndarray,
         correlation = fft.ifft2(summed).real
         coarse = np.array(np.unravel_index(np.argmax(correlation), correlation.shape), np.float64)
         peak = _refine_peak(summed, coarse, upsample)
-        peak = (peak + m / 2) % m - m / 2
+        peak = (peak + size / 2) % size - size / 2
         u = separation[first[members], second[members]].mean(axis=0)
         scale = m / np.pi
         # (m/π) Q u with q = (Q_yy, Q_xy, Q_xx).

@@ -14,6 +14,10 @@ from cca_cli.units import FourierScale, sensor_field_width_m, sensor_pixels_acro
 __all__ = ["CaptureGeometry", "camera_scan_geometry", "check_positive"]
 
 
+#: Longest wavelength taken as light (m): a larger value is a unit slip (nanometres typed as metres).
+MAX_WAVELENGTH_M = 1e-3
+
+
 def check_positive(**values) -> None:
     """Refuse any value that is not a positive, finite number: ``ValueError`` naming the argument.
 
@@ -30,8 +34,14 @@ def check_positive(**values) -> None:
             number = float(value)
         except (TypeError, ValueError):
             number = math.nan
+        if isinstance(value, (str, bytes)):
+            raise ValueError(f"{name} must be a positive, finite number (SI units), got the text {value!r}; write "
+                             "it without quotes")
         if isinstance(value, (bool, np.bool_)) or not (math.isfinite(number) and number > 0):
             raise ValueError(f"{name} must be a positive, finite number (SI units), got {value!r}")
+        if name.endswith("wavelength_m") and number >= MAX_WAVELENGTH_M:
+            raise ValueError(f"{name} is {number:g} m, not a wavelength of light: give it in metres "
+                             f"({number:g}e-9 for {number:g} nm)")
 
 
 @dataclass(frozen=True)

@@ -295,3 +295,33 @@ def test_the_api_and_the_cli_leave_out_the_same_dead_capture(scan, tmp_path):
     api = cca.reconstruct(cca.load(path), engine="momentum", iterations=5, threads=1)
     assert cli.geometry.n_images == api.geometry.n_images == 24
     np.testing.assert_allclose(api.spectrum, cli.spectrum, rtol=0, atol=1e-5 * np.abs(cli.spectrum).max())
+
+
+def test_images_of_another_width_than_the_geometry_s_field_are_refused(tmp_path):
+    """A crop passed with the geometry of the whole frame would come back at the wrong pixel size."""
+    g = _camera_scan()
+    width = round(g.field_width_m / (g.pixel_pitch_m * g.distance_m / g.focal_length_m))
+    images = np.ones((g.n_images, width, width), np.float32)
+    with pytest.raises(ValueError, match=rf"^intensities are {width - 16} px wide but the geometry's field .* is "
+                                         rf"{width} px: build the geometry with field_width_m"):
+        cca.reconstruct(images[:, 8:-8, 8:-8], g)
+    with pytest.raises(ValueError, match="describes 9 captures"):
+        cca.save(cca.CaptureSet(images[:4], g), tmp_path / "c.h5")
+    with pytest.raises(ValueError, match="the CaptureSet's intensities are"):
+        cca.save(cca.CaptureSet(images[:, 8:-8, 8:-8], g), tmp_path / "c.h5")
+    assert not (tmp_path / "c.h5").exists()
+
+
+def test_a_wavelength_in_nanometres_or_as_text_is_named():
+    with pytest.raises(ValueError, match=r"^wavelength_m is 550 m, not a wavelength of light: .*550e-9 for 550 nm"):
+        _camera_scan(wavelength_m=550)
+    with pytest.raises(ValueError, match=r"^wavelength_m must be a positive, finite number .* the text '550e-9'"):
+        _camera_scan(wavelength_m="550e-9")
+
+
+def test_simulate_needs_a_geometry_and_export_a_known_quantity(tmp_path):
+    with pytest.raises(TypeError, match="^geometry: give a CaptureGeometry"):
+        cca.simulate(np.ones((96, 96)), None)
+    with pytest.raises(ValueError, match="quantity 'foo': choose one of"):
+        cca.export(np.ones((4, 4)), tmp_path / "x.tif", quantity="foo", pixel_size_m=1e-6)
+    assert not (tmp_path / "x.tif").exists()

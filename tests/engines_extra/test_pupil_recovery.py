@@ -94,6 +94,20 @@ def test_quadratic_estimate_from_neighbour_shifts():
         np.testing.assert_allclose(found, true, atol=0.05)
 
 
+def test_quadratic_estimate_over_a_recorded_window_with_a_guard_band():
+    """A recorded frame or tile sits in a guard band of weight 0 (around the periodic grid's corner, as the
+    field layout places it): the band's edges, the same in every capture, must not pull the shifts to zero."""
+    true = np.array([0.25, -0.1, 0.05])
+    problem, _ = make_case(true)
+    amplitudes = problem.amplitudes
+    m = amplitudes.shape[-1]
+    distance = np.minimum(np.arange(m), m - np.arange(m))          # from pixel 0 around the periodic grid
+    window = (distance[:, None] < 0.32 * m) & (distance[None, :] < 0.32 * m)
+    weights = np.broadcast_to(window, amplitudes.shape).astype(np.float32)
+    found = cal.estimate_quadratic_aberration(problem.model.layout, amplitudes * weights, weights)
+    np.testing.assert_allclose(found, true, atol=0.05)
+
+
 def test_large_quadratic_aberration_is_aliased_on_a_lattice():
     # Q and Q + (π/s) e_x e_xᵀ give the same captures of differently chirped objects, so 1 wave RMS of
     # defocus and of astigmatism cannot be told from the smaller alias the estimate returns.

@@ -142,3 +142,26 @@ def test_workers_resolve_the_engine_as_the_client_does():
     name, options = tile_engine(ReconstructSection.model_validate(
         task_section(ReconstructSection(tiles={"size_px": 96, "overlap_px": 32}))), "camera_scan")
     assert options.max_iterations == 150 and options.threads == 1   # the preset's cap, one thread per tile
+
+
+def test_tiles_of_a_defocused_lens_find_its_defocus(tmp_path, client):
+    """Each tile is a window in a guard band: the first tile's starting estimate must see the shifts the defocus
+    makes between neighbouring captures, not the band's edges (which held it at zero and the tiles at 0.07-0.1 of
+    0.25 waves)."""
+    import copy
+
+    from cca_cli import api
+    from cca_cli.config.load import parse_config
+    from cca_cli.stages import simulate
+
+    from .conftest import FRAME_CONFIG
+
+    data = copy.deepcopy(FRAME_CONFIG)
+    data["aberration"] = {"defocus_waves": 0.25}
+    config = parse_config(data, source="defocused frame")
+    path = tmp_path / "captures.h5"
+    simulate.run(config, path, provenance=Provenance.make("simulate", "", ""))
+    result = api.reconstruct_tiles(path, size_px=96, overlap_px=32, engine="momentum", iterations=40, tol=0.0,
+                                   client=client, pupil_recovery="shared", pupil_model="zernike")
+    defocus = result.zernike_waves[:, 0, 0]
+    assert np.all(np.abs(defocus - 0.25) < 0.04), defocus
