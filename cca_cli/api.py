@@ -167,8 +167,8 @@ def camera_scan(*, wavelength_m: float, focal_length_m: float, aperture_diameter
 
 
 def stage_scan(positions_yx_m, *, wavelength_m: float, focal_length_m: float, aperture_diameter_m: float,
-               pixel_pitch_m: float, distance_m: float, image_pixels: int) -> CaptureGeometry:
-    """Geometry of a camera moved to measured aperture-plane positions (a lab X–Y stage).
+               pixel_pitch_m: float, distance_m: float, image_pixels: int, camera_index=None) -> CaptureGeometry:
+    """Geometry of a camera moved to measured aperture-plane positions (a lab X–Y stage), or of a camera array.
 
     Parameters
     ----------
@@ -178,6 +178,9 @@ def stage_scan(positions_yx_m, *, wavelength_m: float, focal_length_m: float, ap
         The camera and the object distance (m).
     image_pixels : int
         Side of the (square) images in sensor pixels.
+    camera_index : array_like of int, (K,), optional
+        For a camera array: the camera (0, 1, …) of each capture, each with its own lens and pupil
+        (``pupil_recovery: per_camera`` recovers one per camera).
 
     Returns
     -------
@@ -202,9 +205,17 @@ def stage_scan(positions_yx_m, *, wavelength_m: float, focal_length_m: float, ap
 
     check_positive(pixel_pitch_m=pixel_pitch_m, focal_length_m=focal_length_m, distance_m=distance_m)
     field_width = sensor_field_width_m(_count("image_pixels", image_pixels), pixel_pitch_m, focal_length_m, distance_m)
-    return stage_scan_geometry(positions_yx_m, wavelength_m=wavelength_m, focal_length_m=focal_length_m,
-                               aperture_diameter_m=aperture_diameter_m, pixel_pitch_m=pixel_pitch_m,
-                               distance_m=distance_m, field_width_m=field_width)
+    geometry = stage_scan_geometry(positions_yx_m, wavelength_m=wavelength_m, focal_length_m=focal_length_m,
+                                   aperture_diameter_m=aperture_diameter_m, pixel_pitch_m=pixel_pitch_m,
+                                   distance_m=distance_m, field_width_m=field_width)
+    if camera_index is None:
+        return geometry
+    cameras = np.asarray(camera_index)
+    if (cameras.shape != (geometry.n_images,) or not np.issubdtype(cameras.dtype, np.integer)
+            or (cameras < 0).any()):
+        raise ValueError(f"camera_index must hold one camera number ≥ 0 (an integer) per capture, "
+                         f"{geometry.n_images} in all; got {cameras.shape} of {cameras.dtype}")
+    return replace(geometry, camera_index=cameras.astype(np.int32))
 
 
 def led_grid_sines(grid: int, *, pitch_m: float, height_m: float) -> np.ndarray:

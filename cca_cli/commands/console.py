@@ -194,7 +194,7 @@ def summary_table(summary: dict, title: str = "Result") -> Table:
         ("images", "n_images", "{}"),
         ("recovered image (width x height)", "recovered_shape_px", "image"),
         ("engine / iterations", None, None),
-        ("reconstruction time (s)", "seconds", "{:.1f}"),
+        ("reconstruction time (s)", "seconds", "{:.3g}"),
         ("spot size at sensor", "spot_size_sensor_m", "length"),
         ("spot size at object", "spot_size_object_m", "length"),
         ("spot size at object, synthetic aperture", "spot_size_synthetic_object_m", "length"),

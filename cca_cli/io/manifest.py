@@ -41,7 +41,8 @@ Kind = Literal["coherent", "calibration", "dark", "flat"]
 #: cca's names for the columns of an image table, with the column read when ``columns:`` does not map them.
 TABLE_COLUMNS = {"path": "path", "kind": "kind", "exposure": "exposure_s", "stage_x": "stage_x_mm",
                  "stage_y": "stage_y_mm", "row": "row", "col": "col", "kx_norm": "kx_norm", "ky_norm": "ky_norm",
-                 "led_x": "led_x_mm", "led_y": "led_y_mm", "led_z": "led_z_mm", "bit_depth": "bit_depth"}
+                 "led_x": "led_x_mm", "led_y": "led_y_mm", "led_z": "led_z_mm", "camera": "camera",
+                 "bit_depth": "bit_depth"}
 #: Position columns of a table, read in ``units.position``.
 _POSITION_COLUMNS = ("stage_x", "stage_y", "led_x", "led_y", "led_z")
 _EXPOSURE_S = {"s": 1.0, "ms": 1e-3, "us": 1e-6}
@@ -171,6 +172,8 @@ class ImageEntry(_Strict):
     led_x_mm: float | None = Field(None, allow_inf_nan=False)
     led_y_mm: float | None = Field(None, allow_inf_nan=False)
     led_z_mm: PositiveFloat | None = Field(None, allow_inf_nan=False)
+    camera: int | None = Field(None, ge=0, description="Camera of a camera array that took the image (0, 1, …): "
+                                                       "each camera its own lens and pupil.")
     bit_depth: PositiveInt | None = Field(None, le=32)
 
     @model_validator(mode="after")
@@ -283,6 +286,8 @@ class CapturePlan:
         taken in another camera mode than the captures).
     notes : list of str
         What was noticed while planning (ignored columns …), to show once.
+    camera_index : ndarray, int32, (K,) or None
+        Camera of each position in a camera array, when the rows name it.
     """
 
     manifest: Manifest
@@ -298,6 +303,7 @@ class CapturePlan:
     bit_depth: int | None = None
     calibration_bit_depths: dict[Path, int] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    camera_index: np.ndarray | None = None
 
     @property
     def kind(self) -> str:
@@ -500,6 +506,9 @@ def _table_entries(table: Path, manifest: Manifest, source: str) -> tuple[list[d
         bits = number("bit_depth")
         if bits is not None:
             entry["bit_depth"] = bits
+        camera = number("camera")
+        if camera is not None:
+            entry["camera"] = camera
         entries.append((line, entry, row))
     out = []
     for line, entry, row in entries:
@@ -844,7 +853,39 @@ def plan_captures(manifest: Manifest, path: str | Path, *, notes: list[str] | No
     board_bits = {e.path: e.bit_depth for e in by_kind["calibration"] if e.bit_depth is not None}
     return CapturePlan(manifest, path, files, np.asarray(exposures, np.float64), pos, grid_idx, labels,
                        calibration=calibration, darks=darks, flats=flats, bit_depth=bit_depth,
-                       calibration_bit_depths=board_bits, notes=notes)
+                       calibration_bit_depths=board_bits, notes=notes,
+                       camera_index=_camera_index(groups, kind, manifest, path))
+
+
+def _camera_index(groups: dict[tuple, list[ImageEntry]], kind: str, manifest: Manifest,
+                  path: Path) -> np.ndarray | None:
+    """The camera of each position (in the groups' order), when the rows name cameras; None when none does.
+
+    Raises
+    ------
+    ConfigError
+        Some rows name a camera and others not, the rows of one position name different cameras, or an LED
+        array's rows name cameras (it has one objective).
+    """
+    named = [e for entries in groups.values() for e in entries if e.camera is not None]
+    if not named:
+        return None
+    source = _source(manifest, path)
+    if kind == "led":
+        raise ConfigError(f"{source}: {named[0].path.name} names a camera, but an LED array has one objective; "
+                          "remove the camera column")
+    unnamed = next((e for entries in groups.values() for e in entries if e.camera is None), None)
+    if unnamed is not None:
+        raise ConfigError(f"{source}: {unnamed.path.name} names no camera while {named[0].path.name} names camera "
+                          f"{named[0].camera}; give every image its camera")
+    cameras = []
+    for key, entries in groups.items():
+        numbers = sorted({e.camera for e in entries})
+        if len(numbers) > 1:
+            raise ConfigError(f"{source}: the images at {_position_text(key)} name cameras "
+                              f"{', '.join(map(str, numbers))}; one position is one camera's")
+        cameras.append(numbers[0])
+    return np.asarray(cameras, np.int32)
 
 
 def _stated_bit_depth(entries: list[ImageEntry], manifest: Manifest, path: Path) -> int | None:

@@ -354,6 +354,8 @@ def ingest(manifest_path: Path, *, progress: ProgressFn = silent) -> Ingested:
                                       numerical_aperture=il.numerical_aperture,
                                       pixel_pitch_object_m=pitch, field_width_m=w * pitch, sign=il.sign,
                                       grid_indices=plan.grid_indices)
+    if plan.camera_index is not None:
+        geometry = replace(geometry, camera_index=plan.camera_index)
     check_geometry(plan, geometry, (h, w))
     notes += stray_positions(plan, geometry) + apart_neighbours(plan, geometry) + dark_bright_field(plan, geometry,
                                                                                                   frames)

@@ -241,3 +241,21 @@ def test_bloodsmear_led_dataset_reconstructs_sharper(tmp_path):
     assert report["grid"] == [15, 15]
     # The recovery puts several times more of its power beyond what the single objective records.
     assert report["energy_beyond_cutoff_recovered"] > 3 * report["energy_beyond_cutoff_observed"]
+
+
+def test_a_camera_array_s_images_name_their_cameras(tmp_path):
+    """Each camera its own lens: the rows name it, and /geometry/camera_index gives each capture's pupil."""
+    path = _small_set(tmp_path, n=3)
+    data = yaml.safe_load(path.read_text())
+    for i, image in enumerate(data["images"]):
+        image["camera"] = [0, 1, 1][i]
+    path.write_text(yaml.safe_dump(data))
+    result = _cli("ingest", path, "-o", tmp_path / "raw.h5", "-q")
+    assert result.exit_code == 0, result.output
+    with h5py.File(tmp_path / "raw.h5") as f:
+        assert f["/geometry/camera_index"][()].tolist() == [0, 1, 1]
+    (tmp_path / "raw.h5").unlink()
+    del data["images"][2]["camera"]
+    path.write_text(yaml.safe_dump(data))
+    _ingest_fails(tmp_path, "m.yaml", "v2.png names no camera while v0.png names camera 0",
+                  "give every image its camera")

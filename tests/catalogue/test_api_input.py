@@ -325,3 +325,13 @@ def test_simulate_needs_a_geometry_and_export_a_known_quantity(tmp_path):
     with pytest.raises(ValueError, match="quantity 'foo': choose one of"):
         cca.export(np.ones((4, 4)), tmp_path / "x.tif", quantity="foo", pixel_size_m=1e-6)
     assert not (tmp_path / "x.tif").exists()
+
+
+def test_a_camera_array_names_each_capture_s_camera():
+    steps = np.array([[0.0, x] for x in (-1e-3, 0.0, 1e-3)])
+    common = dict(wavelength_m=633e-9, focal_length_m=75e-3, aperture_diameter_m=2.5e-3, pixel_pitch_m=3.75e-6,
+                  distance_m=1.5, image_pixels=64)
+    g = cca.stage_scan(steps, camera_index=[0, 1, 1], **common)
+    assert g.camera_index.tolist() == [0, 1, 1]
+    with pytest.raises(ValueError, match="^camera_index must hold one camera number"):
+        cca.stage_scan(steps, camera_index=[0, 1], **common)
