@@ -278,6 +278,12 @@ def _nested_rows(summary: dict) -> list[tuple[str, str]]:
     if zernike:
         largest = sorted(zernike.items(), key=lambda item: -abs(item[1]))[:3]
         rows.append(("largest pupil aberrations (waves RMS)", ", ".join(f"{k} {v:+.3f}" for k, v in largest)))
+    tiles = summary.get("tiles") or {}
+    if tiles.get("residual_all_median_max"):
+        rows.append(("tiles: data residual, median / max", " / ".join(f"{v:.4f}" for v in
+                                                                     tiles["residual_all_median_max"])))
+    for name, (low, middle, high) in list((tiles.get("zernike_waves_min_median_max") or {}).items())[:3]:
+        rows.append((f"tiles: {name} (waves), min / median / max", f"{low:+.3f} / {middle:+.3f} / {high:+.3f}"))
     usaf = summary.get("usaf") or {}
     for name, reading in usaf.items():
         if not isinstance(reading, dict):

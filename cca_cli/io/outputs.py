@@ -247,7 +247,7 @@ def check_output(path: str | Path, *, force: bool = False, kind: str = "file", i
         if not force:
             if foreign is not None and foreign == str(path):
                 raise OutputExistsError(f"{shown}: already exists and was not written by cca; choose another output")
-            raise OutputExistsError(f"{shown}: already exists; use --force to overwrite it or choose another output")
+            raise OutputExistsError(f"{shown}: already exists; use --force (force=True in Python) to overwrite it or choose another output")
         if foreign is not None:
             what = "it" if foreign == str(path) else f"{foreign} in it"
             raise OutputError(f"{shown}: cca did not write {what} (or cannot read it), so --force does not replace "

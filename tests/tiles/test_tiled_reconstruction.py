@@ -85,6 +85,10 @@ def test_report_maps_the_tiles(tiled_run, tmp_path):
     assert "defocus" in summary["tiles"]["zernike_waves_min_median_max"]
     assert (tmp_path / "report" / "tiles.png").stat().st_size > 10_000
     assert "tiles.png" in json.loads((tmp_path / "report" / "report.json").read_text())["figures"]
+    from cca_cli.commands.console import summary_table
+
+    labels = [str(cell) for cell in summary_table(summary).columns[0].cells]
+    assert "tiles: data residual, median / max" in labels and "tiles: defocus (waves), min / median / max" in labels
 
 
 def test_a_stopped_run_recovers_only_its_unfinished_tiles(tmp_path, frame_captures, frame_config, client):
