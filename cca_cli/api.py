@@ -212,7 +212,7 @@ def stage_scan(positions_yx_m, *, wavelength_m: float, focal_length_m: float, ap
         return geometry
     cameras = np.asarray(camera_index)
     if (cameras.shape != (geometry.n_images,) or not np.issubdtype(cameras.dtype, np.integer)
-            or (cameras < 0).any()):
+            or (cameras < 0).any() or (cameras >= 2**31).any()):
         raise ValueError(f"camera_index must hold one camera number ≥ 0 (an integer) per capture, "
                          f"{geometry.n_images} in all; got {cameras.shape} of {cameras.dtype}")
     return replace(geometry, camera_index=cameras.astype(np.int32))

@@ -194,7 +194,7 @@ def summary_table(summary: dict, title: str = "Result") -> Table:
         ("images", "n_images", "{}"),
         ("recovered image (width x height)", "recovered_shape_px", "image"),
         ("engine / iterations", None, None),
-        ("reconstruction time (s)", "seconds", "{:.3g}"),
+        ("reconstruction time (s)", "seconds", "seconds"),
         ("spot size at sensor", "spot_size_sensor_m", "length"),
         ("spot size at object", "spot_size_object_m", "length"),
         ("spot size at object, synthetic aperture", "spot_size_synthetic_object_m", "length"),
@@ -246,6 +246,8 @@ def summary_table(summary: dict, title: str = "Result") -> Table:
             text = "—"
         elif fmt == "length":
             text = length_text(value)
+        elif fmt == "seconds":   # three digits below 100 s (0.04 s does not read 0.0), whole seconds above
+            text = f"{value:.3g}" if value < 100 else f"{value:.0f}"
         elif fmt == "triple":
             text = " / ".join(f"{v:.3g}" for v in value)
         elif fmt == "image":

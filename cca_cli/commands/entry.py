@@ -9,13 +9,14 @@ import sys
 #: numpy's BLAS libraries and how many threads each uses unless told. cca's matrix products are small (a
 #: local DFT, a few Zernike modes): threads of their own only wait for cores the engines' threads hold,
 #: and OpenBLAS waits actively, which on a busy machine cost a run up to half a second.
-_BLAS_THREADS = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+_BLAS_THREADS = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "VECLIB_MAXIMUM_THREADS")
 
 
 def main() -> None:
     """Import the command line (numpy, h5py, numba … take a moment) and run it."""
-    for name in _BLAS_THREADS:
-        os.environ.setdefault(name, "1")   # before numpy loads its BLAS; a user's own setting is kept
+    if "OMP_NUM_THREADS" not in os.environ:   # a user's OpenMP setting reaches the BLAS as they meant it
+        for name in _BLAS_THREADS:
+            os.environ.setdefault(name, "1")   # before numpy loads its BLAS; a user's own setting is kept
     try:
         from cca_cli.optics import hidden_imports
 

@@ -288,7 +288,8 @@ def estimate_quadratic_aberration(layout: BandLayout, amplitudes: np.ndarray,
     amplitudes : ndarray, (K, m, m)
         Measured amplitudes ``√I`` (field or sensor layout: only shifts matter).
     weights : ndarray, (K, m, m), optional
-        Validity weights; invalid pixels are zeroed before correlating.
+        Validity weights: only the region most captures record is correlated, its weight-0 pixels at the
+        image's mean (see :func:`_recorded_region`).
     neighbour_ratio : float
         Pairs closer than this times the smallest pupil spacing are correlated.
     upsample : int
@@ -304,8 +305,8 @@ def estimate_quadratic_aberration(layout: BandLayout, amplitudes: np.ndarray,
     -----
     See the module notes: for each neighbour separation ``u`` the normalised
     cross-power spectra of all pairs are summed and the peak of their inverse
-    transform is ``(m/π) Q u`` modulo m; ``Q`` (symmetric) follows by least
-    squares, weighted by each peak's height.
+    transform is ``(m/π) Q u`` modulo the correlated region's size (the recorded region, or m); ``Q``
+    (symmetric) follows by least squares, weighted by each peak's height.
     """
     centres = layout.centres_px
     k, m = layout.n_images, layout.lowres_size

@@ -172,7 +172,7 @@ class ImageEntry(_Strict):
     led_x_mm: float | None = Field(None, allow_inf_nan=False)
     led_y_mm: float | None = Field(None, allow_inf_nan=False)
     led_z_mm: PositiveFloat | None = Field(None, allow_inf_nan=False)
-    camera: int | None = Field(None, ge=0, description="Camera of a camera array that took the image (0, 1, …): "
+    camera: int | None = Field(None, ge=0, le=2**31 - 1, description="Camera of a camera array that took the image (0, 1, …): "
                                                        "each camera its own lens and pupil.")
     bit_depth: PositiveInt | None = Field(None, le=32)
 
@@ -402,6 +402,15 @@ def _merge_setup(data: dict, setup_path: Path, source: str, notes: list[str]) ->
     return data
 
 
+def _whole_number(text: str) -> bool:
+    """Whether a table cell holds a camera number: empty, or a whole number ≥ 0."""
+    try:
+        value = float(text) if text != "" else 0.0
+    except ValueError:
+        return False
+    return math.isfinite(value) and value >= 0 and value == int(value)
+
+
 def _unit_of_name(column: str, units: dict[str, float]) -> str | None:
     """The unit a column name announces by its suffix (``exposure_ms`` → ``ms``), if any."""
     lowered = column.lower().replace("µ", "u")
@@ -436,6 +445,9 @@ def _table_entries(table: Path, manifest: Manifest, source: str) -> tuple[list[d
     if "path" not in used:
         raise ConfigError(f"{table}: no file column (looked for {mapping['path']!r}); "
                           f"map it with columns: {{path: <column>}} in {source}")
+    if "camera" in used and "camera" not in explicit and (manifest.illumination is not None or not all(
+            _whole_number(row.get(used["camera"], "")) for _, row in rows)):
+        used.pop("camera")   # a column merely called so (a camera model, an LED array's): the lab's notes
     if any(name in used for name in ("kx_norm", "ky_norm", "stage_x", "stage_y")):
         for name in ("led_x", "led_y", "led_z"):   # the table's own positions given: LED positions are notes beside
             if name not in explicit:

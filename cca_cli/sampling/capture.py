@@ -166,4 +166,5 @@ def with_field_width(geometry: CaptureGeometry, field_width_m: float, *, keep=No
     return replace(geometry, field_width_m=float(field_width_m), aperture_centres_yx_m=centres_m,
                    spectrum_centres_yx_px=scale.to_pixels(centres_m),
                    grid_indices=np.asarray(geometry.grid_indices)[index],
+                   camera_index=None if geometry.camera_index is None else np.asarray(geometry.camera_index)[index],
                    pupil_radius_px=scale.pupil_radius_px(geometry.aperture_diameter_m))

@@ -40,8 +40,9 @@ def check_positive(**values) -> None:
         if isinstance(value, (bool, np.bool_)) or not (math.isfinite(number) and number > 0):
             raise ValueError(f"{name} must be a positive, finite number (SI units), got {value!r}")
         if name.endswith("wavelength_m") and number >= MAX_WAVELENGTH_M:
-            raise ValueError(f"{name} is {number:g} m, not a wavelength of light: give it in metres "
-                             f"({number:g}e-9 for {number:g} nm)")
+            unit, power = ("nm", "e-9") if number >= 100 else ("µm", "e-6")
+            raise ValueError(f"{name} is {number:g} m, not a wavelength of light (cca takes waves under 1 mm): give "
+                             f"it in metres ({number:g}{power} for {number:g} {unit})")
 
 
 @dataclass(frozen=True)

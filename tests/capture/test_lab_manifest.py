@@ -650,3 +650,13 @@ def test_an_led_matrix_by_row_and_column_needs_its_pitch(tmp_path):
     assert np.allclose(_sines(tmp_path / "raw.h5"), -expected, atol=1e-12)
     with h5py.File(tmp_path / "raw.h5") as handle:
         assert handle["/geometry/grid_indices"][()].tolist() == [[i // 3, i % 3] for i in range(9)]
+
+
+def test_a_column_merely_called_camera_is_the_lab_s_note(tmp_path):
+    """A camera model in a column named camera (or cameras beside an LED array) is ignored with the other notes."""
+    rows = "path,kx_norm,ky_norm,camera\n" + "\n".join(
+        f"led{i}.png,{0.05 * (i % 3 - 1)},{0.05 * (i // 3 - 1)},Basler acA1920" for i in range(9)) + "\n"
+    _led_table(tmp_path, rows)
+    result = _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
+    assert result.exit_code == 0, result.output
+    assert "columns not used by cca, ignored: camera" in " ".join(result.output.split())

@@ -313,8 +313,10 @@ def test_images_of_another_width_than_the_geometry_s_field_are_refused(tmp_path)
 
 
 def test_a_wavelength_in_nanometres_or_as_text_is_named():
-    with pytest.raises(ValueError, match=r"^wavelength_m is 550 m, not a wavelength of light: .*550e-9 for 550 nm"):
+    with pytest.raises(ValueError, match=r"^wavelength_m is 550 m, not a wavelength of light .*550e-9 for 550 nm"):
         _camera_scan(wavelength_m=550)
+    with pytest.raises(ValueError, match=r"^wavelength_m is 0.55 m, .*0.55e-6 for 0.55 µm"):
+        _camera_scan(wavelength_m=0.55)
     with pytest.raises(ValueError, match=r"^wavelength_m must be a positive, finite number .* the text '550e-9'"):
         _camera_scan(wavelength_m="550e-9")
 
@@ -333,5 +335,9 @@ def test_a_camera_array_names_each_capture_s_camera():
                   distance_m=1.5, image_pixels=64)
     g = cca.stage_scan(steps, camera_index=[0, 1, 1], **common)
     assert g.camera_index.tolist() == [0, 1, 1]
+    from cca_cli.sampling.capture import with_field_width
+
+    kept = with_field_width(g, g.field_width_m / 2, keep=[0, 2])     # register dropping a view keeps them paired
+    assert kept.camera_index.tolist() == [0, 1] and kept.n_images == 2
     with pytest.raises(ValueError, match="^camera_index must hold one camera number"):
         cca.stage_scan(steps, camera_index=[0, 1], **common)
