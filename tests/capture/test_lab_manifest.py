@@ -601,12 +601,8 @@ def test_led_positions_need_their_height_and_not_sines_beside_them(tmp_path):
     _led_table(tmp_path, _grid_rows(z_column=-60), {"led_distance_m": 0.06})
     _refused(tmp_path, "leds.csv: line 2 (led0.png): led_z_mm", "greater than 0")
     # a table with sines uses them; the LED positions beside them are the lab's notes
-    rows = "path,kx_norm,ky_norm,led_x_mm,led_y_mm\n" + "\n".join(
-        f"led{i}.png,{0.05 * (i % 3 - 1)},{0.05 * (i // 3 - 1)},999,999" for i in range(9)) + "\n"
-    _led_table(tmp_path, rows)
-    result = _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
-    assert result.exit_code == 0, result.output
-    assert "columns not used by cca, ignored: led_x_mm, led_y_mm" in " ".join(result.output.split())
+    text = _ingested_sines_table(tmp_path, "led_x_mm,led_y_mm", "999,999")
+    assert "columns not used by cca, ignored: led_x_mm, led_y_mm" in text
     assert np.isclose(np.abs(_sines(tmp_path / "raw.h5")).max(), 0.05)
 
 
@@ -654,9 +650,14 @@ def test_an_led_matrix_by_row_and_column_needs_its_pitch(tmp_path):
 
 def test_a_column_merely_called_camera_is_the_lab_s_note(tmp_path):
     """A camera model in a column named camera (or cameras beside an LED array) is ignored with the other notes."""
-    rows = "path,kx_norm,ky_norm,camera\n" + "\n".join(
-        f"led{i}.png,{0.05 * (i % 3 - 1)},{0.05 * (i // 3 - 1)},Basler acA1920" for i in range(9)) + "\n"
+    assert "columns not used by cca, ignored: camera" in _ingested_sines_table(tmp_path, "camera", "Basler acA1920")
+
+
+def _ingested_sines_table(tmp_path, columns: str, values: str) -> str:
+    """Ingest a 3 x 3 LED table of sines with more columns (the same values in every row); its output, one line."""
+    rows = f"path,kx_norm,ky_norm,{columns}\n" + "\n".join(
+        f"led{i}.png,{0.05 * (i % 3 - 1)},{0.05 * (i // 3 - 1)},{values}" for i in range(9)) + "\n"
     _led_table(tmp_path, rows)
     result = _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
     assert result.exit_code == 0, result.output
-    assert "columns not used by cca, ignored: camera" in " ".join(result.output.split())
+    return " ".join(result.output.split())
