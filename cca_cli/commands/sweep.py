@@ -57,8 +57,9 @@ def _sweep(study: str, config: Path, sets: list[str] | None, workers: int | None
     if dry_run:
         table = Table(title=f"cca sweep {study} --dry-run", header_style="bold")
         for name in ("#", "point id", "overrides", "images", "m", "M", "iterations ≤", "status"):
-            table.add_column(name, no_wrap=name == "point id",   # an id is what a user copies: keep it whole
-                             min_width=max((len(p.point_id) for p in points), default=0) if name == "point id" else None)
+            is_id = name == "point id"   # an id is what a user copies: keep it whole
+            table.add_column(name, no_wrap=is_id,
+                             min_width=max((len(p.point_id) for p in points), default=0) if is_id else None)
         for p in points:
             cost = costs[p.index]
             done = sw.cached_result(p) is not None

@@ -251,8 +251,9 @@ def _recorded_region(images: np.ndarray, weights: np.ndarray | None) -> np.ndarr
     """The images over the region their weights record, each less its mean and tapered to zero at the edges.
 
     A guard band (weight 0 around a recorded frame or tile, which may wrap around the periodic grid) is the
-    same in every capture: left in, its edges would correlate at zero shift and outweigh the object's shifts. Pixels of weight 0 inside the region take
-    the image's mean; a cosine taper over the outer eighth of each side removes the region's own edges.
+    same in every capture: left in, its edges would correlate at zero shift and outweigh the object's shifts.
+    Pixels of weight 0 inside the region take the image's mean; a cosine taper over the outer eighth of each
+    side removes the region's own edges.
     Without weights (a periodic, simulated frame) the images are used as they are.
     """
     if weights is None:   # a periodic (simulated) frame: no edges to remove

@@ -46,14 +46,15 @@ class DarkModel:
         if match.size:
             return self.black[int(match[0])], None
         if t.size == 1:
-            return self.black[0], self.unmeasured_note([exposure_s])
-        design = np.stack([np.ones_like(t), t], axis=1)
-        coeffs, *_ = np.linalg.lstsq(design, self.black.reshape(t.size, -1).astype(np.float64), rcond=None)
-        level = (coeffs[0] + coeffs[1] * exposure_s).reshape(self.black.shape[1:]).astype(np.float32)
+            level = self.black[0]
+        else:
+            design = np.stack([np.ones_like(t), t], axis=1)
+            coeffs, *_ = np.linalg.lstsq(design, self.black.reshape(t.size, -1).astype(np.float64), rcond=None)
+            level = (coeffs[0] + coeffs[1] * exposure_s).reshape(self.black.shape[1:]).astype(np.float32)
         return level, self.unmeasured_note([exposure_s])
 
     def unmeasured_note(self, exposures_s) -> str:
-        """One note for the exposures (ascending) that have no dark frames of their own: how their black level is found."""
+        """One note for exposures (ascending) without dark frames of their own: how their black level is found."""
         t = np.asarray(self.exposure_s)
         times = [float(v) for v in exposures_s]
         if len(times) <= 3:

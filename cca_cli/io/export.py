@@ -81,7 +81,8 @@ def export_format(path: str | Path, format: str | None = None) -> str:
     if format is None:
         if by_suffix is None:
             raise ConfigError(f"{path}: unknown image format {path.suffix or '(no suffix)'!r}; name the file "
-                              ".tif/.tiff (float32), .png (16-bit) or .npy, or give --format tiff|png|npy (format= in Python)")
+                              ".tif/.tiff (float32), .png (16-bit) or .npy, or give --format tiff|png|npy "
+                              "(format= in Python)")
         return by_suffix
     chosen = format.lower()
     if chosen == "tif":

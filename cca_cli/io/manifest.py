@@ -172,8 +172,9 @@ class ImageEntry(_Strict):
     led_x_mm: float | None = Field(None, allow_inf_nan=False)
     led_y_mm: float | None = Field(None, allow_inf_nan=False)
     led_z_mm: PositiveFloat | None = Field(None, allow_inf_nan=False)
-    camera: int | None = Field(None, ge=0, le=2**31 - 1, description="Camera of a camera array that took the image (0, 1, …): "
-                                                       "each camera its own lens and pupil.")
+    camera: int | None = Field(None, ge=0, le=2**31 - 1,
+                               description="Camera of a camera array that took the image (0, 1, …): each camera "
+                                           "its own lens and pupil.")
     bit_depth: PositiveInt | None = Field(None, le=32)
 
     @model_validator(mode="after")

@@ -212,7 +212,8 @@ def without_dead_captures(captures: CaptureSet, *, name: str = "intensities", so
     holds = "holds" if dead.size == 1 else "hold"
     if centre in dead:
         value = float(captures.intensity[centre].flat[0])
-        raise error(f"{where}image {centre} of {name}, the centre capture {_where(geometry, centre)}, holds one value (every pixel {value:g}): nothing was recorded there, "
+        raise error(f"{where}image {centre} of {name}, the centre capture {_where(geometry, centre)}, holds one value "
+                    f"(every pixel {value:g}): nothing was recorded there, "
                     "and the recovery needs it for the object's lowest frequencies; re-take it")
     allowed = int(MAX_DEAD_FRACTION * k)
     if dead.size > allowed:

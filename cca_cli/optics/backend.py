@@ -18,11 +18,12 @@ GPU is missing. ``auto``: ``cuda`` when CuPy and a GPU are there, else ``cpu``.
 from __future__ import annotations
 
 import functools
-import importlib
 from dataclasses import dataclass
 from types import ModuleType
 
 import numpy as np
+
+from cca_cli.optics.fft import _scipy_fft
 
 __all__ = ["DEVICES", "GPU_INSTALL", "DeviceStatus", "DeviceUnavailable", "cupy_module", "device_status",
            "resolve_device", "array_module", "get_array_module", "to_device", "to_host", "fft2", "ifft2",
@@ -167,7 +168,7 @@ def fft2(xp: ModuleType, array):
     may overwrite ``array``.
     """
     if xp is np:
-        return importlib.import_module("scipy.fft").fft2(array, norm="backward", overwrite_x=True, workers=_workers())
+        return _scipy_fft().fft2(array, norm="backward", overwrite_x=True, workers=_workers())
     return _cupy_fft().fft2(array, norm="backward", overwrite_x=True)
 
 
@@ -177,7 +178,7 @@ def ifft2(xp: ModuleType, array):
     May overwrite ``array``.
     """
     if xp is np:
-        return importlib.import_module("scipy.fft").ifft2(array, norm="forward", overwrite_x=True, workers=_workers())
+        return _scipy_fft().ifft2(array, norm="forward", overwrite_x=True, workers=_workers())
     return _cupy_fft().ifft2(array, norm="forward", overwrite_x=True)
 
 
