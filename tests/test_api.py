@@ -105,6 +105,43 @@ print(*(os.environ.get(name, "-") for name in ("OPENBLAS_NUM_THREADS", "MKL_NUM_
     assert seen({"OMP_NUM_THREADS": "4"}) == ["-", "-"]     # the user's OpenMP setting is left to reach the BLAS
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt")
+def test_the_command_keeps_freed_memory_for_the_next_arrays():
+    """Arrays of tens of MB made and dropped in turn: with the command's malloc setting their pages are
+    reused (a handful of page faults) instead of mapped and zeroed afresh (thousands); a user's own
+    MALLOC_* setting is left alone."""
+    code = """
+import resource, sys
+import numpy as np
+from cca_cli.commands import entry
+kept = entry._keep_freed_memory() if sys.argv[1] == "command" else False
+
+def page_faults(rounds):
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    for i in range(rounds):
+        a = np.ones((5 + i % 3) * 1_000_000, np.float32)
+        b = np.ones(3_000_000 + 1000 * i, np.float32)
+        del a, b
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
+
+page_faults(3)
+print(kept, page_faults(10))
+"""
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("MALLOC_", "GLIBC_TUNABLES"))}
+
+    def run(mode, extra=None):
+        out = subprocess.run([sys.executable, "-c", code, mode], capture_output=True, text=True, check=True,
+                             env={**env, **(extra or {})}).stdout.split()
+        return out[0] == "True", int(out[1])
+
+    kept, faults = run("command")
+    if not kept:
+        pytest.skip("not glibc")
+    assert faults < 100
+    assert run("library")[1] > 1000   # glibc's default: the arrays' pages are mapped anew
+    assert run("command", {"MALLOC_ARENA_MAX": "2"})[0] is False
+
+
 @pytest.mark.skipif(kernels.numba is None, reason="numba is not installed or CCA_KERNELS=numpy")
 def test_the_command_leaves_out_numbas_blas_and_a_library_process_keeps_it():
     """The `cca` command skips scipy (pyfftw's scipy interfaces, numba's BLAS: about 0.2 s); a library keeps them."""

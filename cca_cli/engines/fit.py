@@ -92,7 +92,7 @@ def fit_report(problem: PhaseRetrievalProblem, spectrum: np.ndarray, calibration
         brightness = np.asarray(calibration.brightness, np.float64)
     # Every recorded pixel counts alike (a guard band or a saturated pixel, weight 0, does not): the engines'
     # confidence weights taper region edges, which would leave the misfit there out of the figure.
-    recorded = None if problem.weights is None else (problem.weights > 0).astype(np.float32)
+    recorded = None if problem.weights is None else problem.weights > 0   # a quarter of float32's bytes
     statistics = capture_statistics(model, spectrum, problem.amplitudes, recorded, threads=threads)
     bright = bright_field(problem)
     masks = [np.ones_like(bright), bright, ~bright]

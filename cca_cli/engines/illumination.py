@@ -182,7 +182,8 @@ def capture_statistics(model: ForwardModel, spectrum: np.ndarray, amplitudes: np
     spectrum : ndarray, complex64, (M, M)
     amplitudes : ndarray, float32, (K, m, m)
         Measured amplitudes (field layout, model units, the model's capture order).
-    weights : ndarray, float32, (K, m, m), optional
+    weights : ndarray, float32 or bool, (K, m, m), optional
+        Confidence of each pixel (bool: recorded or not, as 1 and 0).
     pupil_derivatives : ndarray, complex64, (2, K, b, b), optional
         ``∂P_i/∂c_i`` along y and x: also compute each capture's position
         gradient and curvature (three inverse transforms per capture instead of one).

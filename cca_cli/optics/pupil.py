@@ -38,17 +38,28 @@ def circular_pupils(box_size: int, box_centres, radius_px: float, *, edge_px: fl
     """
     centres = np.asarray(box_centres, dtype=np.float64).reshape(-1, 2)
     grid = np.arange(box_size, dtype=np.float64)
-    dy = grid[None, :, None] - centres[:, 0, None, None]
-    dx = grid[None, None, :] - centres[:, 1, None, None]
-    distance = dy * dy + dx * dx   # one (K, b, b) array, worked on in place (a box set can be tens of MB)
-    np.sqrt(distance, out=distance)
-    if edge_px <= 0:
-        return (distance <= radius_px).astype(np.float32)
-    ramp = np.subtract(radius_px + 0.5 * edge_px, distance, out=distance)
-    ramp /= edge_px
-    np.maximum(ramp, 0.0, out=ramp)
-    np.minimum(ramp, 1.0, out=ramp)
-    return ramp.astype(np.float32)
+    pupils = np.empty((len(centres), box_size, box_size), np.float32)
+    # A few captures at a time: the float64 work array stays in cache (a box set can be tens of MB).
+    step = max(1, _WORK_BYTES // (8 * box_size * box_size))
+    for start in range(0, len(centres), step):
+        part = centres[start:start + step]
+        dy = grid[None, :, None] - part[:, 0, None, None]
+        dx = grid[None, None, :] - part[:, 1, None, None]
+        distance = dy * dy + dx * dx   # worked on in place
+        np.sqrt(distance, out=distance)
+        if edge_px <= 0:
+            np.less_equal(distance, radius_px, out=pupils[start:start + step], casting="unsafe")
+            continue
+        ramp = np.subtract(radius_px + 0.5 * edge_px, distance, out=distance)
+        ramp /= edge_px
+        np.maximum(ramp, 0.0, out=ramp)
+        np.minimum(ramp, 1.0, out=ramp)
+        pupils[start:start + step] = ramp
+    return pupils
+
+
+#: Bytes of float64 work :func:`circular_pupils` holds at a time.
+_WORK_BYTES = 1 << 20
 
 
 def centred_disc(size: int, radius_px: float) -> np.ndarray:

@@ -195,3 +195,19 @@ def test_the_fit_report_reads_alike_on_any_number_of_threads():
             assert np.allclose(getattr(many, name), getattr(one, name), rtol=1e-6, atol=0)
     assert np.all(one.energy > 0) and np.all(one.misfit > 0)   # every capture's rows were filled
     assert fit_report(problem, spectrum, threads=2).all == pytest.approx(fit_report(problem, spectrum).all, rel=1e-6)
+
+
+def test_capture_statistics_read_a_recorded_mask_as_weights_of_one_and_zero():
+    """The fit report passes a boolean mask of recorded pixels (a quarter of float32's memory): the
+    figures are exactly those of float weights 1 and 0, and the masked pixels do not count."""
+    from cca_cli.engines.illumination import capture_statistics
+
+    problem, _, spectrum = led_case()
+    recorded = np.ones_like(problem.amplitudes, dtype=bool)
+    recorded[:, :3] = False   # a guard band along one edge
+    as_bool = capture_statistics(problem.model, spectrum, problem.amplitudes, recorded, threads=2)
+    as_float = capture_statistics(problem.model, spectrum, problem.amplitudes, recorded.astype(np.float32), threads=2)
+    every = capture_statistics(problem.model, spectrum, problem.amplitudes, threads=2)
+    for name in ("misfit", "power", "cross", "energy"):
+        assert np.array_equal(getattr(as_bool, name), getattr(as_float, name))
+        assert np.all(getattr(as_bool, name) < getattr(every, name))

@@ -8,6 +8,7 @@ import pytest
 from cca_cli.optics import fft
 from cca_cli.optics.forward import ForwardModel, chunk_slices, to_model_layout, to_sensor_layout
 from cca_cli.optics.pupil import circular_pupils
+from cca_cli.optics import pupil as pupil_module
 from cca_cli.optics.zernike import zernike_phase
 from cca_cli.sampling.grid import band_layout, square_scan
 
@@ -147,6 +148,18 @@ def test_circular_pupil_area_is_pi_r_squared(radius):
     assert soft[0].sum() == pytest.approx(math.pi * radius ** 2, rel=0.005)
     nudged = circular_pupils(box, [[box / 2 + 0.01, box / 2]], radius)[0]
     assert 0 < np.abs(nudged - soft[0]).max() < 0.02
+
+
+def test_circular_pupils_of_many_captures_are_each_captures_own_disc():
+    """A box set is made a few captures at a time (its work array stays in cache): every disc, binary or
+    anti-aliased, is exactly the one made for its capture alone, across the chunks' edges."""
+    rng = np.random.default_rng(3)
+    box = 40
+    centres = rng.uniform(15, 25, (3 * pupil_module._WORK_BYTES // (8 * box * box) + 5, 2))
+    for edge in (0.0, 1.0):
+        together = circular_pupils(box, centres, 12.3, edge_px=edge)
+        alone = np.stack([circular_pupils(box, [centre], 12.3, edge_px=edge)[0] for centre in centres])
+        assert together.dtype == np.float32 and np.array_equal(together, alone)
 
 
 def test_zernike_defocus_phase_is_radially_symmetric():
