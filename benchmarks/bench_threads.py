@@ -7,7 +7,8 @@ over one thread. Per-pass time is the fair comparison: with more than two
 threads the spectrum is split further, so a run may stop a few passes earlier
 or later. The passes alone (the engine's loop, ``Reconstruction.seconds``) are
 shown beside the whole call: what lies outside them (problem and engine set-up,
-the final fit report) runs mostly on one thread.
+the final fit report) runs mostly on one thread. Memory is reused as the ``cca``
+command lets it be (:func:`cca_cli.commands.entry.keep_freed_memory`).
 
 Usage::
 
@@ -25,6 +26,7 @@ import time
 from pathlib import Path
 
 import cca_cli as cca
+from cca_cli.commands.entry import keep_freed_memory
 from cca_cli.optics.fft import cpu_count
 
 
@@ -47,6 +49,7 @@ def main() -> None:
     args = parser.parse_args()
 
     counts = [int(t) for t in args.threads.split(",")] if args.threads else thread_counts(cpu_count())
+    keep_freed_memory()   # as the cca command does
     captures = cca.load(args.captures)
     cca.reconstruct(captures, engine=args.engine, iterations=2)  # compile and warm the caches once
     runs: dict[int, list[tuple[float, int, float]]] = {n: [] for n in counts}

@@ -114,7 +114,7 @@ def test_the_command_keeps_freed_memory_for_the_next_arrays():
 import resource, sys
 import numpy as np
 from cca_cli.commands import entry
-kept = entry._keep_freed_memory() if sys.argv[1] == "command" else False
+kept = entry.keep_freed_memory() if sys.argv[1] == "command" else False
 
 def page_faults(rounds):
     before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt

@@ -24,7 +24,7 @@ def main() -> None:
     if "OMP_NUM_THREADS" not in os.environ:   # a user's OpenMP setting reaches the BLAS as they meant it
         for name in _BLAS_THREADS:
             os.environ.setdefault(name, "1")   # before numpy loads its BLAS; a user's own setting is kept
-    _keep_freed_memory()
+    keep_freed_memory()
     try:
         from cca_cli.optics import hidden_imports
 
@@ -39,14 +39,19 @@ def main() -> None:
         _skip_the_final_collection()
 
 
-def _keep_freed_memory() -> bool:
+def keep_freed_memory() -> bool:
     """Let glibc keep the memory a run frees for the arrays it makes next; returns whether it was set.
 
-    A reconstruction makes and drops arrays of tens of MB (visiting orders, pupil boxes, the fit
-    report); by default glibc maps each anew and returns it when freed, and the kernel zeroes every
-    page again on first touch: a fifth of a blood-smear reconstruction's CPU time on a 2-core virtual
-    machine. Elsewhere than glibc (musl, macOS) nothing is changed; an explicit ``MALLOC_*`` setting
-    in the environment is kept.
+    A reconstruction makes and drops arrays of tens of MB (each visiting order's amplitudes and weights,
+    pupil boxes, the fit report's); by default glibc maps each anew and returns it when freed, and the
+    kernel zeroes every page again on first touch, which a virtual machine pays dearly for. Elsewhere
+    than glibc (musl, macOS) nothing is changed; an explicit ``MALLOC_*`` or ``GLIBC_TUNABLES`` setting
+    in the environment is kept. A notebook may call it too: it changes how memory is reused, not results.
+
+    Returns
+    -------
+    bool
+        True when glibc took both settings.
     """
     if any(name.startswith(("MALLOC_", "GLIBC_TUNABLES")) for name in os.environ):
         return False
