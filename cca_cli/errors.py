@@ -142,11 +142,14 @@ class CheckerboardNotFound(InputError):
         Inner-corner pattern ``(columns, rows)`` that was searched for.
     """
 
-    def __init__(self, source: str, pattern: tuple[int, int]):
+    def __init__(self, source: str, pattern: tuple[int, int], *, reference: bool = False):
         self.source = source
         self.pattern = tuple(pattern)
-        super().__init__(
-            f"{source}: no {pattern[0]}x{pattern[1]} checkerboard (inner corners) found; "
-            "check the pattern size in the manifest, the lighting, or allow dropping views "
-            "with registration.drop_missing: true (cca register --drop-missing)"
-        )
+        if reference:   # every other view is registered to this one: dropping views cannot help
+            advice = ("the reference (centre) view needs the board: check the pattern size in the manifest or the "
+                      "lighting, or leave register out of run.stages (hdr, then reconstruct) when the views are "
+                      "aligned already")
+        else:
+            advice = ("check the pattern size in the manifest, the lighting, or allow dropping views "
+                      "with registration.drop_missing: true (cca register --drop-missing)")
+        super().__init__(f"{source}: no {pattern[0]}x{pattern[1]} checkerboard (inner corners) found; {advice}")

@@ -65,6 +65,26 @@ class _KnownPupil(_Strict):
                                                  "/calibration/initial_pupil.")
 
 
+#: Lengths (m) no lab's setup reaches, with the unit they were most likely typed in: a value at or above the
+#: limit is refused with the figure in metres to give instead.
+_LARGEST_M = {"wavelength_m": (1e-3, "nm"), "pixel_pitch_m": (1e-3, "µm"), "pixel_pitch_object_m": (1e-3, "µm"),
+              "focal_length_m": (10.0, "mm"), "aperture_diameter_m": (10.0, "mm"), "led_pitch_m": (0.1, "mm"),
+              "led_distance_m": (10.0, "mm")}
+_UNIT_POWER = {"nm": "e-9", "µm": "e-6", "mm": "e-3"}
+
+
+def _in_metres(value, info):
+    """A length that reads as typed in nm, µm or mm instead of metres is refused (one line, with the fix)."""
+    largest, unit = _LARGEST_M[info.field_name]
+    if value is not None and value >= largest:
+        if info.field_name == "wavelength_m" and value < 100:
+            unit = "µm"
+        what = info.field_name[:-2].replace("_", " ").replace("led ", "LED ")
+        raise ValueError(f"{value:g} m is not a plausible {what}: give it in metres "
+                         f"({value:g}{_UNIT_POWER[unit]} for {value:g} {unit})")
+    return value
+
+
 class OpticsSpec(_KnownPupil):
     """Camera-scan optics (SI)."""
 
@@ -73,6 +93,8 @@ class OpticsSpec(_KnownPupil):
     aperture_diameter_m: PositiveFloat
     pixel_pitch_m: PositiveFloat
     distance_m: PositiveFloat
+
+    _metres = field_validator("wavelength_m", "focal_length_m", "aperture_diameter_m", "pixel_pitch_m")(_in_metres)
 
 
 class IlluminationSpec(_KnownPupil):
@@ -92,6 +114,8 @@ class IlluminationSpec(_KnownPupil):
     led_pitch_m: PositiveFloat | None = Field(
         None, allow_inf_nan=False, description="Spacing of an LED matrix (m): images that give grid indices [row, col] "
                                                "are then at (col, row) × pitch from the grid's middle.")
+
+    _metres = field_validator("wavelength_m", "pixel_pitch_object_m", "led_pitch_m", "led_distance_m")(_in_metres)
 
     @field_validator("led_axis_m")
     @classmethod
@@ -360,12 +384,13 @@ def _resolve(base: Path, p) -> Path:
     return p if p.is_absolute() else base / p
 
 
-def _merge_setup(data: dict, setup_path: Path, source: str, notes: list[str]) -> dict:
+def _merge_setup(data: dict, setup_path: Path, source: str, notes: list[str]) -> tuple[dict, set[str], list[str]]:
     """Sections of a setup file merged into a manifest mapping (a section given twice is an error).
 
     A setup file (the optics or illumination section itself, or a file of
     sections) may carry the lab's other facts too: keys cca does not know
-    are ignored, with a note.
+    are ignored, with a note. Returns the mapping, the sections the setup
+    file gave and the keys it ignored.
     """
     setup = _read_mapping(setup_path, "setup file")
     if any(k in setup for k in ("images", "images_csv", "source", "setup")):
@@ -400,7 +425,7 @@ def _merge_setup(data: dict, setup_path: Path, source: str, notes: list[str]) ->
         if key in data:
             raise ConfigError(f"{source}: {key} is given both here and in {setup_path.name}; keep one")
         data[key] = value
-    return data
+    return data, set(setup), ignored
 
 
 def _whole_number(text: str) -> bool:
@@ -421,6 +446,13 @@ def _unit_of_name(column: str, units: dict[str, float]) -> str | None:
     return None
 
 
+def _column_in_any_unit(header: list[str], stem: str, units: dict[str, float]) -> str | None:
+    """The one column named ``stem`` with a unit (``exposure_ms``, ``exposure [ms]``), if exactly one is."""
+    forms = {f"{stem}{form}" for unit in units for form in (f"_{unit}", f"[{unit}]", f"({unit})")}
+    found = [h for h in header if h.lower().replace(" ", "").replace("µ", "u") in forms]
+    return found[0] if len(found) == 1 else None
+
+
 def _table_entries(table: Path, manifest: Manifest, source: str) -> tuple[list[dict], list[str]]:
     """Rows of an image table as ImageEntry mappings (cca names, SI-ish units), and the notes."""
     try:
@@ -438,6 +470,12 @@ def _table_entries(table: Path, manifest: Manifest, source: str) -> tuple[list[d
     mapping = dict(TABLE_COLUMNS)
     explicit = manifest.columns or {}
     mapping.update(explicit)
+    for name in ("exposure", *_POSITION_COLUMNS):   # exposure_ms for exposure_s: read in the unit its name gives
+        if name not in explicit and mapping[name] not in header:
+            found = _column_in_any_unit(header, mapping[name].rsplit("_", 1)[0],
+                                        _EXPOSURE_S if name == "exposure" else _POSITION_MM)
+            if found is not None:
+                mapping[name] = found
     for name, column in explicit.items():
         if column not in header:
             raise ConfigError(f"{source}: columns.{name}: {table.name} has no column {column!r} "
@@ -469,6 +507,7 @@ def _table_entries(table: Path, manifest: Manifest, source: str) -> tuple[list[d
     exposure_factor = _EXPOSURE_S[manifest.units.exposure]
     position_factor = _POSITION_MM[manifest.units.position]
     kind_words = {k.lower(): v for k, v in (manifest.kind_values or {}).items()}
+    stated = "exposure" in used and any(row.get(used["exposure"], "") for _, row in rows)
     entries = []
     for line, row in rows:
         def number(name: str):
@@ -498,6 +537,9 @@ def _table_entries(table: Path, manifest: Manifest, source: str) -> tuple[list[d
                                   f"map the table's words with kind_values: {{{row[used['kind']]}: coherent}} "
                                   f"in {source}")
             entry["kind"] = kind
+        if stated and not row.get(used["exposure"], "") and entry.get("kind") != "calibration":
+            raise ConfigError(f"{table}: line {line} ({entry['path']}): column {used['exposure']!r} is empty; give "
+                              "this image's exposure as the other rows do")
         exposure = number("exposure")
         if exposure is not None:
             entry["exposure_s"] = exposure * exposure_factor
@@ -574,15 +616,24 @@ def read_manifest(path: str | Path) -> LoadedManifest:
         data = _read_mapping(path, "manifest")
         source = str(path)
     notes: list[str] = []
+    from_setup, setup_ignored = set(), []
     if data.get("setup") is not None:
         setup_path = _resolve(path.parent, data["setup"])
-        data = _merge_setup(data, setup_path, source, notes)
+        data, from_setup, setup_ignored = _merge_setup(data, setup_path, source, notes)
         data["setup"] = str(setup_path)
         files.append(setup_path)
     try:
         manifest = Manifest.model_validate(data)
     except ValidationError as exc:
-        raise ConfigError(_describe(_first_error(exc), source)) from None
+        error = _first_error(exc)
+        if not (error["loc"] and error["loc"][0] in from_setup):
+            raise ConfigError(_describe(error, source)) from None
+        message = _describe(error, str(setup_path))
+        key = str(error["loc"][-1])
+        close = difflib.get_close_matches(key, setup_ignored, n=1, cutoff=0.6) if error["type"] == "missing" else []
+        if close:   # wavelength_nm for wavelength_m: the lab's own name for a key cca needs
+            message += f"; {setup_path.name} has {close[0]} (not read): give {key} instead"
+        raise ConfigError(message) from None
     base = path.parent
     if manifest.images_csv is not None:
         table = _resolve(base, manifest.images_csv)

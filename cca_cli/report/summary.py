@@ -135,8 +135,9 @@ def derived_quantities(geometry: CaptureGeometry, *, sensor_pixels: int | None =
     Returns
     -------
     dict
-        ``kind``, ``n_images``, ``grid`` ([rows, columns]), ``overlap`` (None
-        when not a regular grid), ``sar``, ``step_m`` (aperture-plane distance
+        ``kind``, ``n_images``, ``grid`` ([rows, columns]), ``overlap`` (the
+        grid's; for recorded positions ``1 − step / d``, at least 0; None for
+        one position), ``sar``, ``step_m`` (aperture-plane distance
         of neighbouring positions; sin θ for LED arrays), ``pupil_radius_px``
         (``d·W/(2λz)``), ``spot_size_sensor_m`` (``2.44·λ·f/d``, camera scans
         only), ``spot_size_object_m`` (``2.44·λ·z/d``),
@@ -155,6 +156,8 @@ def derived_quantities(geometry: CaptureGeometry, *, sensor_pixels: int | None =
         "pupil_radius_px": round(g.pupil_radius_px, 4),
         "step_m": _step_m(g),
     }
+    if out["overlap"] is None and out["step_m"] is not None:   # recorded positions: the overlap their step gives
+        out["overlap"] = round(max(0.0, 1.0 - out["step_m"] / g.aperture_diameter_m), 4)
     if hires_size is None and sensor_pixels is not None:
         try:
             layout = band_layout(g.spectrum_centres_yx_px, g.pupil_radius_px, sensor_size=int(sensor_pixels))

@@ -357,8 +357,8 @@ def ingest(manifest_path: Path, *, progress: ProgressFn = silent) -> Ingested:
     if plan.camera_index is not None:
         geometry = replace(geometry, camera_index=plan.camera_index)
     check_geometry(plan, geometry, (h, w))
-    notes += stray_positions(plan, geometry) + apart_neighbours(plan, geometry) + dark_bright_field(plan, geometry,
-                                                                                                  frames)
+    notes += (stray_positions(plan, geometry) + apart_neighbours(plan, geometry) + crowded_neighbours(plan, geometry)
+              + dark_bright_field(plan, geometry, frames))
     if manifest.sensor.frame_scale == "per_frame":
         notes.append("sensor.frame_scale is per_frame: the images' relative brightness is unknown, so reconstruct's "
                      "momentum engine (engine: auto on recorded captures) fits each capture's brightness "
@@ -475,8 +475,42 @@ def apart_neighbours(plan: CapturePlan, geometry: CaptureGeometry) -> list[str]:
             f"({diameter:.4g} px): no two overlap, so phase retrieval cannot join them; {fix}"]
 
 
+#: Neighbouring captures closer than this share of the pupil's diameter (an overlap above 95%) are named in a note.
+CROWDED_SPACING = 0.05
+
+
+def crowded_neighbours(plan: CapturePlan, geometry: CaptureGeometry) -> list[str]:
+    """A note when the captures' usual spacing is a sliver of the pupil's diameter: they overlap almost wholly
+    and the synthetic aperture hardly grows (positions in a unit a thousand times too small, or optics that make
+    the pupil too large).
+
+    Returns
+    -------
+    list of str
+        Empty, or one note naming the spacing, the diameter, the SAR and what to check.
+    """
+    from scipy.spatial import cKDTree
+
+    centres = np.asarray(geometry.spectrum_centres_yx_px, np.float64)
+    if len(centres) < 2:
+        return []
+    spacing = float(np.median(cKDTree(centres).query(centres, k=2)[0][:, 1]))
+    diameter = 2 * geometry.pupil_radius_px
+    if not spacing < CROWDED_SPACING * diameter:
+        return []
+    fix = {"led": "check the LEDs' kx_norm/ky_norm (or their positions' unit, illumination.led_pitch_m and "
+                  "led_distance_m)",
+           "grid": "check stage_pitch_mm",
+           "stage": "check the positions' unit (units.position, or the columns' suffixes)"}[_positions_from(plan)]
+    return [f"neighbouring captures lie {spacing:.3g} spectrum px apart, under {CROWDED_SPACING:.0%} of the pupil's "
+            f"diameter ({diameter:.4g} px): they overlap almost wholly and the synthetic aperture is "
+            f"{geometry.synthetic_aperture_ratio:.3g} times the lens's (SAR); {fix} and {_optics_keys(plan)}"]
+
+
 #: A bright-field LED capture this many times darker than the median bright-field one is named in a note.
 DARK_BRIGHT_FIELD = 10.0
+#: Above this share of the bright-field captures so dark, one note says the geometry is off instead.
+MANY_DARK_BRIGHT_FIELD = 0.25
 
 
 def dark_bright_field(plan: CapturePlan, geometry: CaptureGeometry, frames: np.ndarray) -> list[str]:
@@ -501,9 +535,14 @@ def dark_bright_field(plan: CapturePlan, geometry: CaptureGeometry, frames: np.n
     def how_much(r: float) -> str:
         return "no light" if r <= 0 else f"{typical / r:.3g} times less light"
 
-    return [f"{plan.labels[i]} is in the bright field but recorded {how_much(float(r))} than the median bright-field "
-            "capture: did its LED fire? (check that row, or leave it out)"
-            for i, r in zip(bright, rate) if r * DARK_BRIGHT_FIELD < typical]
+    dark = [(i, float(r)) for i, r in zip(bright, rate) if r * DARK_BRIGHT_FIELD < typical]
+    if len(dark) > MANY_DARK_BRIGHT_FIELD * bright.size:   # the geometry, not an LED, is wrong
+        return [f"{len(dark)} of the {bright.size} captures the geometry puts in the bright field recorded "
+                f"{DARK_BRIGHT_FIELD:g} times less light than their median or less (first: {plan.labels[dark[0][0]]}): "
+                f"the LEDs' geometry does not match the light recorded; check the illumination's positions "
+                f"(led_pitch_m, led_distance_m, led_axis_m, or kx_norm/ky_norm), its sign and {_optics_keys(plan)}"]
+    return [f"{plan.labels[i]} is in the bright field but recorded {how_much(r)} than the median bright-field "
+            "capture: did its LED fire? (check that row, or leave it out)" for i, r in dark]
 
 
 def _optics_keys(plan: CapturePlan) -> str:

@@ -87,19 +87,24 @@ def register_views(intensity: np.ndarray, weight: np.ndarray | None, pattern: tu
     if search.shape != intensity.shape:
         raise InputError(f"calibration views are {search.shape[2]}x{search.shape[1]} px but the captures are "
                          f"{w}x{h} px; photograph the board with the same camera settings")
+    def view_name(i: int) -> str:
+        return labels[i] if board_views is None else f"{labels[i]} calibration view"
+
+    try:   # first: without the reference's board no view can be registered
+        ref = find_checkerboard(search[reference], pattern, source=view_name(reference))
+    except CheckerboardNotFound:
+        raise CheckerboardNotFound(view_name(reference), pattern, reference=True) from None
     corners, kept, dropped = [], [], []
     for i in range(k):
-        name = labels[i] if board_views is None else f"{labels[i]} calibration view"
         try:
-            corners.append(find_checkerboard(search[i], pattern, source=name))
+            corners.append(ref if i == reference else find_checkerboard(search[i], pattern, source=view_name(i)))
             kept.append(i)
         except CheckerboardNotFound:
-            if not drop_missing or i == reference:
+            if not drop_missing:
                 raise
-            _log.warning("%s: no checkerboard found; view dropped", name)
+            _log.warning("%s: no checkerboard found; view dropped", view_name(i))
             dropped.append(labels[i])
         progress(ProgressEvent("register", "checkerboards", i + 1, k))
-    ref = corners[kept.index(reference)]
     fits = []
     for i, pts in zip(kept, corners):
         try:

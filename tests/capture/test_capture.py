@@ -221,6 +221,29 @@ def test_no_checkerboard_names_view_or_drops_it(tmp_path):
         assert len(f["/registration/dropped"]) == 1
 
 
+def test_no_checkerboard_in_the_reference_view_says_registration_cannot_drop_it(tmp_path):
+    """Every view is registered to the centre one: dropping views cannot help when it lacks the board, and the one
+    line says so (and how to go on without registration), before any other view is searched."""
+    manifest = yaml.safe_load((SAMPLE / "manifest.yaml").read_text())
+    chosen = [m for m in manifest["images"] if m["path"].startswith(("view_r2c2_", "view_r2c3_"))]
+    from cca_cli.io.images import read_image
+
+    for entry in chosen:
+        shutil.copy(SAMPLE / entry["path"], tmp_path / entry["path"])
+        pixels = read_image(tmp_path / entry["path"]).pixels
+        pixels[:, 105:] = 64 + 100   # the board covered in both
+        write_image(tmp_path / entry["path"], pixels, bit_depth=16)
+    manifest["images"] = chosen
+    (tmp_path / "m.yaml").write_text(yaml.safe_dump(manifest))
+    assert _cli("ingest", tmp_path / "m.yaml", "-o", tmp_path / "raw.h5", "-q").exit_code == 0
+    assert _cli("hdr", tmp_path / "raw.h5", "-o", tmp_path / "hdr.h5", "-q").exit_code == 0
+    out = tmp_path / "reg.h5"
+    result = _cli("register", tmp_path / "hdr.h5", "-o", out, "--crop", "16,32,96,96", "--drop-missing", "-q")
+    _one_line_error(result, "no 9x6 checkerboard", "the reference (centre) view needs the board",
+                    "leave register out of run.stages")
+    assert "--drop-missing" not in " ".join(result.output.split()) and not out.exists()
+
+
 def test_config_rejects_simulate_with_ingest(tmp_path):
     (tmp_path / "c.yaml").write_text(yaml.safe_dump({"run": {"stages": ["simulate", "ingest", "reconstruct"]},
                                                      "ingest": {"manifest": "m.yaml"}}))

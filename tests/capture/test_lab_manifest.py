@@ -661,3 +661,102 @@ def _ingested_sines_table(tmp_path, columns: str, values: str) -> str:
     result = _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
     assert result.exit_code == 0, result.output
     return " ".join(result.output.split())
+
+
+def test_an_exposure_column_named_in_its_unit_is_read_without_a_mapping(tmp_path):
+    """A table with exposure_ms (and units.exposure ms) needs no columns: entry; without the unit stated it is
+    the suffix-against-units error, never a silent 1 s."""
+    _lab(tmp_path, manifest_extra={"columns": {k: v for k, v in MAPPING.items() if k != "exposure"}})
+    assert _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5").exit_code == 0
+    with h5py.File(tmp_path / "raw.h5") as handle:
+        assert np.allclose(np.unique(handle["/raw/exposure_s"][()]), [1e-3, 4e-3])
+    (tmp_path / "raw.h5").unlink()
+    _lab(tmp_path, manifest_extra={"columns": {k: v for k, v in MAPPING.items() if k != "exposure"},
+                                   "units": {"position": "mm"}})
+    _refused(tmp_path, "column 'exposure_ms' of table.csv looks like ms but units.exposure is s",
+             "set units: {exposure: ms}")
+
+
+def test_an_empty_exposure_cell_among_stated_ones_is_refused(tmp_path):
+    def blank_one(rows):
+        rows[1][2] = ""
+        return rows
+
+    _lab(tmp_path, edit=blank_one)
+    _refused(tmp_path, "table.csv: line 3 (p00_4.tif): column 'exposure_ms' is empty",
+             "give this image's exposure as the other rows do")
+
+
+@pytest.mark.parametrize("key, value, fix", [("wavelength_m", 550, "(550e-9 for 550 nm)"),
+                                             ("pixel_pitch_m", 2.5, "(2.5e-6 for 2.5 µm)"),
+                                             ("focal_length_m", 50, "(50e-3 for 50 mm)")])
+def test_lengths_typed_in_another_unit_are_refused_naming_the_setup_file(tmp_path, key, value, fix):
+    _lab(tmp_path)
+    (tmp_path / "setup.json").write_text(json.dumps({**OPTICS, key: value}))
+    _refused(tmp_path, f"setup.json: optics.{key}: {value} m is not a plausible", fix)
+
+
+def test_a_setup_file_s_own_name_for_a_key_is_pointed_at(tmp_path):
+    _lab(tmp_path)
+    setup = {k: v for k, v in OPTICS.items() if k != "wavelength_m"}
+    (tmp_path / "setup.json").write_text(json.dumps({**setup, "wavelength_nm": 550}))
+    _refused(tmp_path, "setup.json: optics.wavelength_m: Field required",
+             "setup.json has wavelength_nm (not read): give wavelength_m instead")
+
+
+@pytest.mark.parametrize("extra, fix", [({"led_pitch_m": 4, "led_distance_m": 0.06}, "(4e-3 for 4 mm)"),
+                                        ({"led_pitch_m": 4e-3, "led_distance_m": 60}, "(60e-3 for 60 mm)")])
+def test_an_led_matrix_in_millimetres_is_refused(tmp_path, extra, fix):
+    rows = "path,row,col\n" + "".join(f"led{i}.png,{i // 3},{i % 3}\n" for i in range(9))
+    _led_table(tmp_path, rows, extra)
+    _refused(tmp_path, "lab.yaml: illumination.led_", "m is not a plausible LED", fix)
+
+
+def test_positions_a_thousand_times_too_close_are_noted(tmp_path):
+    """Stage positions in metres in a _mm column: every capture on one spot (SAR 1), named with the unit to check."""
+    rows = []
+    for r in range(3):
+        for c in range(3):
+            write_image(tmp_path / f"p{r}{c}.png", _codes(800), bit_depth=16)
+            rows.append({"path": f"p{r}{c}.png", "exposure_s": 0.01, "stage_x_mm": 0.5e-3 * (c - 1),
+                         "stage_y_mm": 0.5e-3 * (r - 1)})
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump({"optics": OPTICS, "images": rows}))
+    result = _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
+    assert result.exit_code == 0, result.output
+    text = " ".join(result.output.split())
+    assert "overlap almost wholly" in text and "units.position" in text
+    # at the intended spacing no such note
+    (tmp_path / "raw.h5").unlink()
+    for row in rows:
+        row["stage_x_mm"], row["stage_y_mm"] = row["stage_x_mm"] * 1e3, row["stage_y_mm"] * 1e3
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump({"optics": OPTICS, "images": rows}))
+    result = _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
+    assert result.exit_code == 0 and "overlap almost wholly" not in " ".join(result.output.split())
+
+
+def test_many_dark_bright_field_captures_are_one_note_on_the_geometry(tmp_path):
+    """An LED table whose axis is off by one and a half LEDs puts half the bright field on dark-field captures:
+    one note says the geometry does not match the light, instead of one "did its LED fire?" per LED."""
+    import cca_cli as cca
+
+    sines = cca.led_grid_sines(7, pitch_m=4e-3, height_m=60e-3)
+    geometry = cca.led_array(sines, wavelength_m=532e-9, numerical_aperture=0.1, pixel_pitch_object_m=1.845e-6,
+                             image_pixels=32)
+    y, x = np.mgrid[-32:32, -32:32]
+    smooth = (0.2 + np.exp(-(x * x + y * y) / (2 * 12.0 ** 2))).astype(np.complex64)   # no light in the dark field
+    images = cca.simulate(smooth, geometry, snr_db=None)
+    scale = 30000 / float(images.max())
+    rows = []
+    for k, (ky, kx) in enumerate(np.asarray(sines)):
+        write_image(tmp_path / f"led{k}.png", np.clip(np.rint(images[k] * scale + 100), 0, 65535).astype(np.uint16),
+                    bit_depth=16)
+        rows.append({"path": f"led{k}.png", "exposure_s": 0.01, "kx_norm": float(kx + 6 / np.hypot(4, 60)),
+                     "ky_norm": float(ky)})
+    manifest = {"illumination": {"wavelength_m": 532e-9, "numerical_aperture": 0.1, "pixel_pitch_object_m": 1.845e-6},
+                "sensor": {"black_level": 100}, "images": rows}
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump(manifest))
+    result = _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
+    assert result.exit_code == 0, result.output
+    text = " ".join(result.output.split())
+    assert "did its LED fire?" not in text
+    assert text.count("the LEDs' geometry does not match the light recorded") == 1

@@ -1119,6 +1119,9 @@ def _second_exposure_same_file(data, folder):
 
 LAB_ING = ["ingest", "lab/manifest.yaml", "-o", "raw.h5", "-q"]
 case("manifest-aperture-huge", "messages", LAB_ING, {"lab": Copy("manifest_dir", _optics(aperture_diameter_m=1000.0))},
+     exit=2, says=("manifest.yaml", "optics.aperture_diameter_m", "not a plausible aperture diameter", "1000e-3"),
+     not_says=("Traceback", "memory"))
+case("manifest-aperture-large", "messages", LAB_ING, {"lab": Copy("manifest_dir", _optics(aperture_diameter_m=5.0))},
      exit=2, says=("manifest.yaml", "pupil", "optics.aperture_diameter_m"), not_says=("Traceback", "memory"))
 case("manifest-aperture-tiny", "messages", LAB_ING, {"lab": Copy("manifest_dir", _optics(aperture_diameter_m=1e-9))},
      exit=2, says=("manifest.yaml", "pupil", "optics.aperture_diameter_m"), not_says=("Traceback", "memory"))

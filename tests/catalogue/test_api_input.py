@@ -341,3 +341,11 @@ def test_a_camera_array_names_each_capture_s_camera():
     assert kept.camera_index.tolist() == [0, 1] and kept.n_images == 2
     with pytest.raises(ValueError, match="^camera_index must hold one camera number"):
         cca.stage_scan(steps, camera_index=[0, 1], **common)
+
+
+def test_a_chart_too_small_for_its_widths_names_size_px():
+    with pytest.raises(ValueError, match=r"^size_px: a chart with widths .* does not fit in 256x256"):
+        cca.resolution_chart(256)
+    with pytest.raises(ValueError, match=r"^size_px: expected an integer"):
+        cca.resolution_chart(64.5, widths=(4, 2))
+    assert cca.resolution_chart(64.0, widths=(4, 2)).image.shape == (64, 64)   # a whole float is a size
