@@ -317,13 +317,16 @@ def resolution_chart(size_px: int = 512, *, widths=(20, 18, 16, 14, 12, 10, 9, 8
     """
     from cca_cli.targets import resolution_chart as draw
 
-    if isinstance(size_px, float) and size_px.is_integer():
-        size_px = int(size_px)
+    size = _count("size_px", size_px)
     try:
-        return draw(size_px, widths=widths)
+        widths = tuple(widths)
+    except TypeError:
+        raise ValueError(f"widths: expected a sequence of integers >= 1, got {widths!r}") from None
+    try:
+        return draw(size, widths=widths)
     except ValueError as exc:   # the drawing calls it size: name this function's argument
         text = str(exc)
-        raise ValueError("size_px" + text[4:] if text.startswith("size") else text) from None
+        raise ValueError(f"size_px{text[4:]}" if text.startswith("size:") else text) from None
 
 
 def usaf_chart(size_px: int, *, pixel_pitch_m: float, groups=(-1, 0, 1, 2, 3)):

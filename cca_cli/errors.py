@@ -140,6 +140,8 @@ class CheckerboardNotFound(InputError):
         File name or view label in which the board was searched for.
     pattern : tuple of int
         Inner-corner pattern ``(columns, rows)`` that was searched for.
+    reference : bool
+        The view is the one every other is registered to (dropping views cannot help then).
     """
 
     def __init__(self, source: str, pattern: tuple[int, int], *, reference: bool = False):

@@ -138,7 +138,7 @@ print(kept, page_faults(10))
     if not kept:
         pytest.skip("not glibc")
     assert faults < 100
-    assert run("library")[1] > 1000   # glibc's default: the arrays' pages are mapped anew
+    assert run("library")[1] > 20 * max(faults, 10)   # glibc's default: the arrays' pages are mapped anew
     assert run("command", {"MALLOC_ARENA_MAX": "2"})[0] is False
 
 

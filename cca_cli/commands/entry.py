@@ -53,7 +53,8 @@ def keep_freed_memory() -> bool:
     bool
         True when glibc took both settings.
     """
-    if any(name.startswith(("MALLOC_", "GLIBC_TUNABLES")) for name in os.environ):
+    if not sys.platform.startswith("linux") or any(name.startswith(("MALLOC_", "GLIBC_TUNABLES"))
+                                                   for name in os.environ):
         return False
     try:
         libc = ctypes.CDLL(None)

@@ -77,9 +77,12 @@ def _in_metres(value, info):
     """A length that reads as typed in nm, µm or mm instead of metres is refused (one line, with the fix)."""
     largest, unit = _LARGEST_M[info.field_name]
     if value is not None and value >= largest:
-        if info.field_name == "wavelength_m" and value < 100:
-            unit = "µm"
-        what = info.field_name[:-2].replace("_", " ").replace("led ", "LED ")
+        if unit == "nm" and value < 100:
+            unit = "µm"   # 0.55 (µm) rather than 550 (nm)
+        elif unit == "µm" and value < 1:
+            unit = "mm"   # 0.00345 (mm) rather than 3.45 (µm)
+        what = {"pixel_pitch_object_m": "object pixel pitch"}.get(
+            info.field_name, info.field_name[:-2].replace("_", " ").replace("led ", "LED "))
         raise ValueError(f"{value:g} m is not a plausible {what}: give it in metres "
                          f"({value:g}{_UNIT_POWER[unit]} for {value:g} {unit})")
     return value
@@ -437,20 +440,29 @@ def _whole_number(text: str) -> bool:
     return math.isfinite(value) and value >= 0 and value == int(value)
 
 
+def _plain_name(column: str) -> str:
+    """A column name as unit suffixes are matched: lower case, no spaces, µ as u."""
+    return column.lower().replace(" ", "").replace("µ", "u")
+
+
 def _unit_of_name(column: str, units: dict[str, float]) -> str | None:
-    """The unit a column name announces by its suffix (``exposure_ms`` → ``ms``), if any."""
-    lowered = column.lower().replace("µ", "u")
+    """The unit a column name announces by its suffix (``exposure_ms``, ``exposure [ms]`` → ``ms``), if any."""
+    plain = _plain_name(column)
     for unit in sorted(units, key=len, reverse=True):
-        if lowered.endswith(f"_{unit}") or lowered.endswith(f"[{unit}]") or lowered.endswith(f"({unit})"):
+        if plain.endswith(f"_{unit}") or plain.endswith(f"[{unit}]") or plain.endswith(f"({unit})"):
             return unit
     return None
 
 
-def _column_in_any_unit(header: list[str], stem: str, units: dict[str, float]) -> str | None:
-    """The one column named ``stem`` with a unit (``exposure_ms``, ``exposure [ms]``), if exactly one is."""
+def _column_in_any_unit(header: list[str], stem: str, units: dict[str, float], source: str,
+                        table: Path) -> str | None:
+    """The column named ``stem`` with a unit (``exposure_ms``, ``exposure [ms]``), if the table has one."""
     forms = {f"{stem}{form}" for unit in units for form in (f"_{unit}", f"[{unit}]", f"({unit})")}
-    found = [h for h in header if h.lower().replace(" ", "").replace("µ", "u") in forms]
-    return found[0] if len(found) == 1 else None
+    found = [h for h in header if _plain_name(h) in forms]
+    if len(found) > 1:
+        raise ConfigError(f"{source}: {table.name} has {' and '.join(repr(h) for h in found)}: say which one to "
+                          f"read with columns: {{{stem}: <column>}}")
+    return found[0] if found else None
 
 
 def _table_entries(table: Path, manifest: Manifest, source: str) -> tuple[list[dict], list[str]]:
@@ -470,10 +482,12 @@ def _table_entries(table: Path, manifest: Manifest, source: str) -> tuple[list[d
     mapping = dict(TABLE_COLUMNS)
     explicit = manifest.columns or {}
     mapping.update(explicit)
-    for name in ("exposure", *_POSITION_COLUMNS):   # exposure_ms for exposure_s: read in the unit its name gives
-        if name not in explicit and mapping[name] not in header:
+    # exposure_ms where exposure_s is looked for: taken, and checked against units below like any named column
+    sines = any(mapping[name] in header for name in ("kx_norm", "ky_norm"))
+    for name in ("exposure", *_POSITION_COLUMNS):
+        if name not in explicit and mapping[name] not in header and not (sines and name in _POSITION_COLUMNS):
             found = _column_in_any_unit(header, mapping[name].rsplit("_", 1)[0],
-                                        _EXPOSURE_S if name == "exposure" else _POSITION_MM)
+                                        _EXPOSURE_S if name == "exposure" else _POSITION_MM, source, table)
             if found is not None:
                 mapping[name] = found
     for name, column in explicit.items():

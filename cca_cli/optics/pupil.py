@@ -10,6 +10,10 @@ import numpy as np
 __all__ = ["circular_pupils", "centred_disc"]
 
 
+#: Bytes of float64 work :func:`circular_pupils` holds at a time.
+_WORK_BYTES = 1 << 20
+
+
 def circular_pupils(box_size: int, box_centres, radius_px: float, *, edge_px: float = 1.0) -> np.ndarray:
     """Circular pupils, one per capture, sampled on their boxes with an anti-aliased edge.
 
@@ -56,10 +60,6 @@ def circular_pupils(box_size: int, box_centres, radius_px: float, *, edge_px: fl
         np.minimum(ramp, 1.0, out=ramp)
         pupils[start:start + step] = ramp
     return pupils
-
-
-#: Bytes of float64 work :func:`circular_pupils` holds at a time.
-_WORK_BYTES = 1 << 20
 
 
 def centred_disc(size: int, radius_px: float) -> np.ndarray:

@@ -136,8 +136,9 @@ def derived_quantities(geometry: CaptureGeometry, *, sensor_pixels: int | None =
     -------
     dict
         ``kind``, ``n_images``, ``grid`` ([rows, columns]), ``overlap`` (the
-        grid's; for recorded positions ``1 − step / d``, at least 0; None for
-        one position), ``sar``, ``step_m`` (aperture-plane distance
+        grid's; for recorded positions ``1 − s / d`` with ``s`` the median
+        distance to the nearest position, at least 0; None for one position),
+        ``sar``, ``step_m`` (aperture-plane distance
         of neighbouring positions; sin θ for LED arrays), ``pupil_radius_px``
         (``d·W/(2λz)``), ``spot_size_sensor_m`` (``2.44·λ·f/d``, camera scans
         only), ``spot_size_object_m`` (``2.44·λ·z/d``),
@@ -156,8 +157,8 @@ def derived_quantities(geometry: CaptureGeometry, *, sensor_pixels: int | None =
         "pupil_radius_px": round(g.pupil_radius_px, 4),
         "step_m": _step_m(g),
     }
-    if out["overlap"] is None and out["step_m"] is not None:   # recorded positions: the overlap their step gives
-        out["overlap"] = round(max(0.0, 1.0 - out["step_m"] / g.aperture_diameter_m), 4)
+    if out["overlap"] is None and g.n_images > 1:   # recorded positions: the overlap their usual spacing gives
+        out["overlap"] = round(max(0.0, 1.0 - _usual_step_m(g) / g.aperture_diameter_m), 4)
     if hires_size is None and sensor_pixels is not None:
         try:
             layout = band_layout(g.spectrum_centres_yx_px, g.pupil_radius_px, sensor_size=int(sensor_pixels))
@@ -173,6 +174,14 @@ def derived_quantities(geometry: CaptureGeometry, *, sensor_pixels: int | None =
     out["spot_size_object_m"] = spot_size_m(g.wavelength_m, g.distance_m, g.aperture_diameter_m)
     out["spot_size_synthetic_object_m"] = spot_size_m(g.wavelength_m, g.distance_m, g.aperture_diameter_m * sar)
     return out
+
+
+def _usual_step_m(g: CaptureGeometry) -> float:
+    """Median distance from each aperture position to its nearest neighbour (m; sin θ for LED arrays)."""
+    from scipy.spatial import cKDTree
+
+    c = np.asarray(g.aperture_centres_yx_m, np.float64)
+    return float(np.median(cKDTree(c).query(c, k=2)[0][:, 1]))
 
 
 def _step_m(g: CaptureGeometry) -> float | None:

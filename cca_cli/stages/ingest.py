@@ -458,53 +458,54 @@ def apart_neighbours(plan: CapturePlan, geometry: CaptureGeometry) -> list[str]:
     list of str
         Empty, or one note naming the spacing, the diameter and what to check.
     """
+    spacing, diameter = _usual_spacing(geometry), 2 * geometry.pupil_radius_px
+    if not spacing > diameter:
+        return []
+    return [f"neighbouring captures lie {spacing:.4g} spectrum px apart, more than the pupil's diameter "
+            f"({diameter:.4g} px): no two overlap, so phase retrieval cannot join them; {_spacing_fix(plan)}"]
+
+
+def _usual_spacing(geometry: CaptureGeometry) -> float:
+    """Median distance from each capture's pupil centre to its nearest neighbour's (spectrum px; nan for one)."""
     from scipy.spatial import cKDTree
 
     centres = np.asarray(geometry.spectrum_centres_yx_px, np.float64)
     if len(centres) < 2:
-        return []
-    spacing = float(np.median(cKDTree(centres).query(centres, k=2)[0][:, 1]))
-    diameter = 2 * geometry.pupil_radius_px
-    if not spacing > diameter:
-        return []
-    fix = {"led": "check the LEDs' kx_norm/ky_norm (or their positions' unit and illumination.led_distance_m)",
-           "grid": "check stage_pitch_mm",
-           "stage": "check the positions' unit (units.position, or the columns' suffixes)"}[_positions_from(plan)]
-    fix += f" and {_optics_keys(plan)}"
-    return [f"neighbouring captures lie {spacing:.4g} spectrum px apart, more than the pupil's diameter "
-            f"({diameter:.4g} px): no two overlap, so phase retrieval cannot join them; {fix}"]
+        return float("nan")
+    return float(np.median(cKDTree(centres).query(centres, k=2)[0][:, 1]))
 
 
-#: Neighbouring captures closer than this share of the pupil's diameter (an overlap above 95%) are named in a note.
+def _spacing_fix(plan: CapturePlan) -> str:
+    """What sets the captures' spacing against the pupil's size: their positions, then the optics."""
+    return {"led": "check the LEDs' kx_norm/ky_norm (or their positions' unit, illumination.led_pitch_m and "
+                   "led_distance_m)",
+            "grid": "check stage_pitch_mm",
+            "stage": "check the positions' unit (units.position, or the columns' suffixes)"}[_positions_from(plan)] \
+        + f" and {_optics_keys(plan)}"
+
+
+#: Neighbouring captures closer than this share of the pupil's diameter (an overlap above 95%), with a synthetic
+#: aperture under :data:`CROWDED_SAR` lens apertures, are named in a note.
 CROWDED_SPACING = 0.05
+CROWDED_SAR = 1.2
 
 
 def crowded_neighbours(plan: CapturePlan, geometry: CaptureGeometry) -> list[str]:
-    """A note when the captures' usual spacing is a sliver of the pupil's diameter: they overlap almost wholly
-    and the synthetic aperture hardly grows (positions in a unit a thousand times too small, or optics that make
-    the pupil too large).
+    """A note when the captures overlap almost wholly and the synthetic aperture hardly grows (positions in a unit a
+    thousand times too small, or optics that make the pupil too large); a dense scan that still reaches far out
+    (many LEDs at a high NA) is not named.
 
     Returns
     -------
     list of str
         Empty, or one note naming the spacing, the diameter, the SAR and what to check.
     """
-    from scipy.spatial import cKDTree
-
-    centres = np.asarray(geometry.spectrum_centres_yx_px, np.float64)
-    if len(centres) < 2:
+    spacing, diameter = _usual_spacing(geometry), 2 * geometry.pupil_radius_px
+    if not (spacing < CROWDED_SPACING * diameter and geometry.synthetic_aperture_ratio < CROWDED_SAR):
         return []
-    spacing = float(np.median(cKDTree(centres).query(centres, k=2)[0][:, 1]))
-    diameter = 2 * geometry.pupil_radius_px
-    if not spacing < CROWDED_SPACING * diameter:
-        return []
-    fix = {"led": "check the LEDs' kx_norm/ky_norm (or their positions' unit, illumination.led_pitch_m and "
-                  "led_distance_m)",
-           "grid": "check stage_pitch_mm",
-           "stage": "check the positions' unit (units.position, or the columns' suffixes)"}[_positions_from(plan)]
     return [f"neighbouring captures lie {spacing:.3g} spectrum px apart, under {CROWDED_SPACING:.0%} of the pupil's "
             f"diameter ({diameter:.4g} px): they overlap almost wholly and the synthetic aperture is "
-            f"{geometry.synthetic_aperture_ratio:.3g} times the lens's (SAR); {fix} and {_optics_keys(plan)}"]
+            f"{geometry.synthetic_aperture_ratio:.3g} times the lens's (SAR); {_spacing_fix(plan)}"]
 
 
 #: A bright-field LED capture this many times darker than the median bright-field one is named in a note.
@@ -520,7 +521,8 @@ def dark_bright_field(plan: CapturePlan, geometry: CaptureGeometry, frames: np.n
     Returns
     -------
     list of str
-        One note per such capture, naming its row.
+        One note per such capture, naming its row; or, when more than :data:`MANY_DARK_BRIGHT_FIELD` of the
+        bright-field captures (and at least three) are so dark, one note that the LEDs' geometry is off.
     """
     if plan.kind != "led_array" or plan.manifest.sensor.frame_scale != "shared":   # per_frame: brightness unknown
         return []
@@ -536,7 +538,7 @@ def dark_bright_field(plan: CapturePlan, geometry: CaptureGeometry, frames: np.n
         return "no light" if r <= 0 else f"{typical / r:.3g} times less light"
 
     dark = [(i, float(r)) for i, r in zip(bright, rate) if r * DARK_BRIGHT_FIELD < typical]
-    if len(dark) > MANY_DARK_BRIGHT_FIELD * bright.size:   # the geometry, not an LED, is wrong
+    if len(dark) >= 3 and len(dark) > MANY_DARK_BRIGHT_FIELD * bright.size:   # the geometry, not an LED, is wrong
         return [f"{len(dark)} of the {bright.size} captures the geometry puts in the bright field recorded "
                 f"{DARK_BRIGHT_FIELD:g} times less light than their median or less (first: {plan.labels[dark[0][0]]}): "
                 f"the LEDs' geometry does not match the light recorded; check the illumination's positions "

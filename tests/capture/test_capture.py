@@ -223,7 +223,7 @@ def test_no_checkerboard_names_view_or_drops_it(tmp_path):
 
 def test_no_checkerboard_in_the_reference_view_says_registration_cannot_drop_it(tmp_path):
     """Every view is registered to the centre one: dropping views cannot help when it lacks the board, and the one
-    line says so (and how to go on without registration), before any other view is searched."""
+    line says so (and how to go on without registration)."""
     manifest = yaml.safe_load((SAMPLE / "manifest.yaml").read_text())
     chosen = [m for m in manifest["images"] if m["path"].startswith(("view_r2c2_", "view_r2c3_"))]
     from cca_cli.io.images import read_image

@@ -760,3 +760,28 @@ def test_many_dark_bright_field_captures_are_one_note_on_the_geometry(tmp_path):
     text = " ".join(result.output.split())
     assert "did its LED fire?" not in text
     assert text.count("the LEDs' geometry does not match the light recorded") == 1
+
+
+def test_unit_columns_with_spaces_two_candidates_and_beside_sines(tmp_path):
+    # "exposure [ ms]" announces ms like "exposure_ms": read only when units say so
+    _lab(tmp_path, manifest_extra={"columns": {k: v for k, v in MAPPING.items() if k != "exposure"},
+                                   "units": {"position": "mm"}})
+    text = (tmp_path / "table.csv").read_text()
+    (tmp_path / "table.csv").write_text(text.replace("exposure_ms", "exposure [ ms]", 1))
+    _refused(tmp_path, "'exposure [ ms]' of table.csv looks like ms but units.exposure is s")
+
+    def led_table(header: str, rows: list[str]) -> None:
+        for i in range(2):
+            write_image(tmp_path / f"a{i}.png", np.full((16, 16), 100 + i, np.uint16), bit_depth=16)
+        (tmp_path / "t.csv").write_text("\n".join([header, *rows]) + "\n")
+        (tmp_path / "lab.yaml").write_text(yaml.safe_dump({"images_csv": "t.csv", "illumination": {
+            "wavelength_m": 5e-7, "numerical_aperture": 0.1, "pixel_pitch_object_m": 1e-6}}))
+
+    # two columns that could be the exposure: say which
+    led_table("path,kx_norm,ky_norm,Exposure_s,exposure_ms", ["a0.png,0.0,0,0.01,10", "a1.png,0.05,0,0.01,10"])
+    _refused(tmp_path, "t.csv has 'Exposure_s' and 'exposure_ms'", "columns: {exposure: <column>}")
+    # an LED table's stage columns in another unit are the lab's notes, as before
+    led_table("path,kx_norm,ky_norm,exposure_s,stage_x_um,stage_y_um", ["a0.png,0.0,0,0.01,5,5", "a1.png,0.05,0,0.01,6,6"])
+    result = _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
+    assert result.exit_code == 0, result.output
+    assert "ignored: stage_x_um, stage_y_um" in " ".join(result.output.split())

@@ -346,6 +346,7 @@ def test_a_camera_array_names_each_capture_s_camera():
 def test_a_chart_too_small_for_its_widths_names_size_px():
     with pytest.raises(ValueError, match=r"^size_px: a chart with widths .* does not fit in 256x256"):
         cca.resolution_chart(256)
-    with pytest.raises(ValueError, match=r"^size_px: expected an integer"):
+    with pytest.raises(ValueError, match=r"^size_px must be a whole number ≥ 1, got 64.5"):
         cca.resolution_chart(64.5, widths=(4, 2))
     assert cca.resolution_chart(64.0, widths=(4, 2)).image.shape == (64, 64)   # a whole float is a size
+    assert cca.resolution_chart(64, widths=np.array([4, 2])).widths == (4, 2)   # any sequence of widths

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from cca_cli.optics import fft
+from cca_cli.optics import pupil as pupil_module
 from cca_cli.optics.forward import ForwardModel, chunk_slices, to_model_layout, to_sensor_layout
 from cca_cli.optics.pupil import circular_pupils
-from cca_cli.optics import pupil as pupil_module
 from cca_cli.optics.zernike import zernike_phase
 from cca_cli.sampling.grid import band_layout, square_scan
 
