@@ -106,6 +106,7 @@ class MomentumBase(CalibratingEngine):
         self._velocity[...] = 0
         self._anchor = self._spectrum.copy()
         self._previous_misfit = np.inf
+        self._before_step = None   # spectrum, anchor, velocity and misfit the last pupil step was taken from
         self._batch = options.batch
         self._held = HeldBack(problem, options.hold_back)
         self.held_back, self._trained = self._held.captures, self._held.trained
@@ -141,8 +142,8 @@ class MomentumBase(CalibratingEngine):
     def _end_pass(self, misfit: float) -> tuple[float, float]:
         """After a pass: momentum, pupil step, held-back misfit, stopping and batch growth; the pass's figures."""
         change = self._momentum(misfit)
-        self._pupil_step(misfit)
-        self._previous_misfit = misfit
+        restored = self._pupil_step(misfit)
+        self._previous_misfit = misfit if restored is None else restored
         if len(self._held):
             self.held_back_residual = self._held.misfit(self.spectrum(), self.calibrator, self._all_layout)
         if self.stopping.record(misfit, change, self.held_back_residual):
@@ -153,11 +154,27 @@ class MomentumBase(CalibratingEngine):
             self._arrange()
         return float(np.sqrt(misfit / max(self._data_norm, 1e-30))), change
 
-    def _pupil_step(self, misfit: float) -> None:
-        """End-of-pass pupil update; the spectrum takes over the pupils' common scale and tilt."""
+    def _pupil_step(self, misfit: float) -> float | None:
+        """End-of-pass pupil update; the spectrum takes over the pupils' common scale and tilt.
+
+        The spectrum, anchor and velocity a step is taken from are kept: when the next pass's misfit leaps
+        and the step is undone (``undone_sharply``), they come back, and the misfit of the pass they
+        ended is returned (None otherwise).
+        """
+        recovery = self.calibrator.recovery
+        before = None if recovery is None else (self._spectrum.copy(), self._anchor.copy(), self._velocity.copy(),
+                                                misfit)
         normalisation = self.calibrator.pupil_step(misfit, self.stopping.iteration)
+        if recovery is not None and recovery.undone_sharply and self._before_step is not None:
+            *arrays, restored = self._before_step
+            for array, kept in zip((self._spectrum, self._anchor, self._velocity), arrays):
+                array[...] = kept
+            self._before_step = None
+            self._set_recovered_model()
+            return restored
         if normalisation is None:
-            return
+            return None
+        self._before_step = before if recovery is not None and recovery.stepped else None
         scale, tilt = normalisation
         if np.any(tilt):
             grid = np.arange(self._spectrum.shape[0], dtype=np.float64)
@@ -169,6 +186,7 @@ class MomentumBase(CalibratingEngine):
             for array in (self._spectrum, self._anchor, self._velocity):
                 array *= factor
         self._set_recovered_model()
+        return None
 
     def _set_recovered_model(self) -> None:
         """Use the pupil recovery's current pupils."""

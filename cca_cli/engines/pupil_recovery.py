@@ -127,6 +127,11 @@ def untilt_ramp(tilt: np.ndarray, size: int) -> np.ndarray:
     return np.exp(-1j * (tilt[0] * grid[:, None] + tilt[1] * grid[None, :]))
 
 
+#: A pass whose misfit exceeds the one before the last pupil step by this factor undoes that step whatever the
+#: pupil model (and the engine the pass's spectrum): a step that far off is not the filter's doing.
+SHARP_RISE = 1.5
+
+
 class PupilRecovery:
     """Pupil estimates of a sequential engine and their pass-wise update.
 
@@ -205,6 +210,8 @@ class PupilRecovery:
             self.coefficients[:, :given.shape[1]] = given[:, :len(self.modes)]
         self._step = float(step)
         self._previous = None  # (state before the last step, misfit of the pass that made it)
+        self.undone_sharply = False   # whether the last step() undid a step after which the misfit leapt
+        self.stepped = False          # whether the last step() took a new step (not an undo, not nothing)
         self._num = np.zeros((threads, self.n_pupils, b, b), np.complex128)
         self._den = np.zeros((threads, self.n_pupils, b, b), np.float64)
         self._rhs = np.zeros((threads, self.n_pupils, len(self.modes)), np.float64)
@@ -400,9 +407,12 @@ class PupilRecovery:
     def step(self, misfit: float) -> tuple[complex, np.ndarray] | None:
         """End-of-pass update; undoes the last one instead if this pass fit the data worse.
 
-        A map whose lattice patterns are filtered out (``lattice="filtered"`` on a lattice) is never
-        undone: the filter takes from each step what the data cannot tell from the object, so the
-        misfit may rise after a sound step, and undoing (and halving) it would stall the map.
+        A map whose lattice patterns are filtered out (``lattice="filtered"`` on a lattice) is
+        undone only when the misfit leapt (by more than :data:`SHARP_RISE`): the filter takes from
+        each step what the data cannot tell from the object, so the misfit may rise after a sound
+        step, and undoing (and halving) it would stall the map. After such a leap
+        ``undone_sharply`` is True: the pass run with the undone pupils has harmed the spectrum too,
+        and the engine goes back to the spectrum the step was taken from.
 
         Parameters
         ----------
@@ -424,12 +434,15 @@ class PupilRecovery:
         self._den[:] = 0
         self._rhs[:] = 0
         previous = self._previous
+        self.undone_sharply = self.stepped = False
         if previous is not None and misfit > previous.misfit:
             self.velocity = None
-            if self._periodic is None:
+            sharply = misfit > SHARP_RISE * previous.misfit
+            if self._periodic is None or sharply:
                 self.maps, self.coefficients = previous.maps, previous.coefficients
                 self._step *= 0.5
                 self._previous = None
+                self.undone_sharply = sharply
                 return 1.0 / previous.scale, -previous.tilt
         peak = float(denominator.max()) if denominator.size else 0.0
         if not peak > 0:
@@ -443,6 +456,7 @@ class PupilRecovery:
             if self.momentum:
                 self._add_momentum(maps, scale, tilt, denominator > 0)
         self._previous = _Step(maps, coefficients, misfit, scale, tilt)
+        self.stepped = True
         return scale, tilt
 
     def _add_momentum(self, before: np.ndarray, scale: complex, tilt: np.ndarray, seen: np.ndarray) -> None:
