@@ -300,3 +300,49 @@ def test_the_pupil_momentum_survives_a_checkpoint_restore():
     resumed.close()
     with pytest.raises(ValueError, match="pupil_momentum must be in"):
         MomentumOptions(pupil_momentum=-0.1)
+
+
+def _led_captures_through_an_aberrated_lens(defocus_waves: float, size: int = 80, pixels: int = 64):
+    """A 9 x 9 LED array's captures of a complex object through a defocused objective, by a forward model
+    written out here (box of the centred spectrum at each integer pupil centre, disc times Zernike defocus, inverse
+    FFT), with 30 dB of noise; and the band-limited truth on the recovery's grid."""
+    import cca_cli as cca
+
+    geometry = cca.led_array(cca.led_grid_sines(9, pitch_m=4e-3, height_m=90e-3), wavelength_m=532e-9,
+                             numerical_aperture=0.1, pixel_pitch_object_m=1e-6, image_pixels=pixels)
+    y, x = np.mgrid[0:size, 0:size] / size
+    amplitude = 0.6 + 0.4 * (np.sin(2 * np.pi * 7 * x) * np.sin(2 * np.pi * 5 * y) > 0)
+    phase = 1.2 * np.sin(2 * np.pi * 3 * x + 1.0) * np.cos(2 * np.pi * 2 * y)
+    spectrum = np.fft.fftshift(np.fft.fft2(amplitude * np.exp(1j * phase), norm="ortho"))
+    radius = geometry.pupil_radius_px
+    v, u = np.mgrid[0:pixels, 0:pixels] - pixels // 2
+    images, union = [], np.zeros((size, size), bool)
+    for cy, cx in geometry.spectrum_centres_yx_px:
+        iy, ix = int(round(cy)), int(round(cx))
+        rho = np.hypot(v - (cy - iy), u - (cx - ix)) / radius
+        pupil = (rho <= 1) * np.exp(2j * np.pi * defocus_waves * np.sqrt(3) * (2 * rho ** 2 - 1))
+        rows = np.arange(size // 2 + iy - pixels // 2, size // 2 + iy + pixels // 2) % size
+        cols = np.arange(size // 2 + ix - pixels // 2, size // 2 + ix + pixels // 2) % size
+        field = np.fft.ifft2(np.fft.ifftshift(spectrum[np.ix_(rows, cols)] * pupil), norm="ortho") * pixels / size
+        images.append(np.abs(field) ** 2)
+        union |= np.hypot(*(np.mgrid[0:size, 0:size] - size // 2 - np.array([cy, cx])[:, None, None])) <= radius
+    images = np.asarray(images)
+    noise = np.sqrt(images.var(axis=(1, 2)) / 1e3)[:, None, None]
+    images = images + noise * np.random.default_rng(0).standard_normal(images.shape)
+    truth = np.fft.ifft2(np.fft.ifftshift(spectrum * union), norm="ortho")
+    return images.astype(np.float32), geometry, truth
+
+
+@pytest.mark.parametrize("defocus", [0.05, 0.2])
+def test_the_led_default_recovers_through_a_defocused_objective(defocus):
+    """The LED-array default (a full pupil map, lattice-filtered, with momentum): its first map step, taken from a
+    poor object, made the next pass's misfit leap (0.73 → 4.2 on a 15 x 15 array) and the filtered map was never
+    undone: correlation with the truth 0.96 at 0.05 waves of defocus, 0.51 at 0.2. A leap now undoes the step
+    and takes the spectrum back to the one it was taken from."""
+    import cca_cli as cca
+
+    images, geometry, truth = _led_captures_through_an_aberrated_lens(defocus)
+    result = cca.reconstruct(images, geometry)
+    assert result.object.shape == truth.shape
+    correlation = abs(np.vdot(result.object, truth)) / np.linalg.norm(result.object) / np.linalg.norm(truth)
+    assert correlation > 0.98
