@@ -442,7 +442,8 @@ class PupilRecovery:
             sharply = misfit > SHARP_RISE * previous.misfit
             if self._periodic is None or sharply:
                 self.maps, self.coefficients = previous.maps, previous.coefficients
-                self._step *= 0.5
+                if not (sharply and self._periodic is not None):   # the filter's next step is a sound one
+                    self._step *= 0.5
                 self._previous = None
                 self.undone_sharply = sharply
                 return 1.0 / previous.scale, -previous.tilt
