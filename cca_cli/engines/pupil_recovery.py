@@ -127,10 +127,11 @@ def untilt_ramp(tilt: np.ndarray, size: int) -> np.ndarray:
     return np.exp(-1j * (tilt[0] * grid[:, None] + tilt[1] * grid[None, :]))
 
 
-#: A pass whose misfit exceeds the one before the last pupil step by this factor undoes that step whatever the
-#: pupil model (and the engine the pass's spectrum): a step that far off is not the filter's doing. On a simulated
-#: LED array through 0.2–0.3 waves of defocus the first map step made the misfit leap 4–6 times; on the recorded
-#: corpus no step does by 3 (at 1.5 the rule also caught rises on the ring set and the EUV lines, and cost them).
+#: A pass whose misfit exceeds the one before the last pupil step by this factor undoes a lattice-filtered map's
+#: step (and the engine the pass's spectrum): a step that far off is not the filter's doing. The first map step,
+#: taken from the object of one pass, makes the misfit leap 3–30 times on simulated LED arrays through 0.05–0.3
+#: waves of defocus (kept, it left them at a correlation of 0.5–0.96 with the truth) and 2–16 times on the
+#: recorded corpus (benchmarks/README.md, run 19).
 SHARP_RISE = 3.0
 
 
@@ -410,11 +411,11 @@ class PupilRecovery:
         """End-of-pass update; undoes the last one instead if this pass fit the data worse.
 
         A map whose lattice patterns are filtered out (``lattice="filtered"`` on a lattice) is
-        undone only when the misfit leapt (by more than :data:`SHARP_RISE`): the filter takes from
-        each step what the data cannot tell from the object, so the misfit may rise after a sound
-        step, and undoing (and halving) it would stall the map. After such a leap
-        ``undone_sharply`` is True: the pass run with the undone pupils has harmed the spectrum too,
-        and the engine goes back to the spectrum the step was taken from.
+        undone only when the misfit leapt (by more than :data:`SHARP_RISE`), and its step is not
+        halved: the filter takes from each step what the data cannot tell from the object, so the
+        misfit may rise after a sound step, and undoing (and halving) it would stall the map. After
+        such a leap ``undone_sharply`` is True: the pass run with the undone pupils has harmed the
+        spectrum too, and the engine goes back to the spectrum the step was taken from.
 
         Parameters
         ----------
@@ -439,13 +440,13 @@ class PupilRecovery:
         self.undone_sharply = self.stepped = False
         if previous is not None and misfit > previous.misfit:
             self.velocity = None
-            sharply = misfit > SHARP_RISE * previous.misfit
-            if self._periodic is None or sharply:
+            leapt = self._periodic is not None and misfit > SHARP_RISE * previous.misfit
+            if self._periodic is None or leapt:
                 self.maps, self.coefficients = previous.maps, previous.coefficients
-                if not (sharply and self._periodic is not None):   # the filter's next step is a sound one
+                if not leapt:   # after a leap the filter's next step, from a better object, is a sound one
                     self._step *= 0.5
                 self._previous = None
-                self.undone_sharply = sharply
+                self.undone_sharply = leapt
                 return 1.0 / previous.scale, -previous.tilt
         peak = float(denominator.max()) if denominator.size else 0.0
         if not peak > 0:
