@@ -19,16 +19,24 @@ __all__ = ["stage_scan_geometry", "led_array_geometry", "with_field_width", "obj
 
 
 def grid_from_positions(positions_yx: np.ndarray) -> np.ndarray:
-    """Grid [row, column] of each position: the rank of its y and x among the distinct values.
+    """Grid [row, column] of each position: the rank of its y and x among the rows and columns they form.
 
-    Values closer than 1e-9 of the largest span are taken as equal.
+    Along each axis, sorted values closer than a quarter of the usual distance between neighbouring positions
+    belong to one row (column): an LED matrix's sines, whose x drifts with y, or stage readings that jitter,
+    keep the matrix's rows and columns. Values closer than 1e-9 of the largest span are always taken as equal.
     """
     pos = np.asarray(positions_yx, dtype=np.float64).reshape(-1, 2)
     out = np.zeros(pos.shape, np.int32)
+    if len(pos) < 2:
+        return out
+    from scipy.spatial import cKDTree
+
+    spacing = float(np.median(cKDTree(pos).query(pos, k=2)[0][:, 1]))
     for axis in range(2):
         span = max(float(np.ptp(pos[:, axis])), 1e-300)
-        rounded = np.round(pos[:, axis] / span * 1e9)
-        _, out[:, axis] = np.unique(rounded, return_inverse=True)
+        order = np.argsort(pos[:, axis], kind="stable")
+        gaps = np.diff(pos[order, axis])
+        out[order, axis] = np.concatenate([[0], np.cumsum(gaps > max(0.25 * spacing, 1e-9 * span))])
     return out
 
 

@@ -115,3 +115,19 @@ def test_camera_scan_geometry_rejects_too_few_pixels():
     with pytest.raises(ValueError, match="sensor pixels"):
         camera_scan_geometry(wavelength_m=550e-9, focal_length_m=0.8, aperture_diameter_m=18e-3,
                              pixel_pitch_m=2e-6, distance_m=50.0, field_width_m=0.5e-3, grid=3, overlap=0.5)
+
+
+def test_an_led_matrix_and_a_jittery_stage_keep_their_rows_and_columns():
+    """An LED matrix's sines drift in x with y (sin θx = x / r), and stage readings jitter: the grid the positions
+    form is still the matrix's (9 x 9 was read as 41 x 41)."""
+    import cca_cli as cca
+    from cca_cli.sampling.capture import grid_from_positions
+
+    sines = cca.led_grid_sines(9, pitch_m=4e-3, height_m=90e-3)
+    geometry = cca.led_array(sines, wavelength_m=532e-9, numerical_aperture=0.1, pixel_pitch_object_m=1e-6,
+                             image_pixels=64)
+    assert geometry.grid_shape == (9, 9)
+    assert np.array_equal(geometry.grid_indices[:, 1], 8 - np.tile(np.arange(9), 9))   # as listed, sign −1
+    rows, cols = np.divmod(np.arange(25), 5)
+    stage = np.stack([rows * 2.0, cols * 2.0], axis=1) + np.random.default_rng(0).normal(0, 0.05, (25, 2))
+    assert np.array_equal(grid_from_positions(stage), np.stack([rows, cols], axis=1))
