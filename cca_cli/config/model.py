@@ -16,6 +16,7 @@ from cca_cli.config.section import Section
 from cca_cli.engines import presets, registry
 from cca_cli.sampling.tiles import MIN_TILE_PX
 from cca_cli.optics.noise import MIN_SNR_DB
+from cca_cli.sampling.geometry import unit_slip
 
 __all__ = [
     "STAGES",
@@ -74,6 +75,14 @@ class OpticsSection(Section):
     aperture_diameter_m: PositiveFloat = Field(0.018, description="Lens aperture diameter d (m).")
     pixel_pitch_m: PositiveFloat = Field(2e-6, description="Sensor pixel pitch (m).")
     distance_m: PositiveFloat = Field(50.0, description="Object distance z (m).")
+
+    @field_validator("wavelength_m", "focal_length_m", "aperture_diameter_m", "pixel_pitch_m")
+    @classmethod
+    def _in_metres(cls, value: float, info) -> float:
+        slip = unit_slip(info.field_name, value)
+        if slip is not None:
+            raise ValueError(slip)
+        return value
 
 
 class SceneSection(Section):

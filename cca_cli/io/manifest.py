@@ -30,6 +30,7 @@ from cca_cli.config.messages import accepted_keys, error_message, shown_value
 from cca_cli.config.yaml_text import read_text_file, read_yaml_file
 from cca_cli.errors import ConfigError, InputError, short
 from cca_cli.io.h5 import unique_paths
+from cca_cli.sampling.geometry import unit_slip
 
 __all__ = ["Manifest", "ImageEntry", "CapturePlan", "LoadedManifest", "KINDS", "TABLE_COLUMNS", "load_manifest",
            "read_manifest", "plan_captures", "manifest_files", "read_pupil"]
@@ -65,26 +66,11 @@ class _KnownPupil(_Strict):
                                                  "/calibration/initial_pupil.")
 
 
-#: Lengths (m) no lab's setup reaches, with the unit they were most likely typed in: a value at or above the
-#: limit is refused with the figure in metres to give instead.
-_LARGEST_M = {"wavelength_m": (1e-3, "nm"), "pixel_pitch_m": (1e-3, "µm"), "pixel_pitch_object_m": (1e-3, "µm"),
-              "focal_length_m": (10.0, "mm"), "aperture_diameter_m": (10.0, "mm"), "led_pitch_m": (0.1, "mm"),
-              "led_distance_m": (10.0, "mm")}
-_UNIT_POWER = {"nm": "e-9", "µm": "e-6", "mm": "e-3"}
-
-
 def _in_metres(value, info):
     """A length that reads as typed in nm, µm or mm instead of metres is refused (one line, with the fix)."""
-    largest, unit = _LARGEST_M[info.field_name]
-    if value is not None and value >= largest:
-        if unit == "nm" and value < 100:
-            unit = "µm"   # 0.55 (µm) rather than 550 (nm)
-        elif unit == "µm" and value < 1:
-            unit = "mm"   # 0.00345 (mm) rather than 3.45 (µm)
-        what = {"pixel_pitch_object_m": "object pixel pitch"}.get(
-            info.field_name, info.field_name[:-2].replace("_", " ").replace("led ", "LED "))
-        raise ValueError(f"{value:g} m is not a plausible {what}: give it in metres "
-                         f"({value:g}{_UNIT_POWER[unit]} for {value:g} {unit})")
+    slip = None if value is None else unit_slip(info.field_name, value)
+    if slip is not None:
+        raise ValueError(slip)
     return value
 
 

@@ -11,11 +11,40 @@ from cca_cli.sampling.grid import square_scan
 from cca_cli.sampling.overlap import step_m
 from cca_cli.units import FourierScale, sensor_field_width_m, sensor_pixels_across
 
-__all__ = ["CaptureGeometry", "camera_scan_geometry", "check_positive"]
+__all__ = ["CaptureGeometry", "camera_scan_geometry", "check_positive", "unit_slip"]
 
 
 #: Longest wavelength taken as light (m): a larger value is a unit slip (nanometres typed as metres).
 MAX_WAVELENGTH_M = 1e-3
+
+#: Lengths (m) no setup reaches, by the name's ending, with the unit a larger value was most likely typed in.
+_LARGEST_M = {"pixel_pitch_m": (1e-3, "µm"), "pixel_pitch_object_m": (1e-3, "µm"), "focal_length_m": (10.0, "mm"),
+              "aperture_diameter_m": (10.0, "mm"), "led_pitch_m": (0.1, "mm"), "led_distance_m": (10.0, "mm")}
+_UNIT_POWER = {"nm": "e-9", "µm": "e-6", "mm": "e-3"}
+
+
+def unit_slip(name: str, value: float) -> str | None:
+    """Why ``value`` (m) for ``name`` reads as typed in nm, µm or mm, with the value to give; None if plausible.
+
+    Examples
+    --------
+    >>> unit_slip("focal_length_m", 75)
+    '75 m is not a plausible focal length: give it in metres (75e-3 for 75 mm)'
+    """
+    if name.endswith("wavelength_m"):
+        largest, unit = MAX_WAVELENGTH_M, "nm" if value >= 100 else "µm"
+    else:
+        key = next((k for k in _LARGEST_M if name.endswith(k)), None)
+        if key is None:
+            return None
+        largest, unit = _LARGEST_M[key]
+        if unit == "µm" and value < 1:
+            unit = "mm"   # 0.00345 (mm) rather than 3.45 (µm)
+        name = key
+    if value < largest:
+        return None
+    what = {"pixel_pitch_object_m": "object pixel pitch"}.get(name, name[:-2].replace("_", " ").replace("led ", "LED "))
+    return f"{value:g} m is not a plausible {what}: give it in metres ({value:g}{_UNIT_POWER[unit]} for {value:g} {unit})"
 
 
 def check_positive(**values) -> None:
@@ -43,6 +72,9 @@ def check_positive(**values) -> None:
             unit, power = ("nm", "e-9") if number >= 100 else ("µm", "e-6")
             raise ValueError(f"{name} is {number:g} m, not a wavelength of light (cca takes waves under 1 mm): give "
                              f"it in metres ({number:g}{power} for {number:g} {unit})")
+        slip = unit_slip(name, number)
+        if slip is not None:
+            raise ValueError(f"{name}: {slip}")
 
 
 @dataclass(frozen=True)

@@ -4,6 +4,7 @@ in arrays, with a ValueError whose message names the argument; dead captures are
 from __future__ import annotations
 
 import ast
+import re
 import logging
 import math
 import warnings
@@ -350,3 +351,16 @@ def test_a_chart_too_small_for_its_widths_names_size_px():
         cca.resolution_chart(64.5, widths=(4, 2))
     assert cca.resolution_chart(64.0, widths=(4, 2)).image.shape == (64, 64)   # a whole float is a size
     assert cca.resolution_chart(64, widths=np.array([4, 2])).widths == (4, 2)   # any sequence of widths
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"focal_length_m": 800}, "focal_length_m: 800 m is not a plausible focal length: give it in metres (800e-3"),
+    ({"aperture_diameter_m": 18}, "aperture_diameter_m: 18 m is not a plausible aperture diameter"),
+    ({"pixel_pitch_m": 2}, "pixel_pitch_m: 2 m is not a plausible pixel pitch: give it in metres (2e-6 for 2 µm)")])
+def test_lengths_typed_in_millimetres_or_micrometres_are_named_before_anything_is_allocated(change, message):
+    """800 for a 0.8 m lens made simulate ask numpy for 275 GiB (a MemoryError); the API, a config and a manifest
+    now refuse such a length by name, with the figure in metres to give."""
+    base = dict(wavelength_m=550e-9, focal_length_m=0.8, aperture_diameter_m=18e-3, pixel_pitch_m=2e-6,
+                distance_m=50, field_width_m=64e-3, grid=5, overlap=0.61)
+    with pytest.raises(ValueError, match=re.escape(message)):
+        cca.camera_scan(**{**base, **change})
