@@ -56,6 +56,8 @@ def test_huge_configs_are_estimated_without_allocating(tiny_run_config):
         assert footprint.memory_bytes > 1e12
     assert time.perf_counter() - start < 2
     with pytest.raises(ConfigError, match="sensor pixels"):
+        simulate_footprint(apply_overrides(tiny_run_config, {"optics.pixel_pitch_m": 9e-4}))
+    with pytest.raises(ConfigError, match="1 m is not a plausible pixel pitch"):   # a unit slip, named first
         simulate_footprint(apply_overrides(tiny_run_config, {"optics.pixel_pitch_m": 1.0}))
 
 
