@@ -162,8 +162,8 @@ class MomentumBase(CalibratingEngine):
         ended is returned (None otherwise).
         """
         recovery = self.calibrator.recovery
-        before = None if recovery is None else (self._spectrum.copy(), self._anchor.copy(), self._velocity.copy(),
-                                                misfit)
+        keep = recovery is not None and recovery.undoes_leaps   # the only steps a leap takes back with the spectrum
+        before = (self._spectrum.copy(), self._anchor.copy(), self._velocity.copy(), misfit) if keep else None
         normalisation = self.calibrator.pupil_step(misfit, self.stopping.iteration)
         if recovery is not None and recovery.undone_sharply and self._before_step is not None:
             *arrays, restored = self._before_step
@@ -174,7 +174,7 @@ class MomentumBase(CalibratingEngine):
             return restored
         if normalisation is None:
             return None
-        self._before_step = before if recovery is not None and recovery.stepped else None
+        self._before_step = before if keep and recovery.stepped else None
         scale, tilt = normalisation
         if np.any(tilt):
             grid = np.arange(self._spectrum.shape[0], dtype=np.float64)

@@ -407,6 +407,11 @@ class PupilRecovery:
         np.add.at(self._den[thread], index, power)
 
     # --------------------------------------------------------------------- step
+    @property
+    def undoes_leaps(self) -> bool:
+        """Whether a leap of the misfit (:data:`SHARP_RISE`) is what undoes a step (a lattice-filtered map)."""
+        return self._periodic is not None
+
     def step(self, misfit: float) -> tuple[complex, np.ndarray] | None:
         """End-of-pass update; undoes the last one instead if this pass fit the data worse.
 
@@ -440,7 +445,7 @@ class PupilRecovery:
         self.undone_sharply = self.stepped = False
         if previous is not None and misfit > previous.misfit:
             self.velocity = None
-            leapt = self._periodic is not None and misfit > SHARP_RISE * previous.misfit
+            leapt = self.undoes_leaps and misfit > SHARP_RISE * previous.misfit
             if self._periodic is None or leapt:
                 self.maps, self.coefficients = previous.maps, previous.coefficients
                 if not leapt:   # after a leap the filter's next step, from a better object, is a sound one
