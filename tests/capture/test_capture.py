@@ -190,25 +190,27 @@ def test_nan_pixels(tmp_path):
     _ingest_fails(tmp_path, "v1.exr", "NaN")
 
 
-def test_no_checkerboard_names_view_or_drops_it(tmp_path):
-    # Two sample views; the second has its board covered.
-    images = []
+def _two_sample_views_merged(tmp_path, covered: tuple[str, ...]) -> None:
+    """The sample's views r2c2 (the centre) and r2c3, the board covered in those whose names start with ``covered``,
+    ingested and merged into tmp_path/hdr.h5."""
+    from cca_cli.io.images import read_image
+
     manifest = yaml.safe_load((SAMPLE / "manifest.yaml").read_text())
     chosen = [m for m in manifest["images"] if m["path"].startswith(("view_r2c2_", "view_r2c3_"))]
     for entry in chosen:
         shutil.copy(SAMPLE / entry["path"], tmp_path / entry["path"])
-        images.append(entry)
-    from cca_cli.io.images import read_image
-
-    for entry in chosen:
-        if entry["path"].startswith("view_r2c3_"):
+        if entry["path"].startswith(covered):
             pixels = read_image(tmp_path / entry["path"]).pixels
             pixels[:, 105:] = 64 + 100
             write_image(tmp_path / entry["path"], pixels, bit_depth=16)
-    manifest["images"] = images
+    manifest["images"] = chosen
     (tmp_path / "m.yaml").write_text(yaml.safe_dump(manifest))
     assert _cli("ingest", tmp_path / "m.yaml", "-o", tmp_path / "raw.h5", "-q").exit_code == 0
     assert _cli("hdr", tmp_path / "raw.h5", "-o", tmp_path / "hdr.h5", "-q").exit_code == 0
+
+
+def test_no_checkerboard_names_view_or_drops_it(tmp_path):
+    _two_sample_views_merged(tmp_path, covered=("view_r2c3_",))   # the second view's board covered
     out = tmp_path / "reg.h5"
     result = _cli("register", tmp_path / "hdr.h5", "-o", out, "--crop", "16,32,96,96", "-q")
     _one_line_error(result, "view_r2c3_e0.png", "no 9x6 checkerboard")
@@ -224,19 +226,7 @@ def test_no_checkerboard_names_view_or_drops_it(tmp_path):
 def test_no_checkerboard_in_the_reference_view_says_registration_cannot_drop_it(tmp_path):
     """Every view is registered to the centre one: dropping views cannot help when it lacks the board, and the one
     line says so (and how to go on without registration)."""
-    manifest = yaml.safe_load((SAMPLE / "manifest.yaml").read_text())
-    chosen = [m for m in manifest["images"] if m["path"].startswith(("view_r2c2_", "view_r2c3_"))]
-    from cca_cli.io.images import read_image
-
-    for entry in chosen:
-        shutil.copy(SAMPLE / entry["path"], tmp_path / entry["path"])
-        pixels = read_image(tmp_path / entry["path"]).pixels
-        pixels[:, 105:] = 64 + 100   # the board covered in both
-        write_image(tmp_path / entry["path"], pixels, bit_depth=16)
-    manifest["images"] = chosen
-    (tmp_path / "m.yaml").write_text(yaml.safe_dump(manifest))
-    assert _cli("ingest", tmp_path / "m.yaml", "-o", tmp_path / "raw.h5", "-q").exit_code == 0
-    assert _cli("hdr", tmp_path / "raw.h5", "-o", tmp_path / "hdr.h5", "-q").exit_code == 0
+    _two_sample_views_merged(tmp_path, covered=("view_r2c2_", "view_r2c3_"))
     out = tmp_path / "reg.h5"
     result = _cli("register", tmp_path / "hdr.h5", "-o", out, "--crop", "16,32,96,96", "--drop-missing", "-q")
     _one_line_error(result, "no 9x6 checkerboard", "the reference (centre) view needs the board",

@@ -485,6 +485,23 @@ def test_a_setup_file_of_sections_may_carry_the_lab_s_other_facts(tmp_path):
     _refused(tmp_path, "setup.json: sensors is not a section; did you mean sensor?")
 
 
+def _ingested_led_lab(tmp_path, images, sines, *, dead=None, kx_shift=0.0) -> str:
+    """Write simulated LED-array images as 16-bit PNGs (capture ``dead`` as dark noise, the listed kx shifted by
+    ``kx_shift``) with their manifest, ingest them and return what ingest printed, on one line."""
+    scale = 30000 / float(images.max())
+    rows = []
+    for k, (ky, kx) in enumerate(np.asarray(sines)):
+        codes = RNG.normal(100, 3, images[k].shape) if k == dead else images[k] * scale + 100
+        write_image(tmp_path / f"led{k}.png", np.clip(np.rint(codes), 0, 65535).astype(np.uint16), bit_depth=16)
+        rows.append({"path": f"led{k}.png", "exposure_s": 0.01, "kx_norm": float(kx + kx_shift), "ky_norm": float(ky)})
+    manifest = {"illumination": {"wavelength_m": 532e-9, "numerical_aperture": 0.1, "pixel_pitch_object_m": 1.845e-6},
+                "sensor": {"black_level": 100}, "images": rows}
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump(manifest))
+    result = _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
+    assert result.exit_code == 0, result.output
+    return " ".join(result.output.split())
+
+
 def test_a_bright_field_led_that_did_not_fire_is_named(tmp_path):
     import cca_cli as cca
 
@@ -492,20 +509,9 @@ def test_a_bright_field_led_that_did_not_fire_is_named(tmp_path):
     geometry = cca.led_array(sines, wavelength_m=532e-9, numerical_aperture=0.1, pixel_pitch_object_m=1.845e-6,
                              image_pixels=32)
     images = cca.simulate(cca.resolution_chart(64, widths=(4, 3, 2)).image, geometry, snr_db=None)
-    scale = 30000 / float(images.max())
     bright = np.flatnonzero(np.hypot(*geometry.spectrum_centres_yx_px.T) < 0.5 * geometry.pupil_radius_px)
     dead = int(bright[-1])
-    rows = []
-    for k, (ky, kx) in enumerate(np.asarray(sines)):
-        codes = RNG.normal(100, 3, images[k].shape) if k == dead else images[k] * scale + 100
-        write_image(tmp_path / f"led{k}.png", np.clip(np.rint(codes), 0, 65535).astype(np.uint16), bit_depth=16)
-        rows.append({"path": f"led{k}.png", "exposure_s": 0.01, "kx_norm": float(kx), "ky_norm": float(ky)})
-    manifest = {"illumination": {"wavelength_m": 532e-9, "numerical_aperture": 0.1, "pixel_pitch_object_m": 1.845e-6},
-                "sensor": {"black_level": 100}, "images": rows}
-    (tmp_path / "lab.yaml").write_text(yaml.safe_dump(manifest))
-    result = _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
-    assert result.exit_code == 0, result.output
-    text = " ".join(result.output.split())
+    text = _ingested_led_lab(tmp_path, images, sines, dead=dead)
     assert text.count("did its LED fire?") == 1 and f"led{dead}.png" in text
 
 
@@ -745,19 +751,7 @@ def test_many_dark_bright_field_captures_are_one_note_on_the_geometry(tmp_path):
     y, x = np.mgrid[-32:32, -32:32]
     smooth = (0.2 + np.exp(-(x * x + y * y) / (2 * 12.0 ** 2))).astype(np.complex64)   # no light in the dark field
     images = cca.simulate(smooth, geometry, snr_db=None)
-    scale = 30000 / float(images.max())
-    rows = []
-    for k, (ky, kx) in enumerate(np.asarray(sines)):
-        write_image(tmp_path / f"led{k}.png", np.clip(np.rint(images[k] * scale + 100), 0, 65535).astype(np.uint16),
-                    bit_depth=16)
-        rows.append({"path": f"led{k}.png", "exposure_s": 0.01, "kx_norm": float(kx + 6 / np.hypot(4, 60)),
-                     "ky_norm": float(ky)})
-    manifest = {"illumination": {"wavelength_m": 532e-9, "numerical_aperture": 0.1, "pixel_pitch_object_m": 1.845e-6},
-                "sensor": {"black_level": 100}, "images": rows}
-    (tmp_path / "lab.yaml").write_text(yaml.safe_dump(manifest))
-    result = _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
-    assert result.exit_code == 0, result.output
-    text = " ".join(result.output.split())
+    text = _ingested_led_lab(tmp_path, images, sines, kx_shift=6 / np.hypot(4, 60))
     assert "did its LED fire?" not in text
     assert text.count("the LEDs' geometry does not match the light recorded") == 1
 
