@@ -234,6 +234,25 @@ def test_load_keeps_what_a_recorded_file_says(recorded_led_file):
         cca.CaptureSet(data.intensity, data.geometry, boundary="closed")
 
 
+def test_a_momentum_run_on_many_cores_takes_no_more_threads_than_its_lanes(recorded_led_file, monkeypatch):
+    """Threads beyond the momentum engine's lanes only split small transforms (slower on 16 cores)."""
+    from cca_cli.engines.momentum import MAX_THREADS
+    from cca_cli.engines.problem import PhaseRetrievalProblem
+    from cca_cli.optics import fft
+
+    monkeypatch.setattr(fft, "cpu_count", lambda: 16)
+    asked = []
+    build = PhaseRetrievalProblem.from_sensor_images.__func__
+    monkeypatch.setattr(PhaseRetrievalProblem, "from_sensor_images", classmethod(
+        lambda cls, *a, **k: asked.append((k["threads"], fft.default_threads())) or build(cls, *a, **k)))
+    captures = cca.load(recorded_led_file[0])
+    cca.reconstruct(captures, engine="momentum", max_iterations=2)
+    cca.reconstruct(captures, engine="momentum", threads=8, max_iterations=2)      # named: as asked
+    cca.reconstruct(captures, engine="altmin", max_iterations=2)                   # altmin splits batches further
+    assert asked == [(MAX_THREADS, MAX_THREADS), (8, 16), (16, 16)]
+    assert fft.default_threads() == 16                                              # the limit ends with the run
+
+
 def test_api_recovers_recorded_frames_as_the_cli_does(recorded_led_file, tmp_path):
     """Recorded frames get the CLI's guard band and engine defaults through the API too."""
     path, _ = recorded_led_file

@@ -96,6 +96,10 @@ class MomentumBase(CalibratingEngine):
     ``_to_host`` / ``_to_device`` move arrays where the engine keeps them elsewhere (a GPU).
     """
 
+    #: The most threads a run of this engine uses when its options name none (:data:`MAX_THREADS` lanes):
+    #: the problem's set-up, the FFTs and the fit report then take no more either.
+    max_threads = MAX_THREADS
+
     def _start(self, problem: PhaseRetrievalProblem, options: MomentumOptions, spectrum: np.ndarray | None,
                threads: int) -> None:
         """The state every momentum engine starts from (the subclass has set ``_to_device``'s needs)."""

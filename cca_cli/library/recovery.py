@@ -14,6 +14,7 @@ Everything here takes arrays and options; data that cannot be used raise
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
 from dataclasses import replace
@@ -41,7 +42,7 @@ from cca_cli.sampling.grid import BandLayout, band_layout, smallest_fft_size
 from cca_cli.sampling.region import RegionEmbedding, plan_embedding
 
 __all__ = ["MAX_DEAD_FRACTION", "DivergedError", "DeviceUnavailable", "reconstruct", "engine_device",
-           "without_dead_captures", "embed_region", "build_model", "problem_calibration", "recover", "drive_engine",
+           "without_dead_captures", "embed_region", "build_model", "problem_calibration", "recover", "run_threads", "drive_engine",
            "calibrated_pupils"]
 
 _log = logging.getLogger("cca")
@@ -328,6 +329,20 @@ def drive_engine(engine, options: EngineOptions, *, progress: ProgressFn = silen
     return spectrum, history, before + time.perf_counter() - start
 
 
+def run_threads(engine: str, options: EngineOptions):
+    """The thread limit a run of ``engine`` takes when ``options`` name no threads (a context manager).
+
+    An engine that uses at most N threads (``max_threads``: the momentum engines' lanes) runs its
+    set-up, FFTs and fit report on at most N too: on 16 cores the blood smear's default run took 3.31 s
+    with every core and 2.80 s with four (2026-11-27, ``benchmarks/bench_threads.py``), as threads beyond
+    the lanes only split small transforms. Named threads, or fewer cores than N, are left as they are.
+    """
+    cap = getattr(get_engine(engine).engine_class(), "max_threads", None)
+    if cap is None or getattr(options, "threads", None) or fft.default_threads() <= cap:
+        return contextlib.nullcontext()
+    return fft.limit_threads(cap)
+
+
 def recover(captures: CaptureSet, engine: str, options: EngineOptions, *, progress: ProgressFn = silent,
             on_iteration=None, init: np.ndarray | None = None, checkpoint=None,
             aberration=None, device: str = "cpu") -> Reconstruction:
@@ -371,6 +386,14 @@ def recover(captures: CaptureSet, engine: str, options: EngineOptions, *, progre
     ValueError
         A geometry no grid can hold, or ``init`` of another grid.
     """
+    with run_threads(engine, options):
+        return _recover(captures, engine, options, progress=progress, on_iteration=on_iteration, init=init,
+                        checkpoint=checkpoint, aberration=aberration, device=device)
+
+
+def _recover(captures: CaptureSet, engine: str, options: EngineOptions, *, progress: ProgressFn, on_iteration,
+             init: np.ndarray | None, checkpoint, aberration, device: str) -> Reconstruction:
+    """:func:`recover` within its thread limit (:func:`run_threads`)."""
     margin = 0
     if options.refines_positions:
         margin = int(np.ceil(captures.geometry.pupil_radius_px / 8)) + 2

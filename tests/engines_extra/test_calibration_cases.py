@@ -197,6 +197,23 @@ def test_the_fit_report_reads_alike_on_any_number_of_threads():
     assert fit_report(problem, spectrum, threads=2).all == pytest.approx(fit_report(problem, spectrum).all, rel=1e-6)
 
 
+def test_the_fit_report_plans_a_workspace_only_for_threads_with_work_enough(monkeypatch):
+    from cca_cli.engines import illumination
+    from cca_cli.optics.forward import ForwardModel, chunk_slices
+
+    problem, _, spectrum = led_case()
+    one = illumination.capture_statistics(problem.model, spectrum, problem.amplitudes, threads=1)
+    # chunks of 4 captures: 13 chunks, which 16 threads would each have taken one of
+    monkeypatch.setattr(illumination, "chunk_slices", lambda k, chunk: chunk_slices(k, 4))
+    planned = []
+    made = ForwardModel.workspace
+    monkeypatch.setattr(ForwardModel, "workspace", lambda self, *a, **k: planned.append(1) or made(self, *a, **k))
+    many = illumination.capture_statistics(problem.model, spectrum, problem.amplitudes, threads=16)
+    assert len(planned) == 13 // illumination.SLICES_PER_THREAD   # 3 workspaces, each thread 4 or 5 chunks
+    for name in ("misfit", "power", "cross", "energy"):
+        assert np.allclose(getattr(many, name), getattr(one, name), rtol=1e-6, atol=0)
+
+
 def test_capture_statistics_read_a_recorded_mask_as_weights_of_one_and_zero():
     """The fit report passes a boolean mask of recorded pixels (a quarter of float32's memory): the
     figures are exactly those of float weights 1 and 0, and the masked pixels do not count."""
