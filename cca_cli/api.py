@@ -101,8 +101,14 @@ def _number(name: str, value, *, low: float = -np.inf) -> float:
 
 
 def _real_images(values, name: str) -> np.ndarray:
-    """``values`` as float32, or ``ValueError`` naming the argument when they are complex or not numbers."""
-    array = np.asarray(values)
+    """``values`` as float32, or ``ValueError`` naming the argument when they are complex, not numbers, or
+    images of different shapes."""
+    try:
+        array = np.asarray(values)
+    except ValueError:   # numpy refuses a list of arrays of different shapes
+        shapes = sorted({"x".join(map(str, np.shape(v))) for v in values}) if isinstance(values, (list, tuple)) else []
+        raise ValueError(f"{name}: the images differ in shape ({', '.join(shapes[:4])}); give images of one "
+                         "shape, as one (K, H, W) array") from None
     if np.iscomplexobj(array):
         raise ValueError(f"{name} holds complex values; give real intensities (|field|², ≥ 0)")
     if array.dtype.kind not in "biuf":
@@ -224,7 +230,7 @@ def led_grid_sines(grid: int, *, pitch_m: float, height_m: float) -> np.ndarray:
     Parameters
     ----------
     grid : int
-        LEDs along each side (odd, so one LED is on axis).
+        LEDs along each side (an odd count puts one LED on axis; an even one has none there).
     pitch_m : float
         LED spacing (m).
     height_m : float
@@ -238,7 +244,8 @@ def led_grid_sines(grid: int, *, pitch_m: float, height_m: float) -> np.ndarray:
     Raises
     ------
     ValueError
-        A grid that is not a whole number ≥ 1, or a pitch or height that is not a positive, finite number.
+        A grid that is not a whole number ≥ 1, a pitch or height that is not a positive, finite number, or one
+        that reads as typed in mm (a pitch of 0.1 m or more, a height of 10 m or more).
 
     Examples
     --------
@@ -246,10 +253,14 @@ def led_grid_sines(grid: int, *, pitch_m: float, height_m: float) -> np.ndarray:
     >>> s.shape, float(s[4, 0]), round(float(s[5, 1]), 4)
     ((9, 2), 0.0, 0.0444)
     """
-    from cca_cli.sampling.geometry import check_positive
+    from cca_cli.sampling.geometry import check_positive, unit_slip
 
     grid = _count("grid", grid)
     check_positive(pitch_m=pitch_m, height_m=height_m)
+    for name, meaning, value in (("pitch_m", "led_pitch_m", pitch_m), ("height_m", "led_distance_m", height_m)):
+        slip = unit_slip(meaning, float(value))
+        if slip is not None:
+            raise ValueError(f"{name}: {slip}")
     offsets = (np.arange(grid) - (grid - 1) / 2) * float(pitch_m)
     y, x = np.meshgrid(offsets, offsets, indexing="ij")
     r = np.sqrt(x**2 + y**2 + float(height_m) ** 2)

@@ -141,6 +141,17 @@ def plan_config(plan, *, engine: str = "momentum", iterations: int | None = None
     }
 
 
+def _tidy_floats(value):
+    """``value`` with every float rounded to 12 significant digits (0.032, not 0.031999999999999994)."""
+    if isinstance(value, float):
+        return float(f"{value:.12g}")
+    if isinstance(value, dict):
+        return {key: _tidy_floats(item) for key, item in value.items()}
+    if isinstance(value, list):
+        return [_tidy_floats(item) for item in value]
+    return value
+
+
 @handle_errors
 def design_cli(
     wavelength_m: Annotated[float, typer.Option("--wavelength-m", help="Wavelength λ (m).")] = 550e-9,
@@ -184,7 +195,7 @@ def design_cli(
     if write_config is not None:
         import yaml
 
-        config = plan_config(plan, engine=engine, iterations=iterations)
+        config = _tidy_floats(plan_config(plan, engine=engine, iterations=iterations))
         text = WRITTEN_BY + "\n" + yaml.safe_dump(config, sort_keys=False)
         with atomic_path(write_config, force=force, owned=starts_with(WRITTEN_BY)) as tmp:
             tmp.write_text(text)

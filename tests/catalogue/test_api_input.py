@@ -58,6 +58,14 @@ def test_reconstruct_refuses_what_the_cli_refuses(scan, case, match):
         cca.reconstruct(bad, geometry, iterations=2)
 
 
+def test_images_of_different_shapes_are_named_not_left_to_numpy(scan):
+    geometry, _, images = scan
+    ragged = [image for image in images[:-1]] + [images[-1][:, :-1]]
+    with pytest.raises(ValueError, match=r"^intensities: the images differ in shape \(64x63, 64x64\); give images of "
+                                         r"one shape, as one \(K, H, W\) array"):
+        cca.reconstruct(ragged, geometry, iterations=2)
+
+
 def test_complex_intensities_are_refused_not_truncated_with_a_warning(scan):
     geometry, _, images = scan
     with warnings.catch_warnings():
@@ -184,6 +192,8 @@ def test_geometry_refuses_a_bad_si_value_by_name(make, name, value):
     (_led_array, {"numerical_aperture": -0.1}, r"^numerical_aperture must be a number in \(0, 1\)"),
     (_led_array, {"numerical_aperture": math.nan}, r"^numerical_aperture must be a number in \(0, 1\)"),
     (_led_grid_sines, {"grid": 0}, r"^grid must be a whole number ≥ 1"),
+    (_led_grid_sines, {"pitch_m": 4}, r"^pitch_m: 4 m is not a plausible LED pitch: give it in metres \(4e-3 for 4 mm\)"),
+    (_led_grid_sines, {"height_m": 90}, r"^height_m: 90 m is not a plausible LED distance: give it in metres"),
 ])
 def test_geometry_refuses_counts_and_ratios_by_name(make, change, match):
     with pytest.raises(ValueError, match=match):

@@ -2,6 +2,7 @@
 
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -127,9 +128,15 @@ def test_design_writes_the_engine_asked_for(tmp_path):
     runner = CliRunner()
     cfg = tmp_path / "plan.yaml"
     args = [*SMALL_DESIGNS["5x5"], "--no-measure", "--engine", "altmin", "--write-config", str(cfg)]
-    assert _design_json(runner, args)["engine"] == "altmin"
-    assert yaml.safe_load(cfg.read_text())["reconstruct"] == {"engine": "altmin", "tau": 1e-3, "iterations": 1000,
-                                                               "tol": 1e-5}
+    plan = _design_json(runner, args)
+    assert plan["engine"] == "altmin"
+    config = yaml.safe_load(cfg.read_text())
+    assert config["reconstruct"] == {"engine": "altmin", "tau": 1e-3, "iterations": 1000, "tol": 1e-5}
+    # lengths as a person would type them (0.032, not 0.031999999999999994), equal to the plan's to 1e-12
+    assert not re.search(r"\d\.\d{13,}", cfg.read_text())
+    assert config["scene"]["field_width_m"] == pytest.approx(plan["field_width_m"], rel=1e-11)
+    assert config["report"]["baselines"][1]["aperture_diameter_m"] == pytest.approx(plan["synthetic_aperture_m"],
+                                                                                     rel=1e-11)
     result = runner.invoke(app, ["design", "--sar", "3", "--no-measure", "--engine", "pie"])
     assert result.exit_code == 2 and "--engine" in result.output
 
