@@ -126,7 +126,7 @@ class ResourceError(CcaError):
 
 
 class RunLockedError(CcaError):
-    """Another cca run is writing in the same folder."""
+    """Another cca run is writing in the same folder, or another cca command the same output."""
 
     exit_code = 6
 

@@ -9,6 +9,7 @@ from pydantic import BaseModel
 
 from cca_cli.commands.console import progress_reporter
 from cca_cli.io.h5 import check_input_file
+from cca_cli.io.lock import output_lock
 from cca_cli.io.outputs import check_output
 from cca_cli.stages.footprint import Footprint, check_footprint
 from cca_cli.stages.provenance import stage_provenance
@@ -25,7 +26,9 @@ def run_stage(stage: str, run: Callable[..., T], *args, output: Path, sections: 
 
     Everything that can be checked before the work starts is checked first, in
     this order: the output path (:func:`~cca_cli.io.outputs.check_output`), the
-    inputs, the memory and disk the stage needs.
+    inputs, the memory and disk the stage needs. The stage then runs holding the
+    output's lock (:func:`~cca_cli.io.lock.output_lock`): the same command started
+    again meanwhile is refused in one line.
 
     Parameters
     ----------
@@ -57,5 +60,5 @@ def run_stage(stage: str, run: Callable[..., T], *args, output: Path, sections: 
     if footprint is not None:
         check_footprint(footprint(), output, source=files[0] if files else (protect[0] if protect else None))
     provenance = stage_provenance(stage, sections, files)
-    with progress_reporter(not quiet) as progress:
+    with output_lock(output), progress_reporter(not quiet) as progress:
         return run(*args, output, provenance=provenance, force=force, progress=progress)

@@ -35,6 +35,25 @@ def small_config(write_config, tiny_config_data):
     return write_config(tiny_config_data)
 
 
+def test_the_same_command_started_twice_is_refused_while_the_first_writes(runner, small_config, tmp_path):
+    from cca_cli.io.lock import output_lock, output_lock_path
+
+    captures, recon = tmp_path / "captures.h5", tmp_path / "recon.h5"
+    assert runner.invoke(app, ["simulate", str(small_config), "-o", str(captures), "--quiet"]).exit_code == 0
+    command = ["reconstruct", str(captures), "-o", str(recon), "--iterations", "3", "--quiet"]
+    with output_lock(recon):          # the first command, still running
+        result = runner.invoke(app, command)
+        assert result.exit_code == 6
+        line = _error_line(result)
+        assert line.startswith(f"error: {recon}: another cca command (pid ") and "is writing it; wait" in line
+        assert not recon.exists()
+    assert not output_lock_path(recon).exists()
+    output_lock_path(recon).write_text(json.dumps({"pid": 4_194_309}))   # left by a killed command
+    result = runner.invoke(app, command)
+    assert result.exit_code == 0, result.output
+    assert recon.is_file() and not output_lock_path(recon).exists()
+
+
 def test_help_lists_the_commands(runner):
     result = runner.invoke(app, ["--help"])
     assert result.exit_code == 0
