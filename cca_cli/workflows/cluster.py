@@ -87,6 +87,10 @@ def _one_line(exc: BaseException) -> str:
     return message if isinstance(exc, CcaError) else f"{type(exc).__name__}: {message}"
 
 
+#: Module each local worker process loads as it starts: it leaves Ctrl-C to the ``cca`` process.
+WORKER_SETUP = "cca_cli.workflows.worker_setup"
+
+
 @contextlib.contextmanager
 def open_client(*, workers: int | None = None, scheduler: str | None = None) -> Iterator[Any]:
     """A ``dask.distributed.Client``: a LocalCluster of ``workers`` single-threaded processes, or ``scheduler``.
@@ -122,7 +126,7 @@ def open_client(*, workers: int | None = None, scheduler: str | None = None) -> 
         with warnings.catch_warnings():  # another cluster on this machine holds the usual HTTP port: no matter
             warnings.filterwarnings("ignore", message="Port .* is already in use", category=UserWarning)
             cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
-                                   silence_logs=logging.CRITICAL)
+                                   silence_logs=logging.CRITICAL, preload=[WORKER_SETUP])
     except BaseException:  # Ctrl-C while the workers start: stop them now, not in distributed's exit hook
         _close_unstarted_clusters()
         raise

@@ -134,6 +134,22 @@ def test_python_api_recovers_tiles_from_arrays(frame_captures, client, tmp_path)
         api.reconstruct_tiles(frame_captures, size_px=96, overlap_px=60, client=client)
 
 
+def test_local_workers_leave_ctrl_c_to_the_cca_process(client):
+    """Ctrl-C reaches the whole process group: a local worker ignores it (no Dask tracebacks), cca stops them."""
+    import signal
+
+    from cca_cli.workflows.worker_setup import dask_setup
+
+    handlers = client.run(lambda: signal.getsignal(signal.SIGINT))
+    assert len(handlers) == 2 and all(h == signal.SIG_IGN for h in handlers.values())
+    before = signal.getsignal(signal.SIGINT)
+    try:
+        dask_setup(None)
+        assert signal.getsignal(signal.SIGINT) == signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, before)
+
+
 def test_workers_resolve_the_engine_as_the_client_does():
     from cca_cli.workflows.tiled import task_section, tile_engine
 
