@@ -22,6 +22,7 @@ from typing import Iterator
 __all__ = [
     "check_interrupt",
     "noting_interrupts",
+    "keeping_what_finished",
     "short",
     "CcaError",
     "ConfigError",
@@ -78,6 +79,22 @@ def noting_interrupts() -> Iterator[None]:
         signal.signal(signal.SIGINT, signal.default_int_handler)
         sys.unraisablehook = previous_hook
         _interrupted = False
+
+
+@contextlib.contextmanager
+def keeping_what_finished() -> Iterator[None]:
+    """Inside ``except KeyboardInterrupt``: write what the interrupted work had finished (a sweep's table).
+
+    The Ctrl-C being handled no longer stops an output from being put in place (:func:`check_interrupt`); a
+    new one does. Afterwards the command still ends as interrupted.
+    """
+    global _interrupted
+    was = _interrupted
+    _interrupted = False
+    try:
+        yield
+    finally:
+        _interrupted = _interrupted or was
 
 
 def short(value, limit: int = 60) -> str:

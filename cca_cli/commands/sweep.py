@@ -12,7 +12,7 @@ from rich.text import Text
 
 from cca_cli.commands.console import console, err_console, handle_errors, styled
 from cca_cli.commands.options import ConfigArg, Force, Quiet, Scheduler, Workers
-from cca_cli.errors import CcaError, ConfigError
+from cca_cli.errors import CcaError, ConfigError, keeping_what_finished
 from cca_cli.io.lock import folder_lock
 from cca_cli.io.outputs import check_folder, prepare_folder
 
@@ -76,8 +76,10 @@ def _sweep(study: str, config: Path, sets: list[str] | None, workers: int | None
     with folder_lock(sweep_dir):
         with Progress(*columns, console=err_console, disable=quiet) as bars:
             task = bars.add_task("points", total=len(points), info="")
+            finished = {}
 
             def on_row(row, done, total):
+                finished[row["index"]] = row
                 counts[row["status"]] = counts.get(row["status"], 0) + 1
                 if row["status"] == "failed" and not quiet:
                     bars.console.print(styled(f"point {row['point_id']} failed:", "red", str(row["error"])),
@@ -85,8 +87,13 @@ def _sweep(study: str, config: Path, sets: list[str] | None, workers: int | None
                 bars.update(task, completed=done,
                             info=f"ran {counts['ok']}  cached {counts['cached']}  failed {counts['failed']}")
 
-            with sw.open_client(workers=workers, scheduler=scheduler) as client:
-                rows = sw.run_sweep(points, client, force=force, on_row=on_row)
+            try:
+                with sw.open_client(workers=workers, scheduler=scheduler) as client:
+                    rows = sw.run_sweep(points, client, force=force, on_row=on_row)
+            except KeyboardInterrupt:
+                with keeping_what_finished():
+                    _write_partial_table(sw, points, finished, earlier, sweep_dir, spec, cfg)
+                raise
         rows = sw.earlier_rows(earlier) + rows
         everything = earlier + points
         csv_path, h5_path = sw.write_table(rows, sweep_dir, spec=spec, base=cfg)
@@ -98,6 +105,21 @@ def _sweep(study: str, config: Path, sets: list[str] | None, workers: int | None
     if counts["failed"]:
         raise CcaError(f"{counts['failed']} of {len(points)} points failed; each one's error is in the error column "
                        f"of {csv_path} (the other points' results are kept)")
+
+
+def _write_partial_table(sw, points, finished: dict, earlier, sweep_dir: Path, spec, cfg) -> None:
+    """After Ctrl-C: the table of the points finished so far (the others ``pending``), before cca stops.
+
+    Nothing is written when no point has finished; a second Ctrl-C while it is written leaves the
+    earlier table (or none): the table is written whole or not at all.
+    """
+    rows = [finished.get(p.index) or sw.interrupted_row(p) for p in points]
+    done = sum(row["status"] != "pending" for row in rows)
+    if not done and not earlier:
+        return
+    csv_path, _ = sw.write_table(sw.earlier_rows(earlier) + rows, sweep_dir, spec=spec, base=cfg)
+    err_console.print(f"note: {csv_path} holds the {done} of {len(points)} points finished so far (the others "
+                      "pending); run the command again to finish them", highlight=False, soft_wrap=True)
 
 
 def _print_rows(rows, spec, points) -> None:

@@ -67,6 +67,8 @@ __all__ = [
     "check_workers",
     "scheduler_timeout",
     "run_sweep",
+    "pending_row",
+    "interrupted_row",
     "table_columns",
     "TABLE_COLUMNS",
     "write_table",
@@ -509,6 +511,18 @@ def _row(point: SweepPoint, result: dict[str, Any], status: str | None = None) -
     return row
 
 
+def pending_row(point: SweepPoint) -> dict[str, Any]:
+    """The table row of a point that had not finished when its sweep was interrupted (status ``pending``)."""
+    return _row(point, {"status": "pending", "error": ""})
+
+
+def interrupted_row(point: SweepPoint) -> dict[str, Any]:
+    """A point's row after its sweep was interrupted: from its result on disk (``ok``) if it finished, else
+    ``pending`` (a worker may finish a point just before the interrupt reaches the sweep)."""
+    done = cached_result(point)
+    return pending_row(point) if done is None else _row(point, done, "ok")
+
+
 def run_sweep(points: list[SweepPoint], client, *, force: bool = False,
               on_row: Callable[[dict[str, Any], int, int], None] | None = None) -> list[dict[str, Any]]:
     """Run every point that is not already complete; return one table row per point, in point order.
@@ -576,7 +590,7 @@ def run_sweep(points: list[SweepPoint], client, *, force: bool = False,
         raise
     finally:
         for point in points:
-            rows.setdefault(point.index, _row(point, {"status": "pending", "error": ""}))
+            rows.setdefault(point.index, pending_row(point))
     return [rows[p.index] for p in points]
 
 

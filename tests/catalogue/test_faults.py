@@ -341,3 +341,24 @@ def test_a_lost_scheduler_ends_a_sweep_in_one_line_and_keeps_the_finished_points
     assert done and all(json.loads((d / "point.json").read_text())["result"]["status"] == "ok" for d in done)
     dry = _run(["sweep", "grid", config, "--set", "noise.snr_db=10,20,30", "--out-dir", "sw", "--dry-run"], tmp_path)
     assert dry.stdout.count("complete") == len(done), dry.stdout  # a re-run does only the others
+
+
+@pytest.mark.slow
+def test_ctrl_c_in_a_sweep_writes_the_table_of_the_points_finished_so_far(tmp_path):
+    config = _write_config(tmp_path / "cfg.yaml", reconstruct={"iterations": 3000})
+    args = ["sweep", "grid", config, "--set", "noise.snr_db=10,20,30,40,50,60", "--out-dir", "sw", "-q",
+            "--workers", "2"]
+    proc = _start(args, tmp_path)
+    deadline = time.monotonic() + 300
+    while not list((tmp_path / "sw" / "points").glob("*/point.json")):
+        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert lines[-1].startswith("interrupted:") and "Traceback" not in err, err
+    assert lines[-2].startswith("note: sw/sweep.csv holds the ") and "points finished so far" in lines[-2], err
+    statuses = [line.split(",")[2] for line in (tmp_path / "sw" / "sweep.csv").read_text().splitlines()[1:]]
+    assert len(statuses) == 6 and "ok" in statuses and "pending" in statuses, statuses
+    assert set(statuses) <= {"ok", "pending"} and _temporaries(tmp_path / "sw") == []
