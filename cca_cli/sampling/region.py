@@ -104,14 +104,17 @@ class RegionEmbedding:
         s = self.size
         pads = ((0, 0), (oy, s - oy - h), (ox, s - ox - w))
         mean = images.mean(axis=(1, 2), keepdims=True)
-        mirrored = np.pad(images - mean, pads, mode="symmetric")
         yy = np.arange(s)
         dy = np.maximum(np.maximum(oy - yy, yy - (oy + h - 1)), 0)
         xx = np.arange(s)
         dx = np.maximum(np.maximum(ox - xx, xx - (ox + w - 1)), 0)
         distance = np.hypot(dy[:, None], dx[None, :])
         fade = (0.5 + 0.5 * np.cos(np.pi * np.clip(distance / max(self.guard_px, 1), 0, 1))).astype(np.float32)
-        padded = (mean + mirrored * fade).astype(np.float32)
+        # mean + (mirrored − mean)·fade, in place: one (K, S, S) array where a stack of captures made four
+        padded = np.pad(images, pads, mode="symmetric")
+        padded -= mean
+        padded *= fade
+        padded += mean
         padded[:, oy:oy + h, ox:ox + w] = images
         weight = np.zeros((k, s, s), np.float32)
         inner = self.region_weight()
