@@ -154,20 +154,29 @@ def length_text(metres: float) -> str:
 
 
 def stop_note(stopped_by: str | None, iterations: int | None, change: float | None, tol: float | None,
-              plateau: float | None = None, plateau_window: int | None = None) -> str | None:
+              plateau: float | None = None, plateau_window: int | None = None,
+              tiles: tuple[int, int] | None = None) -> str | None:
     """One line warning that the iteration cap ended a reconstruction before its stopping rules did (None otherwise).
 
     A run that also stops on a misfit plateau (``plateau`` > 0) is told that the plateau was not reached.
+    ``tiles`` (capped, all) says how many tiles of a tiled run the cap stopped (``change`` is then not quoted:
+    it differs from tile to tile).
     """
     if stopped_by != "cap":
         return None
-    reached = f" (last change {change:.3g} > tol {tol:.3g})" if change is not None and tol is not None else ""
+    if tiles is not None:
+        capped, total = tiles
+        who, its = f"{capped} of {total} tiles stopped", "their"
+        reached = ""
+    else:
+        who, its = "reconstruct stopped", "its"
+        reached = f" (last change {change:.3g} > tol {tol:.3g})" if change is not None and tol is not None else ""
     if plateau:
         window = f" over {plateau_window} iterations" if plateau_window else ""
-        return (f"reconstruct stopped at the iteration cap ({iterations}) before its misfit plateau (less than "
+        return (f"{who} at the iteration cap ({iterations}) before {its} misfit plateau (less than "
                 f"{100 * plateau:.3g}% better{window}) was reached; raise reconstruct.iterations (--iterations) "
                 "to go on")
-    return (f"reconstruct stopped at the iteration cap ({iterations}) before the change reached "
+    return (f"{who} at the iteration cap ({iterations}) before the change reached "
             f"tol{reached}; raise reconstruct.iterations (--iterations) to go on")
 
 
@@ -179,9 +188,11 @@ def print_note(message: str) -> None:
 def recovery_stop_note(recovery) -> str | None:
     """:func:`stop_note` of a stage's :class:`~cca_cli.stages.reconstruct.Recovery`."""
     records = recovery.history.records
+    results = getattr(recovery, "results", None)   # a tiled recovery: one result per tile
+    tiles = None if results is None else (sum(r.stopped_by == "cap" for r in results), len(results))
     return stop_note(getattr(recovery, "stopped_by", None), recovery.history.iterations,
                      records[-1].change if records else None, recovery.options.get("tol"),
-                     recovery.options.get("plateau"), recovery.options.get("plateau_window"))
+                     recovery.options.get("plateau"), recovery.options.get("plateau_window"), tiles=tiles)
 
 
 def summary_table(summary: dict, title: str = "Result") -> Table:

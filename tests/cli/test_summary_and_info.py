@@ -116,6 +116,20 @@ def test_a_run_that_also_stops_on_a_plateau_is_told_so_at_the_cap():
     assert "tol" in stop_note("cap", 150, 0.00143, 1e-7) and stop_note("plateau", 40, 0.01, 1e-7, 0.02, 5) is None
 
 
+def test_a_tiled_run_s_cap_note_counts_the_tiles_the_cap_stopped():
+    from types import SimpleNamespace
+
+    from cca_cli.commands.console import recovery_stop_note
+
+    tiles = [SimpleNamespace(stopped_by=reason) for reason in ("plateau", "cap", "plateau", "cap", "plateau")]
+    history = SimpleNamespace(iterations=150, records=[SimpleNamespace(change=0.002)])   # the longest tile's
+    recovery = SimpleNamespace(results=tiles, stopped_by="cap", history=history,
+                               options={"tol": 1e-7, "plateau": 0.02, "plateau_window": 5})
+    assert recovery_stop_note(recovery) == (
+        "2 of 5 tiles stopped at the iteration cap (150) before their misfit plateau (less than 2% better over 5 "
+        "iterations) was reached; raise reconstruct.iterations (--iterations) to go on")
+
+
 def test_lengths_read_in_one_unit_down_to_below_a_nanometre():
     from cca_cli.commands.console import length_text
 
