@@ -110,8 +110,8 @@ def _sweep(study: str, config: Path, sets: list[str] | None, workers: int | None
 def _write_partial_table(sw, points, finished: dict, earlier, sweep_dir: Path, spec, cfg) -> None:
     """After Ctrl-C: the table of the points finished so far (the others ``pending``), before cca stops.
 
-    Nothing is written when no point has finished; a second Ctrl-C while it is written leaves the
-    earlier table (or none): the table is written whole or not at all.
+    Nothing is written when no point, of this sweep or an earlier one in the folder, has finished; a second
+    Ctrl-C while it is written leaves the earlier table (or none): the table is written whole or not at all.
     """
     rows = [finished.get(p.index) or sw.interrupted_row(p) for p in points]
     done = sum(row["status"] != "pending" for row in rows)

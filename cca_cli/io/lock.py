@@ -3,7 +3,8 @@
 :func:`folder_lock` creates ``.cca-run.lock`` in the folder and holds an
 exclusive ``flock`` on it for as long as the run lasts; :func:`output_lock`
 does the same for one output of a one-stage command (``.recon.h5.cca-lock``
-beside ``recon.h5``), so that the same command started twice does not run twice. The kernel drops the
+beside ``recon.h5``), so that the same command started twice does not run
+twice. The kernel drops the
 lock when the process ends, however it ends (kill -9 included), so a lock file
 left behind by a dead run is simply taken over; a live run's lock is refused
 with one line naming its process. Where ``fcntl`` is missing the lock file is

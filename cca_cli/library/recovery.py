@@ -42,8 +42,8 @@ from cca_cli.sampling.grid import BandLayout, band_layout, smallest_fft_size
 from cca_cli.sampling.region import RegionEmbedding, plan_embedding
 
 __all__ = ["MAX_DEAD_FRACTION", "DivergedError", "DeviceUnavailable", "reconstruct", "engine_device",
-           "without_dead_captures", "embed_region", "build_model", "problem_calibration", "recover", "run_threads", "drive_engine",
-           "calibrated_pupils"]
+           "without_dead_captures", "embed_region", "build_model", "problem_calibration", "recover", "run_threads",
+           "drive_engine", "calibrated_pupils"]
 
 _log = logging.getLogger("cca")
 #: Share of the captures that may be dead (constant) and left out; more is refused as a broken recording.

@@ -1,4 +1,5 @@
-"""Set-up of each worker process of cca's local Dask cluster (a ``preload`` of :func:`~cca_cli.workflows.cluster.open_client`).
+"""Set-up of each worker process of cca's local Dask cluster (the ``preload`` of
+:func:`~cca_cli.workflows.cluster.open_client`).
 
 Ctrl-C in a terminal reaches every process of the command's process group, the
 local workers included. The ``cca`` process handles it (it stops the cluster and
