@@ -123,6 +123,10 @@ def _exclusive_file(directory: Path, path: Path,
             os.unlink(path)
 
 
+#: How a lock is held here: ``flock`` where the system has it, else an exclusively created file.
+_hold = _flock if fcntl is not None else _exclusive_file
+
+
 @contextlib.contextmanager
 def folder_lock(directory: str | Path) -> Iterator[Path]:
     """Hold the folder's run lock for the duration of the ``with`` block (the folder must exist).
@@ -136,7 +140,7 @@ def folder_lock(directory: str | Path) -> Iterator[Path]:
     """
     directory = Path(directory)
     path = directory / LOCK_NAME
-    with (_flock if fcntl is not None else _exclusive_file)(directory, path):
+    with _hold(directory, path):
         yield path
 
 
@@ -167,5 +171,5 @@ def output_lock(output: str | Path) -> Iterator[Path]:
     except OSError as exc:
         raise OutputError(f"{output}: cannot create the folder {path.parent} ({exc.strerror}); choose another "
                           "output") from None
-    with (_flock if fcntl is not None else _exclusive_file)(output, path, _output_locked_message):
+    with _hold(output, path, _output_locked_message):
         yield path
