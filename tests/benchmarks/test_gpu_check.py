@@ -21,3 +21,22 @@ def test_gpu_check_says_there_is_no_gpu_and_exits_cleanly():
     required = subprocess.run([sys.executable, str(SCRIPT), "--require-gpu"], capture_output=True, text=True,
                               timeout=120)
     assert required.returncode == 2 and required.stdout.startswith("no GPU: ")
+
+
+def test_the_interior_agreement_leaves_out_the_frame_s_edge():
+    sys.path.insert(0, str(SCRIPT.parent))
+    import gpu_check
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    cpu = np.ones((128, 128), np.complex64)
+    gpu = cpu.copy()
+    gpu[2, 30] = np.sqrt(2)        # |ΔI| = 1 at the edge
+    gpu[64, 64] = np.sqrt(1.01)    # 0.01 in the middle
+    assert gpu_check.peak_difference(cpu, gpu) == pytest.approx(1.0)
+    recovery = SimpleNamespace(object=cpu, observed=np.ones((32, 32)))   # 4 object px a frame px
+    margin = gpu_check.interior_margin(recovery)
+    assert margin == 4 * gpu_check.INTERIOR_MARGIN_FRAME_PX
+    assert gpu_check.peak_difference(cpu, gpu, margin) == pytest.approx(0.01, rel=1e-5)
+    assert gpu_check.interior_margin(SimpleNamespace(object=cpu, observed=None)) == 0
