@@ -107,7 +107,7 @@ def plot_sweep(data: SweepPlotData, directory: Path) -> list[Path]:
     intensities), ``rmse_band_vs_<x>.png`` (the same against the band-limited
     truth), ``mtf20_vs_<x>.png`` (resolution limit, for charts),
     ``contrast_vs_width.png`` (contrast per bar width of highlighted points)
-    and ``montage.png`` (centre crops of truth, observed and recovered images).
+    and ``montage.png`` (centre crops of truth, observed and recovered images on one grey scale).
     """
     plt = _plt()
     directory = Path(directory)
@@ -161,10 +161,14 @@ def plot_sweep(data: SweepPlotData, directory: Path) -> list[Path]:
         fig, axes = plt.subplots(rows, cols, figsize=(2.6 * cols, 3.0 * rows), dpi=110, squeeze=False)
         for ax in axes.ravel():
             ax.axis("off")
+        # one grey scale for every panel (the first's, the truth where there is one), so a recovery that lost
+        # contrast or brightness looks it
+        top = _crop_top(_centre_crop(panels[0][1]))
         for ax, (title, image) in zip(axes.ravel(), panels):
-            ax.imshow(_centre_crop(image), cmap="gray", interpolation="nearest")
+            ax.imshow(_centre_crop(image), cmap="gray", interpolation="nearest", vmin=0, vmax=top)
             ax.set_title(title, fontsize=8)
-        fig.suptitle(f"{data.study} study: centre crops (half the field of view), intensity", fontsize=9)
+        fig.suptitle(f"{data.study} study: centre crops (half the field of view), intensity on one grey scale "
+                     f"(0 to the {panels[0][0].split(' (')[0]}'s 99.5th percentile)", fontsize=9)
         paths.append(_save(plt, fig, directory / "montage.png"))
     return paths
 
@@ -176,8 +180,13 @@ def _mean_contrast(table: dict) -> np.ndarray:
 
 
 def _centre_crop(image: np.ndarray) -> np.ndarray:
+    """The middle half of ``image`` along each axis (float64)."""
     n = image.shape[-1]
     q = n // 4
-    crop = np.asarray(image)[q:n - q, q:n - q]
-    hi = np.percentile(crop, 99.5)
-    return np.clip(crop / hi, 0, 1) if hi > 0 else crop
+    return np.asarray(image, np.float64)[q:n - q, q:n - q]
+
+
+def _crop_top(crop: np.ndarray) -> float:
+    """The grey scale's white: the crop's 99.5th percentile (1 for a dark crop)."""
+    top = float(np.percentile(crop, 99.5))
+    return top if top > 0 else 1.0

@@ -102,3 +102,28 @@ def test_detail_region_finds_the_fine_structure():
     y0, y1, x0, x1 = detail_region(image, cutoff_px=8).pixels(128)
     assert y0 <= 85 <= y1 and x0 <= 45 <= x1
     assert y1 - y0 == x1 - x0 == 32
+
+
+def test_the_sweep_montage_shows_every_panel_on_the_truth_s_grey_scale(tmp_path, monkeypatch):
+    """A recovery that lost brightness must look dimmer than the truth, not be stretched to the same white."""
+    import numpy as np
+
+    from cca_cli.report import sweep_figures
+
+    rng = np.random.default_rng(0)
+    truth = rng.uniform(0, 1, (64, 64))
+    crops = [({"x": 0.6, "group": None, "rmse_recovered": 0.1},
+              {"truth": truth, "observed": 0.8 * truth, "recovered": 0.5 * truth})]
+    data = sweep_figures.SweepPlotData(study="overlap", x="array.overlap", group=None,
+                                       series=[{"x": 0.6, "group": None}], crops=crops)
+    limits = {}
+
+    def keep(plt, fig, path, **kw):
+        limits[path.name] = [ax.images[0].get_clim() for ax in fig.axes if ax.images]
+        plt.close(fig)
+        return path
+
+    monkeypatch.setattr(sweep_figures, "_save", keep)
+    sweep_figures.plot_sweep(data, tmp_path)
+    top = np.percentile(truth[16:48, 16:48], 99.5)
+    assert limits["montage.png"] == [(0.0, top)] * 3    # truth, observed and recovered alike
