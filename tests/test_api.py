@@ -235,8 +235,8 @@ def test_load_keeps_what_a_recorded_file_says(recorded_led_file):
 
 
 def test_a_momentum_run_on_many_cores_takes_no_more_threads_than_its_lanes(recorded_led_file, monkeypatch):
-    """Threads beyond the momentum engine's lanes only split small transforms (slower on 16 cores)."""
-    from cca_cli.engines.momentum import MAX_THREADS
+    """A momentum run that names no threads takes two for everything (on 16 cores, four were slower)."""
+    from cca_cli.engines.momentum import DEFAULT_THREADS
     from cca_cli.engines.problem import PhaseRetrievalProblem
     from cca_cli.optics import fft
 
@@ -249,7 +249,7 @@ def test_a_momentum_run_on_many_cores_takes_no_more_threads_than_its_lanes(recor
     cca.reconstruct(captures, engine="momentum", max_iterations=2)
     cca.reconstruct(captures, engine="momentum", threads=8, max_iterations=2)      # named: as asked
     cca.reconstruct(captures, engine="altmin", max_iterations=2)                   # altmin splits batches further
-    assert asked == [(MAX_THREADS, MAX_THREADS), (8, 16), (16, 16)]
+    assert asked == [(DEFAULT_THREADS, DEFAULT_THREADS), (8, 16), (16, 16)]
     assert fft.default_threads() == 16                                              # the limit ends with the run
 
 

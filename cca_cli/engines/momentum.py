@@ -65,13 +65,18 @@ from cca_cli.engines.stopping import StoppingPolicy
 from cca_cli.optics import fft, kernels
 from cca_cli.optics.forward import ForwardModel
 
-__all__ = ["MAX_THREADS", "MAX_LANES", "lanes_for", "MomentumOptions", "Calibration", "MomentumBase", "SequentialMomentum", "held_back_captures"]
+__all__ = ["DEFAULT_THREADS", "MAX_THREADS", "MAX_LANES", "lanes_for", "MomentumOptions", "Calibration", "MomentumBase", "SequentialMomentum", "held_back_captures"]
 
 #: Most threads a pass uses; a larger ``threads`` runs as this many. Threads beyond a phase's lanes split the
 #: lanes' batches (:func:`~cca_cli.engines.passes.thread_groups`). On a 16-core machine the blood smear's
 #: passes took 0.054, 0.055, 0.062 and 0.072 s with 2, 4, 8 and 16 threads (benchmarks/bench_threads.py):
 #: beyond four the hand-overs between threads cost more than the split saves.
 MAX_THREADS = 4
+#: Threads a pass uses when the options name none (fewer where the process may use fewer cores). On the
+#: 16-core machine, with every thread the run's own, the blood smear's whole default run took 2.47 s with
+#: 2 threads and 2.80 s with 4 (2026-11-27, ``benchmarks/bench_threads.py``): more lanes only add hand-overs.
+#: It also makes the default result the same on every machine with two cores or more.
+DEFAULT_THREADS = 2
 #: Most lanes a phase is split into.
 MAX_LANES = 8
 
@@ -96,9 +101,9 @@ class MomentumBase(CalibratingEngine):
     ``_to_host`` / ``_to_device`` move arrays where the engine keeps them elsewhere (a GPU).
     """
 
-    #: The most threads a run of this engine uses when its options name none (:data:`MAX_THREADS` lanes):
+    #: The most threads a run of this engine uses when its options name none (:data:`DEFAULT_THREADS`):
     #: the problem's set-up, the FFTs and the fit report then take no more either.
-    max_threads = MAX_THREADS
+    max_threads = DEFAULT_THREADS
 
     def _start(self, problem: PhaseRetrievalProblem, options: MomentumOptions, spectrum: np.ndarray | None,
                threads: int) -> None:
@@ -263,7 +268,8 @@ class SequentialMomentum(MomentumBase):
 
     def __init__(self, problem: PhaseRetrievalProblem, options: MomentumOptions = MomentumOptions(),
                  spectrum: np.ndarray | None = None):
-        threads = max(1, min(options.threads or fft.default_threads(), MAX_THREADS, problem.model.n_images))
+        named = options.threads or min(fft.default_threads(), self.max_threads)
+        threads = max(1, min(named, MAX_THREADS, problem.model.n_images))
         self._lanes = lanes_for(threads)
         self._start(problem, options, spectrum, threads)
         self.passes = SequentialPass(problem.model, threads)
@@ -277,9 +283,9 @@ class SequentialMomentum(MomentumBase):
         """Lay out the captures at their current centres and (re)build the visiting order and the model."""
         order = self._lay_out()
         self._origins = np.ascontiguousarray(self._layout.box_origins, dtype=np.int64)
-        self._amplitudes = np.ascontiguousarray(self.problem.amplitudes[order], dtype=np.float32)
-        self._weights = None if self.problem.weights is None else np.ascontiguousarray(self.problem.weights[order],
-                                                                                        np.float32)
+        self._amplitudes = self._in_order(self.problem.amplitudes, order, getattr(self, "_amplitudes", None))
+        self._weights = None if self.problem.weights is None else self._in_order(
+            self.problem.weights, order, getattr(self, "_weights", None))
         self._set_targets()
         recovery = self.calibrator.recovery
         capacity = max(sl.stop - sl.start for sl in self._schedule.batches)
@@ -290,6 +296,18 @@ class SequentialMomentum(MomentumBase):
             self._set_recovered_model()
         else:
             self._set_model(self.calibrator.pupils_for(self._layout, self.calibrator.pupil_index[order]))
+
+    @staticmethod
+    def _in_order(source: np.ndarray, order: np.ndarray, kept: np.ndarray | None) -> np.ndarray:
+        """``source[order]`` as a C-contiguous float32 array, written into ``kept`` where it fits.
+
+        The batches grow a few times per run, and each new arrangement would otherwise take fresh
+        pages for every capture (first-touch page faults cost more than the copy).
+        """
+        if (kept is not None and kept.shape == (len(order),) + source.shape[1:] and kept.dtype == np.float32
+                and kept.flags.c_contiguous and not np.shares_memory(kept, source)):
+            return np.take(np.asarray(source, np.float32), order, axis=0, out=kept)
+        return np.ascontiguousarray(source[order], dtype=np.float32)
 
     def _set_targets(self) -> None:
         """Measured amplitudes divided by each capture's brightness (engine order)."""

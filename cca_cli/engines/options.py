@@ -226,8 +226,9 @@ class MomentumOptions(EngineOptions):
         the best one (as also at the end of a run that stops otherwise while
         their misfit is above the best).
     threads : int or None
-        Worker threads; None uses the cores the process may use (a pass uses at
-        most 4: beyond that the hand-overs cost more than they save).
+        Worker threads; None uses two, or one where the process may use one
+        core only (on 16 cores the blood smear ran faster on two threads than on
+        four; a pass uses at most 4, and more lanes only add hand-overs).
         One and two threads visit the captures in the same order and agree to
         float rounding; more threads split the spectrum further, so the
         visiting order (and the result, slightly) depends on their number. The

@@ -299,7 +299,13 @@ class PupilRecovery:
         rows = [tuple(centre) for centre in centres.tolist()]
         found = [where.get(row, -1) for row in rows]
         if known is not None and min(found, default=0) >= 0:
-            return known[found]   # a new array: the kept discs stay the recovery's own
+            # the kept discs stay the recovery's own; the last discs are refilled where they fit (fresh pages
+            # cost more than the copy)
+            last = getattr(self, "_discs", None)
+            if (isinstance(last, np.ndarray) and last.shape == (len(found),) + known.shape[1:]
+                    and last.dtype == known.dtype and last.flags.c_contiguous and last is not known):
+                return np.take(known, found, axis=0, out=last)
+            return known[found]
         discs = circular_pupils(layout.box_size, centres, layout.pupil_radius_px)
         self._known_discs_key = key
         self._known_discs = (discs.copy(), {row: i for i, row in enumerate(rows)})

@@ -151,3 +151,22 @@ def test_threads_beyond_the_cap_run_as_the_cap():
         spectra.setdefault(threads, []).append(engine.spectrum().copy())
     np.testing.assert_array_equal(spectra[16][0], spectra[16][1])
     np.testing.assert_array_equal(spectra[16][0], spectra[MAX_THREADS][0])
+
+
+def test_unnamed_threads_run_as_two_on_a_many_core_machine(monkeypatch):
+    """Options naming no threads take DEFAULT_THREADS on 16 cores: the result of ``threads: 2``, bit for bit."""
+    from cca_cli.engines.momentum import DEFAULT_THREADS
+    from cca_cli.optics import fft
+
+    problem, *_ = make_case()
+    spectra = {}
+    for threads in (None, DEFAULT_THREADS):
+        with monkeypatch.context() as patch:
+            patch.setattr(fft, "default_threads", lambda: 16)
+            engine = SequentialMomentum(problem, MomentumOptions(max_iterations=3, tol=0, threads=threads))
+        assert engine.passes.threads == DEFAULT_THREADS == 2
+        for _ in range(3):
+            engine.update()
+        engine.close()
+        spectra[threads] = engine.spectrum().copy()
+    np.testing.assert_array_equal(spectra[None], spectra[DEFAULT_THREADS])
