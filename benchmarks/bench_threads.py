@@ -15,6 +15,7 @@ Usage::
     cca ingest configs/bloodsmear_green_manifest.yaml -o blood_raw.h5
     python benchmarks/bench_threads.py blood_raw.h5 --repeats 3
     python benchmarks/bench_threads.py blood_raw.h5 --threads 1,2 --json threads.json
+    python benchmarks/bench_threads.py blood_raw.h5 --threads 2 --iterations 33 --repeats 5   # capped runs
 """
 
 from __future__ import annotations
@@ -45,6 +46,8 @@ def main() -> None:
     parser.add_argument("--threads", default=None, help="comma-separated thread counts (default 1, 2, 4, ... cores)")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--engine", default="auto")
+    parser.add_argument("--iterations", type=int, default=None,
+                        help="cap every run at this many passes (the time to a quality reached there)")
     parser.add_argument("--json", type=Path, default=None, help="also write the table here")
     args = parser.parse_args()
 
@@ -52,11 +55,12 @@ def main() -> None:
     keep_freed_memory()   # as the cca command does
     captures = cca.load(args.captures)
     cca.reconstruct(captures, engine=args.engine, iterations=2)  # compile and warm the caches once
+    capped_at = {} if args.iterations is None else {"iterations": args.iterations}
     runs: dict[int, list[tuple[float, int, float]]] = {n: [] for n in counts}
     for _ in range(args.repeats):
         for n in counts:  # interleaved, so a slow spell of the machine hits every count
             start = time.perf_counter()
-            result = cca.reconstruct(captures, engine=args.engine, threads=n)
+            result = cca.reconstruct(captures, engine=args.engine, threads=n, **capped_at)
             runs[n].append((time.perf_counter() - start, result.iterations, result.seconds))
 
     rows = []
@@ -68,7 +72,8 @@ def main() -> None:
                      "passes_median_s": statistics.median(p for _, _, p in runs[n]),
                      "passes_s_per_pass": loop_per_pass})
     base, base_loop = rows[0]["s_per_pass"], rows[0]["passes_s_per_pass"]
-    print(f"{args.captures} on {cpu_count()} cores, engine {args.engine}, {args.repeats} runs each")
+    capped = "" if args.iterations is None else f", at most {args.iterations} passes"
+    print(f"{args.captures} on {cpu_count()} cores, engine {args.engine}{capped}, {args.repeats} runs each")
     print(f"{'threads':>7} {'median s':>9} {'s/pass':>8} {'speed-up/pass':>14} {'passes s':>9} {'speed-up':>9}  passes")
     for row in rows:
         row["speedup_per_pass"] = base / row["s_per_pass"]

@@ -28,7 +28,7 @@ from cca_cli.io.measurements import INTENSITY, WEIGHT
 from cca_cli.io.outputs import is_cca_hdf5
 from cca_cli.io.schema import spec_for
 
-__all__ = ["FrameInfo", "read_frame_info", "read_frame_centre", "read_tile_captures", "TileResult", "tile_folder",
+__all__ = ["FrameInfo", "read_frame_info", "read_frame_centre", "read_dead_frames", "read_tile_captures", "TileResult", "tile_folder",
            "tile_path", "write_tile_result", "read_tile_result", "tile_file_problem", "remove_tile_folder"]
 
 _HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
@@ -65,6 +65,36 @@ def read_frame_centre(path: Path, centre_index: int) -> tuple[np.ndarray, dict]:
         observed = np.asarray(require(handle, INTENSITY, ndim=3)[centre_index], np.float32)
         truth = {name: np.asarray(handle["truth"][name]) for name in handle["truth"]} if "truth" in handle else {}
     return observed, truth
+
+
+#: Bytes of images :func:`read_dead_frames` reads at a time.
+_SCAN_BYTES = 64 << 20
+
+
+def read_dead_frames(path: Path) -> tuple[np.ndarray, list[float]]:
+    """The captures whose whole frame holds one value (dead: nothing was recorded), and those values.
+
+    A tile may hold only dark pixels of a live capture, so whether a capture is dead is decided on
+    its whole frame, here, once; the images are read a few at a time.
+
+    Returns
+    -------
+    dead : ndarray of int64
+        Their indices.
+    values : list of float
+        The value each holds.
+    """
+    with open_input(path) as handle:
+        dataset = require(handle, INTENSITY, ndim=3)
+        k, h, w = dataset.shape
+        step = max(1, _SCAN_BYTES // max(1, h * w * dataset.dtype.itemsize))
+        dead, values = [], []
+        for start in range(0, k, step):
+            block = np.asarray(dataset[start:start + step]).reshape(-1, h * w)
+            constant = np.flatnonzero(block.max(axis=1) == block.min(axis=1))
+            dead.extend(int(start + i) for i in constant)
+            values.extend(float(block[i, 0]) for i in constant)
+    return np.asarray(dead, np.int64), values
 
 
 def read_tile_captures(path: Path, box: tuple[int, int, int, int]) -> CaptureSet:

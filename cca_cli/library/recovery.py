@@ -42,7 +42,7 @@ from cca_cli.sampling.grid import BandLayout, band_layout, smallest_fft_size
 from cca_cli.sampling.region import RegionEmbedding, plan_embedding
 
 __all__ = ["MAX_DEAD_FRACTION", "DivergedError", "DeviceUnavailable", "reconstruct", "engine_device",
-           "without_dead_captures", "embed_region", "build_model", "problem_calibration", "recover", "run_threads",
+           "without_dead_captures", "check_dead_captures", "drop_captures", "embed_region", "build_model", "problem_calibration", "recover", "run_threads",
            "drive_engine", "calibrated_pupils"]
 
 _log = logging.getLogger("cca")
@@ -189,7 +189,7 @@ def without_dead_captures(captures: CaptureSet, *, name: str = "intensities", so
     the captures are left out with one warning naming them and their grid
     positions. More, or a dead centre capture (the one that holds the object's
     lowest frequencies, and the single-camera image the report compares with),
-    are refused.
+    are refused (:func:`check_dead_captures`).
 
     Parameters
     ----------
@@ -206,13 +206,40 @@ def without_dead_captures(captures: CaptureSet, *, name: str = "intensities", so
     dead = constant_images(captures.intensity)
     if dead.size == 0:
         return captures
+    values = [float(captures.intensity[i].flat[0]) for i in dead]
+    check_dead_captures(dead, values, captures.geometry, name=name, source=source, error=error)
+    return drop_captures(captures, dead)
+
+
+def check_dead_captures(dead, values, geometry: CaptureGeometry, *, name: str = "intensities", source=None,
+                        error: type[Exception] = ValueError) -> None:
+    """Refuse dead captures that cannot be left out; warn once, naming them, about those that can.
+
+    Parameters
+    ----------
+    dead : array_like of int
+        Indices of the captures whose images hold one value (:func:`~cca_cli.library.data.constant_images`).
+    values : sequence of float
+        The value each of them holds.
+    geometry : CaptureGeometry
+        The captures' geometry (names their grid positions and the centre capture).
+    name, source, error
+        As :func:`without_dead_captures`.
+
+    Raises
+    ------
+    error
+        The centre capture is dead, or more than :data:`MAX_DEAD_FRACTION` of the captures are.
+    """
+    dead = np.asarray(dead, np.int64).reshape(-1)
+    if dead.size == 0:
+        return
     where = f"{source}: " if source else ""
-    geometry = captures.geometry
-    k = captures.intensity.shape[0]
+    k = geometry.n_images
     centre = geometry.centre_index
     holds = "holds" if dead.size == 1 else "hold"
     if centre in dead:
-        value = float(captures.intensity[centre].flat[0])
+        value = float(values[int(np.flatnonzero(dead == centre)[0])])
         raise error(f"{where}image {centre} of {name}, the centre capture {_where(geometry, centre)}, holds one value "
                     f"(every pixel {value:g}): nothing was recorded there, "
                     "and the recovery needs it for the object's lowest frequencies; re-take it")
@@ -222,14 +249,21 @@ def without_dead_captures(captures: CaptureSet, *, name: str = "intensities", so
         raise error(f"{where}{dead.size} of {k} images of {name} {holds} one value{each}, so nothing was recorded "
                     f"there ({_listed(dead, geometry)}); at most {MAX_DEAD_FRACTION:.0%} of the captures ({allowed} "
                     f"here) may be left out: check the camera and re-take them")
-    values = ", ".join(f"{float(captures.intensity[i].flat[0]):g}" for i in dead[:6])
+    shown = ", ".join(f"{float(v):g}" for v in list(values)[:6])
     _log.warning("%sleft out %s of %d images of %s: %s %s one value (%s), nothing was recorded there; the "
-                 "recovery uses the other %d", where, dead.size, k, name, _listed(dead, geometry), holds, values,
+                 "recovery uses the other %d", where, dead.size, k, name, _listed(dead, geometry), holds, shown,
                  k - dead.size)
-    keep = np.setdiff1d(np.arange(k), dead)
+
+
+def drop_captures(captures: CaptureSet, dead) -> CaptureSet:
+    """``captures`` without the images ``dead`` (with their weights and geometry; ``dropped`` names them)."""
+    dead = np.asarray(dead, np.int64).reshape(-1)
+    if dead.size == 0:
+        return captures
+    keep = np.setdiff1d(np.arange(captures.intensity.shape[0]), dead)
     weight = None if captures.weight is None else captures.weight[keep]
-    return replace(captures, intensity=captures.intensity[keep], weight=weight, geometry=geometry.select(keep),
-                   dropped=tuple(int(i) for i in dead))
+    return replace(captures, intensity=captures.intensity[keep], weight=weight,
+                   geometry=captures.geometry.select(keep), dropped=tuple(int(i) for i in dead))
 
 
 def embed_region(captures: CaptureSet, *, padding: str = "auto", guard_px: int | None = None,

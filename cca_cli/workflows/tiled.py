@@ -47,10 +47,12 @@ from cca_cli.engines.registry import get_engine
 from cca_cli.errors import CcaError, ConfigError, InputError, OutputError
 from cca_cli.io.h5 import Provenance
 from cca_cli.io.recon import TilesRecord
-from cca_cli.io.tiles import (FrameInfo, TileResult, read_frame_centre, read_frame_info, read_tile_captures,
-                              read_tile_result, tile_file_problem, tile_folder, tile_path, write_tile_result)
+from cca_cli.io.measurements import INTENSITY
+from cca_cli.io.tiles import (FrameInfo, TileResult, read_dead_frames, read_frame_centre, read_frame_info,
+                              read_tile_captures, read_tile_result, tile_file_problem, tile_folder, tile_path,
+                              write_tile_result)
 from cca_cli.library.data import CaptureSet, Reconstruction
-from cca_cli.library.recovery import recover
+from cca_cli.library.recovery import check_dead_captures, drop_captures, recover
 from cca_cli.optics import fft
 from cca_cli.progress import ProgressEvent, ProgressFn, silent
 from cca_cli.sampling.capture import with_field_width
@@ -61,7 +63,8 @@ from cca_cli.sampling.tiles import Tile, TilePlan, local_illumination, plan_tile
 from cca_cli.version import __version__
 from cca_cli.workflows.recovery import embed_region, engine_options, recipe_of
 
-__all__ = ["TiledPlan", "TiledRecovery", "plan_tiled", "tile_geometry", "tile_engine", "tile_recipe", "run_tile",
+__all__ = ["TiledPlan", "TiledRecovery", "plan_tiled", "without_dead_frames", "tile_geometry", "tile_engine",
+           "tile_recipe", "run_tile",
            "stitch", "reconstruct_tiled"]
 
 #: Seconds between a worker's progress messages for one tile.
@@ -71,7 +74,7 @@ _log = logging.getLogger("cca")
 
 @dataclass(frozen=True)
 class TiledPlan:
-    """What a tiled reconstruction will do, known before any image is read.
+    """What a tiled reconstruction will do, known before any image is read (but the dead captures).
 
     Attributes
     ----------
@@ -82,6 +85,9 @@ class TiledPlan:
     tiles : TilePlan
     upsampling : int
         Samples of the blend grid per frame pixel (``q``): the finest any tile's recovery needs.
+    dropped : tuple of int
+        Dead captures (their whole frame holds one value), which every tile leaves out
+        (:func:`without_dead_frames`).
     """
 
     captures_path: Path
@@ -89,6 +95,7 @@ class TiledPlan:
     geometry: CaptureGeometry
     tiles: TilePlan
     upsampling: int
+    dropped: tuple[int, ...] = ()
 
     @property
     def frame_pixel_m(self) -> float:
@@ -172,7 +179,7 @@ class TiledRecovery:
             object=self.object, spectrum=spectrum, history=self.history,
             geometry=replace(geometry, pixel_pitch_m=plan.geometry.pixel_pitch_m), engine=self.engine,
             options=self.options, seconds=self.seconds, stopped_by=self.stopped_by, observed=observed, truth=truth,
-            units=plan.frame.units, band_grid_px=side, region=region)
+            units=plan.frame.units, band_grid_px=side, region=region, dropped=plan.dropped)
         have_pupils = all(r.pupil is not None for r in results)
         have_waves = all(r.zernike_waves is not None for r in results)
         tiles = TilesRecord(
@@ -245,6 +252,17 @@ def plan_tiled(captures_path: Path, section: ReconstructSection) -> TiledPlan:
             raise InputError(f"{captures_path}: tile at ({tile.y0}, {tile.x0}): {exc}") from None
         ratio = max(ratio, layout.hires_size / region.size)
     return TiledPlan(Path(captures_path), frame, geometry, tiles, int(math.ceil(ratio - 1e-9)))
+
+
+def without_dead_frames(plan: TiledPlan) -> TiledPlan:
+    """``plan`` with the captures whose whole frame holds one value to be left out by every tile.
+
+    Decided on the whole frames (a tile may hold only dark pixels of a live capture), with the
+    whole-frame run's rule: a dead centre capture, or more than 5% dead, are refused in one line.
+    """
+    dead, values = read_dead_frames(plan.captures_path)
+    check_dead_captures(dead, values, plan.geometry, name=INTENSITY, source=plan.captures_path, error=InputError)
+    return replace(plan, dropped=tuple(int(i) for i in dead))
 
 
 def tile_engine(section: ReconstructSection, kind: str, *, fixed: bool = False,
@@ -323,6 +341,7 @@ def _recover_tile(task: TileTask, section: ReconstructSection, parent: TileResul
     plan, tile = task.plan, task.tile
     captures = read_tile_captures(plan.captures_path, tile.box)
     captures = replace(captures, geometry=tile_geometry(plan.geometry, plan.frame.frame_shape, tile))
+    captures = drop_captures(captures, plan.dropped)
     padded, region = embed_region(captures, section, source=plan.captures_path)
     name, options = tile_engine(section, plan.geometry.kind, fixed=fixed, frame_scale=plan.frame.frame_scale)
     start = None
@@ -482,7 +501,7 @@ def reconstruct_tiled(captures_path: Path, section: ReconstructSection, output: 
     """
     from cca_cli.workflows.cluster import cluster_settings, open_client
 
-    plan = plan_tiled(captures_path, section)
+    plan = without_dead_frames(plan_tiled(captures_path, section))
     start = time.perf_counter()
     name, options = tile_engine(section, plan.geometry.kind, frame_scale=plan.frame.frame_scale)
     order = tile_order(plan.tiles)

@@ -185,3 +185,41 @@ def test_tiles_of_a_defocused_lens_find_its_defocus(tmp_path, client):
                                    client=client, pupil_recovery="shared", pupil_model="zernike")
     defocus = result.zernike_waves[:, 0, 0]
     assert np.all(np.abs(defocus - 0.25) < 0.04), defocus
+
+
+def test_dead_captures_are_judged_on_the_whole_frame_and_left_out_of_every_tile(tmp_path, frame_captures,
+                                                                                 frame_config, monkeypatch, caplog):
+    """A capture whose whole frame holds one value is left out of every tile; one dark in a tile only is kept."""
+    import shutil
+
+    from cca_cli.errors import InputError
+    from cca_cli.workflows import tiled
+
+    path = tmp_path / "captures.h5"
+    shutil.copy(frame_captures, path)
+    with h5py.File(path, "r+") as f:
+        images = f["/measurements/intensity"]
+        k = images.shape[0]
+        dead, dark_in_a_tile = 0, 1                # corner LEDs of the 5 × 5 grid (the centre is 12)
+        images[dead] = 0.0
+        images[dark_in_a_tile, :96, :96] = 0.0
+    section = frame_config.reconstruct
+    with caplog.at_level("WARNING", logger="cca"):
+        plan = tiled.without_dead_frames(plan_tiled(path, section))
+    assert plan.dropped == (dead,)
+    assert "left out 1 of 25 images" in caplog.text
+
+    seen = []
+    real_recover = tiled.recover
+    monkeypatch.setattr(tiled, "recover", lambda captures, *a, **k: seen.append(captures.intensity.shape[0])
+                        or real_recover(captures, *a, **k))
+    corner = plan.tiles.tiles[0]
+    task = tiled.TileTask(plan=plan, section=tiled.task_section(section), tile=corner, output=str(tmp_path / "r.h5"),
+                          fingerprint="f", provenance={}, topic="t")
+    result = tiled.run_tile(task)
+    assert seen == [k - 1] and result.iterations == 40
+
+    with h5py.File(path, "r+") as f:
+        f["/measurements/intensity"][12] = 3.0     # the centre capture dead too: refused, in one line
+    with pytest.raises(InputError, match="centre capture"):
+        tiled.without_dead_frames(plan_tiled(path, section))
