@@ -158,6 +158,8 @@ class TileResult:
     shift_px : tuple of float
         Shift applied to register the tile to its centre capture (blend-grid px).
     fingerprint : str
+    device : str
+        Where the tile's engine ran (``cpu`` or ``cuda``).
     """
 
     row: int
@@ -175,6 +177,7 @@ class TileResult:
     history: dict
     shift_px: tuple[float, float]
     fingerprint: str
+    device: str = "cpu"
 
     def summary(self) -> "TileResult":
         """The same without the object (what a neighbour's task needs: small to send)."""
@@ -215,7 +218,8 @@ def write_tile_result(path: Path, result: TileResult, provenance: Provenance) ->
                            zernike_modes=json.dumps([list(m) for m in result.zernike_modes]),
                            residual=json.dumps(result.residual), iterations=result.iterations,
                            seconds=result.seconds, stopped_by=result.stopped_by, engine=result.engine,
-                           shift_px=np.asarray(result.shift_px, np.float64), fingerprint=result.fingerprint)
+                           shift_px=np.asarray(result.shift_px, np.float64), fingerprint=result.fingerprint,
+                           device=result.device)
 
 
 def read_tile_result(path: Path, fingerprint: str | None = None, *, with_object: bool = True) -> TileResult | None:
@@ -238,7 +242,7 @@ def read_tile_result(path: Path, fingerprint: str | None = None, *, with_object:
                 residual=json.loads(_text(attrs["residual"])), iterations=int(attrs["iterations"]),
                 seconds=float(attrs["seconds"]), stopped_by=_text(attrs["stopped_by"]), engine=_text(attrs["engine"]),
                 history=history, shift_px=tuple(float(v) for v in attrs["shift_px"]),
-                fingerprint=_text(attrs["fingerprint"]))
+                fingerprint=_text(attrs["fingerprint"]), device=_text(attrs.get("device", "cpu")))
     except (OSError, KeyError, ValueError, TypeError):
         return None
 

@@ -11,13 +11,17 @@ written once here.
 Devices
 -------
 ``cpu``: the CPU engines, exactly as without this module. ``cuda``: the
-batched engines on the first CUDA GPU; an error naming the fix when CuPy or a
-GPU is missing. ``auto``: ``cuda`` when CuPy and a GPU are there, else ``cpu``.
+batched engines on the current CUDA GPU (the first, unless :func:`using_gpu`
+names another: a Dask worker of a tiled run takes one of several,
+:func:`gpu_for_worker`); an error naming the fix when CuPy or a GPU is missing.
+``auto``: ``cuda`` when CuPy and a GPU are there, else ``cpu``.
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import hashlib
 from dataclasses import dataclass
 from types import ModuleType
 
@@ -26,7 +30,7 @@ import numpy as np
 from cca_cli.optics.fft import _scipy_fft
 
 __all__ = ["DEVICES", "GPU_INSTALL", "DeviceStatus", "DeviceUnavailable", "cupy_module", "device_status",
-           "resolve_device", "array_module", "get_array_module", "to_device", "to_host", "fft2", "ifft2",
+           "resolve_device", "gpu_count", "gpu_for_worker", "using_gpu", "array_module", "get_array_module", "to_device", "to_host", "fft2", "ifft2",
            "PlannedFFT2", "GraphedWork", "scatter_add", "synchronize"]
 
 #: What ``reconstruct.device`` (``--device``, ``device=``) takes.
@@ -129,6 +133,43 @@ def resolve_device(device: str, *, usable: bool = True) -> str:
         raise DeviceUnavailable(f"device cuda needs CuPy and a CUDA GPU, but {reason}: install CuPy with "
                                 f"{GPU_INSTALL} on a machine with an NVIDIA GPU, or use device cpu")
     return "cuda"
+
+
+def gpu_count() -> int:
+    """CUDA GPUs CuPy sees (0 without CuPy, a driver or a GPU)."""
+    cupy = cupy_module()
+    if cupy is None:
+        return 0
+    try:
+        return max(0, int(cupy.cuda.runtime.getDeviceCount()))
+    except Exception:  # noqa: BLE001 - no driver, no device: CuPy raises its own CUDA errors
+        return 0
+
+
+def gpu_for_worker(name, count: int) -> int:
+    """The GPU (0 … count − 1) a worker named ``name`` takes, so that workers spread over the GPUs.
+
+    A worker named by a number (a local Dask cluster's are 0, 1, …) takes that number modulo
+    ``count``; any other name a stable hash of it (the same GPU in every run).
+    """
+    if count < 1:
+        raise ValueError(f"count must be ≥ 1, got {count}")
+    try:
+        number = int(name)
+    except (TypeError, ValueError):
+        number = int.from_bytes(hashlib.sha256(str(name).encode()).digest()[:8], "big")
+    return number % count
+
+
+@contextlib.contextmanager
+def using_gpu(index: int):
+    """Make GPU ``index`` the current device of this thread while the block runs (nothing without CuPy)."""
+    cupy = cupy_module()
+    if cupy is None:
+        yield
+        return
+    with cupy.cuda.Device(int(index)):
+        yield
 
 
 def array_module(device: str) -> ModuleType:

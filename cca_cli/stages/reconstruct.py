@@ -165,10 +165,9 @@ def run(captures_path: Path, section: ReconstructSection, output: Path, *, prove
     check_device(section)
     provenance.setdefault("engine_recipe", engine_recipe(captures_path, section))
     multiplexed = is_multiplexed_file(captures_path)
-    if section.device == "cuda" and (section.tiles is not None or multiplexed):
-        what = "tiled (reconstruct.tiles)" if section.tiles is not None else "multiplexed"
-        raise ConfigError(f"reconstruct.device: cuda runs whole-frame reconstructions of plain captures; {what} "
-                          "reconstructions run on the CPU: use device cpu or auto")
+    if section.device == "cuda" and multiplexed:
+        raise ConfigError("reconstruct.device: cuda runs reconstructions of plain captures (whole frames or "
+                          "tiles); multiplexed reconstructions run on the CPU: use device cpu or auto")
     if section.tiles is not None:
         if multiplexed:
             raise InputError(f"{captures_path}: multiplexed captures are recovered whole; leave out reconstruct.tiles")

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import contextlib
 import hashlib
 import json
 import logging
@@ -52,8 +53,8 @@ from cca_cli.io.tiles import (FrameInfo, TileResult, read_dead_frames, read_fram
                               read_tile_captures, read_tile_result, tile_file_problem, tile_folder, tile_path,
                               write_tile_result)
 from cca_cli.library.data import CaptureSet, Reconstruction
-from cca_cli.library.recovery import check_dead_captures, drop_captures, recover
-from cca_cli.optics import fft
+from cca_cli.library.recovery import DeviceUnavailable, check_dead_captures, drop_captures, engine_device, recover
+from cca_cli.optics import backend, fft
 from cca_cli.progress import ProgressEvent, ProgressFn, silent
 from cca_cli.sampling.capture import with_field_width
 from cca_cli.sampling.geometry import CaptureGeometry
@@ -179,7 +180,8 @@ class TiledRecovery:
             object=self.object, spectrum=spectrum, history=self.history,
             geometry=replace(geometry, pixel_pitch_m=plan.geometry.pixel_pitch_m), engine=self.engine,
             options=self.options, seconds=self.seconds, stopped_by=self.stopped_by, observed=observed, truth=truth,
-            units=plan.frame.units, band_grid_px=side, region=region, dropped=plan.dropped)
+            units=plan.frame.units, band_grid_px=side, region=region, dropped=plan.dropped,
+            device="+".join(sorted({r.device for r in results})))
         have_pupils = all(r.pupil is not None for r in results)
         have_waves = all(r.zernike_waves is not None for r in results)
         tiles = TilesRecord(
@@ -327,12 +329,28 @@ def run_tile(task: TileTask, parent: TileResult | None = None, fixed: bool = Fal
     if done is not None:
         return done
     threads = section.options.get("threads", 1)  # the tiles are the parallelism: one core each unless told
-    with fft.limit_threads(threads):
+    with fft.limit_threads(threads), _worker_gpu(section.device):
         result = _recover_tile(task, section, parent, fixed, fingerprint)
     write_tile_result(path, result, Provenance(task.provenance))
     _publish(task.topic, {"tile": task.tile.index, "done": result.iterations, "total": result.iterations,
                           "finished": True})
     return result.summary()
+
+
+def _worker_gpu(device: str):
+    """Where several GPUs are there, the one this Dask worker takes (the tiles of one worker share it)."""
+    if device == "cpu":
+        return contextlib.nullcontext()
+    count = backend.gpu_count()
+    if count < 2:
+        return contextlib.nullcontext()
+    try:
+        from distributed import get_worker
+
+        name = get_worker().name
+    except (ImportError, ValueError):   # not on a Dask worker: the current GPU
+        return contextlib.nullcontext()
+    return backend.using_gpu(backend.gpu_for_worker(name, count))
 
 
 def _recover_tile(task: TileTask, section: ReconstructSection, parent: TileResult | None, fixed: bool,
@@ -349,7 +367,7 @@ def _recover_tile(task: TileTask, section: ReconstructSection, parent: TileResul
         start = np.asarray(parent.zernike_waves, np.float64)
     try:
         recovery = recover(padded, name, options, on_iteration=_reporter(task.topic, tile, options.max_iterations),
-                           aberration=start)
+                           aberration=start, device=section.device)
     except ValueError as exc:
         raise InputError(f"{plan.captures_path}: tile at ({tile.y0}, {tile.x0}): {exc}") from None
     obj, shift = _on_blend_grid(recovery, padded, region, plan.upsampling, register=options.recovers_pupil_map)
@@ -369,7 +387,7 @@ def _recover_tile(task: TileTask, section: ReconstructSection, parent: TileResul
                         zernike_modes=modes, residual=residual, iterations=recovery.history.iterations,
                         seconds=recovery.seconds, stopped_by=recovery.stopped_by, engine=name,
                         history={n: recovery.history.array(n) for n in ("residual", "change", "seconds")},
-                        shift_px=shift, fingerprint=fingerprint)
+                        shift_px=shift, fingerprint=fingerprint, device=recovery.device)
     return result
 
 
@@ -504,6 +522,11 @@ def reconstruct_tiled(captures_path: Path, section: ReconstructSection, output: 
     plan = without_dead_frames(plan_tiled(captures_path, section))
     start = time.perf_counter()
     name, options = tile_engine(section, plan.geometry.kind, frame_scale=plan.frame.frame_scale)
+    if section.device == "cuda":   # said before any tile runs, as for a whole frame
+        try:
+            engine_device("cuda", name, options)
+        except DeviceUnavailable as exc:
+            raise ConfigError(f"reconstruct.device: {exc}") from None
     order = tile_order(plan.tiles)
     total = len(order)
     finished: dict[int, TileResult] = {}

@@ -223,3 +223,54 @@ def test_dead_captures_are_judged_on_the_whole_frame_and_left_out_of_every_tile(
         f["/measurements/intensity"][12] = 3.0     # the centre capture dead too: refused, in one line
     with pytest.raises(InputError, match="centre capture"):
         tiled.without_dead_frames(plan_tiled(path, section))
+
+
+def test_a_tile_runs_on_the_device_the_section_names_and_says_so(tmp_path, frame_captures, frame_config, monkeypatch):
+    """reconstruct.device reaches every tile's engine (numpy standing in for CuPy here); the tile file keeps it."""
+    from cca_cli.io.tiles import read_tile_result
+    from cca_cli.optics import backend
+    from cca_cli.workflows import tiled
+
+    monkeypatch.setattr(backend, "device_status", lambda: backend.DeviceStatus(True, "numpy standing in"))
+    monkeypatch.setattr(backend, "array_module", lambda device: np)
+    results = {}
+    for device in ("cpu", "cuda"):
+        section = frame_config.reconstruct.model_copy(update={"device": device})
+        plan = tiled.without_dead_frames(plan_tiled(frame_captures, section))
+        task = tiled.TileTask(plan=plan, section=tiled.task_section(section), tile=plan.tiles.tiles[0],
+                              output=str(tmp_path / f"{device}.h5"), fingerprint="f",
+                              provenance=dict(Provenance.make("reconstruct", "", "", [frame_captures])), topic="t")
+        results[device] = tiled.run_tile(task)
+        assert results[device].device == device
+        assert read_tile_result(tile_path(tmp_path / f"{device}.h5", 0, 0)).device == device
+    cpu, gpu = (results[d].residual["all"] for d in ("cpu", "cuda"))
+    assert gpu < 1.2 * cpu + 0.01, (gpu, cpu)
+
+
+def test_workers_spread_over_the_gpus():
+    from cca_cli.optics.backend import gpu_for_worker
+
+    assert [gpu_for_worker(name, 2) for name in (0, 1, 2, 3, "4")] == [0, 1, 0, 1, 0]
+    remote = gpu_for_worker("tcp://10.0.0.7:40001", 4)
+    assert 0 <= remote < 4 and remote == gpu_for_worker("tcp://10.0.0.7:40001", 4)
+    with pytest.raises(ValueError):
+        gpu_for_worker(0, 0)
+
+
+@pytest.mark.gpu
+def test_tiles_on_the_gpu_match_the_cpu_tiles(tmp_path, frame_captures, frame_config, client):
+    """The same tiled run on the GPU and on the CPU: the same tiles, the blended objects alike."""
+    from cca_cli.optics import backend
+
+    if not backend.device_status().cuda:
+        pytest.skip(f"needs CuPy and a CUDA GPU ({backend.device_status().summary})")
+    provenance = Provenance.make("reconstruct", "", "", [frame_captures])
+    objects = {}
+    for device in ("cpu", "cuda"):
+        section = frame_config.reconstruct.model_copy(update={"device": device})
+        run = reconstruct_tiled(frame_captures, section, tmp_path / f"{device}.h5", run_fingerprint=device,
+                                provenance=provenance, client=client)
+        assert {r.device for r in run.results} == {device}
+        objects[device] = run.object
+    peak = np.abs(objects["cpu"]).max()
+    assert np.abs(np.abs(objects["cuda"]) - np.abs(objects["cpu"])).max() < 0.05 * peak
