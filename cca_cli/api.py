@@ -48,7 +48,7 @@ from typing import Callable
 
 import numpy as np
 
-from cca_cli.errors import InputError
+from cca_cli.errors import ConfigError, InputError
 from cca_cli.library.data import CaptureSet, Reconstruction, TiledReconstruction
 from cca_cli.sampling.geometry import CaptureGeometry
 
@@ -546,7 +546,8 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
 
 def reconstruct_tiles(captures, geometry: CaptureGeometry | None = None, *, size_px: int, overlap_px: int,
                       pupil: str = "per_tile", engine: str = "auto", output=None, client=None,
-                      workers: int | None = None, scheduler: str | None = None, **options) -> TiledReconstruction:
+                      workers: int | None = None, scheduler: str | None = None, device: str = "cpu",
+                      **options) -> TiledReconstruction:
     """Recover a wide frame in overlapping tiles on Dask, each tile with its own pupil (``cca reconstruct`` with
     ``reconstruct.tiles``).
 
@@ -566,7 +567,10 @@ def reconstruct_tiles(captures, geometry: CaptureGeometry | None = None, *, size
     output : path, optional
         Also write the result as a recon.h5 there (``cca report`` reads it).
     client : distributed.Client, optional
-        Where the tiles run; default a local cluster of ``workers`` processes (one per core), or ``scheduler``.
+        Where the tiles run; default a local cluster of ``workers`` processes (one per core; with
+        ``device="cuda"`` one per GPU), or ``scheduler``.
+    device : {"cpu", "cuda", "auto"}
+        Where every tile's engine runs, as ``reconstruct.device``.
     **options
         ``iterations``, ``tol``, ``tau`` and the engine's options.
 
@@ -577,7 +581,8 @@ def reconstruct_tiles(captures, geometry: CaptureGeometry | None = None, *, size
     Raises
     ------
     ValueError
-        Images (an array or a CaptureSet) that ``cca reconstruct`` would refuse in a file, naming ``captures``.
+        Images (an array or a CaptureSet) or a captures file that ``cca reconstruct`` would refuse (naming
+        ``captures`` or the file), options it would refuse, or ``device="cuda"`` where the tiles cannot run there.
     """
     import contextlib
     import tempfile
@@ -597,6 +602,7 @@ def reconstruct_tiles(captures, geometry: CaptureGeometry | None = None, *, size
     section_keys = {key: options.pop(key) for key in ("iterations", "tol", "tau") if key in options}
     try:
         section = ReconstructSection.model_validate({"engine": engine, "options": options, **section_keys,
+                                                     "device": device,
                                                      "tiles": {"size_px": size_px, "overlap_px": overlap_px,
                                                                "pupil": pupil}})
     except ValidationError as exc:
@@ -612,12 +618,15 @@ def reconstruct_tiles(captures, geometry: CaptureGeometry | None = None, *, size
                 captures = CaptureSet(_real_images(captures, "captures"), geometry)
             check_intensity(np.asarray(captures.intensity, np.float32), "captures", error=ValueError)
             path = save(captures, folder / "captures.h5")
-        if client is None:
+        if client is None and (workers is not None or scheduler is not None):
             client = stack.enter_context(open_client(workers=workers, scheduler=scheduler))
         target = Path(output) if output is not None else folder / "recon.h5"
         provenance = Provenance.make("reconstruct", "", "", [path])
-        tiled = reconstruct_tiled(path, section, target, run_fingerprint=run_fingerprint(section, [], path),
-                                  provenance=provenance, client=client)
+        try:
+            tiled = reconstruct_tiled(path, section, target, run_fingerprint=run_fingerprint(section, [], path),
+                                      provenance=provenance, client=client)
+        except (ConfigError, InputError) as exc:
+            raise ValueError(str(exc)) from None
         from cca_cli.io.tiles import remove_tile_folder
 
         if output is not None:

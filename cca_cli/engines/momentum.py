@@ -229,7 +229,7 @@ class MomentumBase(CalibratingEngine):
             return calibrator.calibration(calibrator.pupils_for(self._all_layout, calibrator.pupil_index))
         inverse = np.empty_like(self._order)
         inverse[self._order] = np.arange(self._order.size)
-        return calibrator.calibration(self._engine_pupils()[inverse].copy())
+        return calibrator.calibration(self._engine_pupils()[inverse])   # a new array (fancy indexing copies)
 
     def _engine_pupils(self) -> np.ndarray:
         """The pupils the passes use now (engine order, on the host), complex64 (K, b, b)."""
@@ -306,7 +306,7 @@ class SequentialMomentum(MomentumBase):
         """
         if (kept is not None and kept.shape == (len(order),) + source.shape[1:] and kept.dtype == np.float32
                 and kept.flags.c_contiguous and not np.shares_memory(kept, source)):
-            return np.take(np.asarray(source, np.float32), order, axis=0, out=kept)
+            return np.take(np.asarray(source, np.float32), order, axis=0, out=kept, mode="clip")
         return np.ascontiguousarray(source[order], dtype=np.float32)
 
     def _set_targets(self) -> None:

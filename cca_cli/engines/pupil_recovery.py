@@ -304,7 +304,7 @@ class PupilRecovery:
             last = getattr(self, "_discs", None)
             if (isinstance(last, np.ndarray) and last.shape == (len(found),) + known.shape[1:]
                     and last.dtype == known.dtype and last.flags.c_contiguous and last is not known):
-                return np.take(known, found, axis=0, out=last)
+                return np.take(known, found, axis=0, out=last, mode="clip")
             return known[found]
         discs = circular_pupils(layout.box_size, centres, layout.pupil_radius_px)
         self._known_discs_key = key
@@ -609,6 +609,9 @@ class PupilRecovery:
             phase = np.angle(flat * np.conj(flat[disc].mean()))
             columns = [self._box_basis[p, j][disc] for j in range(len(self.modes))]
             columns += [np.ones(disc.sum()), (grid[:, None] * np.ones(b))[disc], (np.ones(b)[:, None] * grid)[disc]]
-            solution, *_ = np.linalg.lstsq(np.stack(columns, axis=1), phase[disc], rcond=None)
+            design = np.stack(columns, axis=1)
+            # by the normal equations (a few columns): LAPACK's least squares on the tall design took 2-90 ms,
+            # its threads waiting for cores the passes hold
+            solution, *_ = np.linalg.lstsq(design.T @ design, design.T @ phase[disc], rcond=None)
             out[p] = solution[:len(self.modes)]  # the modes are in radians per wave
         return out

@@ -366,10 +366,11 @@ def drive_engine(engine, options: EngineOptions, *, progress: ProgressFn = silen
 def run_threads(engine: str, options: EngineOptions):
     """The thread limit a run of ``engine`` takes when ``options`` name no threads (a context manager).
 
-    An engine that uses at most N threads (``max_threads``: the momentum engines' lanes) runs its
-    set-up, FFTs and fit report on at most N too: on 16 cores the blood smear's default run took 3.31 s
-    with every core and 2.80 s with four (2026-11-27, ``benchmarks/bench_threads.py``), as threads beyond
-    the lanes only split small transforms. Named threads, or fewer cores than N, are left as they are.
+    An engine that takes at most N threads when none are named (``max_threads``: the momentum engines'
+    :data:`~cca_cli.engines.momentum.DEFAULT_THREADS`) runs its set-up, FFTs and fit report on at most N
+    too: on 16 cores the blood smear's default run took 3.31 s with every core, 2.80 s with four and 2.47 s
+    with two (2026-11-27, ``benchmarks/bench_threads.py``), as threads beyond the lanes only split small
+    transforms. Named threads, or fewer cores than N, are left as they are.
     """
     cap = getattr(get_engine(engine).engine_class(), "max_threads", None)
     if cap is None or getattr(options, "threads", None) or fft.default_threads() <= cap:

@@ -12,7 +12,7 @@ Devices
 -------
 ``cpu``: the CPU engines, exactly as without this module. ``cuda``: the
 batched engines on the current CUDA GPU (the first, unless :func:`using_gpu`
-names another: a Dask worker of a tiled run takes one of several,
+names another: a local Dask worker of a tiled run takes one of several,
 :func:`gpu_for_worker`); an error naming the fix when CuPy or a GPU is missing.
 ``auto``: ``cuda`` when CuPy and a GPU are there, else ``cpu``.
 """
@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import contextlib
 import functools
-import hashlib
 from dataclasses import dataclass
 from types import ModuleType
 
@@ -146,19 +145,11 @@ def gpu_count() -> int:
         return 0
 
 
-def gpu_for_worker(name, count: int) -> int:
-    """The GPU (0 … count − 1) a worker named ``name`` takes, so that workers spread over the GPUs.
-
-    A worker named by a number (a local Dask cluster's are 0, 1, …) takes that number modulo
-    ``count``; any other name a stable hash of it (the same GPU in every run).
-    """
+def gpu_for_worker(number: int, count: int) -> int:
+    """The GPU (0 … count − 1) the local worker numbered ``number`` takes: workers spread over the GPUs."""
     if count < 1:
         raise ValueError(f"count must be ≥ 1, got {count}")
-    try:
-        number = int(name)
-    except (TypeError, ValueError):
-        number = int.from_bytes(hashlib.sha256(str(name).encode()).digest()[:8], "big")
-    return number % count
+    return int(number) % count
 
 
 @contextlib.contextmanager

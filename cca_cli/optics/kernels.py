@@ -728,10 +728,9 @@ class MapPupils:
 
     def pupils(self) -> np.ndarray:
         """Every capture's pupil, complex64 (K, b, b) (as :func:`map_pupil_factors` writes them)."""
-        maps = self.maps[self.index]
-        pupils = np.empty(maps.shape, np.complex64)
-        pupils.real = self.discs * maps.real
-        pupils.imag = self.discs * maps.imag
+        pupils = self.maps[self.index]   # a new array, scaled in place (the same products, no temporaries)
+        pupils.real *= self.discs
+        pupils.imag *= self.discs
         return pupils
 
 

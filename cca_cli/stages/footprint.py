@@ -221,7 +221,7 @@ def reconstruct_footprint(captures_path: Path, section=None) -> Footprint:
     if _refines_positions(section, bool(truth[0]), geometry.kind, frame_scale):
         # pupils that may move get a margin on the object grid, as build_model gives them
         hires = _fft_size(hires + 2 * (math.ceil(geometry.pupil_radius_px * scale / 8) + 2))
-    threads = _engine_threads(section)
+    threads = _engine_threads(section, bool(truth[0]), geometry.kind, frame_scale)
     memory = (reconstruction_memory_bytes(k, n, lowres, hires, box) + (k * n * n * _FLOAT if weighted else 0)
               + k * h * w * _FLOAT + k * _PER_CAPTURE  # the images as read, besides the engine's own copy
               + _thread_bytes(threads, k, hires, box))
@@ -253,16 +253,35 @@ def _refines_positions(section, has_truth: bool, geometry_kind: str, frame_scale
     return bool(getattr(options, "refines_positions", False))
 
 
-def _engine_threads(section) -> int:
-    """Threads the engine is asked for: ``options.threads``, or the cores this process may use."""
+def _engine_threads(section, has_truth: bool = False, geometry_kind: str = "", frame_scale: str = "shared") -> int:
+    """Threads the engine is asked for: ``options.threads``, or those it takes unasked (the cores this process
+    may use; a momentum engine at most its ``max_threads``)."""
     from cca_cli.optics.fft import default_threads
 
     options = getattr(section, "options", None)
     asked = options.get("threads") if isinstance(options, dict) else None
     try:
-        return max(1, int(asked) if asked else default_threads())
+        if asked:
+            return max(1, int(asked))
     except (TypeError, ValueError):
         return default_threads()   # the engine's own check names a bad value
+    return min(default_threads(), _unasked_thread_cap(section, has_truth, geometry_kind, frame_scale))
+
+
+def _unasked_thread_cap(section, has_truth: bool, geometry_kind: str, frame_scale: str) -> int:
+    """The most threads the engine the section resolves to takes when none are named (no cap: a large number)."""
+    from cca_cli.config.model import ReconstructSection
+    from cca_cli.engines.registry import get_engine
+    from cca_cli.library.data import data_kind
+    from cca_cli.workflows.recovery import engine_options
+
+    try:
+        name, _ = engine_options(section if section is not None else ReconstructSection(),
+                                 data_kind(has_truth, geometry_kind), frame_scale=frame_scale)
+        cap = getattr(get_engine(name).engine_class(), "max_threads", None)
+    except (ConfigError, ValueError, KeyError):
+        return 1 << 16
+    return int(cap) if cap else 1 << 16
 
 
 def _thread_bytes(threads: int, k: float, hires: float, box: float) -> float:

@@ -35,6 +35,7 @@ import hashlib
 import json
 import logging
 import math
+import os
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -173,6 +174,8 @@ class TiledRecovery:
         del square
         geometry = with_field_width(plan.geometry, plan.geometry.field_width_m * side / w)
         observed, truth = read_frame_centre(plan.captures_path, geometry.centre_index)
+        if plan.dropped:   # the captures the tiles used, as a whole-frame run's geometry holds them
+            geometry = geometry.select(np.setdiff1d(np.arange(geometry.n_images), plan.dropped))
         region = None if (h, w) == (side, side) else RegionEmbedding(size=side, offset_yx=(oy, ox), shape=(h, w),
                                                                      guard_px=0, apodize_px=0)
         results = self.results
@@ -256,6 +259,17 @@ def plan_tiled(captures_path: Path, section: ReconstructSection) -> TiledPlan:
     return TiledPlan(Path(captures_path), frame, geometry, tiles, int(math.ceil(ratio - 1e-9)))
 
 
+def _tile_device(section: ReconstructSection, plan: TiledPlan) -> str:
+    """Where every tile's engine runs, ``cpu`` or ``cuda`` (``auto`` resolved once, here), said before any
+    tile runs: ``cuda`` where CuPy, a GPU or the tiles' options cannot is one line naming reconstruct.device."""
+    name, options = tile_engine(section.model_copy(update={"device": "cuda"}), plan.geometry.kind,
+                                frame_scale=plan.frame.frame_scale)
+    try:
+        return engine_device(section.device, name, options)
+    except DeviceUnavailable as exc:
+        raise ConfigError(f"reconstruct.device: {exc}") from None
+
+
 def without_dead_frames(plan: TiledPlan) -> TiledPlan:
     """``plan`` with the captures whose whole frame holds one value to be left out by every tile.
 
@@ -271,16 +285,17 @@ def tile_engine(section: ReconstructSection, kind: str, *, fixed: bool = False,
                 frame_scale: str = "shared") -> tuple[str, EngineOptions]:
     """Engine and options a tile runs: ``auto`` takes the calibrating preset of the geometry's kind.
 
-    Simulated captures included: a tiled reconstruction exists to recover a pupil per tile. Each tile
-    runs single-threaded (``threads: 1``) unless the options say otherwise: the tiles are the parallelism.
-    ``fixed`` holds the pupil the tile starts from (no pupil recovery); ``frame_scale`` is the captures'.
+    Simulated captures included: a tiled reconstruction exists to recover a pupil per tile. On the CPU
+    each tile runs single-threaded (``threads: 1``) unless the options say otherwise: the tiles are the
+    parallelism; on a GPU (``section.device`` ``cuda``) the engine takes its own lanes. ``fixed`` holds the
+    pupil the tile starts from (no pupil recovery); ``frame_scale`` is the captures'.
     """
     if section.engine == "auto" and kind not in ("led_array", "camera_scan"):
         kind = "camera_scan"
     name, _ = engine_options(section, kind, frame_scale=frame_scale)
     names = get_engine(name).option_names()
     overrides = {}
-    if "threads" in names and "threads" not in section.options:
+    if "threads" in names and "threads" not in section.options and section.device != "cuda":
         overrides["threads"] = 1
     if fixed and "pupil_recovery" in names:
         overrides["pupil_recovery"] = "none"
@@ -338,19 +353,20 @@ def run_tile(task: TileTask, parent: TileResult | None = None, fixed: bool = Fal
 
 
 def _worker_gpu(device: str):
-    """Where several GPUs are there, the one this Dask worker takes (the tiles of one worker share it)."""
-    if device == "cpu":
+    """The GPU this worker's tiles run on: on cca's local cluster, where a machine has several, worker n takes
+    GPU n modulo their number; a worker of an existing cluster keeps the GPU its launcher gave it."""
+    from cca_cli.workflows.worker_setup import LOCAL_WORKER
+
+    if device != "cuda" or not os.environ.get(LOCAL_WORKER):
         return contextlib.nullcontext()
     count = backend.gpu_count()
-    if count < 2:
-        return contextlib.nullcontext()
     try:
         from distributed import get_worker
 
-        name = get_worker().name
-    except (ImportError, ValueError):   # not on a Dask worker: the current GPU
+        number = int(get_worker().name)
+    except (ImportError, ValueError, TypeError):   # not on a Dask worker, or not one of cca's numbered ones
         return contextlib.nullcontext()
-    return backend.using_gpu(backend.gpu_for_worker(name, count))
+    return backend.using_gpu(backend.gpu_for_worker(number, count)) if count > 1 else contextlib.nullcontext()
 
 
 def _recover_tile(task: TileTask, section: ReconstructSection, parent: TileResult | None, fixed: bool,
@@ -519,14 +535,11 @@ def reconstruct_tiled(captures_path: Path, section: ReconstructSection, output: 
     """
     from cca_cli.workflows.cluster import cluster_settings, open_client
 
-    plan = without_dead_frames(plan_tiled(captures_path, section))
+    plan = plan_tiled(captures_path, section)
     start = time.perf_counter()
+    section = section.model_copy(update={"device": _tile_device(section, plan)})   # the tiles all run there
     name, options = tile_engine(section, plan.geometry.kind, frame_scale=plan.frame.frame_scale)
-    if section.device == "cuda":   # said before any tile runs, as for a whole frame
-        try:
-            engine_device("cuda", name, options)
-        except DeviceUnavailable as exc:
-            raise ConfigError(f"reconstruct.device: {exc}") from None
+    plan = without_dead_frames(plan)
     order = tile_order(plan.tiles)
     total = len(order)
     finished: dict[int, TileResult] = {}
@@ -546,7 +559,10 @@ def reconstruct_tiled(captures_path: Path, section: ReconstructSection, output: 
         tasks = {tile.index: TileTask(plan=plan, tile=tile, **task_data) for tile, _ in order}
         if client is None:
             settings = cluster_settings()
-            with open_client(workers=settings.workers, scheduler=settings.scheduler) as own:
+            workers = settings.workers
+            if workers is None and settings.scheduler is None and section.device == "cuda":
+                workers = max(1, backend.gpu_count())   # one local worker (one CUDA context) per GPU
+            with open_client(workers=workers, scheduler=settings.scheduler) as own:
                 _run_on(own, plan, order, tasks, finished, section, progress, topic)
         else:
             _run_on(client, plan, order, tasks, finished, section, progress, topic)
@@ -679,7 +695,9 @@ def tile_recipe(section: ReconstructSection, captures_path: Path) -> dict:
 
     frame_scale = read_frame_info(captures_path).frame_scale
     with open_input(captures_path) as handle:
-        return recipe_of(*tile_engine(section, read_geometry(handle).kind, frame_scale=frame_scale))
+        recipe = recipe_of(*tile_engine(section, read_geometry(handle).kind, frame_scale=frame_scale))
+    # Dead captures are left out of every tile (earlier tiled results, made with them, are not this recipe's).
+    return {**recipe, "dead_captures": "left out"}
 
 
 def run_fingerprint(section: ReconstructSection, inputs: list[str], captures_path: Path) -> str:

@@ -247,14 +247,37 @@ def test_a_tile_runs_on_the_device_the_section_names_and_says_so(tmp_path, frame
     assert gpu < 1.2 * cpu + 0.01, (gpu, cpu)
 
 
-def test_workers_spread_over_the_gpus():
-    from cca_cli.optics.backend import gpu_for_worker
+def test_local_workers_spread_over_the_gpus_and_others_keep_theirs(monkeypatch):
+    """cca's local worker n takes GPU n mod count; a worker of an existing cluster keeps its launcher's GPU."""
+    import contextlib
+    import types
 
-    assert [gpu_for_worker(name, 2) for name in (0, 1, 2, 3, "4")] == [0, 1, 0, 1, 0]
-    remote = gpu_for_worker("tcp://10.0.0.7:40001", 4)
-    assert 0 <= remote < 4 and remote == gpu_for_worker("tcp://10.0.0.7:40001", 4)
+    import distributed
+
+    from cca_cli.optics import backend
+    from cca_cli.workflows import tiled
+    from cca_cli.workflows.worker_setup import LOCAL_WORKER, dask_setup
+
+    assert [backend.gpu_for_worker(n, 2) for n in range(4)] == [0, 1, 0, 1]
     with pytest.raises(ValueError):
-        gpu_for_worker(0, 0)
+        backend.gpu_for_worker(0, 0)
+    chosen = []
+    monkeypatch.setattr(backend, "gpu_count", lambda: 2)
+    monkeypatch.setattr(backend, "using_gpu", lambda index: chosen.append(index) or contextlib.nullcontext())
+    monkeypatch.setattr(distributed, "get_worker", lambda: types.SimpleNamespace(name=3))
+    monkeypatch.delenv(LOCAL_WORKER, raising=False)
+    with tiled._worker_gpu("cuda"):           # an existing cluster's worker: its launcher's GPU
+        pass
+    assert chosen == []
+    with monkeypatch.context() as patch:
+        patch.setattr("signal.signal", lambda *a: None)
+        dask_setup(None)                         # what cca's local workers run as they start
+    assert chosen == [] and __import__("os").environ[LOCAL_WORKER] == "1"
+    for device in ("cpu", "cuda"):
+        with tiled._worker_gpu(device):
+            pass
+    assert chosen == [1]                          # worker 3 of cca's local cluster, 2 GPUs, device cuda only
+    monkeypatch.delenv(LOCAL_WORKER)
 
 
 @pytest.mark.gpu
@@ -274,3 +297,13 @@ def test_tiles_on_the_gpu_match_the_cpu_tiles(tmp_path, frame_captures, frame_co
         objects[device] = run.object
     peak = np.abs(objects["cpu"]).max()
     assert np.abs(np.abs(objects["cuda"]) - np.abs(objects["cpu"])).max() < 0.05 * peak
+
+
+def test_the_api_refuses_tiles_on_a_gpu_it_lacks_before_any_tile_runs(frame_captures, monkeypatch, tmp_path):
+    from cca_cli import api
+    from cca_cli.optics import backend
+
+    monkeypatch.setattr(backend, "device_status", lambda: backend.DeviceStatus(False, "cpu only: CuPy not installed"))
+    with pytest.raises(ValueError, match=r"reconstruct.device: device cuda needs CuPy .*device cpu"):
+        api.reconstruct_tiles(frame_captures, size_px=96, overlap_px=32, device="cuda", output=tmp_path / "r.h5")
+    assert not (tmp_path / "r.h5").exists() and not tile_folder(tmp_path / "r.h5").exists()
