@@ -11,6 +11,7 @@ import contextlib
 import functools
 import logging
 import math
+import statistics
 from typing import Iterator
 
 import typer
@@ -24,7 +25,7 @@ from cca_cli.io.outputs import disk_full
 from cca_cli.stages.progress import ProgressEvent
 
 __all__ = ["console", "err_console", "styled", "print_error", "print_warning", "handle_errors", "progress_reporter",
-           "summary_table", "configure_logging", "EXIT_INTERNAL", "stop_note", "recovery_stop_note", "print_note", "length_text"]
+           "summary_table", "configure_logging", "EXIT_INTERNAL", "stop_note", "recovery_stop_note", "poor_fit_warning", "print_note", "length_text"]
 
 console = Console(markup=False, soft_wrap=True)
 err_console = Console(stderr=True, markup=False, soft_wrap=True)
@@ -193,6 +194,26 @@ def recovery_stop_note(recovery) -> str | None:
     return stop_note(getattr(recovery, "stopped_by", None), recovery.history.iterations,
                      records[-1].change if records else None, recovery.options.get("tol"),
                      recovery.options.get("plateau"), recovery.options.get("plateau_window"), tiles=tiles)
+
+
+#: A data residual over all images above this says the model, not the recovery, is off (recorded sets: 0.02–0.3).
+POOR_FIT = 0.5
+
+
+def poor_fit_warning(recovery) -> str | None:
+    """A warning when the recovered model explains the captures poorly (a data residual over all images above
+    :data:`POOR_FIT`): the geometry (positions, their unit, the optics) rather than the recovery is to check."""
+    fit = getattr(recovery, "fit", None)
+    residual = getattr(fit, "all", None)
+    if residual is None:
+        results = getattr(recovery, "results", None)   # a tiled recovery: the median tile
+        values = [float(r.residual["all"]) for r in results or () if r.residual.get("all") is not None]
+        residual = statistics.median(values) if values else None
+    if residual is None or not math.isfinite(residual) or residual <= POOR_FIT:
+        return None
+    return (f"the recovery explains the captures poorly (data residual {residual:.2f} over all images; recorded "
+            "sets give 0.02–0.3): check the geometry the captures were ingested with (positions and their unit, "
+            "the LEDs' distance or the stage pitch, NA, pixel size, wavelength)")
 
 
 def summary_table(summary: dict, title: str = "Result") -> Table:

@@ -8,7 +8,8 @@ from typing import Annotated, Optional
 import typer
 
 from cca_cli.commands.console import (console, err_console, handle_errors, print_note, progress_reporter,
-                                     recovery_stop_note, stop_note, summary_table)
+                                     poor_fit_warning, print_warning, recovery_stop_note, stop_note,
+                                     summary_table)
 from cca_cli.commands.options import Device, Force, OptionalConfigArg, Quiet, Scheduler, Workers, cluster_options
 from cca_cli.config.load import load_config
 from cca_cli.config.model import ReconstructSection
@@ -62,8 +63,10 @@ def run_cli(
         console.print(f"{outcome.name:12s} {outcome.status:8s} {outcome.output}  ({outcome.seconds:.1f} s, "
                       f"{size_text(disk_usage(outcome.output))})")
     recon = next((o for o in outcomes if o.name == "reconstruct"), None)
+    warning = None
     if recon is not None and recon.result is not None:
         note = recovery_stop_note(recon.result)
+        warning = poor_fit_warning(recon.result)
     elif report is not None:
         note = stop_note(summary.get("stopped_by"), summary.get("iterations"), summary.get("final_change"),
                          summary.get("tol"))
@@ -71,6 +74,8 @@ def run_cli(
         note = None
     if note:
         print_note(note)
+    if warning:
+        print_warning(warning)
 
 
 def with_device(cfg, device: str):

@@ -10,7 +10,8 @@ from typing import Annotated, Optional
 
 import typer
 
-from cca_cli.commands.console import console, handle_errors, print_note, recovery_stop_note, summary_table
+from cca_cli.commands.console import (console, handle_errors, poor_fit_warning, print_note, print_warning,
+                                      recovery_stop_note, summary_table)
 from cca_cli.commands.info import derived_lines
 from cca_cli.commands.options import (ConfigArg, Device, Force, Quiet, Scheduler, Workers, cluster_options,
                                      section_from_options)
@@ -93,6 +94,9 @@ def reconstruct_cli(
     note = recovery_stop_note(recovery)
     if note:
         print_note(note)
+    warning = poor_fit_warning(recovery)
+    if warning:
+        print_warning(warning)
 
 
 @handle_errors

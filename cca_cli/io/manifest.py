@@ -451,11 +451,29 @@ def _column_in_any_unit(header: list[str], stem: str, units: dict[str, float], s
     return found[0] if found else None
 
 
-def _table_entries(table: Path, manifest: Manifest, source: str) -> tuple[list[dict], list[str]]:
-    """Rows of an image table as ImageEntry mappings (cca names, SI-ish units), and the notes."""
+#: Separators a table may use instead of commas (spreadsheets in locales with decimal commas write ``;``).
+_SEPARATORS = {";": "semicolons", "\t": "tabs"}
+
+
+def read_table(table: Path, source: str) -> tuple[list[str], list[tuple[int, dict]], str | None]:
+    """A CSV table's header and rows (with their line numbers), cells stripped.
+
+    A byte-order mark (a spreadsheet's "CSV UTF-8") is dropped, and a header with no comma but
+    semicolons or tabs is read with that separator.
+
+    Returns
+    -------
+    header : list of str
+    rows : list of (int, dict)
+    separator : str or None
+        What separates the columns, when not commas (for a note).
+    """
     try:
-        with open(table, newline="") as handle:
-            reader = csv.DictReader(handle)
+        with open(table, newline="", encoding="utf-8-sig") as handle:
+            first = handle.readline()
+            handle.seek(0)
+            separator = None if "," in first else next((s for s in _SEPARATORS if s in first), None)
+            reader = csv.DictReader(handle, delimiter=separator or ",")
             header = [h.strip() for h in (reader.fieldnames or []) if h is not None]
             rows = []
             for row in reader:
@@ -464,7 +482,13 @@ def _table_entries(table: Path, manifest: Manifest, source: str) -> tuple[list[d
     except FileNotFoundError:
         raise InputError(f"{table}: image table not found (named by {source})") from None
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
-        raise InputError(f"{table}: cannot read image table ({exc})") from None
+        raise InputError(f"{table}: cannot read the table ({exc})") from None
+    return header, rows, None if separator is None else _SEPARATORS[separator]
+
+
+def _table_entries(table: Path, manifest: Manifest, source: str) -> tuple[list[dict], list[str], list[int]]:
+    """Rows of an image table as ImageEntry mappings (cca names, SI-ish units), the notes, and each row's line."""
+    header, rows, separator = read_table(table, source)
     mapping = dict(TABLE_COLUMNS)
     explicit = manifest.columns or {}
     mapping.update(explicit)
@@ -500,7 +524,7 @@ def _table_entries(table: Path, manifest: Manifest, source: str) -> tuple[list[d
                 key = "exposure" if name == "exposure" else "position"
                 raise ConfigError(f"{source}: column {used[name]!r} of {table.name} looks like {announced} but "
                                   f"units.{key} is {chosen}; set units: {{{key}: {announced}}}")
-    notes = []
+    notes = [] if separator is None else [f"{table.name}: columns separated by {separator}, read so"]
     ignored = [h for h in header if h not in used.values()]
     if ignored:
         notes.append(f"{table.name}: columns not used by cca, ignored: {', '.join(ignored)}")
@@ -578,10 +602,16 @@ def _table_entries(table: Path, manifest: Manifest, source: str) -> tuple[list[d
             text = row.get(used[cca_name], "") if cca_name in used else ""
             got = f" (got {text})" if text else ""   # as the table holds it (before any unit conversion)
             hint = "; it is sin θ of the illumination, not an angle" if loc in ("kx_norm", "ky_norm") else ""
+            if not loc and "give a position" in error_message(err):
+                raise ConfigError(f"{table}: line {line} ({entry['path']}): no position column found: "
+                                  f"{table.name} has {', '.join(header)}; name its position columns in {source} "
+                                  "with columns: {led_x: <column>, led_y: <column>} (LED positions, with "
+                                  "led_distance_m), {stage_x: …, stage_y: …}, {kx_norm: …, ky_norm: …} or "
+                                  "{row: …, col: …}, and their unit with units: {position: mm}") from None
             raise ConfigError(f"{table}: line {line} ({entry['path']}): {column + ': ' if loc else ''}"
                               f"{error_message(err)}{got}{hint}") from None
         out.append(entry)
-    return out, notes
+    return out, notes, [line for line, _, _ in entries]
 
 
 def read_manifest(path: str | Path) -> LoadedManifest:
@@ -637,11 +667,16 @@ def read_manifest(path: str | Path) -> LoadedManifest:
     base = path.parent
     if manifest.images_csv is not None:
         table = _resolve(base, manifest.images_csv)
-        entries, table_notes = _table_entries(table, manifest, source)
+        entries, table_notes, lines = _table_entries(table, manifest, source)
         notes += table_notes
         # A table's file names are relative to the table itself (it usually sits beside the images).
         images = [ImageEntry.model_validate(e) for e in entries]
         images = [e.model_copy(update={"path": _resolve(table.parent, e.path)}) for e in images]
+        for image, line in zip(images, lines):
+            if not (image.path.exists() or image.path.is_symlink()):
+                raise InputError(f"{image.path}: named by line {line} of {table} but not found; check that row "
+                                 f"(paths are relative to the table's folder)")
+        notes += _unlisted_images(table, images)
         manifest = manifest.model_copy(update={"images": images, "images_csv": table})
         files.append(table)
     elif manifest.columns is not None:
@@ -662,6 +697,26 @@ def read_manifest(path: str | Path) -> LoadedManifest:
     if manifest.images is not None and not manifest.images:
         raise ConfigError(f"{source}: images: the list is empty; list at least one image")
     return LoadedManifest(manifest=manifest, files=files, notes=notes)
+
+
+def _unlisted_images(table: Path, images: list) -> list[str]:
+    """A note when the folder of the table's images holds more image files like them than the table lists."""
+    folders = {image.path.parent for image in images}
+    suffixes = {image.path.suffix.lower() for image in images}
+    if len(folders) != 1 or not suffixes:
+        return []
+    folder = folders.pop()
+    listed = {image.path.name for image in images}
+    try:
+        others = sorted(p.name for p in folder.iterdir()
+                        if p.suffix.lower() in suffixes and p.name not in listed and p.is_file())
+    except OSError:
+        return []
+    if not others:
+        return []
+    shown = ", ".join(others[:3]) + (", …" if len(others) > 3 else "")
+    return [f"{folder} holds {len(others)} more {'/'.join(sorted(suffixes))} file(s) than {table.name} lists "
+            f"({shown}); they are not read: add their rows if they are captures"]
 
 
 def load_manifest(path: str | Path) -> Manifest:
@@ -789,19 +844,19 @@ def _led_grid_as_positions(manifest: Manifest, path: Path) -> Manifest:
 
 
 def _mat_plan(manifest: Manifest, path: Path) -> CapturePlan:
-    rows = []
-    try:
-        with open(manifest.source.illumination_csv, newline="") as handle:
-            rows = list(csv.DictReader(handle))
-    except FileNotFoundError:
-        raise InputError(f"{manifest.source.illumination_csv}: image table not found (named by {path})") from None
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
-        raise InputError(f"{manifest.source.illumination_csv}: cannot read image table ({exc})") from None
+    table = manifest.source.illumination_csv
+    header, numbered, _ = read_table(table, str(path))
+    rows = [row for _, row in numbered]
+    missing = [name for name in ("kx_norm", "ky_norm") if name not in header]
+    if missing:
+        raise InputError(f"{table}: needs the columns kx_norm and ky_norm (sin θ of each LED's light; its columns: "
+                         f"{', '.join(header) or 'none'}); from LED positions x, y and the LEDs' distance z, "
+                         "kx_norm = x / √(x² + y² + z²)")
     try:
         kx = np.array([float(r["kx_norm"]) for r in rows])
         ky = np.array([float(r["ky_norm"]) for r in rows])
-    except (KeyError, ValueError) as exc:
-        raise InputError(f"{manifest.source.illumination_csv}: needs numeric columns kx_norm and ky_norm ({exc})") from None
+    except ValueError as exc:
+        raise InputError(f"{table}: kx_norm and ky_norm must be numbers ({exc})") from None
     if not (np.isfinite(kx).all() and np.isfinite(ky).all()):
         bad = int(np.argmax(~(np.isfinite(kx) & np.isfinite(ky))))
         raise InputError(f"{manifest.source.illumination_csv}: row {bad + 1} has a NaN or infinite kx_norm/ky_norm; "
@@ -860,6 +915,9 @@ def plan_captures(manifest: Manifest, path: str | Path, *, notes: list[str] | No
     if kind == "grid" and manifest.stage_pitch_mm is None:
         raise ConfigError(f"{path}: stage_pitch_mm: needed when images give grid: [row, col]")
 
+    if notes is not None and not any("exposure_s" in e.model_fields_set for e in coherent):
+        notes.append("no image gives its exposure: each is taken as 1 s, so intensities are the recorded counts "
+                     "(labelled counts/s); give exposure_s (or an exposure column) where exposures differ")
     groups: dict[tuple, list[ImageEntry]] = {}
     for entry in coherent:
         groups.setdefault(_key(entry), []).append(entry)

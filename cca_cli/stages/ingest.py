@@ -487,6 +487,8 @@ def _spacing_fix(plan: CapturePlan) -> str:
 #: Neighbouring captures closer than this share of the pupil's diameter (an overlap above 95%), with a synthetic
 #: aperture under :data:`CROWDED_SAR` lens apertures, are named in a note.
 CROWDED_SPACING = 0.05
+#: Closer than this share of the diameter (an overlap above 99%), with the same small SAR, the ingest is refused.
+IMPOSSIBLE_SPACING = 0.01
 CROWDED_SAR = 1.2
 
 
@@ -503,6 +505,12 @@ def crowded_neighbours(plan: CapturePlan, geometry: CaptureGeometry) -> list[str
     spacing, diameter = _usual_spacing(geometry), 2 * geometry.pupil_radius_px
     if not (spacing < CROWDED_SPACING * diameter and geometry.synthetic_aperture_ratio < CROWDED_SAR):
         return []
+    if spacing < IMPOSSIBLE_SPACING * diameter:
+        raise ConfigError(f"{plan.path}: neighbouring captures lie {spacing:.3g} spectrum px apart, "
+                          f"{spacing / diameter:.2%} of the pupil's diameter ({diameter:.4g} px): no LED board or scan "
+                          f"is that dense (the positions' unit is likely a thousand times too small), and the "
+                          f"synthetic aperture would be {geometry.synthetic_aperture_ratio:.3g} times the lens's; "
+                          f"{_spacing_fix(plan)}")
     return [f"neighbouring captures lie {spacing:.3g} spectrum px apart, under {CROWDED_SPACING:.0%} of the pupil's "
             f"diameter ({diameter:.4g} px): they overlap almost wholly and the synthetic aperture is "
             f"{geometry.synthetic_aperture_ratio:.3g} times the lens's (SAR); {_spacing_fix(plan)}"]
@@ -532,17 +540,25 @@ def dark_bright_field(plan: CapturePlan, geometry: CaptureGeometry, frames: np.n
         return []
     rate = frames[bright, 0].mean(axis=(-2, -1)) / plan.exposure_s[bright, 0]
     typical = float(np.median(rate))
+    # Judged against the brighter captures too: where the geometry is wrong, most "bright-field" captures may
+    # be dark, and so is their median.
+    bright_ones = float(np.percentile(rate, 90))
+    if not bright_ones > 0:
+        return []
+    off = [(i, float(r)) for i, r in zip(bright, rate) if r * DARK_BRIGHT_FIELD < bright_ones]
+    if len(off) >= 3 and len(off) > MANY_DARK_BRIGHT_FIELD * bright.size:   # the geometry, not an LED, is wrong
+        return [f"{len(off)} of the {bright.size} captures the geometry puts in the bright field recorded "
+                f"{DARK_BRIGHT_FIELD:g} times less light than the brightest of them or less (first: "
+                f"{plan.labels[off[0][0]]}): "
+                f"the LEDs' geometry does not match the light recorded; check the illumination's positions "
+                f"(led_pitch_m, led_distance_m, led_axis_m, or kx_norm/ky_norm), its sign and {_optics_keys(plan)}"]
     if not typical > 0:
         return []
+
     def how_much(r: float) -> str:
         return "no light" if r <= 0 else f"{typical / r:.3g} times less light"
 
     dark = [(i, float(r)) for i, r in zip(bright, rate) if r * DARK_BRIGHT_FIELD < typical]
-    if len(dark) >= 3 and len(dark) > MANY_DARK_BRIGHT_FIELD * bright.size:   # the geometry, not an LED, is wrong
-        return [f"{len(dark)} of the {bright.size} captures the geometry puts in the bright field recorded "
-                f"{DARK_BRIGHT_FIELD:g} times less light than their median or less (first: {plan.labels[dark[0][0]]}): "
-                f"the LEDs' geometry does not match the light recorded; check the illumination's positions "
-                f"(led_pitch_m, led_distance_m, led_axis_m, or kx_norm/ky_norm), its sign and {_optics_keys(plan)}"]
     return [f"{plan.labels[i]} is in the bright field but recorded {how_much(r)} than the median bright-field "
             "capture: did its LED fire? (check that row, or leave it out)" for i, r in dark]
 

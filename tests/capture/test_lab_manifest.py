@@ -718,25 +718,32 @@ def test_an_led_matrix_in_millimetres_is_refused(tmp_path, extra, fix):
     _refused(tmp_path, "lab.yaml: illumination.led_", "m is not a plausible LED", fix)
 
 
-def test_positions_a_thousand_times_too_close_are_noted(tmp_path):
-    """Stage positions in metres in a _mm column: every capture on one spot (SAR 1), named with the unit to check."""
+def test_positions_a_thousand_times_too_close_are_refused_and_crowded_ones_noted(tmp_path):
+    """Stage positions in metres in a _mm column: every capture on one spot (SAR 1), refused naming the unit to
+    check; positions merely crowded (a few % of the pupil apart) get a note."""
     rows = []
     for r in range(3):
         for c in range(3):
             write_image(tmp_path / f"p{r}{c}.png", _codes(800), bit_depth=16)
-            rows.append({"path": f"p{r}{c}.png", "exposure_s": 0.01, "stage_x_mm": 0.5e-3 * (c - 1),
-                         "stage_y_mm": 0.5e-3 * (r - 1)})
-    (tmp_path / "lab.yaml").write_text(yaml.safe_dump({"optics": OPTICS, "images": rows}))
-    result = _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
+            rows.append({"path": f"p{r}{c}.png", "exposure_s": 0.01, "stage_x_mm": 0.5 * (c - 1),
+                         "stage_y_mm": 0.5 * (r - 1)})
+
+    def ingest_at(scale: float):
+        scaled = [{**row, "stage_x_mm": row["stage_x_mm"] * scale, "stage_y_mm": row["stage_y_mm"] * scale}
+                  for row in rows]
+        (tmp_path / "lab.yaml").write_text(yaml.safe_dump({"optics": OPTICS, "images": scaled}))
+        (tmp_path / "raw.h5").unlink(missing_ok=True)
+        return _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
+
+    result = ingest_at(1e-3)
+    assert result.exit_code == 2 and not (tmp_path / "raw.h5").exists()
+    line = " ".join(result.output.split())
+    assert "no LED board or scan is that dense" in line and "units.position" in line
+    result = ingest_at(1 / 15)
     assert result.exit_code == 0, result.output
     text = " ".join(result.output.split())
     assert "overlap almost wholly" in text and "units.position" in text
-    # at the intended spacing no such note
-    (tmp_path / "raw.h5").unlink()
-    for row in rows:
-        row["stage_x_mm"], row["stage_y_mm"] = row["stage_x_mm"] * 1e3, row["stage_y_mm"] * 1e3
-    (tmp_path / "lab.yaml").write_text(yaml.safe_dump({"optics": OPTICS, "images": rows}))
-    result = _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
+    result = ingest_at(1.0)   # at the intended spacing no such note
     assert result.exit_code == 0 and "overlap almost wholly" not in " ".join(result.output.split())
 
 
@@ -753,6 +760,21 @@ def test_many_dark_bright_field_captures_are_one_note_on_the_geometry(tmp_path):
     images = cca.simulate(smooth, geometry, snr_db=None)
     text = _ingested_led_lab(tmp_path, images, sines, kx_shift=6 / np.hypot(4, 60))
     assert "did its LED fire?" not in text
+    assert text.count("the LEDs' geometry does not match the light recorded") == 1
+
+
+def test_led_positions_crowded_into_the_bright_field_are_one_note_on_the_geometry(tmp_path):
+    """LED sines four times too small (a distance or pitch slip): the geometry puts most captures in the bright
+    field, where most recorded dark-field light; their median is dark too, so the brightest tell."""
+    import cca_cli as cca
+
+    sines = cca.led_grid_sines(7, pitch_m=4e-3, height_m=60e-3)
+    geometry = cca.led_array(sines, wavelength_m=532e-9, numerical_aperture=0.1, pixel_pitch_object_m=1.845e-6,
+                             image_pixels=32)
+    y, x = np.mgrid[-32:32, -32:32]
+    smooth = (0.2 + np.exp(-(x * x + y * y) / (2 * 12.0 ** 2))).astype(np.complex64)
+    images = cca.simulate(smooth, geometry, snr_db=None)
+    text = _ingested_led_lab(tmp_path, images, np.asarray(sines) / 4)
     assert text.count("the LEDs' geometry does not match the light recorded") == 1
 
 
@@ -779,3 +801,52 @@ def test_unit_columns_with_spaces_two_candidates_and_beside_sines(tmp_path):
     result = _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
     assert result.exit_code == 0, result.output
     assert "ignored: stage_x_um, stage_y_um" in " ".join(result.output.split())
+
+
+def test_a_spreadsheet_s_table_is_read_as_it_is_saved(tmp_path):
+    """A byte-order mark ("CSV UTF-8") is dropped; semicolon- or tab-separated tables are read so, with a note."""
+    rows = _grid_rows()
+    _led_table(tmp_path, rows, {"led_distance_m": 0.06})
+    assert _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5").exit_code == 0
+    expected = _sines(tmp_path / "raw.h5")
+    for text, note in (("\ufeff" + rows, None), (rows.replace(",", ";"), "separated by semicolons"),
+                       ("\ufeff" + rows.replace(",", "\t"), "separated by tabs")):
+        (tmp_path / "raw.h5").unlink()
+        (tmp_path / "leds.csv").write_text(text, encoding="utf-8")
+        result = _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
+        assert result.exit_code == 0, result.output
+        assert np.array_equal(_sines(tmp_path / "raw.h5"), expected)
+        assert note is None or note in " ".join(result.output.split())
+
+
+def test_a_table_whose_position_columns_are_not_found_names_its_columns_and_the_fix(tmp_path):
+    rows = _grid_rows().replace("led_x_mm,led_y_mm", "x (mm),y (mm)")
+    _led_table(tmp_path, rows, {"led_distance_m": 0.06})
+    _refused(tmp_path, "leds.csv: line 2 (led0.png): no position column found",
+             "leds.csv has path, x (mm), y (mm)", "columns: {led_x: <column>, led_y: <column>}")
+
+
+def test_a_missing_image_is_named_with_its_table_line_and_unlisted_ones_noted(tmp_path):
+    _led_table(tmp_path, _grid_rows(), {"led_distance_m": 0.06})
+    (tmp_path / "led7.png").rename(tmp_path / "elsewhere.png")
+    _refused(tmp_path, "led7.png: named by line 9 of", "leds.csv but not found; check that row")
+    (tmp_path / "elsewhere.png").rename(tmp_path / "led7.png")
+    write_image(tmp_path / "led9.png", np.full((32, 32), 200, np.uint16), bit_depth=16)   # not in the table
+    result = _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
+    assert result.exit_code == 0, result.output
+    text = " ".join(result.output.split())
+    assert "holds 1 more .png file(s) than leds.csv lists (led9.png); they are not read" in text
+    assert "no image gives its exposure: each is taken as 1 s" in text
+
+
+def test_a_matlab_file_s_table_without_sines_is_one_line_naming_its_columns(tmp_path):
+    import scipy.io
+
+    scipy.io.savemat(tmp_path / "stack.mat", {"imlow_HDR": np.ones((16, 16, 4), np.float32)})
+    (tmp_path / "leds.csv").write_text("\ufeffled_x_mm,led_y_mm\n" + "".join(f"{i},{i}\n" for i in range(4)))
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump({
+        "illumination": {"wavelength_m": 5e-7, "numerical_aperture": 0.1, "pixel_pitch_object_m": 1e-6},
+        "source": {"mat": "stack.mat", "illumination_csv": "leds.csv"}}))
+    text = _refused(tmp_path, "leds.csv: needs the columns kx_norm and ky_norm", "its columns: led_x_mm, led_y_mm",
+                    "kx_norm = x / √(x² + y² + z²)")
+    assert "('kx_norm')" not in text

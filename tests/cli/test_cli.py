@@ -228,3 +228,19 @@ def test_the_command_line_skips_the_collectors_passes_at_exit_without_the_image_
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr
     assert run.stdout.split()[-2:] == ["True", "False"], run.stdout
+
+
+def test_a_recovery_that_explains_the_captures_poorly_is_one_warning():
+    """A data residual near 1 (a unit slip in the positions, say) is named with what to check; a good fit is not."""
+    import types
+
+    from cca_cli.commands.console import POOR_FIT, poor_fit_warning
+
+    def recovery(residual):
+        return types.SimpleNamespace(fit=types.SimpleNamespace(all=residual))
+
+    assert poor_fit_warning(recovery(0.08)) is None and poor_fit_warning(recovery(float("nan"))) is None
+    text = poor_fit_warning(recovery(0.96))
+    assert "0.96" in text and "positions and their unit" in text and POOR_FIT < 0.96
+    tiles = types.SimpleNamespace(results=[types.SimpleNamespace(residual={"all": v}) for v in (0.9, 0.8, 0.1)])
+    assert "0.80" in poor_fit_warning(tiles)
