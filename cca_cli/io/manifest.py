@@ -18,6 +18,7 @@ import difflib
 import json
 import math
 import os
+import string
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -236,7 +237,20 @@ class Manifest(_Strict):
     kind_values: dict[str, Kind] | None = Field(None, description="The table's kind words → cca kinds.")
     images: list[ImageEntry] | None = None
     images_csv: Path | None = None
+    image_files: str | None = Field(None, description="With images_csv: each row's file name, from its cells "
+                                                        "(img_{index:03d}.tif), where the table has no file column.")
     source: SourceSpec | None = None
+
+    @field_validator("image_files")
+    @classmethod
+    def _a_pattern(cls, pattern):
+        if pattern is None:
+            return pattern
+        fields = [name for _, name, _, _ in string.Formatter().parse(pattern) if name is not None]
+        if not fields or any(not name for name in fields):
+            raise ValueError(f"{pattern!r} names no table column; write a file name with the columns in braces, "
+                             "e.g. img_{index:03d}.tif")
+        return pattern
 
     @field_validator("columns")
     @classmethod
@@ -254,6 +268,8 @@ class Manifest(_Strict):
             raise ValueError("give exactly one of images, images_csv or source")
         if self.source is not None and self.illumination is None:
             raise ValueError("source (a .mat of LED-array images) needs an illumination section")
+        if self.image_files is not None and self.images_csv is None:
+            raise ValueError("image_files names the files of an image table's rows; give images_csv too")
         return self
 
     @property
@@ -486,6 +502,28 @@ def read_table(table: Path, source: str) -> tuple[list[str], list[tuple[int, dic
     return header, rows, None if separator is None else _SEPARATORS[separator]
 
 
+#: Where a row's file name made from ``image_files`` is kept among its cells.
+_PATTERN_PATH = "\0image_files"
+
+
+def _file_of_row(pattern: str, row: dict, table: Path, line: int) -> str:
+    """``pattern`` filled from the row's cells: whole numbers as integers (for ``{index:03d}``), other numbers as
+    floats, anything else as text."""
+    values = {}
+    for name, text in row.items():
+        try:
+            number = float(text)
+        except ValueError:
+            values[name] = text
+            continue
+        values[name] = int(number) if number.is_integer() else number
+    try:
+        return pattern.format(**values)
+    except (KeyError, ValueError, IndexError) as exc:
+        raise ConfigError(f"{table}: line {line}: image_files {pattern!r} cannot be filled from this row ({exc}); "
+                          "check the row's cells and the pattern's formats") from None
+
+
 def _table_entries(table: Path, manifest: Manifest, source: str) -> tuple[list[dict], list[str], list[int]]:
     """Rows of an image table as ImageEntry mappings (cca names, SI-ish units), the notes, and each row's line."""
     header, rows, separator = read_table(table, source)
@@ -505,9 +543,23 @@ def _table_entries(table: Path, manifest: Manifest, source: str) -> tuple[list[d
             raise ConfigError(f"{source}: columns.{name}: {table.name} has no column {column!r} "
                               f"(its columns: {', '.join(header)})")
     used = {name: column for name, column in mapping.items() if column in header}
-    if "path" not in used:
-        raise ConfigError(f"{table}: no file column (looked for {mapping['path']!r}); "
-                          f"map it with columns: {{path: <column>}} in {source}")
+    pattern = manifest.image_files
+    if pattern is not None:
+        if "path" in explicit:
+            raise ConfigError(f"{source}: give either image_files or columns.path, not both")
+        used.pop("path", None)
+        wanted = [name for _, name, _, _ in string.Formatter().parse(pattern) if name is not None]
+        lacking = [name for name in wanted if name not in header]
+        if lacking:
+            raise ConfigError(f"{source}: image_files {pattern!r} names {', '.join(repr(n) for n in lacking)}, which "
+                              f"{table.name} lacks (its columns: {', '.join(header)})")
+        for line, row in rows:
+            row[_PATTERN_PATH] = _file_of_row(pattern, row, table, line)
+        used["path"] = _PATTERN_PATH
+    elif "path" not in used:
+        raise ConfigError(f"{table}: no file column (looked for {mapping['path']!r}); map it with columns: "
+                          f"{{path: <column>}} in {source}, or name the files from the rows' cells with "
+                          "image_files: img_{index:03d}.tif")
     if "camera" in used and "camera" not in explicit and (manifest.illumination is not None or not all(
             _whole_number(row.get(used["camera"], "")) for _, row in rows)):
         used.pop("camera")   # a column merely called so (a camera model, an LED array's): the lab's notes
@@ -525,7 +577,8 @@ def _table_entries(table: Path, manifest: Manifest, source: str) -> tuple[list[d
                 raise ConfigError(f"{source}: column {used[name]!r} of {table.name} looks like {announced} but "
                                   f"units.{key} is {chosen}; set units: {{{key}: {announced}}}")
     notes = [] if separator is None else [f"{table.name}: columns separated by {separator}, read so"]
-    ignored = [h for h in header if h not in used.values()]
+    named = set(used.values()) | ({n for _, n, _, _ in string.Formatter().parse(pattern) if n} if pattern else set())
+    ignored = [h for h in header if h not in named]
     if ignored:
         notes.append(f"{table.name}: columns not used by cca, ignored: {', '.join(ignored)}")
     exposure_factor = _EXPOSURE_S[manifest.units.exposure]

@@ -850,3 +850,29 @@ def test_a_matlab_file_s_table_without_sines_is_one_line_naming_its_columns(tmp_
     text = _refused(tmp_path, "leds.csv: needs the columns kx_norm and ky_norm", "its columns: led_x_mm, led_y_mm",
                     "kx_norm = x / √(x² + y² + z²)")
     assert "('kx_norm')" not in text
+
+
+def test_a_table_without_a_file_column_names_its_files_by_a_pattern(tmp_path):
+    """The lab's table as it is (index, x, y): image_files makes each row's file name from its cells."""
+    rows = _grid_rows()
+    _led_table(tmp_path, rows, {"led_distance_m": 0.06})
+    assert _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5").exit_code == 0
+    expected = _sines(tmp_path / "raw.h5")
+    for i in range(9):
+        (tmp_path / f"led{i}.png").rename(tmp_path / f"img_{i:03d}.png")
+    lines = rows.splitlines()
+    (tmp_path / "leds.csv").write_text("index,x_mm,y_mm\n" + "".join(
+        f"{i}," + ",".join(line.split(",")[1:]) + "\n" for i, line in enumerate(lines[1:])))
+    text = (tmp_path / "lab.yaml").read_text()
+    (tmp_path / "lab.yaml").write_text(text + "image_files: img_{index:03d}.png\ncolumns: {led_x: x_mm, led_y: y_mm}\n")
+    (tmp_path / "raw.h5").unlink()
+    result = _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
+    assert result.exit_code == 0, result.output
+    assert np.array_equal(_sines(tmp_path / "raw.h5"), expected)
+    assert "ignored" not in " ".join(result.output.split())      # the index column is used
+    (tmp_path / "raw.h5").unlink()
+    (tmp_path / "lab.yaml").write_text(text + "image_files: img_{number:03d}.png\ncolumns: {led_x: x_mm, led_y: y_mm}\n")
+    _refused(tmp_path, "image_files 'img_{number:03d}.png' names 'number', which leds.csv lacks",
+             "its columns: index, x_mm, y_mm")
+    (tmp_path / "lab.yaml").write_text(text + "columns: {led_x: x_mm, led_y: y_mm}\n")
+    _refused(tmp_path, "leds.csv: no file column", "image_files: img_{index:03d}.tif")
