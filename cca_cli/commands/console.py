@@ -124,24 +124,32 @@ def progress_reporter(enabled: bool = True) -> Iterator:
     """A progress callback drawing one rich bar per (stage, task); a transient task's bar goes once it is complete."""
     columns = (TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                TextColumn("{task.fields[info]}"))
-    with Progress(*columns, console=err_console, disable=not enabled, transient=False) as bars:
-        tasks: dict[tuple[str, str], int] = {}
+    # Started at the first event: a command that fails before any (a bad manifest) prints only its error line,
+    # without the empty line a bar-less display leaves where the output is not a terminal.
+    bars = Progress(*columns, console=err_console, disable=not enabled, transient=False)
+    tasks: dict[tuple[str, str], int] = {}
 
-        def report(event: ProgressEvent) -> None:
-            key = (event.stage, event.task)
-            if key not in tasks:
-                tasks[key] = bars.add_task(f"{event.stage}: {event.task}", total=event.total, info="")
-            info = "  ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in event.info.items())
-            bars.update(tasks[key], completed=event.done, total=event.total, info=info)
-            if event.transient and event.done >= event.total:
-                bars.remove_task(tasks.pop(key))
+    def report(event: ProgressEvent) -> None:
+        if not bars.live.is_started:
+            bars.start()
+        key = (event.stage, event.task)
+        if key not in tasks:
+            tasks[key] = bars.add_task(f"{event.stage}: {event.task}", total=event.total, info="")
+        info = "  ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in event.info.items())
+        bars.update(tasks[key], completed=event.done, total=event.total, info=info)
+        if event.transient and event.done >= event.total:
+            bars.remove_task(tasks.pop(key))
 
+    try:
         yield report
         shown = {task.id: task for task in bars.tasks}
         for task_id in tasks.values():
             task = shown.get(task_id)
             if task is not None and task.completed < (task.total or 0):
                 bars.update(task_id, total=task.completed)
+    finally:
+        if bars.live.is_started:
+            bars.stop()
 
 
 def length_text(metres: float) -> str:

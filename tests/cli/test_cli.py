@@ -244,3 +244,24 @@ def test_a_recovery_that_explains_the_captures_poorly_is_one_warning():
     assert "0.96" in text and "positions and their unit" in text and POOR_FIT < 0.96
     tiles = types.SimpleNamespace(results=[types.SimpleNamespace(residual={"all": v}) for v in (0.9, 0.8, 0.1)])
     assert "0.80" in poor_fit_warning(tiles)
+
+
+def test_an_error_before_any_progress_is_the_only_line_on_stderr(tmp_path):
+    """A command that fails before its first progress event prints its error line and nothing else (no empty
+    line from a progress display that never showed a bar)."""
+    import subprocess
+    import sys
+
+    import cv2
+    import numpy as np
+
+    for i in range(2):
+        cv2.imwrite(str(tmp_path / f"led{i}.png"), np.full((16, 16), 1000 + i, np.uint16))
+    (tmp_path / "leds.csv").write_text("path,kx_norm,ky_norm\nled0.png,0,0\nled1.png,0.05,0\nled0.png,0,0.05\n")
+    manifest = tmp_path / "lab.yaml"
+    manifest.write_text("illumination: {wavelength_m: 5e-7, numerical_aperture: 0.1, pixel_pitch_object_m: 1e-6}\n"
+                        "images_csv: leds.csv\n")   # one file at two positions: refused once the images are grouped
+    proc = subprocess.run([sys.executable, "-m", "cca_cli", "ingest", str(manifest), "-o", str(tmp_path / "raw.h5")],
+                          capture_output=True, text=True)
+    assert proc.returncode != 0
+    assert proc.stderr.splitlines()[0].startswith("error:") and "same file" in proc.stderr, repr(proc.stderr)
