@@ -42,12 +42,18 @@ def derived_lines(derived: dict) -> list[str]:
     lines.append(f"  pupil radius    {derived['pupil_radius_px']:.2f} spectrum px")
     if not led:
         lines.append(f"  spot at sensor  {length_text(derived['spot_size_sensor_m'])} (2.44·λ·f/d)")
-    lines.append(f"  spot at object  {length_text(derived['spot_size_object_m'])} (2.44·λ·z/d); synthetic aperture "
+    formula = "1.22·λ/NA" if led else "2.44·λ·z/d"
+    lines.append(f"  spot at object  {length_text(derived['spot_size_object_m'])} ({formula}); synthetic aperture "
                  f"{length_text(derived['spot_size_synthetic_object_m'])}")
     if "output_grid_px" in derived:
         band = f", {derived['lowres_grid_px']} px band grid per capture" if "lowres_grid_px" in derived else ""
         lines.append(f"  output grid     {derived['output_grid_px']} x {derived['output_grid_px']} px of "
                      f"{length_text(derived['object_pixel_m'])}{band}")
+    if "guard_band" in derived:
+        g = derived["guard_band"]
+        lines.append(f"  reconstruct     recorded {g['frame'][1]} x {g['frame'][0]} px frames on a {g['grid_px']} px "
+                     f"grid with a guard band (pupil radius {g['pupil_radius_px']:.2f} px there), output grid "
+                     f"{g['output_grid_px']} x {g['output_grid_px']} px")
     if "recovered_shape_px" in derived and "object_pixel_m" in derived:
         rows, cols = derived["recovered_shape_px"]
         pixel = derived["object_pixel_m"]
@@ -77,7 +83,23 @@ def _derived(handle) -> dict | None:
     images = handle.get("/measurements/intensity")
     sensor = images.shape[-1] if images is not None and images.ndim == 3 and images.shape[-1] == images.shape[-2] \
         else None
-    return derived_quantities(geometry, sensor_pixels=sensor)
+    derived = derived_quantities(geometry, sensor_pixels=sensor)
+    if images is not None and images.ndim == 3 and str(images.attrs.get("boundary", "")) == "open":
+        # what reconstruct (default padding) recovers these frames on: a guard band widens field and pupil
+        from cca_cli.sampling.capture import with_field_width
+        from cca_cli.sampling.region import plan_embedding
+
+        h, w = images.shape[1:]
+        try:
+            region = plan_embedding((h, w), geometry.pupil_radius_px)
+            padded = with_field_width(geometry, geometry.field_width_m * region.size / w)
+            grid = derived_quantities(padded, sensor_pixels=region.size)
+        except (ValueError, KeyError):
+            return derived
+        derived["guard_band"] = {"frame": [int(h), int(w)], "grid_px": int(region.size),
+                                 "pupil_radius_px": float(padded.pupil_radius_px),
+                                 "output_grid_px": grid.get("output_grid_px")}
+    return derived
 
 
 def machine_lines() -> list[str]:
@@ -125,6 +147,11 @@ def _attrs(obj) -> dict[str, str]:
     return out
 
 
+#: /geometry attributes an LED array's geometry holds as stand-ins (it is stored as a camera array whose
+#: "aperture" is the objective's NA disc); `cca info` leaves them out for LED arrays.
+_LED_STAND_INS = ("aperture_diameter_m", "distance_m", "focal_length_m", "overlap")
+
+
 def _describe(handle, path: Path, out) -> None:
     attrs = {k: _text(v) for k, v in _attrs(handle).items()}
     out(f"{path}: stage {attrs.get('stage', '?')}, cca {attrs.get('cca_version', '?')}, "
@@ -141,8 +168,11 @@ def _describe(handle, path: Path, out) -> None:
     visit_datasets(handle, visit)
     for group in ("geometry", "recon"):
         if group in handle and is_group(handle[group]):
+            group_attrs = _attrs(handle[group])
+            # an LED array's geometry is stored as a camera array's; those stand-ins are no facts of the setup
+            hidden = _LED_STAND_INS if _text(group_attrs.get("kind", "")) == "led_array" else ()
             items = [f"{k}={v:.6g}" if isinstance(v, float) else f"{k}={_text(v)}"
-                     for k, v in _attrs(handle[group]).items() if k != "units"]
+                     for k, v in group_attrs.items() if k != "units" and k not in hidden]
             out()
             out(f"{group}: " + ", ".join(items))
     derived = _derived(handle)

@@ -54,7 +54,7 @@ def simulate_cli(
 
 @handle_errors
 def reconstruct_cli(
-    captures: Annotated[Path, typer.Argument(help="captures.h5 (from simulate, hdr or register).", show_default=False)],
+    captures: Annotated[Path, typer.Argument(help="captures.h5 (from simulate, ingest, hdr or register).", show_default=False)],
     output: Annotated[Path, typer.Option("--output", "-o", help="recon file to write.")] = Path("recon.h5"),
     config: Annotated[Optional[Path], typer.Option("--config", "-c", help="Take the reconstruct section from this YAML.")] = None,
     engine: Annotated[Optional[str], typer.Option(help=f"Engine: {engine_help()}.")] = None,
@@ -106,9 +106,9 @@ def report_cli(
     config: Annotated[Optional[Path], typer.Option("--config", "-c", help="Take the report section from this YAML "
                                                    "(bar_elements, baselines, …).")] = None,
     threshold: Annotated[Optional[float], typer.Option(help="Contrast threshold of the resolution limit "
-                                                       "[default: 0.2].")] = None,
+                                                       "\\[default: 0.2].")] = None,
     figures: Annotated[Optional[bool], typer.Option("--figures/--no-figures", help="Write the PNG figures "
-                                                    "[default: figures].")] = None,
+                                                    "\\[default: figures].")] = None,
     force: Force = False,
 ) -> None:
     """Metrics (report.json) and figures (PNG) of RECON → a report directory."""

@@ -170,7 +170,8 @@ def derived_quantities(geometry: CaptureGeometry, *, sensor_pixels: int | None =
         if lowres_size is not None:
             out["lowres_grid_px"] = int(lowres_size)
         out["object_pixel_m"] = grid_pixel_m(g.field_width_m, int(hires_size))
-    out["spot_size_sensor_m"] = spot_size_m(g.wavelength_m, g.focal_length_m, g.aperture_diameter_m)
+    if g.kind != "led_array":   # an LED array's objective has no stated focal length on the sensor side
+        out["spot_size_sensor_m"] = spot_size_m(g.wavelength_m, g.focal_length_m, g.aperture_diameter_m)
     out["spot_size_object_m"] = spot_size_m(g.wavelength_m, g.distance_m, g.aperture_diameter_m)
     out["spot_size_synthetic_object_m"] = spot_size_m(g.wavelength_m, g.distance_m, g.aperture_diameter_m * sar)
     return out

@@ -265,3 +265,26 @@ def test_an_error_before_any_progress_is_the_only_line_on_stderr(tmp_path):
                           capture_output=True, text=True)
     assert proc.returncode != 0
     assert proc.stderr.splitlines()[0].startswith("error:") and "same file" in proc.stderr, repr(proc.stderr)
+
+
+def test_cca_info_of_recorded_led_captures_shows_the_grid_reconstruct_uses_and_no_camera_stand_ins(tmp_path):
+    """An LED array's geometry line leaves out the camera-array stand-ins; recorded frames get the guard-band grid."""
+    import cca_cli as cca
+
+    sines = cca.led_grid_sines(5, pitch_m=4e-3, height_m=60e-3)
+    geometry = cca.led_array(sines, wavelength_m=532e-9, numerical_aperture=0.1, pixel_pitch_object_m=1.845e-6,
+                             image_pixels=48)
+    images = cca.simulate(cca.resolution_chart(96, widths=(4, 3, 2)).image, geometry, snr_db=None)
+    cropped = cca.led_array(sines, wavelength_m=532e-9, numerical_aperture=0.1, pixel_pitch_object_m=1.845e-6,
+                            image_pixels=40)
+    recorded = cca.CaptureSet(images[:, 8:40, 4:44], geometry=cropped, boundary="open")
+    path = cca.save(recorded, tmp_path / "raw.h5")
+    result = CliRunner().invoke(app, ["info", str(path)])
+    assert result.exit_code == 0, result.output
+    text = " ".join(result.output.split())
+    geometry_line = next(line for line in result.output.splitlines() if line.startswith("geometry:"))
+    assert "kind=led_array" in geometry_line and "focal_length_m" not in geometry_line and "overlap" not in geometry_line
+    assert "(1.22·λ/NA)" in text and "spot at sensor" not in text
+    assert "reconstruct recorded 40 x 32 px frames on a" in text and "with a guard band" in text
+    recon = cca.reconstruct(recorded, iterations=2)
+    assert f"output grid {recon.spectrum.shape[-1]} x {recon.spectrum.shape[-1]} px" in text
