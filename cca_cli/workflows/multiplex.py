@@ -11,6 +11,7 @@ the on-axis camera under the on-axis source alone.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,8 +26,8 @@ from cca_cli.io.h5 import Provenance, check_output, open_input, write_dataset
 from cca_cli.io.multiplex import is_multiplexed_file, read_multiplex, write_multiplex
 from cca_cli.io.recon import write_recon
 from cca_cli.io.schema import OBSERVED
-from cca_cli.library.data import CaptureSet, Reconstruction
-from cca_cli.library.recovery import DivergedError, drive_engine
+from cca_cli.library.data import CaptureSet, Reconstruction, constant_images
+from cca_cli.library.recovery import MAX_DEAD_FRACTION, DivergedError, drive_engine
 from cca_cli.optics import fft
 from cca_cli.optics.multiplex import (MultiplexGeometry, MultiplexedForwardModel, coverage_map, design_band,
                                       random_patterns, rect_lattice)
@@ -37,6 +38,8 @@ from cca_cli.workflows.recording import noise_settings, recorded, stored_grid, w
 from cca_cli.workflows.recovery import engine_options
 from cca_cli.workflows.scenes import Scene, build_scene
 from cca_cli.units import FourierScale
+
+_log = logging.getLogger("cca")
 
 __all__ = ["MultiplexSimulation", "MultiplexedCaptures", "multiplex_geometry", "simulate_multiplexed",
            "write_multiplexed_captures", "read_multiplexed_captures", "reconstruct_multiplexed",
@@ -216,9 +219,10 @@ def reconstruct_multiplexed(data: MultiplexedCaptures, section: ReconstructSecti
         able = [n for n in engine_names() if get_engine(n).multiplexed is not None]
         raise ConfigError(f"reconstruct.engine: {section.engine!r} cannot use multiplexed captures ({source}); "
                           f"choose one of {', '.join(able)}")
+    weight, dead = _without_dead_measurements(data, source)
     try:
         model = MultiplexedForwardModel(data.multiplex, sensor_size=captures.intensity.shape[-1])
-        problem = MultiplexedProblem.from_sensor_images(model, captures.intensity, captures.weight)
+        problem = MultiplexedProblem.from_sensor_images(model, captures.intensity, weight)
     except ValueError as exc:
         raise InputError(f"{source}: {exc}") from None
     engine = engine_class(problem, options)
@@ -231,7 +235,35 @@ def reconstruct_multiplexed(data: MultiplexedCaptures, section: ReconstructSecti
     return Reconstruction(object=fft.ifft2c(spectrum).astype(np.complex64), spectrum=spectrum, history=history,
                           geometry=captures.geometry, engine=name, options=options.model_dump(), seconds=seconds,
                           stopped_by=engine.stop_reason(), observed=observed, truth=dict(captures.truth),
-                          units=captures.units, band_grid_px=model.layout.lowres_size)
+                          units=captures.units, band_grid_px=model.layout.lowres_size, dropped=dead)
+
+
+def _without_dead_measurements(data: MultiplexedCaptures, source: Path) -> tuple[np.ndarray | None, tuple[int, ...]]:
+    """The measurements' weights with dead ones (an image of one value: nothing was recorded) at 0, and those.
+
+    As a plain run leaves dead captures out: up to :data:`~cca_cli.library.recovery.MAX_DEAD_FRACTION` of the
+    measurements with one warning; more, or a dead first measurement where it is the observed image, refused.
+    """
+    intensity = data.captures.intensity
+    dead = constant_images(intensity)
+    if dead.size == 0:
+        return data.captures.weight, ()
+    k = intensity.shape[0]
+    listed = ", ".join(str(int(i)) for i in dead[:8]) + (", …" if dead.size > 8 else "")
+    if data.reference is None and 0 in dead:
+        raise InputError(f"{source}: measurement 0, the image the report compares with, holds one value (every "
+                         f"pixel {float(intensity[0].flat[0]):g}): nothing was recorded there; re-take it")
+    allowed = int(MAX_DEAD_FRACTION * k)
+    if dead.size > allowed:
+        raise InputError(f"{source}: {dead.size} of {k} measurements hold one value each, so nothing was recorded "
+                         f"there (measurements {listed}); at most {MAX_DEAD_FRACTION:.0%} ({allowed} here) may be "
+                         "left out: check the cameras and re-take them")
+    _log.warning("%s: left out %d of %d measurements that hold one value each (measurements %s): nothing was "
+                 "recorded there; the recovery uses the other %d", source, dead.size, k, listed, k - dead.size)
+    weight = np.ones(intensity.shape, np.float32) if data.captures.weight is None \
+        else np.array(data.captures.weight, np.float32)
+    weight[dead] = 0.0
+    return weight, tuple(int(i) for i in dead)
 
 
 def run_reconstruct(captures_path: Path, section: ReconstructSection, output: Path, *, provenance: Provenance,

@@ -126,3 +126,32 @@ def test_multiplexed_simulation_of_a_usaf_chart_stores_its_elements(tmp_path):
     run_simulate(parse_config(data), output, provenance={"stage": "simulate"})
     with h5py.File(output, "r") as handle:
         assert "multiplex" in handle and handle["truth/usaf"].shape[0] > 0
+
+
+def test_dead_measurements_are_left_out_or_refused_as_dead_captures_are(tmp_path):
+    """A measurement whose image holds one value is left out (weight 0) with one warning, up to 5% of them; more is
+    one error line, and nothing is written."""
+    config = _config(patterns=7)                       # 63 measurements: 3 may be left out
+    config["run"]["stages"] = ["simulate"]
+    config["reconstruct"]["iterations"] = 3
+    path = tmp_path / "mux.yaml"
+    path.write_text(yaml.safe_dump(config))
+    result = CliRunner().invoke(app, ["run", str(path), "--out-dir", str(tmp_path), "-q"])
+    assert result.exit_code == 0, result.output
+    captures = tmp_path / "captures.h5"
+    with h5py.File(captures, "r+") as handle:
+        assert handle["/measurements/intensity"].shape[0] == 63
+        handle["/measurements/intensity"][5] = 0.0
+    recon = tmp_path / "recon.h5"
+    result = CliRunner().invoke(app, ["reconstruct", str(captures), "-o", str(recon), "--config", str(path), "-q"])
+    assert result.exit_code == 0, result.output
+    assert "left out 1 of 63 measurements" in " ".join(result.output.split())
+    with h5py.File(recon, "r") as handle:
+        assert list(handle["recon"].attrs["dropped_captures"]) == [5]
+    with h5py.File(captures, "r+") as handle:
+        for i in (6, 7, 8):
+            handle["/measurements/intensity"][i] = 2.0
+    recon.unlink()
+    result = CliRunner().invoke(app, ["reconstruct", str(captures), "-o", str(recon), "--config", str(path), "-q"])
+    assert result.exit_code != 0 and not recon.exists()
+    assert "4 of 63 measurements hold one value each" in " ".join(result.output.split())
