@@ -381,12 +381,17 @@ class Reading:
         The refitted common pupil map A.
     residual : dict
         ``all``, ``bright_field``, ``dark_field``, ``scale`` over the frames' interiors.
+    error2, reference2 : ndarray, float64, (K,)
+        Each frame's squared amplitude misfit (after the global scale) and squared measured amplitude over its
+        interior: ``residual["all"]`` is ``√(Σ error2 / Σ reference2)``.
     """
 
     obj: np.ndarray
     shift_px: np.ndarray
     pupil: np.ndarray
     residual: dict
+    error2: np.ndarray | None = None
+    reference2: np.ndarray | None = None
 
 
 def common_reading(rec: Recovery, frames: FrameModel, factor: int, *, steps: int = 40) -> Reading:
@@ -440,5 +445,9 @@ def common_reading(rec: Recovery, frames: FrameModel, factor: int, *, steps: int
     disc = np.hypot(*np.mgrid[:n, :n] - n // 2) <= frames.radius
     gain = float(np.mean(np.abs(pupil[disc])))
     aligned = _fft(spectrum, inverse=True) * from_split["scale"] * gain * size / n
-    return Reading(aligned, shift, pupil, from_split)
+    k = model.shape[0]
+    fitted = (model * mask).reshape(k, -1).astype(np.float64) * split.scale
+    data = measured.reshape(k, -1).astype(np.float64)
+    error2, reference2 = np.sum((fitted - data) ** 2, axis=1), np.sum(data * data, axis=1)
+    return Reading(aligned, shift, pupil, from_split, error2, reference2)
 
