@@ -24,8 +24,8 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import (BaseModel, ConfigDict, Field, PositiveFloat, PositiveInt, ValidationError, field_validator,
-                      model_validator)
+from pydantic import (BaseModel, ConfigDict, Field, PositiveFloat, PositiveInt, PrivateAttr, ValidationError,
+                      field_validator, model_validator)
 
 from cca_cli.config.messages import accepted_keys, error_message, shown_value
 from cca_cli.config.yaml_text import read_text_file, read_yaml_file
@@ -174,6 +174,9 @@ class UnitsSpec(_Strict):
 
 class ImageEntry(_Strict):
     """One image: its kind, where it was taken, its exposure and its file."""
+
+    #: ``(table file name, line)`` of a row read from an image table (for messages).
+    _origin: tuple[str, int] | None = PrivateAttr(None)
 
     path: Path
     kind: Kind = "coherent"
@@ -726,6 +729,7 @@ def read_manifest(path: str | Path) -> LoadedManifest:
         images = [ImageEntry.model_validate(e) for e in entries]
         images = [e.model_copy(update={"path": _resolve(table.parent, e.path)}) for e in images]
         for image, line in zip(images, lines):
+            image._origin = (table.name, line)
             if not (image.path.exists() or image.path.is_symlink()):
                 raise InputError(f"{image.path}: named by line {line} of {table} but not found; check that row "
                                  f"(paths are relative to the table's folder)")
@@ -1107,6 +1111,10 @@ def _check_distinct_files(groups: dict, path: Path) -> None:
             first_key, first = seen[identity]
             same = (f"the same file {entry.path.name}" if first.path.name == entry.path.name
                     else f"{entry.path.name}, the same file as {first.path.name}")
+            if first._origin is not None and entry._origin is not None:   # rows of a table: name its lines
+                table, lines = first._origin[0], sorted((first._origin[1], entry._origin[1]))
+                raise ConfigError(f"{path}: lines {lines[0]} and {lines[1]} of {table} both name {same}; each "
+                                  "position and exposure needs its own image: fix the path of one of the rows")
             if first_key == key:
                 raise ConfigError(f"{path}: {_position_text(key)} lists {same} for exposures "
                                   f"{_fmt(first.exposure_s)} s and {_fmt(entry.exposure_s)} s; each exposure needs "

@@ -264,7 +264,8 @@ def test_an_error_before_any_progress_is_the_only_line_on_stderr(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "cca_cli", "ingest", str(manifest), "-o", str(tmp_path / "raw.h5")],
                           capture_output=True, text=True)
     assert proc.returncode != 0
-    assert proc.stderr.splitlines()[0].startswith("error:") and "same file" in proc.stderr, repr(proc.stderr)
+    assert proc.stderr.splitlines()[0].startswith("error:"), repr(proc.stderr)
+    assert "lines 2 and 4 of leds.csv both name the same file led0.png" in proc.stderr   # the table's own lines
 
 
 def test_cca_info_of_recorded_led_captures_shows_the_grid_reconstruct_uses_and_no_camera_stand_ins(tmp_path):
