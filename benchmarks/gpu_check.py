@@ -15,8 +15,11 @@ Prints, on a machine with CuPy and a CUDA GPU (``pip install 'cca[gpu]'``), in a
    ``../shared/datasets/fpm-zheng-bloodsmear`` is there (skipped with a note when not); its capped runs
    set ``threads`` to the CPU engine's (at most 4) on both devices, so that the GPU engine visits the
    captures in the CPU engine's order (unset, it takes 8 lanes; the whole runs keep the default);
-4. the wide field (``configs/widefield.yaml``: a 2048² frame, 25 captures), recovered whole (the GPU path
-   runs no tiles) for ``--iterations`` passes on both devices.
+4. the wide field (``configs/widefield.yaml``: a 2048² frame, 25 captures), recovered whole for
+   ``--iterations`` passes on both devices;
+5. the same wide field in the config's tiles (81 tiles of 256², each with its pupil), whole runs on the GPU
+   (cca's local Dask cluster, one worker per GPU) and, unless ``--skip-cpu``, on the CPU (a worker per core),
+   with the blended objects' agreement.
 
 Each comparison runs the CPU engine (``device: cpu``) and the GPU engine on the same captures and options
 for ``--iterations`` passes (default 50, ``tol`` 0) and prints ``max |I_gpu − I_cpu| / max I_cpu`` of the
@@ -243,6 +246,31 @@ def widefield(iterations: int, skip_cpu: bool) -> dict:
             "capped": run_both(capped, iterations, skip_cpu)}
 
 
+def tiles(skip_cpu: bool) -> dict:
+    """The wide field in the config's tiles, whole runs on the GPU and the CPU: times and agreement."""
+    from cca_cli import api
+    from cca_cli.config.load import load_config
+    from cca_cli.library.data import CaptureSet
+    from cca_cli.stages.simulate import simulate
+
+    config = load_config(ROOT / "configs" / "widefield.yaml")
+    simulation = simulate(config)
+    layout = config.reconstruct.tiles
+    out: dict = {"tiles_px": layout.size_px, "overlap_px": layout.overlap_px}
+    objects = {}
+    with tempfile.TemporaryDirectory(prefix="cca-gpu-tiles-") as folder:
+        path = api.save(CaptureSet(simulation.intensity, simulation.geometry), Path(folder) / "captures.h5")
+        for device in ("cuda",) if skip_cpu else ("cuda", "cpu"):
+            start = time.perf_counter()
+            result = api.reconstruct_tiles(path, size_px=layout.size_px, overlap_px=layout.overlap_px, device=device)
+            out[f"{device}_whole_s"] = time.perf_counter() - start
+            out[f"{device}_tiles"] = int(len(result.boxes_px))
+            objects[device] = np.abs(result.object) ** 2
+    if "cpu" in objects:
+        out["diff_over_peak"] = float(np.abs(objects["cuda"] - objects["cpu"]).max() / objects["cpu"].max())
+    return out
+
+
 def _print_section(name: str, result: dict) -> None:
     print(f"\n{name}")
     for key, value in result.items():
@@ -265,7 +293,7 @@ def main(argv=None) -> int:
     parser.add_argument("--require-gpu", action="store_true", help="Exit 2 (not 0) when there is no GPU.")
     parser.add_argument("--bloodsmear-captures", type=Path, default=None,
                         help="The blood smear already ingested (cca ingest configs/bloodsmear_green_manifest.yaml).")
-    parser.add_argument("--only", choices=("floor", "headline", "bloodsmear", "widefield"), action="append",
+    parser.add_argument("--only", choices=("floor", "headline", "bloodsmear", "widefield", "tiles"), action="append",
                         help="Run only these parts (repeatable).")
     args = parser.parse_args(argv)
     status = backend.device_status()
@@ -279,7 +307,8 @@ def main(argv=None) -> int:
     whole = not args.no_whole_runs
     parts = {"floor": lambda: fft_floor(), "headline": lambda: headline(args.iterations, args.skip_cpu, whole),
              "bloodsmear": lambda: bloodsmear(args.iterations, args.skip_cpu, whole, args.bloodsmear_captures),
-             "widefield": lambda: widefield(args.iterations, args.skip_cpu)}
+             "widefield": lambda: widefield(args.iterations, args.skip_cpu),
+             "tiles": lambda: tiles(args.skip_cpu)}
     results = {"device": status.summary}
     for name, part in parts.items():
         if args.only and name not in args.only:
