@@ -210,6 +210,10 @@ def test_cli_and_api_write_the_same_recon_datasets(tmp_path, write_config, tiny_
         for key in ("engine", "engine_options", "iterations", "stopped_by", "hires_size", "lowres_size",
                     "pixel_pitch_object_m"):
             assert cli["recon"].attrs[key] == api["recon"].attrs[key], key
+    loaded = cca.load(tmp_path / "api.h5")                 # the residuals come back with the result
+    assert loaded.fit is not None and loaded.fit.all == recovery.fit.all
+    np.testing.assert_array_equal(loaded.fit.per_image, recovery.fit.per_image)
+    np.testing.assert_array_equal(loaded.fit.bright_field_mask, recovery.fit.bright_field_mask)
 
 
 @pytest.fixture(scope="module")

@@ -77,8 +77,9 @@ class ReconFile:
     Attributes
     ----------
     result : Reconstruction
-        With ``pupil`` and ``positions_px`` as the file has them (``calibration`` and ``fit`` are not
-        rebuilt: their per-capture parts are not kept).
+        With ``pupil``, ``positions_px`` and ``fit`` (the residuals per capture and over each set) as the
+        file has them; ``calibration`` is not rebuilt (each capture's pupil is not kept): its parts are in
+        ``calibration`` below.
     attrs : dict
         The attributes of /recon (``engine``, ``iterations``, ``seconds``, ``stopped_by``, the grid sizes,
         the residuals, ``dropped_captures``, …).
@@ -183,6 +184,19 @@ def _write_region(handle, region: RegionEmbedding, hires_size: int) -> None:
                   guard_px=region.guard_px, apodize_px=region.apodize_px, sensor_grid_px=region.size)
 
 
+def _read_fit(handle) -> FitReport | None:
+    """The residuals :func:`_write_fit` wrote (None where the file has none)."""
+    recon = handle["recon"]
+    if "/recon/residual_per_image" not in handle or "/calibration/bright_field" not in handle \
+            or any(f"residual_{name}" not in recon.attrs for name in _RESIDUALS):
+        return None
+    values = {name: float(recon.attrs[f"residual_{name}"]) for name in _RESIDUALS}
+    plain = {f"{name}_without_brightness": float(recon.attrs.get(f"residual_{name}_without_brightness", values[name]))
+             for name in _RESIDUALS}
+    return FitReport(per_image=np.asarray(handle["/recon/residual_per_image"], np.float64), **values, **plain,
+                     bright_field_mask=np.asarray(handle["/calibration/bright_field"], bool))
+
+
 def _write_fit(handle, fit: FitReport) -> None:
     """The residuals of the final model: per capture, and over all / bright-field / dark-field captures."""
     write_dataset(handle, "/recon/residual_per_image", fit.per_image)
@@ -266,6 +280,7 @@ def read_recon(path: Path) -> ReconFile:
         tiles = _read_tiles(handle)
         multiplex = read_multiplex(handle) if "multiplex" in handle else None
         capture_summary = read_capture_summary(handle)
+        fit = _read_fit(handle)
         pupil = np.asarray(handle["/calibration/pupil"]) if "/calibration/pupil" in handle else None
         positions = (np.asarray(handle["/calibration/spectrum_centres_yx_px"])
                      if "/calibration/spectrum_centres_yx_px" in handle else None)
@@ -283,7 +298,7 @@ def read_recon(path: Path) -> ReconFile:
         seconds=float(attrs["seconds"]), stopped_by=_text(attrs.get("stopped_by", "")), observed=observed,
         truth=truth, units=None if units in ("", "irradiance") else units, band_grid_px=int(attrs["lowres_size"]),
         pupil=pupil, positions_px=positions, region=region, dropped=dropped, held_back=held_back,
-        device=_text(attrs.get("device", "cpu")))
+        device=_text(attrs.get("device", "cpu")), fit=fit)
     return ReconFile(result=result, attrs=attrs, calibration=calibration, tiles=tiles, region_px=region_px,
                      multiplex=multiplex, capture_summary=capture_summary)
 
