@@ -519,15 +519,22 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
         weight = captures.weight if weight is None else weight
         intensities = captures.intensity
     if geometry is None:
-        raise ValueError("give the capture geometry (camera_scan, stage_scan or led_array), or a CaptureSet")
+        raise ValueError("geometry: give the capture geometry (camera_scan, stage_scan or led_array), or a CaptureSet")
     images = _real_images(intensities, "intensities")
     if images.ndim != 3 or len(images) != geometry.n_images:
+        hint = ("; the images seem to be stacked along the last axis: np.moveaxis(intensities, -1, 0) puts them first"
+                if images.ndim == 3 and images.shape[-1] == geometry.n_images else "")
         raise ValueError(f"intensities must be (K, N, N) or (K, H, W) with K = {geometry.n_images} images of the "
-                         f"geometry, got shape {images.shape}")
+                         f"geometry, got shape {images.shape}{hint}")
     _check_frame_width(images.shape[-1], geometry, "intensities")
     kind = captures.kind if captures is not None else geometry.kind
     frame_scale = captures.frame_scale if captures is not None else "shared"
-    engine, engine_options = resolve(engine, kind, options, frame_scale=frame_scale)
+    try:
+        engine, engine_options = resolve(engine, kind, options, frame_scale=frame_scale)
+    except ValueError as exc:   # name the argument first, as every other refusal here does
+        text = str(exc)
+        name = "engine" if "is not an engine" in text else "options" if text.startswith("unknown option") else None
+        raise ValueError(f"{name}: {text}" if name else text) from None
     check_intensity(images, "intensities")
     weights = None if weight is None else _real_images(weight, "weight")
     if weights is not None:
@@ -705,9 +712,11 @@ def _check_frame_width(width: int, geometry: CaptureGeometry, name: str) -> None
     pixel = geometry.pixel_pitch_m * geometry.distance_m / geometry.focal_length_m   # one pixel at the object
     expected = geometry.field_width_m / pixel
     if abs(expected - width) > 0.5:
+        fix = (f"image_pixels = {width}" if geometry.kind == "led_array"
+               else f"field_width_m = {width * pixel:.6g} (the images' own width)")
         raise ValueError(f"{name} are {width} px wide but the geometry's field ({geometry.field_width_m:.6g} m at "
-                         f"{pixel:.6g} m a pixel) is {expected:.6g} px: build the geometry with field_width_m = "
-                         f"{width * pixel:.6g} (the images' own width), or pass the images it was built for")
+                         f"{pixel:.6g} m a pixel) is {expected:.6g} px: build the geometry with {fix}, or pass the "
+                         "images it was built for")
 
 
 def save(data: CaptureSet | Reconstruction, path, *, force: bool = False) -> Path:

@@ -276,3 +276,22 @@ def test_api_recovers_recorded_frames_as_the_cli_does(recorded_led_file, tmp_pat
     assert periodic.region is None
     with pytest.raises(ValueError, match="padding must be"):
         cca.reconstruct(cca.load(path), padding="none")
+
+
+def test_api_refusals_name_the_argument_first_and_the_fix():
+    g = cca.camera_scan(wavelength_m=550e-9, focal_length_m=0.8, aperture_diameter_m=45e-3, pixel_pitch_m=2e-6,
+                        distance_m=50, field_width_m=8e-3, grid=3, overlap=0.61)
+    images = cca.simulate(cca.resolution_chart(64, widths=(4, 3, 2)).image, g, snr_db=40)
+    with pytest.raises(ValueError, match=r"^engine: 'epry' is not an engine"):
+        cca.reconstruct(images, g, engine="epry")
+    with pytest.raises(ValueError, match=r"^options: unknown option\(s\) iteration"):
+        cca.reconstruct(images, g, engine="momentum", iteration=2)
+    with pytest.raises(ValueError, match=r"^geometry: give the capture geometry"):
+        cca.reconstruct(images)
+    with pytest.raises(ValueError, match=r"np.moveaxis\(intensities, -1, 0\)"):
+        cca.reconstruct(np.moveaxis(images, 0, -1), g)
+    sines = cca.led_grid_sines(3, pitch_m=4e-3, height_m=60e-3)
+    led = cca.led_array(sines, wavelength_m=532e-9, numerical_aperture=0.1, pixel_pitch_object_m=1.845e-6,
+                        image_pixels=48)
+    with pytest.raises(ValueError, match="build the geometry with image_pixels = 40"):
+        cca.reconstruct(np.ones((9, 40, 40), np.float32), led)

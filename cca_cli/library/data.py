@@ -108,16 +108,19 @@ class Reconstruction:
     spectrum : ndarray, complex64, (M, M)
         Centred spectrum (orthonormal FFT) of the whole recovery grid.
     history : History
-        ``history["residual"]`` (relative data misfit), ``["change"]``
-        (relative spectrum change) and ``["seconds"]`` (wall time) per
-        iteration (a mapping of those arrays is read as a History).
+        ``history["residual"]`` (relative data misfit of each iteration's
+        model, before the final fit report: see ``fit``), ``["change"]``
+        (relative spectrum change) and ``["seconds"]`` (wall time since the
+        iterations began, at the end of each) per iteration (a mapping of
+        those arrays is read as a History).
     geometry : CaptureGeometry
         The captures' geometry on the whole recovery grid.
     engine : str
     options : dict
         The engine's options as run.
     seconds : float
-        Reconstruction time.
+        Time of the engine's iterations (``history["seconds"][-1]``): the problem's set-up and the final
+        fit report, which a whole call also spends, are not in it.
     stopped_by : str
         ``tol`` (the change fell below ``tol``), ``plateau`` (the data misfit
         stopped falling) or ``cap`` (the iteration cap came first).

@@ -165,11 +165,12 @@ def engine_device(device: str, engine: str, options: EngineOptions) -> str:
 
 
 def _where(geometry, index: int) -> str:
-    """``(row 0, col 3)``, or for an LED array (any layout) where its pupil sits, in sines: ``(pupil at kx +0.0750,
-    ky -0.1300)`` (the illumination's sines times the geometry's sign)."""
+    """``(row 0, col 3)``, or for an LED array (any layout) where its pupil sits, in sines and ``[y, x]`` order as
+    ``sin_yx``: ``(its pupil at [y, x] = [-0.1300, +0.0750] in sines)`` (the light's sines times the geometry's
+    sign)."""
     if geometry.kind == "led_array":
-        ky, kx = np.asarray(geometry.aperture_centres_yx_m, np.float64)[index]
-        return f"(pupil at kx {kx:+.4f}, ky {ky:+.4f})"
+        y, x = np.asarray(geometry.aperture_centres_yx_m, np.float64)[index]
+        return f"(its pupil at [y, x] = [{y:+.4f}, {x:+.4f}] in sines)"
     grid = np.asarray(geometry.grid_indices)
     return f"(row {int(grid[index, 0])}, col {int(grid[index, 1])})"
 

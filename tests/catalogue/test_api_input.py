@@ -262,8 +262,8 @@ def test_a_dead_led_capture_is_named_by_its_sines_whatever_the_layout(caplog):
     images[2] = 0.0
     with caplog.at_level(logging.WARNING, logger="cca"):
         cca.reconstruct(images, geometry, engine="momentum", iterations=2)
-    ky, kx = -sines[2]                 # the pupil sits at −sin θ (sign −1)
-    assert f"image 2 (pupil at kx {kx:+.4f}, ky {ky:+.4f}) holds one value (0)" in caplog.text
+    y, x = -sines[2]                   # the pupil sits at −sin θ (sign −1), named in sin_yx's [y, x] order
+    assert f"image 2 (its pupil at [y, x] = [{y:+.4f}, {x:+.4f}] in sines) holds one value (0)" in caplog.text
 
 
 def _without(geometry, index):
