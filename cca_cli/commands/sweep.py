@@ -40,8 +40,12 @@ def _sweep(study: str, config: Path, sets: list[str] | None, workers: int | None
     sweep_dir = Path(out_dir or cfg.run.out_dir or Path("cca-runs") / f"{config.stem}-{study}")
     check_folder(sweep_dir)
     points = sw.expand_points(cfg, spec, sweep_dir, source=str(config))
-    if all(p.error for p in points):
-        raise ConfigError(f"every point of the sweep is invalid; the first: {points[0].error}")
+    invalid = [p for p in points if p.error]
+    if invalid and (len(invalid) == len(points) or not dry_run):   # before any runs; a dry run lists them
+        first = invalid[0]
+        where = ", ".join(f"{k}={v}" for k, v in first.overrides.items()) or first.point_id
+        raise ConfigError(f"{len(invalid)} of {len(points)} points of the sweep are invalid, so none ran; the first "
+                          f"({where}): {first.error}; fix or drop that value")
     earlier = sw.earlier_points(cfg, spec, points, sweep_dir, force=force, source=str(config))
     if scheduler and not dry_run:
         sw.check_scheduler(scheduler, sw.scheduler_timeout())

@@ -447,6 +447,16 @@ def earlier_points(base: RunConfig, spec: SweepSection, points: list[SweepPoint]
         raise OutputExistsError(f"{sweep_dir}: holds points made from another base config than {source} "
                                 f"({other.relative_to(sweep_dir)} …); use --force to recompute this sweep's points "
                                 "and leave the others out of the table, or choose another --out-dir")
+    # One table and its figures plot the keys this sweep varies: points that vary others cannot join them.
+    varied = {key for p in points for key in p.overrides}
+    foreign = [p for p in kept if set(p.overrides) != varied]
+    if foreign and not force:
+        theirs = ", ".join(sorted(foreign[0].overrides)) or "nothing"
+        raise OutputExistsError(f"{sweep_dir}: holds points of a sweep over {theirs} ({foreign[0].point_id} …), and "
+                                f"this one varies {', '.join(sorted(varied)) or 'nothing'}: one table and its figures "
+                                "cannot plot both; choose another --out-dir, or use --force to leave those points "
+                                "out of the table")
+    kept = [p for p in kept if set(p.overrides) == varied]
     return sorted(kept, key=lambda p: (order.get(p.point_id, len(order)), p.index if p.index is not None else 0,
                                        p.point_id))
 

@@ -1199,6 +1199,9 @@ case("sweep-adds-to-an-earlier-sweep", "data-loss", SWEEP_MORE,
 case("sweep-into-another-base-config", "data-loss", SWEEP_MORE,
      {"cfg.yaml": Config(), "sw": SweepFolder({"noise.snr_db": [10, 20]}, {"reconstruct.iterations": 5})}, exit=4,
      says=("sw", "another base config", "--force"))
+case("sweep-over-another-key", "data-loss", SWEEP_MORE,   # one table and its figures cannot plot both keys
+     {"cfg.yaml": Config(), "sw": SweepFolder({"array.overlap": [0.55, 0.65]})}, exit=4,
+     says=("sw", "sweep over array.overlap", "this one varies", "noise.snr_db", "--out-dir"), seconds=120)
 case("sweep-into-another-study", "data-loss", SWEEP_MORE,
      {"cfg.yaml": Config(), "sw": SweepFolder({"noise.snr_db": [10, 20]}, study="noise")}, exit=4,
      says=("sweep.h5", "noise study", "--force"))
@@ -1208,7 +1211,7 @@ case("sweep-points-fail", "traceback",   # points that fail only when they run (
      exit=1, says=("2 of 2 points failed", "sw/sweep.csv"), writes=("sw",), seconds=120)
 case("sweep-points-invalid", "traceback",   # a chart that fits no point: refused before anything runs
      ["sweep", "grid", "cfg.yaml", "--set", "scene.size_px=20,12.7", "--out-dir", "sw", "-q", "--workers", "1"],
-     {"cfg.yaml": Config()}, exit=2, says=("every point of the sweep is invalid", "does not fit"), writes=())
+     {"cfg.yaml": Config()}, exit=2, says=("2 of 2 points of the sweep are invalid", "does not fit"), writes=())
 
 
 def _started_afresh(folder: Path, result) -> None:

@@ -111,7 +111,12 @@ def test_a_chart_that_does_not_fit_is_an_invalid_point_before_anything_runs(tmp_
     config.write_text(base.model_dump_json())
     every = CliRunner().invoke(app, ["sweep", "grid", str(config), "--set", f"scene.widths_px=[{size}]", "--dry-run",
                                      "--out-dir", str(tmp_path / "s")])
-    assert every.exit_code == 2 and "every point of the sweep is invalid" in every.output
+    assert every.exit_code == 2 and "1 of 1 points of the sweep are invalid, so none ran" in every.output
+    some = CliRunner().invoke(app, ["sweep", "grid", str(config), "--set", "array.grid=3,nine",
+                                    "--out-dir", str(tmp_path / "s2")])
+    text = " ".join(some.output.split())
+    assert some.exit_code == 2 and "1 of 2 points of the sweep are invalid, so none ran" in text, some.output
+    assert "(array.grid=nine" in text and "must be a whole number" in text and not (tmp_path / "s2").exists()
 
 
 def test_a_dask_scheduler_is_recognised_and_other_servers_are_refused_in_bounded_time(client):
