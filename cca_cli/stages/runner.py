@@ -191,11 +191,27 @@ def run_pipeline(config: RunConfig, out_dir: Path, *, force: bool = False, progr
     out_dir = Path(out_dir)
     check_folder(out_dir)
     plans = plan_stages(config, out_dir)
+    if out_dir.is_dir():   # another run writing here is said first: its outputs may look outdated meanwhile
+        with folder_lock(out_dir):
+            _check_before_running(config, plans, force=force, source=source)
+            remove_stale_temporaries(out_dir)
+            return _run_stages(config, plans, force=force, progress=progress, on_stage=on_stage, source=source)
     _check_before_running(config, plans, force=force, source=source)
     prepare_folder(out_dir)
-    with folder_lock(out_dir):
-        remove_stale_temporaries(out_dir)
-        return _run_stages(config, plans, force=force, progress=progress, on_stage=on_stage, source=source)
+    try:
+        with folder_lock(out_dir):
+            return _run_stages(config, plans, force=force, progress=progress, on_stage=on_stage, source=source)
+    except BaseException:
+        _remove_if_empty(out_dir)   # the folder this run made, where a refusal left nothing
+        raise
+
+
+def _remove_if_empty(folder: Path) -> None:
+    """Remove ``folder`` when nothing is left in it (this run made it; a failure before any output wrote none)."""
+    try:
+        folder.rmdir()
+    except OSError:   # something is in it, or it is gone
+        pass
 
 
 def _check_before_running(config: RunConfig, plans: list[StagePlan], *, force: bool, source) -> None:
@@ -211,7 +227,7 @@ def _check_before_running(config: RunConfig, plans: list[StagePlan], *, force: b
         if state == "foreign":
             _refuse_existing(plan, state)
         if exists and not force and not rewritten.intersection(plan.inputs):
-            if state == "other":
+            if state == "other" and not _resumes(plan, config.reconstruct):
                 _refuse_existing(plan, state)
             if state == "current":
                 continue
@@ -224,6 +240,30 @@ def _check_before_running(config: RunConfig, plans: list[StagePlan], *, force: b
             check_device(config.reconstruct)
     if simulate is not None:
         check_footprint(simulate_footprint(config), simulate.output, source=source)
+
+
+def _resumes(plan: StagePlan, section) -> bool:
+    """Whether an outdated recon.h5 has beside it the checkpoint of a reconstruction of these very captures and
+    section: a run that began replacing it (with ``--force``, say) and was stopped goes on from there, without
+    ``--force`` (the output was already being replaced when it stopped)."""
+    if plan.name != "reconstruct" or section is None or not plan.inputs:
+        return False
+    from cca_cli.io.checkpoint import checkpoint_path, read_checkpoint
+    from cca_cli.io.h5 import Provenance
+    from cca_cli.stages.reconstruct import checkpoint_fingerprint, engine_recipe
+
+    path = checkpoint_path(plan.output)
+    if not path.is_file():
+        return False
+    saved = read_checkpoint(path)
+    if saved is None:
+        return False
+    try:
+        provenance = Provenance.make("reconstruct", "", "", list(plan.inputs))
+        provenance["engine_recipe"] = engine_recipe(plan.inputs[0], section)
+        return saved.fingerprint == checkpoint_fingerprint(section, provenance, plan.inputs[0])
+    except (OSError, ValueError, KeyError):
+        return False
 
 
 def _refuse_existing(plan: StagePlan, state: str) -> None:
@@ -253,7 +293,7 @@ def _run_stages(config: RunConfig, plans: list[StagePlan], *, force: bool, progr
                 on_stage(plan, "outdated")
             # An output made from an input this run just rewrote is stale by construction: recompute it.
             if not force and not rewritten.intersection(plan.inputs):
-                if state == "other":
+                if state == "other" and not _resumes(plan, config.reconstruct):
                     _refuse_existing(plan, state)
                 if state == "current":
                     if on_stage:

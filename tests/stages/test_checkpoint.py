@@ -220,3 +220,49 @@ def test_a_checkpoint_made_under_other_engine_defaults_does_not_resume(tiny, mon
     name, options = tiled.tile_engine(section, "simulation")
     monkeypatch.setattr(tiled, "tile_engine", lambda *a, **k: (name, options.model_copy(update={"tau": 0.5})))
     assert tiled.run_fingerprint(section, [], captures) != tiles_before
+
+
+def test_a_run_stopped_while_it_replaced_an_outdated_recon_goes_on_without_force(tiny_run_config, tmp_path, caplog):
+    """`cca run --force` of a changed config, stopped in its reconstruction: the same `cca run` again (no --force)
+    resumes from the checkpoint instead of refusing the outdated recon.h5 it was already replacing."""
+    from cca_cli.config.load import apply_overrides
+    from cca_cli.errors import OutputExistsError
+    from cca_cli.stages.runner import run_pipeline
+
+    first = apply_overrides(tiny_run_config, {"reconstruct.iterations": 30, "reconstruct.tol": 0.0,
+                                              "reconstruct.checkpoint_every": 2})
+    run_pipeline(first, tmp_path)
+    changed = apply_overrides(first, {"noise.seed": first.noise.seed + 1})
+    checkpoint = tmp_path / "recon.h5.checkpoint"
+
+    def stop_once_checkpointed(event):
+        if checkpoint.exists():
+            raise _Stop
+
+    with pytest.raises(_Stop):
+        run_pipeline(changed, tmp_path, force=True, progress=stop_once_checkpointed)
+    assert checkpoint.is_file()
+    with caplog.at_level(logging.WARNING, logger="cca"):
+        outcomes = run_pipeline(changed, tmp_path)
+    assert "resuming from iteration" in caplog.text and not checkpoint.exists()
+    assert [o.status for o in outcomes][:2] == ["skipped", "ran"]
+    other = apply_overrides(first, {"noise.seed": first.noise.seed + 2})   # no checkpoint of its own: refused
+    with pytest.raises(OutputExistsError):
+        run_pipeline(other, tmp_path)
+
+
+def test_a_second_run_is_told_of_the_lock_first_and_a_failed_fresh_run_leaves_no_folder(tiny_run_config, tmp_path):
+    from cca_cli.config.load import apply_overrides
+    from cca_cli.errors import InputError, RunLockedError
+    from cca_cli.io.lock import folder_lock
+    from cca_cli.stages.runner import run_pipeline
+
+    run_pipeline(tiny_run_config, tmp_path / "run")
+    changed = apply_overrides(tiny_run_config, {"noise.seed": tiny_run_config.noise.seed + 1})
+    with folder_lock(tmp_path / "run"):          # another run writing there: said before "made from another config"
+        with pytest.raises(RunLockedError):
+            run_pipeline(changed, tmp_path / "run")
+    broken = apply_overrides(tiny_run_config, {"scene.kind": "image", "scene.image_path": str(tmp_path / "none.png")})
+    with pytest.raises(InputError):
+        run_pipeline(broken, tmp_path / "fresh")
+    assert not (tmp_path / "fresh").exists()
