@@ -93,6 +93,10 @@ def _line_plot(plt, path: Path, data: SweepPlotData, key: str, observed_key: str
                     label=f"{name}, observed centre image" if data.group else "observed centre image")
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
+    if key.endswith("_px"):   # a bar width: whole scene pixels
+        from matplotlib.ticker import MaxNLocator
+
+        ax.yaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_title(title)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
@@ -124,7 +128,7 @@ def plot_sweep(data: SweepPlotData, directory: Path) -> list[Path]:
         paths.append(band)
     mtf = directory / f"mtf20_vs_{stem}.png"
     if _line_plot(plt, mtf, data, "mtf20_recovered_px", "mtf20_observed_px",
-                  "MTF20 limit: smallest resolved bar (object px)", f"{data.study} study: resolution"):
+                  "MTF20 limit: smallest resolved bar (scene px)", f"{data.study} study: resolution"):
         paths.append(mtf)
     curves = [(item, table) for item, table in data.contrast if table]
     if curves:
@@ -137,7 +141,10 @@ def plot_sweep(data: SweepPlotData, directory: Path) -> list[Path]:
             ax.plot(np.asarray(table["recovered"]["widths_px"]), _mean_contrast(table["recovered"]), "-o", ms=3,
                     color=f"C{n % 10}", label=label)
         ax.axhline(first.get("threshold", 0.2), color="gray", lw=0.8, ls=":", label="MTF20 threshold")
-        ax.set_xlabel("bar width at object (object px)")
+        ax.set_xlabel("bar width at object (scene px: scene.field_width_m / scene.size_px)")
+        from matplotlib.ticker import MaxNLocator
+
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.set_ylabel("contrast (w̄ − b̄)/(w̄ + b̄) (1)")
         ax.invert_xaxis()
         ax.set_title(f"{data.study} study: contrast vs bar width")
