@@ -11,7 +11,9 @@ import contextlib
 import functools
 import logging
 import math
+import os
 import statistics
+import sys
 from typing import Iterator
 
 import typer
@@ -27,8 +29,21 @@ from cca_cli.stages.progress import ProgressEvent
 __all__ = ["console", "err_console", "styled", "print_error", "print_warning", "handle_errors", "progress_reporter",
            "summary_table", "configure_logging", "EXIT_INTERNAL", "stop_note", "recovery_stop_note", "poor_fit_warning", "print_note", "length_text"]
 
-console = Console(markup=False, soft_wrap=True)
-err_console = Console(stderr=True, markup=False, soft_wrap=True)
+#: Width of tables written to a file or a pipe (a log) when COLUMNS does not say: rich's 80 columns cut point ids
+#: and parameter values; a terminal keeps its own width.
+LOG_WIDTH = 160
+
+
+def _width(stream) -> int | None:
+    try:
+        terminal = stream.isatty()
+    except (AttributeError, ValueError):
+        terminal = False
+    return None if terminal or os.environ.get("COLUMNS") else LOG_WIDTH
+
+
+console = Console(markup=False, soft_wrap=True, width=_width(sys.stdout))
+err_console = Console(stderr=True, markup=False, soft_wrap=True, width=_width(sys.stderr))
 
 #: Exit code of an unexpected failure (a bug): one line, the traceback with --verbose.
 EXIT_INTERNAL = 70

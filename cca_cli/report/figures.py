@@ -42,6 +42,13 @@ def _plt():
     return plt
 
 
+def _integer_ticks(axis) -> None:
+    """Ticks at whole numbers only on ``axis`` (a matplotlib x or y axis): pixel counts."""
+    from matplotlib.ticker import MaxNLocator
+
+    axis.set_major_locator(MaxNLocator(integer=True))
+
+
 def _save(plt, fig, path: Path, *, tight: bool = True) -> Path:
     """Write ``fig`` to ``path`` and close it (``tight``: let matplotlib lay it out first)."""
     if tight:

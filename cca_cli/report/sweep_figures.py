@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from cca_cli.report.figures import _plt, _save
+from cca_cli.report.figures import _integer_ticks, _plt, _save
 
 __all__ = ["SweepPlotData", "axis_label", "plot_sweep"]
 
@@ -94,9 +94,7 @@ def _line_plot(plt, path: Path, data: SweepPlotData, key: str, observed_key: str
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     if key.endswith("_px"):   # a bar width: whole scene pixels
-        from matplotlib.ticker import MaxNLocator
-
-        ax.yaxis.set_major_locator(MaxNLocator(integer=True))
+        _integer_ticks(ax.yaxis)
     ax.set_title(title)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
@@ -142,9 +140,7 @@ def plot_sweep(data: SweepPlotData, directory: Path) -> list[Path]:
                     color=f"C{n % 10}", label=label)
         ax.axhline(first.get("threshold", 0.2), color="gray", lw=0.8, ls=":", label="MTF20 threshold")
         ax.set_xlabel("bar width at object (scene px: scene.field_width_m / scene.size_px)")
-        from matplotlib.ticker import MaxNLocator
-
-        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+        _integer_ticks(ax.xaxis)
         ax.set_ylabel("contrast (w̄ − b̄)/(w̄ + b̄) (1)")
         ax.invert_xaxis()
         ax.set_title(f"{data.study} study: contrast vs bar width")
