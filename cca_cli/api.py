@@ -443,7 +443,7 @@ def _noise(snr_db, photons_per_unit, read_noise_e, seed):
 
 def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine: str = "auto", weight=None,
                 callback: Callable | None = None, init=None, padding: str = "auto", device: str = "cpu",
-                **options) -> Reconstruction:
+                boundary: str | None = None, **options) -> Reconstruction:
     """Recover the high-resolution object from captured intensities.
 
     Parameters
@@ -474,6 +474,10 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
     padding : {"auto", "off"}
         ``off`` recovers square recorded images as they are (periodic), like
         ``reconstruct.padding.mode: off``.
+    boundary : {"open", "periodic"}, optional
+        What plain arrays are: ``open`` for recorded frames (a window on a larger scene: they get the
+        guard band, as an ingested file does), ``periodic`` for simulated ones; default periodic for
+        square arrays, or the CaptureSet's own.
     device : {"cpu", "cuda", "auto"}
         Where the engine runs, like ``reconstruct.device``: ``cpu``; ``cuda``, the engine's batched
         form on a CUDA GPU through CuPy (``pip install 'cca[gpu]'``); ``auto``, ``cuda`` when CuPy finds
@@ -539,8 +543,12 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
     weights = None if weight is None else _real_images(weight, "weight")
     if weights is not None:
         check_weight(weights, images.shape, "weight")
+    if boundary not in (None, "open", "periodic"):
+        raise ValueError(f"boundary: 'open' (recorded frames) or 'periodic' (simulated ones), got {boundary!r}")
     captures = (CaptureSet(images, geometry, weights) if captures is None
                 else replace(captures, intensity=images, weight=weights, geometry=geometry))
+    if boundary is not None:
+        captures = replace(captures, boundary=boundary)
     if isinstance(init, (str, Path)):
         from cca_cli.io.recon import read_spectrum
 

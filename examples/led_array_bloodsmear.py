@@ -42,7 +42,9 @@ def main() -> None:
     print(f"{geometry.n_images} LEDs, SAR {geometry.synthetic_aperture_ratio:.2f}, "
           f"pupil radius {geometry.pupil_radius_px:.1f} spectrum px")
 
-    result = cca.reconstruct(intensities, geometry, engine="altmin", iterations=args.iterations, tol=1e-5)
+    # boundary="open": recorded frames are a window on a larger scene, so they get a guard band (as ingested files do)
+    result = cca.reconstruct(intensities, geometry, engine="altmin", iterations=args.iterations, tol=1e-5,
+                             boundary="open")
     print(f"{result.iterations} iterations, residual {result.history['residual'][-1]:.3f}, "
           f"{result.object.shape[-1]} px of {result.pixel_size_m * 1e9:.0f} nm")
 

@@ -295,3 +295,17 @@ def test_api_refusals_name_the_argument_first_and_the_fix():
                         image_pixels=48)
     with pytest.raises(ValueError, match="build the geometry with image_pixels = 40"):
         cca.reconstruct(np.ones((9, 40, 40), np.float32), led)
+
+
+def test_plain_arrays_of_recorded_frames_get_the_guard_band_with_boundary_open():
+    sines = cca.led_grid_sines(3, pitch_m=4e-3, height_m=60e-3)
+    geometry = cca.led_array(sines, wavelength_m=532e-9, numerical_aperture=0.1, pixel_pitch_object_m=1.845e-6,
+                             image_pixels=32)
+    images = cca.simulate(cca.resolution_chart(64, widths=(4, 3, 2)).image, geometry, snr_db=None)
+    plain = cca.reconstruct(images, geometry, engine="momentum", iterations=2)
+    recorded = cca.reconstruct(images, geometry, engine="momentum", iterations=2, boundary="open")
+    as_set = cca.reconstruct(cca.CaptureSet(images, geometry, boundary="open"), engine="momentum", iterations=2)
+    assert plain.region is None and recorded.region is not None
+    np.testing.assert_array_equal(recorded.spectrum, as_set.spectrum)
+    with pytest.raises(ValueError, match="^boundary: 'open'"):
+        cca.reconstruct(images, geometry, boundary="closed")
