@@ -268,6 +268,12 @@ def _resumes(plan: StagePlan, section) -> bool:
 
 def _refuse_existing(plan: StagePlan, state: str) -> None:
     if state == "foreign":
+        part = foreign_part(plan.output)
+        if part is not None and Path(part) != plan.output:   # a folder cca wrote, holding a file it did not
+            raise OutputError(
+                f"{plan.output}: cca wrote this folder, but not {Path(part).relative_to(plan.output)} in it, so the "
+                "folder is never replaced, not even with --force; move that file away, or choose another output "
+                "folder")
         raise OutputError(
             f"{plan.output}: exists but cca did not write it (or cannot read it: a damaged file), so it is never "
             "replaced, not even with --force; move it away, or choose another output folder")

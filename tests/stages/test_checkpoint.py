@@ -266,3 +266,16 @@ def test_a_second_run_is_told_of_the_lock_first_and_a_failed_fresh_run_leaves_no
     with pytest.raises(InputError):
         run_pipeline(broken, tmp_path / "fresh")
     assert not (tmp_path / "fresh").exists()
+
+
+def test_a_user_s_file_in_a_report_folder_cca_wrote_is_named_when_it_blocks_the_run(tiny_run_config, tmp_path):
+    from cca_cli.errors import OutputError
+    from cca_cli.stages.runner import run_pipeline
+
+    run_pipeline(tiny_run_config, tmp_path)
+    reports = [p for p in tmp_path.iterdir() if p.is_dir()]
+    assert reports, "the tiny config writes a report folder"
+    (reports[0] / "my_notes.txt").write_text("mine")
+    with pytest.raises(OutputError, match="cca wrote this folder, but not my_notes.txt in it"):
+        run_pipeline(tiny_run_config, tmp_path, force=True)
+    assert (reports[0] / "my_notes.txt").read_text() == "mine"
