@@ -312,6 +312,12 @@ def summary_table(summary: dict, title: str = "Result") -> Table:
                 text += f", {length_text(width)} x {length_text(height)}"
         else:
             text = fmt.format(value)
+        bound = summary.get("mtf20_at_finest_bar") or {}
+        if value is not None and key in ("mtf20_observed_px", "mtf20_recovered_px") \
+                and bound.get(key.split("_")[1]):
+            text = f"≤ {text} (the chart's finest bar)"
+        if value is not None and key == "resolution_gain" and bound.get("recovered"):
+            text = f"≥ {text}"
         table.add_row(label, text)
     for label, text in _nested_rows(summary):
         table.add_row(label, text)

@@ -114,6 +114,9 @@ def summarize(inputs: ReportInputs, *, threshold: float = 0.2) -> dict:
         out["mtf20_observed_px"] = lim_obs
         out["mtf20_recovered_px"] = lim_rec
         out["resolution_gain"] = resolution_gain(lim_obs, lim_rec)
+        # a limit at the chart's finest bar is a bound: the image may resolve finer bars the chart lacks
+        finest = min(int(bar.width_px) for bar in inputs.bars)
+        out["mtf20_at_finest_bar"] = {"observed": lim_obs == finest, "recovered": lim_rec == finest}
         out["contrast_observed"] = table_obs.to_dict()
         out["contrast_recovered"] = table_rec.to_dict()
     return out

@@ -289,3 +289,14 @@ def test_cca_info_of_recorded_led_captures_shows_the_grid_reconstruct_uses_and_n
     assert "reconstruct recorded 40 x 32 px frames on a" in text and "with a guard band" in text
     recon = cca.reconstruct(recorded, iterations=2)
     assert f"output grid {recon.spectrum.shape[-1]} x {recon.spectrum.shape[-1]} px" in text
+
+
+def test_an_mtf20_at_the_chart_s_finest_bar_reads_as_a_bound():
+    from cca_cli.commands.console import summary_table
+
+    summary = {"mtf20_observed_px": 4, "mtf20_recovered_px": 1, "resolution_gain": 4.0,
+               "mtf20_at_finest_bar": {"observed": False, "recovered": True}}
+    cells = dict(zip((str(c) for c in summary_table(summary).columns[0].cells),
+                     (str(c) for c in summary_table(summary).columns[1].cells)))
+    assert cells["MTF20 recovered (px)"] == "≤ 1 (the chart's finest bar)"
+    assert cells["MTF20 observed (px)"] == "4" and cells["resolution gain"] == "≥ 4.00"
