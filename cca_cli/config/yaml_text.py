@@ -112,9 +112,15 @@ def _check_size(node: yaml.Node, source: str) -> None:
 
 
 def _syntax_error(source: str, exc: yaml.YAMLError) -> str:
+    """One line naming where the YAML goes wrong: the line a construct that is never closed begins on (a
+    bracket left open), else the line where the parser found the problem."""
     mark = getattr(exc, "problem_mark", None)
-    where = f" line {mark.line + 1}:" if mark else ""
+    context = getattr(exc, "context_mark", None)
     problem = getattr(exc, "problem", None) or "not valid YAML"
+    if context is not None and mark is not None and context.line < mark.line and getattr(exc, "context", None):
+        return (f"{source}: line {context.line + 1}: not valid YAML ({exc.context} begun there: {problem} on "
+                f"line {mark.line + 1})")
+    where = f" line {mark.line + 1}:" if mark else ""
     return f"{source}:{where} not valid YAML ({problem})"
 
 

@@ -17,6 +17,8 @@ def test_plain_yaml_and_aliases_within_bounds():
     ("a: 1\nb: 2\na: 3\n", "key 'a' is given twice \\(lines 1 and 3\\)"),
     ("a: {x: 1, x: 2}\n", "key 'x' is given twice \\(line 1\\)"),
     ("a: [1,\n", "line 2: not valid YAML"),
+    ("a: 1\narray:\n  grid: [9\n  overlap: 0.6\n", "line 3: not valid YAML \\(while parsing a flow sequence begun "
+                                                    "there: .* on line 4\\)"),   # the bracket left open
     ("a: " + "[" * 500 + "]" * 500, "nested more than"),
 ])
 def test_refused_documents(text, message):
