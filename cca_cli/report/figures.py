@@ -835,20 +835,27 @@ def write_tile_figure(path: Path, tiles: dict, *, field_width_m: float, frame_sh
     maps = []
     names = list(tiles.get("zernike_names") or [])[:3]
     waves = tiles.get("zernike_waves")
+    truth = tiles.get("truth_waves") or {}
     for j, name in enumerate(names):
-        maps.append((f"{name} (waves RMS)", waves[:, j], "RdBu_r", True))
-    maps.append(("amplitude residual, all captures", np.asarray(tiles["residual"], np.float64), "viridis", False))
-    fig, axes = plt.subplots(1, len(maps), figsize=(3.9 * len(maps), 3.6), squeeze=False)
+        limit = max([float(np.max(np.abs(waves[:, j])))] + ([float(np.max(np.abs(truth[name])))] if name in truth
+                                                             else []) + [1e-3])
+        maps.append((f"{name} (waves RMS)" + (", recovered" if truth else ""), waves[:, j], "RdBu_r", limit))
+    maps.append(("amplitude residual, all captures", np.asarray(tiles["residual"], np.float64), "viridis", None))
+    shown = [(f"{name} (waves RMS), the lens's", truth[name], "RdBu_r", maps[j][3])
+             for j, name in enumerate(names) if name in truth]   # a simulation: the truth beside, on one scale
+    rows = 2 if shown else 1
+    fig, axes = plt.subplots(rows, len(maps), figsize=(3.9 * len(maps), 3.6 * rows), squeeze=False)
     half_y = (ys[1] - ys[0]) / 2 if len(ys) > 1 else frame_shape[0] / 2
     half_x = (xs[1] - xs[0]) / 2 if len(xs) > 1 else frame_shape[1] / 2
     extent = ((xs[0] - half_x) * pixel * scale, (xs[-1] + half_x) * pixel * scale,
               (ys[-1] + half_y) * pixel * scale, (ys[0] - half_y) * pixel * scale)
-    for ax, (title, values, cmap, symmetric) in zip(axes[0], maps):
+    panels = list(zip(axes[0], maps)) + (list(zip(axes[1], shown)) if shown else [])
+    for ax in (axes[1][len(shown):] if shown else []):
+        ax.axis("off")
+    for ax, (title, values, cmap, limit) in panels:
         grid = np.full((len(ys), len(xs)), np.nan)
         for (cy, cx), value in zip(centres, values):
             grid[ys.index(cy), xs.index(cx)] = value
-        finite = np.isfinite(grid)
-        limit = max(float(np.max(np.abs(grid[finite]))), 1e-3) if symmetric and finite.any() else None
         image = ax.imshow(grid, cmap=cmap, extent=extent, interpolation="nearest",
                           vmin=-limit if limit else None, vmax=limit)
         ax.set_title(title, fontsize=10)

@@ -63,6 +63,7 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
     if calibration is not None:
         summary.update(calibration_summary(calibration, geometry))
     if tiles is not None:
+        tiles = dict(tiles, truth_waves=truth_at_tiles(result.truth, tiles))
         summary["tiles"] = tiles_summary(tiles)
     coverage = None
     if multiplex is not None:
@@ -151,6 +152,27 @@ def _bar_reading(section: ReportSection, geometry, observed, recovered_object, h
     return readings, offset
 
 
+def truth_at_tiles(truth: dict, tiles: dict) -> dict | None:
+    """A simulation's aberration (``/truth/aberration_waves`` at its field points, blended bilinearly as the
+    simulation blends it) at each tile's centre, by the tiles' mode names; None without one."""
+    waves, nodes = truth.get("aberration_waves"), truth.get("aberration_nodes_px")
+    if waves is None or nodes is None or "zernike_names" not in tiles:
+        return None
+    from cca_cli.optics.field_aberration import MODES
+    from cca_cli.optics.zernike import zernike_name
+
+    waves, nodes = np.asarray(waves, np.float64), np.asarray(nodes, np.float64)
+    boxes = np.asarray(tiles["box_px"], np.float64)
+    centres = boxes[:, :2] + (boxes[:, 2:] - 1) / 2.0
+
+    def blended(values: np.ndarray) -> np.ndarray:   # (n, n) at the tile centres, bilinear between the nodes
+        along_x = np.array([np.interp(centres[:, 1], nodes, row) for row in values])   # (n, T)
+        return np.array([np.interp(cy, nodes, along_x[:, t]) for t, cy in enumerate(centres[:, 0])])
+
+    names = [zernike_name(*mode) for mode in MODES]
+    return {name: blended(waves[..., j]) for j, name in enumerate(names) if name in tiles["zernike_names"]}
+
+
 def tiles_summary(tiles: dict) -> dict:
     """report.json entry of a tiled reconstruction: the tile grid, the residuals and the aberration's range."""
     attrs = tiles["attrs"]
@@ -167,6 +189,13 @@ def tiles_summary(tiles: dict) -> dict:
         out["zernike_waves_min_median_max"] = {
             name: [round(float(v), 4) for v in (waves[:, j].min(), np.median(waves[:, j]), waves[:, j].max())]
             for j, name in enumerate(tiles["zernike_names"][:6])}
+        truth = tiles.get("truth_waves") or {}
+        if truth:   # a simulation: how far each tile's recovered mode lies from the lens's
+            out["zernike_waves_vs_truth"] = {
+                name: {"rms_error": round(float(np.sqrt(np.mean((waves[:, tiles["zernike_names"].index(name)]
+                                                                - values) ** 2))), 4),
+                       "truth_min_max": [round(float(values.min()), 4), round(float(values.max()), 4)]}
+                for name, values in truth.items()}
     return out
 
 

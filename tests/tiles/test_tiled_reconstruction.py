@@ -307,3 +307,30 @@ def test_the_api_refuses_tiles_on_a_gpu_it_lacks_before_any_tile_runs(frame_capt
     with pytest.raises(ValueError, match=r"reconstruct.device: device cuda needs CuPy .*device cpu"):
         api.reconstruct_tiles(frame_captures, size_px=96, overlap_px=32, device="cuda", output=tmp_path / "r.h5")
     assert not (tmp_path / "r.h5").exists() and not tile_folder(tmp_path / "r.h5").exists()
+
+
+def test_a_simulation_s_aberration_is_read_at_each_tile_and_compared(tmp_path):
+    """The lens's Zernike modes at the tiles' centres (bilinear between the field points), their error in
+    report.json and a second row of maps in tiles.png."""
+    from cca_cli.report.figures import write_tile_figure
+    from cca_cli.stages.report import tiles_summary, truth_at_tiles
+
+    nodes = np.array([0.0, 99.0])
+    waves = np.zeros((2, 2, 5))
+    waves[..., 0] = [[0.0, 0.2], [0.2, 0.4]]          # defocus grows towards the far corner
+    boxes = np.array([[0, 0, 50, 50], [0, 50, 50, 50], [50, 0, 50, 50], [50, 50, 50, 50]])
+    names = ["defocus", "astigmatism_0", "astigmatism_45"]
+    tiles = {"box_px": boxes, "residual": np.full(4, 0.05), "iterations": np.full(4, 10), "seconds": np.ones(4),
+             "attrs": {"rows": 2, "cols": 2}, "zernike_names": names,
+             "zernike_waves": np.array([[0.05, 0, 0], [0.1, 0, 0], [0.1, 0, 0], [0.2, 0, 0]])}
+    truth = truth_at_tiles({"aberration_waves": waves, "aberration_nodes_px": nodes}, tiles)
+    centres = boxes[:, :2] + 24.5                      # bilinear: 0.2 (y + x) / 99 on this field
+    np.testing.assert_allclose(truth["defocus"], 0.2 * centres.sum(axis=1) / 99.0, rtol=1e-12)
+    assert set(truth) == set(names)
+    assert truth_at_tiles({}, tiles) is None
+    summary = tiles_summary(dict(tiles, truth_waves=truth))
+    error = summary["zernike_waves_vs_truth"]["defocus"]
+    assert error["rms_error"] > 0 and error["truth_min_max"][1] == round(float(truth["defocus"].max()), 4)
+    path = write_tile_figure(tmp_path / "tiles.png", dict(tiles, truth_waves=truth), field_width_m=1e-3,
+                             frame_shape=(100, 100))
+    assert path.stat().st_size > 10_000
