@@ -640,8 +640,8 @@ def reconstruct_tiles(captures, geometry: CaptureGeometry | None = None, *, size
         try:
             tiled = reconstruct_tiled(path, section, target, run_fingerprint=run_fingerprint(section, [], path),
                                       provenance=provenance, client=client)
-        except (ConfigError, InputError) as exc:
-            raise ValueError(str(exc)) from None
+        except (ConfigError, InputError) as exc:   # the API's argument names, not the config's keys
+            raise ValueError(str(exc).replace("reconstruct.device:", "device:", 1)) from None
         from cca_cli.io.tiles import remove_tile_folder
 
         if output is not None:
@@ -721,7 +721,7 @@ def _check_frame_width(width: int, geometry: CaptureGeometry, name: str) -> None
     expected = geometry.field_width_m / pixel
     if abs(expected - width) > 0.5:
         fix = (f"image_pixels = {width}" if geometry.kind == "led_array"
-               else f"field_width_m = {width * pixel:.6g} (the images' own width)")
+               else f"field_width_m = {width * pixel:.6g} (camera_scan) or image_pixels = {width} (stage_scan)")
         raise ValueError(f"{name} are {width} px wide but the geometry's field ({geometry.field_width_m:.6g} m at "
                          f"{pixel:.6g} m a pixel) is {expected:.6g} px: build the geometry with {fix}, or pass the "
                          "images it was built for")

@@ -294,7 +294,7 @@ def summary_table(summary: dict, title: str = "Result") -> Table:
         if key is None:
             table.add_row(label, f"{summary.get('engine')} / {summary.get('iterations')}")
             continue
-        if key not in summary or (key == "spot_size_sensor_m" and summary.get("kind") == "led_array"):
+        if key not in summary:
             continue
         value = summary[key]
         if value is None:

@@ -84,7 +84,8 @@ def _derived(handle) -> dict | None:
     sensor = images.shape[-1] if images is not None and images.ndim == 3 and images.shape[-1] == images.shape[-2] \
         else None
     derived = derived_quantities(geometry, sensor_pixels=sensor)
-    if images is not None and images.ndim == 3 and str(images.attrs.get("boundary", "")) == "open":
+    if images is not None and images.ndim == 3 and str(images.attrs.get(
+            "boundary", "periodic" if images.shape[1] == images.shape[2] else "open")) == "open":
         # what reconstruct (default padding) recovers these frames on: a guard band widens field and pupil
         from cca_cli.sampling.capture import with_field_width
         from cca_cli.sampling.region import plan_embedding

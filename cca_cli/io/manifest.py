@@ -509,19 +509,22 @@ def read_table(table: Path, source: str) -> tuple[list[str], list[tuple[int, dic
 _PATTERN_PATH = "\0image_files"
 
 
+class _CellFormatter(string.Formatter):
+    """Fills a file-name pattern from a row's cells: a cell stays the text it is (``001`` stays ``001``) unless
+    its field asks for a number (``{index:03d}``, ``{x:.1f}``): then a whole number is an integer, any other a
+    float."""
+
+    def format_field(self, value, format_spec):
+        if isinstance(value, str) and format_spec and format_spec[-1] in "bcdoxXneEfFgG%":
+            number = float(value)
+            value = int(number) if number.is_integer() and format_spec[-1] in "bcdoxXn" else number
+        return super().format_field(value, format_spec)
+
+
 def _file_of_row(pattern: str, row: dict, table: Path, line: int) -> str:
-    """``pattern`` filled from the row's cells: whole numbers as integers (for ``{index:03d}``), other numbers as
-    floats, anything else as text."""
-    values = {}
-    for name, text in row.items():
-        try:
-            number = float(text)
-        except ValueError:
-            values[name] = text
-            continue
-        values[name] = int(number) if number.is_integer() else number
+    """``pattern`` filled from the row's cells (:class:`_CellFormatter`)."""
     try:
-        return pattern.format(**values)
+        return _CellFormatter().vformat(pattern, (), row)
     except (KeyError, ValueError, IndexError) as exc:
         raise ConfigError(f"{table}: line {line}: image_files {pattern!r} cannot be filled from this row ({exc}); "
                           "check the row's cells and the pattern's formats") from None
@@ -658,7 +661,8 @@ def _table_entries(table: Path, manifest: Manifest, source: str) -> tuple[list[d
             text = row.get(used[cca_name], "") if cca_name in used else ""
             got = f" (got {text})" if text else ""   # as the table holds it (before any unit conversion)
             hint = "; it is sin θ of the illumination, not an angle" if loc in ("kx_norm", "ky_norm") else ""
-            if not loc and "give a position" in error_message(err):
+            positions = ("stage_x", "stage_y", "row", "col", "kx_norm", "ky_norm", "led_x", "led_y")
+            if not loc and "give a position" in error_message(err) and not any(n in used for n in positions):
                 raise ConfigError(f"{table}: line {line} ({entry['path']}): no position column found: "
                                   f"{table.name} has {', '.join(header)}; name its position columns in {source} "
                                   "with columns: {led_x: <column>, led_y: <column>} (LED positions, with "
@@ -972,7 +976,7 @@ def plan_captures(manifest: Manifest, path: str | Path, *, notes: list[str] | No
     if kind == "grid" and manifest.stage_pitch_mm is None:
         raise ConfigError(f"{path}: stage_pitch_mm: needed when images give grid: [row, col]")
 
-    if notes is not None and not any("exposure_s" in e.model_fields_set for e in coherent):
+    if not any("exposure_s" in e.model_fields_set for e in coherent):
         notes.append("no image gives its exposure: each is taken as 1 s, so intensities are the recorded counts "
                      "(labelled counts/s); give exposure_s (or an exposure column) where exposures differ")
     groups: dict[tuple, list[ImageEntry]] = {}

@@ -21,7 +21,7 @@ import numpy as np
 
 from cca_cli.errors import InputError
 from cca_cli.io.captures import BOUNDARY_OPEN, read_frame_scale
-from cca_cli.library.data import CaptureSet
+from cca_cli.library.data import CaptureSet, constant_images
 from cca_cli.io.geometry import read_geometry
 from cca_cli.io.h5 import Provenance, atomic_h5, open_input, require, write_dataset
 from cca_cli.io.measurements import INTENSITY, WEIGHT
@@ -90,10 +90,10 @@ def read_dead_frames(path: Path) -> tuple[np.ndarray, list[float]]:
         step = max(1, _SCAN_BYTES // max(1, h * w * dataset.dtype.itemsize))
         dead, values = [], []
         for start in range(0, k, step):
-            block = np.asarray(dataset[start:start + step]).reshape(-1, h * w)
-            constant = np.flatnonzero(block.max(axis=1) == block.min(axis=1))
+            block = np.asarray(dataset[start:start + step])
+            constant = constant_images(block)
             dead.extend(int(start + i) for i in constant)
-            values.extend(float(block[i, 0]) for i in constant)
+            values.extend(float(block[i].flat[0]) for i in constant)
     return np.asarray(dead, np.int64), values
 
 

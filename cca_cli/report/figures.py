@@ -837,21 +837,23 @@ def write_tile_figure(path: Path, tiles: dict, *, field_width_m: float, frame_sh
     waves = tiles.get("zernike_waves")
     truth = tiles.get("truth_waves") or {}
     for j, name in enumerate(names):
-        limit = max([float(np.max(np.abs(waves[:, j])))] + ([float(np.max(np.abs(truth[name])))] if name in truth
-                                                             else []) + [1e-3])
+        values = [np.abs(waves[:, j])] + ([np.abs(truth[name])] if name in truth else [])
+        limit = max(float(np.nanmax(np.concatenate(values), initial=0.0)), 1e-3)
         maps.append((f"{name} (waves RMS)" + (", recovered" if truth else ""), waves[:, j], "RdBu_r", limit))
     maps.append(("amplitude residual, all captures", np.asarray(tiles["residual"], np.float64), "viridis", None))
-    shown = [(f"{name} (waves RMS), the lens's", truth[name], "RdBu_r", maps[j][3])
-             for j, name in enumerate(names) if name in truth]   # a simulation: the truth beside, on one scale
-    rows = 2 if shown else 1
+    # a simulation: the lens's modes under the recovered ones, column by column, on their colour scales
+    below = {j: (f"{name} (waves RMS), the lens's", truth[name], "RdBu_r", maps[j][3])
+             for j, name in enumerate(names) if name in truth}
+    rows = 2 if below else 1
     fig, axes = plt.subplots(rows, len(maps), figsize=(3.9 * len(maps), 3.6 * rows), squeeze=False)
     half_y = (ys[1] - ys[0]) / 2 if len(ys) > 1 else frame_shape[0] / 2
     half_x = (xs[1] - xs[0]) / 2 if len(xs) > 1 else frame_shape[1] / 2
     extent = ((xs[0] - half_x) * pixel * scale, (xs[-1] + half_x) * pixel * scale,
               (ys[-1] + half_y) * pixel * scale, (ys[0] - half_y) * pixel * scale)
-    panels = list(zip(axes[0], maps)) + (list(zip(axes[1], shown)) if shown else [])
-    for ax in (axes[1][len(shown):] if shown else []):
-        ax.axis("off")
+    panels = list(zip(axes[0], maps)) + [(axes[1][j], panel) for j, panel in below.items()]
+    for j in (range(len(maps)) if below else ()):
+        if j not in below:
+            axes[1][j].axis("off")
     for ax, (title, values, cmap, limit) in panels:
         grid = np.full((len(ys), len(xs)), np.nan)
         for (cy, cx), value in zip(centres, values):

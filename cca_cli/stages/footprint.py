@@ -339,7 +339,11 @@ def _tiled_footprint(captures_path: Path, section, shape, geometry, truth) -> Fo
     frame_object = q * q * h * w * _COMPLEX
     client = 3 * frame_object + 2 * (q * side) ** 2 * _COMPLEX + h * w * _FLOAT
     settings = cluster_settings()
-    local_workers = 0 if settings.scheduler else (settings.workers or cpu_count())
+    from cca_cli.workflows.tiled import local_tile_workers
+
+    # device auto is counted as the CPU's worker per core: the most it may start
+    local_workers = 0 if settings.scheduler else (local_tile_workers(settings.workers, None, section.device)
+                                                  or cpu_count())
     memory = client + local_workers * per_tile
     disk = 2 * frame_object + (q * side) ** 2 * _COMPLEX + 2 * frame_object + float(truth[0]) * truth[1] * _COMPLEX
     return Footprint("reconstruct", memory, disk,

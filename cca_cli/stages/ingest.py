@@ -501,6 +501,11 @@ def crowded_neighbours(plan: CapturePlan, geometry: CaptureGeometry) -> list[str
     -------
     list of str
         Empty, or one note naming the spacing, the diameter, the SAR and what to check.
+
+    Raises
+    ------
+    ConfigError
+        Below :data:`IMPOSSIBLE_SPACING` of the diameter: no board or scan is that dense (a unit slip).
     """
     spacing, diameter = _usual_spacing(geometry), 2 * geometry.pupil_radius_px
     if not (spacing < CROWDED_SPACING * diameter and geometry.synthetic_aperture_ratio < CROWDED_SAR):

@@ -158,19 +158,13 @@ def truth_at_tiles(truth: dict, tiles: dict) -> dict | None:
     waves, nodes = truth.get("aberration_waves"), truth.get("aberration_nodes_px")
     if waves is None or nodes is None or "zernike_names" not in tiles:
         return None
-    from cca_cli.optics.field_aberration import MODES
+    from cca_cli.optics.field_aberration import MODES, aberration_at
     from cca_cli.optics.zernike import zernike_name
 
-    waves, nodes = np.asarray(waves, np.float64), np.asarray(nodes, np.float64)
     boxes = np.asarray(tiles["box_px"], np.float64)
-    centres = boxes[:, :2] + (boxes[:, 2:] - 1) / 2.0
-
-    def blended(values: np.ndarray) -> np.ndarray:   # (n, n) at the tile centres, bilinear between the nodes
-        along_x = np.array([np.interp(centres[:, 1], nodes, row) for row in values])   # (n, T)
-        return np.array([np.interp(cy, nodes, along_x[:, t]) for t, cy in enumerate(centres[:, 0])])
-
+    at_tiles = aberration_at(waves, np.asarray(nodes, np.float64), boxes[:, :2] + (boxes[:, 2:] - 1) / 2.0)
     names = [zernike_name(*mode) for mode in MODES]
-    return {name: blended(waves[..., j]) for j, name in enumerate(names) if name in tiles["zernike_names"]}
+    return {name: at_tiles[:, j] for j, name in enumerate(names) if name in tiles["zernike_names"]}
 
 
 def tiles_summary(tiles: dict) -> dict:

@@ -191,7 +191,8 @@ def run_pipeline(config: RunConfig, out_dir: Path, *, force: bool = False, progr
     out_dir = Path(out_dir)
     check_folder(out_dir)
     plans = plan_stages(config, out_dir)
-    if out_dir.is_dir():   # another run writing here is said first: its outputs may look outdated meanwhile
+    made = [folder for folder in (out_dir, *out_dir.parents) if not folder.exists()]   # deepest first
+    if not made:   # another run writing here is said first: its outputs may look outdated meanwhile
         with folder_lock(out_dir):
             _check_before_running(config, plans, force=force, source=source)
             remove_stale_temporaries(out_dir)
@@ -202,16 +203,17 @@ def run_pipeline(config: RunConfig, out_dir: Path, *, force: bool = False, progr
         with folder_lock(out_dir):
             return _run_stages(config, plans, force=force, progress=progress, on_stage=on_stage, source=source)
     except BaseException:
-        _remove_if_empty(out_dir)   # the folder this run made, where a refusal left nothing
+        _remove_empty(made)   # the folders this run made, where a failure left nothing
         raise
 
 
-def _remove_if_empty(folder: Path) -> None:
-    """Remove ``folder`` when nothing is left in it (this run made it; a failure before any output wrote none)."""
-    try:
-        folder.rmdir()
-    except OSError:   # something is in it, or it is gone
-        pass
+def _remove_empty(folders: list[Path]) -> None:
+    """Remove each of ``folders`` (deepest first) that nothing is left in: this run made them."""
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:   # something is in it, or it is gone: its parents stay too
+            return
 
 
 def _check_before_running(config: RunConfig, plans: list[StagePlan], *, force: bool, source) -> None:
@@ -249,7 +251,6 @@ def _resumes(plan: StagePlan, section) -> bool:
     if plan.name != "reconstruct" or section is None or not plan.inputs:
         return False
     from cca_cli.io.checkpoint import checkpoint_path, read_checkpoint
-    from cca_cli.io.h5 import Provenance
     from cca_cli.stages.reconstruct import checkpoint_fingerprint, engine_recipe
 
     path = checkpoint_path(plan.output)
@@ -258,9 +259,9 @@ def _resumes(plan: StagePlan, section) -> bool:
     saved = read_checkpoint(path)
     if saved is None:
         return False
-    try:
-        provenance = Provenance.make("reconstruct", "", "", list(plan.inputs))
-        provenance["engine_recipe"] = engine_recipe(plan.inputs[0], section)
+    try:   # what the stage's provenance will hold, from the run's cached hashes (no further read of the captures)
+        inputs = [{"path": str(p), "sha256": _sha256(Path(p))} for p in unique_paths(plan.inputs)]
+        provenance = {"inputs": json.dumps(inputs), "engine_recipe": engine_recipe(plan.inputs[0], section)}
         return saved.fingerprint == checkpoint_fingerprint(section, provenance, plan.inputs[0])
     except (OSError, ValueError, KeyError):
         return False

@@ -251,7 +251,8 @@ def expand_points(base: RunConfig, spec: SweepSection, sweep_dir: Path, *, sourc
     ------
     ConfigError
         If a key is not a config key. Invalid *values* do not raise: that
-        point carries the error and the others run.
+        point carries the error (``cca sweep`` then refuses the sweep before
+        any point runs, and ``--dry-run`` lists it as invalid).
     """
     for key in list(spec.parameters) + [k for p in spec.points for k in p]:
         check_key(key, source=source)
@@ -448,15 +449,15 @@ def earlier_points(base: RunConfig, spec: SweepSection, points: list[SweepPoint]
                                 f"({other.relative_to(sweep_dir)} …); use --force to recompute this sweep's points "
                                 "and leave the others out of the table, or choose another --out-dir")
     # One table and its figures plot the keys this sweep varies: points that vary others cannot join them.
-    varied = {key for p in points for key in p.overrides}
-    foreign = [p for p in kept if set(p.overrides) != varied]
+    key_sets = {frozenset(p.overrides) for p in points}   # explicit points may vary keys together
+    foreign = [p for p in kept if frozenset(p.overrides) not in key_sets]
     if foreign and not force:
         theirs = ", ".join(sorted(foreign[0].overrides)) or "nothing"
+        ours = ", ".join(sorted({key for p in points for key in p.overrides})) or "nothing"
         raise OutputExistsError(f"{sweep_dir}: holds points of a sweep over {theirs} ({foreign[0].point_id} …), and "
-                                f"this one varies {', '.join(sorted(varied)) or 'nothing'}: one table and its figures "
-                                "cannot plot both; choose another --out-dir, or use --force to leave those points "
-                                "out of the table")
-    kept = [p for p in kept if set(p.overrides) == varied]
+                                f"this one varies {ours}: one table and its figures cannot plot both; choose another "
+                                "--out-dir, or use --force to leave those points out of the table")
+    kept = [p for p in kept if frozenset(p.overrides) in key_sets]
     return sorted(kept, key=lambda p: (order.get(p.point_id, len(order)), p.index if p.index is not None else 0,
                                        p.point_id))
 

@@ -65,7 +65,8 @@ from cca_cli.sampling.tiles import Tile, TilePlan, local_illumination, plan_tile
 from cca_cli.version import __version__
 from cca_cli.workflows.recovery import embed_region, engine_options, recipe_of
 
-__all__ = ["TiledPlan", "TiledRecovery", "plan_tiled", "without_dead_frames", "tile_geometry", "tile_engine",
+__all__ = ["TiledPlan", "TiledRecovery", "plan_tiled", "without_dead_frames", "local_tile_workers", "tile_geometry",
+           "tile_engine",
            "tile_recipe", "run_tile",
            "stitch", "reconstruct_tiled"]
 
@@ -257,6 +258,14 @@ def plan_tiled(captures_path: Path, section: ReconstructSection) -> TiledPlan:
             raise InputError(f"{captures_path}: tile at ({tile.y0}, {tile.x0}): {exc}") from None
         ratio = max(ratio, layout.hires_size / region.size)
     return TiledPlan(Path(captures_path), frame, geometry, tiles, int(math.ceil(ratio - 1e-9)))
+
+
+def local_tile_workers(workers: int | None, scheduler: str | None, device: str) -> int | None:
+    """The local workers a tiled run starts: ``workers`` as asked; none at a ``scheduler``; on a GPU
+    (``device`` ``cuda``, resolved) one per GPU (one CUDA context each); else None, one per core."""
+    if workers is not None or scheduler is not None:
+        return workers
+    return max(1, backend.gpu_count()) if device == "cuda" else None
 
 
 def _tile_device(section: ReconstructSection, plan: TiledPlan) -> str:
@@ -559,10 +568,8 @@ def reconstruct_tiled(captures_path: Path, section: ReconstructSection, output: 
         tasks = {tile.index: TileTask(plan=plan, tile=tile, **task_data) for tile, _ in order}
         if client is None:
             settings = cluster_settings()
-            workers = settings.workers
-            if workers is None and settings.scheduler is None and section.device == "cuda":
-                workers = max(1, backend.gpu_count())   # one local worker (one CUDA context) per GPU
-            with open_client(workers=workers, scheduler=settings.scheduler) as own:
+            with open_client(workers=local_tile_workers(settings.workers, settings.scheduler, section.device),
+                             scheduler=settings.scheduler) as own:
                 _run_on(own, plan, order, tasks, finished, section, progress, topic)
         else:
             _run_on(client, plan, order, tasks, finished, section, progress, topic)

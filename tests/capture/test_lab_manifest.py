@@ -876,3 +876,21 @@ def test_a_table_without_a_file_column_names_its_files_by_a_pattern(tmp_path):
              "its columns: index, x_mm, y_mm")
     (tmp_path / "lab.yaml").write_text(text + "columns: {led_x: x_mm, led_y: y_mm}\n")
     _refused(tmp_path, "leds.csv: no file column", "image_files: img_{index:03d}.tif")
+
+
+def test_image_files_keeps_a_cell_s_text_unless_its_field_asks_for_a_number(tmp_path):
+    from cca_cli.errors import ConfigError
+    from cca_cli.io.manifest import _file_of_row
+
+    row = {"index": "001", "x": "2.50", "name": "a"}
+    assert _file_of_row("img_{index}.tif", row, tmp_path / "t.csv", 2) == "img_001.tif"
+    assert _file_of_row("img_{index:04d}_{x:.1f}_{name}.tif", row, tmp_path / "t.csv", 2) == "img_0001_2.5_a.tif"
+    with pytest.raises(ConfigError, match="line 2: image_files"):
+        _file_of_row("img_{name:03d}.tif", row, tmp_path / "t.csv", 2)
+
+
+def test_a_row_with_empty_position_cells_is_not_told_its_table_lacks_position_columns(tmp_path):
+    rows = _grid_rows().replace("led0.png,-4.0,-4.0", "led0.png,,")
+    _led_table(tmp_path, rows, {"led_distance_m": 0.06})
+    text = _refused(tmp_path, "leds.csv: line 2 (led0.png)")
+    assert "no position column found" not in text

@@ -264,8 +264,8 @@ def test_a_second_run_is_told_of_the_lock_first_and_a_failed_fresh_run_leaves_no
             run_pipeline(changed, tmp_path / "run")
     broken = apply_overrides(tiny_run_config, {"scene.kind": "image", "scene.image_path": str(tmp_path / "none.png")})
     with pytest.raises(InputError):
-        run_pipeline(broken, tmp_path / "fresh")
-    assert not (tmp_path / "fresh").exists()
+        run_pipeline(broken, tmp_path / "runs" / "fresh")
+    assert not (tmp_path / "runs").exists()          # the folders it made, parents included, go again
 
 
 def test_a_user_s_file_in_a_report_folder_cca_wrote_is_named_when_it_blocks_the_run(tiny_run_config, tmp_path):

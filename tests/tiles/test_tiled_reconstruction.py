@@ -304,7 +304,7 @@ def test_the_api_refuses_tiles_on_a_gpu_it_lacks_before_any_tile_runs(frame_capt
     from cca_cli.optics import backend
 
     monkeypatch.setattr(backend, "device_status", lambda: backend.DeviceStatus(False, "cpu only: CuPy not installed"))
-    with pytest.raises(ValueError, match=r"reconstruct.device: device cuda needs CuPy .*device cpu"):
+    with pytest.raises(ValueError, match=r"^device: device cuda needs CuPy .*device cpu"):
         api.reconstruct_tiles(frame_captures, size_px=96, overlap_px=32, device="cuda", output=tmp_path / "r.h5")
     assert not (tmp_path / "r.h5").exists() and not tile_folder(tmp_path / "r.h5").exists()
 
