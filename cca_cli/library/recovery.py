@@ -42,7 +42,7 @@ from cca_cli.sampling.grid import BandLayout, band_layout, smallest_fft_size
 from cca_cli.sampling.region import RegionEmbedding, plan_embedding
 
 __all__ = ["MAX_DEAD_FRACTION", "DivergedError", "DeviceUnavailable", "reconstruct", "engine_device",
-           "without_dead_captures", "check_dead_captures", "drop_captures", "embed_region", "build_model", "problem_calibration", "recover", "run_threads",
+           "without_dead_captures", "check_dead_captures", "check_dead_measurements", "drop_captures", "embed_region", "build_model", "problem_calibration", "recover", "run_threads",
            "drive_engine", "calibrated_pupils"]
 
 _log = logging.getLogger("cca")
@@ -175,12 +175,6 @@ def _where(geometry, index: int) -> str:
     return f"(row {int(grid[index, 0])}, col {int(grid[index, 1])})"
 
 
-def _listed(indices, geometry, limit: int = 6) -> str:
-    """``image 3 (row 0, col 3), image 7 (row 1, col 2)`` for the first ``limit`` indices."""
-    items = [f"image {int(i)} {_where(geometry, i)}" for i in indices[:limit]]
-    return ", ".join(items) + (", …" if len(indices) > limit else "")
-
-
 def without_dead_captures(captures: CaptureSet, *, name: str = "intensities", source=None,
                           error: type[Exception] = ValueError) -> CaptureSet:
     """Leave out the captures whose images hold one value only (a camera that recorded nothing).
@@ -232,28 +226,48 @@ def check_dead_captures(dead, values, geometry: CaptureGeometry, *, name: str = 
     error
         The centre capture is dead, or more than :data:`MAX_DEAD_FRACTION` of the captures are.
     """
+    centre = geometry.centre_index
+    _check_dead(dead, values, geometry.n_images, noun="images", label=lambda i: f"image {i} {_where(geometry, i)}",
+                key=(centre, f"image {centre}", f"the centre capture {_where(geometry, centre)}",
+                     "and the recovery needs it for the object's lowest frequencies"),
+                name=name, source=source, error=error)
+
+
+def check_dead_measurements(dead, values, count: int, *, observed_first: bool, name: str = "intensities",
+                            source=None, error: type[Exception] = ValueError) -> None:
+    """:func:`check_dead_captures` for multiplexed measurements (no grid positions; the first measurement is
+    the image the report compares with when the captures bring no reference)."""
+    key = (0, "measurement 0", "the image the report compares with", "and the report needs it") \
+        if observed_first else None
+    _check_dead(dead, values, count, noun="measurements", label=lambda i: f"measurement {i}", key=key, name=name,
+                source=source, error=error)
+
+
+def _check_dead(dead, values, count: int, *, noun: str, label, key, name: str, source, error) -> None:
+    """The dead-capture rule: ``key`` (index, label, role, why it is needed) refused, more than
+    :data:`MAX_DEAD_FRACTION` of ``count`` refused, the rest one warning naming each by ``label``."""
     dead = np.asarray(dead, np.int64).reshape(-1)
     if dead.size == 0:
         return
     where = f"{source}: " if source else ""
-    k = geometry.n_images
-    centre = geometry.centre_index
     holds = "holds" if dead.size == 1 else "hold"
-    if centre in dead:
-        value = float(values[int(np.flatnonzero(dead == centre)[0])])
-        raise error(f"{where}image {centre} of {name}, the centre capture {_where(geometry, centre)}, holds one value "
-                    f"(every pixel {value:g}): nothing was recorded there, "
-                    "and the recovery needs it for the object's lowest frequencies; re-take it")
-    allowed = int(MAX_DEAD_FRACTION * k)
+    if key is not None and key[0] in dead:
+        index, key_label, role, why = key
+        value = float(values[int(np.flatnonzero(dead == index)[0])])
+        raise error(f"{where}{key_label} of {name}, {role}, holds one value (every pixel {value:g}): nothing was "
+                    f"recorded there, {why}; re-take it")
+    listed = ", ".join(label(int(i)) for i in dead[:6]) + (", …" if dead.size > 6 else "")
+    allowed = int(MAX_DEAD_FRACTION * count)
     if dead.size > allowed:
         each = "" if dead.size == 1 else " each"
-        raise error(f"{where}{dead.size} of {k} images of {name} {holds} one value{each}, so nothing was recorded "
-                    f"there ({_listed(dead, geometry)}); at most {MAX_DEAD_FRACTION:.0%} of the captures ({allowed} "
-                    f"here) may be left out: check the camera and re-take them")
+        raise error(f"{where}{dead.size} of {count} {noun} of {name} {holds} one value{each}, so nothing was "
+                    f"recorded there ({listed}); at most {MAX_DEAD_FRACTION:.0%} of the "
+                    f"{'captures' if noun == 'images' else noun} ({allowed} here) may be left out: check the camera "
+                    "and re-take them")
     shown = ", ".join(f"{float(v):g}" for v in list(values)[:6])
-    _log.warning("%sleft out %s of %d images of %s: %s %s one value (%s), nothing was recorded there; the "
-                 "recovery uses the other %d", where, dead.size, k, name, _listed(dead, geometry), holds, shown,
-                 k - dead.size)
+    _log.warning("%sleft out %s of %d %s of %s: %s %s one value (%s), nothing was recorded there; the "
+                 "recovery uses the other %d", where, dead.size, count, noun, name, listed, holds, shown,
+                 count - dead.size)
 
 
 def drop_captures(captures: CaptureSet, dead) -> CaptureSet:

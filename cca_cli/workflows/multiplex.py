@@ -11,7 +11,6 @@ the on-axis camera under the on-axis source alone.
 
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,11 +22,12 @@ from cca_cli.engines.registry import engine_names, get_engine
 from cca_cli.errors import CcaError, ConfigError, InputError
 from cca_cli.io.captures import read_measurements
 from cca_cli.io.h5 import Provenance, check_output, open_input, write_dataset
+from cca_cli.io.measurements import INTENSITY
 from cca_cli.io.multiplex import is_multiplexed_file, read_multiplex, write_multiplex
 from cca_cli.io.recon import write_recon
 from cca_cli.io.schema import OBSERVED
 from cca_cli.library.data import CaptureSet, Reconstruction, constant_images
-from cca_cli.library.recovery import MAX_DEAD_FRACTION, DivergedError, drive_engine
+from cca_cli.library.recovery import DivergedError, check_dead_measurements, drive_engine
 from cca_cli.optics import fft
 from cca_cli.optics.multiplex import (MultiplexGeometry, MultiplexedForwardModel, coverage_map, design_band,
                                       random_patterns, rect_lattice)
@@ -38,8 +38,6 @@ from cca_cli.workflows.recording import noise_settings, recorded, stored_grid, w
 from cca_cli.workflows.recovery import engine_options
 from cca_cli.workflows.scenes import Scene, build_scene
 from cca_cli.units import FourierScale
-
-_log = logging.getLogger("cca")
 
 __all__ = ["MultiplexSimulation", "MultiplexedCaptures", "multiplex_geometry", "simulate_multiplexed",
            "write_multiplexed_captures", "read_multiplexed_captures", "reconstruct_multiplexed",
@@ -239,27 +237,14 @@ def reconstruct_multiplexed(data: MultiplexedCaptures, section: ReconstructSecti
 
 
 def _without_dead_measurements(data: MultiplexedCaptures, source: Path) -> tuple[np.ndarray | None, tuple[int, ...]]:
-    """The measurements' weights with dead ones (an image of one value: nothing was recorded) at 0, and those.
-
-    As a plain run leaves dead captures out: up to :data:`~cca_cli.library.recovery.MAX_DEAD_FRACTION` of the
-    measurements with one warning; more, or a dead first measurement where it is the observed image, refused.
-    """
+    """The measurements' weights with dead ones (an image of one value: nothing was recorded) at 0, and those,
+    by the rule dead captures follow (:func:`~cca_cli.library.recovery.check_dead_measurements`)."""
     intensity = data.captures.intensity
     dead = constant_images(intensity)
     if dead.size == 0:
         return data.captures.weight, ()
-    k = intensity.shape[0]
-    listed = ", ".join(str(int(i)) for i in dead[:8]) + (", …" if dead.size > 8 else "")
-    if data.reference is None and 0 in dead:
-        raise InputError(f"{source}: measurement 0, the image the report compares with, holds one value (every "
-                         f"pixel {float(intensity[0].flat[0]):g}): nothing was recorded there; re-take it")
-    allowed = int(MAX_DEAD_FRACTION * k)
-    if dead.size > allowed:
-        raise InputError(f"{source}: {dead.size} of {k} measurements hold one value each, so nothing was recorded "
-                         f"there (measurements {listed}); at most {MAX_DEAD_FRACTION:.0%} ({allowed} here) may be "
-                         "left out: check the cameras and re-take them")
-    _log.warning("%s: left out %d of %d measurements that hold one value each (measurements %s): nothing was "
-                 "recorded there; the recovery uses the other %d", source, dead.size, k, listed, k - dead.size)
+    check_dead_measurements(dead, [float(intensity[i].flat[0]) for i in dead], intensity.shape[0],
+                            observed_first=data.reference is None, name=INTENSITY, source=source, error=InputError)
     weight = np.ones(intensity.shape, np.float32) if data.captures.weight is None \
         else np.array(data.captures.weight, np.float32)
     weight[dead] = 0.0
