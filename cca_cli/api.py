@@ -467,7 +467,8 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
         Per-pixel confidence in [0, 1].
     callback : callable, optional
         Called after every iteration with its record (``iteration``,
-        ``residual``, ``change``, ``seconds``).
+        ``residual``, ``change``, ``seconds``); returning False ends the run
+        there (the result's ``stopped_by`` is ``callback``).
     init : path, Reconstruction or array_like (M, M), optional
         Start from this spectrum (a recon.h5, an earlier result, or the array)
         instead of the upsampled centre capture; it must be on the same grid.

@@ -309,3 +309,15 @@ def test_plain_arrays_of_recorded_frames_get_the_guard_band_with_boundary_open()
     np.testing.assert_array_equal(recorded.spectrum, as_set.spectrum)
     with pytest.raises(ValueError, match="^boundary: 'open'"):
         cca.reconstruct(images, geometry, boundary="closed")
+
+
+def test_a_callback_that_returns_false_ends_the_run_there():
+    g = cca.camera_scan(wavelength_m=550e-9, focal_length_m=0.8, aperture_diameter_m=45e-3, pixel_pitch_m=2e-6,
+                        distance_m=50, field_width_m=8e-3, grid=3, overlap=0.61)
+    images = cca.simulate(cca.resolution_chart(64, widths=(4, 3, 2)).image, g, snr_db=40)
+    seen = []
+    result = cca.reconstruct(images, g, engine="altmin", iterations=50, tol=0,
+                             callback=lambda record: seen.append(record.iteration) or record.iteration < 4)
+    assert seen == [1, 2, 3, 4] and result.iterations == 4 and result.stopped_by == "callback"
+    full = cca.reconstruct(images, g, engine="altmin", iterations=6, tol=0, callback=lambda record: None)
+    assert full.iterations == 6 and full.stopped_by == "cap"

@@ -329,7 +329,7 @@ def _nested_rows(summary: dict) -> list[tuple[str, str]]:
     rows = []
     if summary.get("stopped_by"):
         reasons = {"tol": "tol", "plateau": "misfit plateau", "cap": "iteration cap (before tol)",
-                   "held_back": "held-back captures stopped improving"}
+                   "held_back": "held-back captures stopped improving", "callback": "the caller's callback"}
         rows.append(("stopped by", reasons.get(summary["stopped_by"], summary["stopped_by"])))
     if summary.get("held_back_captures"):
         rows.append(("held-back captures: residual (best, at iteration)",

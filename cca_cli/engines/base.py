@@ -117,9 +117,13 @@ class IterativeEngine(ABC):
         """Whether the stopping rule is met."""
         return self.stopping.done()
 
+    #: Set by :func:`run_engine` when its ``on_iteration`` asked the run to end.
+    stopped_by_caller = False
+
     def stop_reason(self) -> str:
-        """Why the run ended: ``tol``, ``plateau`` or ``cap`` (see :class:`~cca_cli.engines.stopping.StoppingPolicy`)."""
-        return self.stopping.reason()
+        """Why the run ended: ``tol``, ``plateau`` or ``cap`` (see :class:`~cca_cli.engines.stopping.StoppingPolicy`),
+        or ``callback`` (the caller's ``on_iteration`` returned False)."""
+        return "callback" if self.stopped_by_caller else self.stopping.reason()
 
     @abstractmethod
     def spectrum(self) -> np.ndarray:
@@ -156,7 +160,9 @@ def run_engine(engine: IterativeEngine, *, on_iteration: Callable[[IterationReco
     ----------
     engine : IterativeEngine
     on_iteration : callable, optional
-        Called with an :class:`IterationRecord` after every iteration (progress bars, logging).
+        Called with an :class:`IterationRecord` after every iteration (progress bars, logging); when it
+        returns False the run ends there, and the engine's :meth:`~IterativeEngine.stop_reason` is
+        ``callback``.
     history : History, optional
         The records of the iterations already run (an engine restored from a
         checkpoint): numbering and wall time continue from them, and new records
@@ -175,8 +181,9 @@ def run_engine(engine: IterativeEngine, *, on_iteration: Callable[[IterationReco
             record = IterationRecord(history.iterations + 1, float(residual), float(change),
                                      time.perf_counter() - start, float(engine.held_back_residual))
             history.records.append(record)
-            if on_iteration is not None:
-                on_iteration(record)
+            if on_iteration is not None and on_iteration(record) is False:
+                engine.stopped_by_caller = True
+                break
     finally:
         engine.close()
     return engine.spectrum(), history

@@ -343,7 +343,8 @@ def drive_engine(engine, options: EngineOptions, *, progress: ProgressFn = silen
 
     ``history`` holds the iterations a restored engine already ran; ``checkpoint`` (an object with
     ``start()`` and ``after_iteration(engine, history)``, e.g. the reconstruct stage's
-    ``Checkpointing``) saves the state as it goes.
+    ``Checkpointing``) saves the state as it goes. An ``on_iteration`` that returns False ends the run
+    after that iteration (``stopped_by`` ``callback``).
 
     Returns
     -------
@@ -361,13 +362,13 @@ def drive_engine(engine, options: EngineOptions, *, progress: ProgressFn = silen
     history = History() if history is None else history
     before = history.records[-1].seconds if history.records else 0.0
 
-    def report(record: IterationRecord) -> None:
+    def report(record: IterationRecord) -> bool:
         progress(ProgressEvent("reconstruct", "iterations", record.iteration, total,
                                {"residual": record.residual, "change": record.change}))
-        if on_iteration is not None:
-            on_iteration(record)
+        go_on = on_iteration(record) if on_iteration is not None else None
         if checkpoint is not None:
             checkpoint.after_iteration(engine, history)
+        return go_on is not False
 
     start = time.perf_counter()
     if checkpoint is not None:
