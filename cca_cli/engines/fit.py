@@ -88,13 +88,7 @@ def fit_report(problem: PhaseRetrievalProblem, spectrum: np.ndarray, calibration
         nominal = problem.model.layout
         layout = band_layout(calibration.centres_px, nominal.pupil_radius_px, hires_size=nominal.hires_size,
                              lowres_size=nominal.lowres_size)
-        pupils = calibration.pupils
-        if (isinstance(pupils, np.ndarray) and pupils.dtype == np.complex64 and pupils.flags.c_contiguous
-                and pupils.shape == (layout.n_images, layout.box_size, layout.box_size)):
-            # the calibration's own array, unchanged while the report runs: no copy of it for the model
-            model = ForwardModel(layout, pupils, pupil_boxes=pupils * np.float32(1.0 / layout.lowres_size))
-        else:
-            model = ForwardModel(layout, pupils)
+        model = ForwardModel.sharing(layout, calibration.pupils)   # unchanged while the report runs
         brightness = np.asarray(calibration.brightness, np.float64)
     # Every recorded pixel counts alike (a guard band or a saturated pixel, weight 0, does not): the engines'
     # confidence weights taper region edges, which would leave the misfit there out of the figure.

@@ -170,6 +170,17 @@ class ForwardModel:
         kernels.warm_up()
 
     @classmethod
+    def sharing(cls, layout: BandLayout, pupils: np.ndarray) -> ForwardModel:
+        """A model that uses ``pupils`` as they are, without a copy, where they are a C-contiguous complex64
+        (K, b, b) array (the caller leaves it unchanged while the model is in use); other pupils are copied as
+        the constructor copies them. The same products either way."""
+        b = layout.box_size
+        if (isinstance(pupils, np.ndarray) and pupils.dtype == np.complex64 and pupils.flags.c_contiguous
+                and pupils.shape == (layout.n_images, b, b)):
+            return cls(layout, pupils, pupil_boxes=pupils * np.float32(1.0 / layout.lowres_size))
+        return cls(layout, pupils)
+
+    @classmethod
     def unaberrated(cls, layout: BandLayout) -> ForwardModel:
         """The model of ideal lenses: each capture's pupil is its (anti-aliased) NA disc."""
         return cls(layout, circular_pupils(layout.box_size, layout.box_centres, layout.pupil_radius_px))
