@@ -21,6 +21,7 @@ from typing import Iterator
 
 __all__ = [
     "check_interrupt",
+    "ctrl_c_pressed",
     "noting_interrupts",
     "keeping_what_finished",
     "short",
@@ -36,6 +37,12 @@ __all__ = [
 
 
 _interrupted = False
+_pressed = False   # Ctrl-C came in this command, handled or not (:func:`keeping_what_finished` resets the other)
+
+
+def ctrl_c_pressed() -> bool:
+    """Whether Ctrl-C was pressed inside the present :func:`noting_interrupts` block, even if handled since."""
+    return _pressed
 
 
 def check_interrupt() -> None:
@@ -46,8 +53,8 @@ def check_interrupt() -> None:
 
 
 def _on_sigint(signum, frame) -> None:
-    global _interrupted
-    _interrupted = True
+    global _interrupted, _pressed
+    _interrupted = _pressed = True
     raise KeyboardInterrupt
 
 
@@ -59,7 +66,7 @@ def noting_interrupts() -> Iterator[None]:
     raised again by the next :func:`check_interrupt`. Where SIGINT has a handler other than Python's
     own (or is ignored), or outside the main thread, nothing changes.
     """
-    global _interrupted
+    global _interrupted, _pressed
     if threading.current_thread() is not threading.main_thread() or \
             signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
         yield
@@ -70,7 +77,7 @@ def noting_interrupts() -> Iterator[None]:
         if not (_interrupted and issubclass(info.exc_type, KeyboardInterrupt)):
             previous_hook(info)
 
-    _interrupted = False
+    _interrupted = _pressed = False
     signal.signal(signal.SIGINT, _on_sigint)
     sys.unraisablehook = unraisable
     try:
@@ -78,7 +85,7 @@ def noting_interrupts() -> Iterator[None]:
     finally:
         signal.signal(signal.SIGINT, signal.default_int_handler)
         sys.unraisablehook = previous_hook
-        _interrupted = False
+        _interrupted = _pressed = False
 
 
 @contextlib.contextmanager

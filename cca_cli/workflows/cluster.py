@@ -18,7 +18,7 @@ from concurrent.futures import CancelledError
 from dataclasses import dataclass
 from typing import Any, Iterator
 
-from cca_cli.errors import CcaError, ConfigError
+from cca_cli.errors import CcaError, ConfigError, ctrl_c_pressed
 
 __all__ = ["open_client", "check_workers", "check_scheduler", "scheduler_timeout", "ClusterSettings",
            "cluster_settings", "use_cluster", "scheduler_gone", "scheduler_lost"]
@@ -81,6 +81,30 @@ def _quiet_dask_logs() -> None:
         logging.getLogger(name).setLevel(logging.CRITICAL)
 
 
+class _AfterCtrlC(logging.Filter):
+    """Drops what the client's event loop logs once Ctrl-C was pressed: the loop is being torn down then,
+    and its callbacks can fail on the way (distributed's ``sync`` cancels a call that has not started yet with
+    a ``NameError``); the user asked to stop and is told what was kept."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not ctrl_c_pressed()
+
+
+#: The logger of the event loop the Dask client runs its calls on (tornado's "Exception in callback").
+_LOOP_LOGGER = "tornado.application"
+
+
+@contextlib.contextmanager
+def _quiet_loop_after_ctrl_c() -> Iterator[None]:
+    after_ctrl_c = _AfterCtrlC()
+    logger = logging.getLogger(_LOOP_LOGGER)
+    logger.addFilter(after_ctrl_c)
+    try:
+        yield
+    finally:
+        logger.removeFilter(after_ctrl_c)
+
+
 def _one_line(exc: BaseException) -> str:
     text = str(exc).strip().splitlines()
     message = text[0] if text else ""
@@ -102,6 +126,12 @@ def open_client(*, workers: int | None = None, scheduler: str | None = None) -> 
     scheduler : str, optional
         Address of an existing scheduler (``tcp://host:8786``); ``workers`` is then ignored.
     """
+    with _quiet_loop_after_ctrl_c(), _client(workers=workers, scheduler=scheduler) as client:
+        yield client
+
+
+@contextlib.contextmanager
+def _client(*, workers: int | None, scheduler: str | None) -> Iterator[Any]:
     from distributed import Client, LocalCluster
 
     _quiet_dask_logs()

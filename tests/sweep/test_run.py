@@ -4,12 +4,18 @@ from __future__ import annotations
 
 import csv
 import json
+import logging
+import os
+import signal
+import time
 
 import h5py
 import numpy as np
+import pytest
 from sweep_configs import tiny_config
 
 from cca_cli.config.model import SweepSection
+from cca_cli.errors import ctrl_c_pressed, noting_interrupts
 from cca_cli.stages.sweep import expand_points, read_table, run_sweep, write_sweep_figures, write_table
 
 
@@ -140,3 +146,20 @@ def test_a_second_sweep_into_the_folder_adds_its_points_to_the_table(client, tmp
     noise = SweepSection(study="noise", parameters={"noise.snr_db": [50]})
     with pytest.raises(OutputExistsError, match="noise"):
         earlier_points(base, noise, expand_points(base, noise, tmp_path), tmp_path)
+
+
+def test_what_the_clients_event_loop_logs_after_ctrl_c_is_not_shown(client, caplog):
+    # distributed's sync() answers a Ctrl-C that comes before its call started with a NameError in the loop's
+    # thread, which tornado logs as "Exception in callback"; the user already has the one "interrupted:" line
+    loop_log = logging.getLogger("tornado.application")
+    with caplog.at_level(logging.ERROR, logger="tornado.application"):
+        with noting_interrupts():
+            loop_log.error("a failure before Ctrl-C")
+            with pytest.raises(KeyboardInterrupt):
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(5)
+            assert ctrl_c_pressed()
+            loop_log.error("Exception in callback functools.partial(<function sync.<locals>.cancel>)")
+        assert not ctrl_c_pressed()
+        loop_log.error("a failure in the next command")
+    assert [r.getMessage() for r in caplog.records] == ["a failure before Ctrl-C", "a failure in the next command"]
