@@ -311,6 +311,33 @@ def test_plain_arrays_of_recorded_frames_get_the_guard_band_with_boundary_open()
         cca.reconstruct(images, geometry, boundary="closed")
 
 
+def test_a_notebook_s_reconstruction_runs_blas_on_one_thread_unless_its_environment_says_otherwise(monkeypatch):
+    """A library process has BLAS threads on every core (the command sets one before numpy loads)."""
+    from threadpoolctl import threadpool_info
+
+    from cca_cli.optics.fft import BLAS_THREAD_SETTINGS
+
+    def blas_threads():
+        return sorted({pool["num_threads"] for pool in threadpool_info() if pool["user_api"] == "blas"})
+
+    g = cca.camera_scan(wavelength_m=550e-9, focal_length_m=0.8, aperture_diameter_m=45e-3, pixel_pitch_m=2e-6,
+                        distance_m=50, field_width_m=8e-3, grid=3, overlap=0.61)
+    images = cca.simulate(cca.resolution_chart(64, widths=(4, 3, 2)).image, g, snr_db=40)
+    for name in BLAS_THREAD_SETTINGS:
+        monkeypatch.delenv(name, raising=False)
+    outside = blas_threads()
+    assert outside, "numpy's BLAS is seen"
+    during = []
+    cca.reconstruct(images, g, engine="momentum", iterations=2, callback=lambda record: during.append(blas_threads()))
+    assert during == [[1], [1]] and blas_threads() == outside
+    monkeypatch.setenv("OPENBLAS_NUM_THREADS", "1")   # the user's own setting (here the same number) is left alone
+    with monkeypatch.context() as patch:
+        import threadpoolctl
+
+        patch.setattr(threadpoolctl, "threadpool_limits", lambda **kwargs: pytest.fail("BLAS threads were changed"))
+        cca.reconstruct(images, g, engine="momentum", iterations=1)
+
+
 def test_a_callback_that_returns_false_ends_the_run_there():
     g = cca.camera_scan(wavelength_m=550e-9, focal_length_m=0.8, aperture_diameter_m=45e-3, pixel_pitch_m=2e-6,
                         distance_m=50, field_width_m=8e-3, grid=3, overlap=0.61)

@@ -437,7 +437,7 @@ def recover(captures: CaptureSet, engine: str, options: EngineOptions, *, progre
     ValueError
         A geometry no grid can hold, or ``init`` of another grid.
     """
-    with run_threads(engine, options):
+    with run_threads(engine, options), fft.one_blas_thread():
         return _recover(captures, engine, options, progress=progress, on_iteration=on_iteration, init=init,
                         checkpoint=checkpoint, aberration=aberration, device=device)
 

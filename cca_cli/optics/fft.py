@@ -36,6 +36,8 @@ from cca_cli.optics.switches import planning_effort
 
 __all__ = [
     "xp",
+    "one_blas_thread",
+    "BLAS_THREAD_SETTINGS",
     "HAVE_PYFFTW",
     "PLANNER_LOCK",
     "backend_name",
@@ -103,6 +105,30 @@ def limit_threads(count: int):
         yield
     finally:
         _thread_limit = previous
+
+
+#: Environment variables that set the BLAS libraries' threads: where the user set one, their choice stands.
+BLAS_THREAD_SETTINGS = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "VECLIB_MAXIMUM_THREADS", "OMP_NUM_THREADS")
+
+
+@contextlib.contextmanager
+def one_blas_thread():
+    """Run numpy's and scipy's matrix products (BLAS, LAPACK) on one thread inside the block.
+
+    cca's matrix products are small (a local DFT, a few Zernike modes, a lattice fit): BLAS threads of
+    their own only wait for the cores the engines' threads hold, and OpenBLAS waits actively (the blood
+    smear's aberration estimate took 70 ms on 2 cores, against 1 ms on one thread), and one thread sums
+    in the same order on every machine. The ``cca`` command sets this for the whole process before numpy
+    loads (:mod:`cca_cli.commands.entry`); a notebook's calls get it here. Where the environment sets the
+    BLAS threads (:data:`BLAS_THREAD_SETTINGS`), nothing is changed.
+    """
+    if any(name in os.environ for name in BLAS_THREAD_SETTINGS):
+        yield
+        return
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1, user_api="blas"):
+        yield
 
 
 def backend_name() -> str:
