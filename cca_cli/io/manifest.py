@@ -1028,6 +1028,7 @@ def plan_captures(manifest: Manifest, path: str | Path, *, notes: list[str] | No
             pos = (g - centre) * manifest.stage_pitch_mm * 1e-3
         else:
             _check_grouped_positions(groups, pos, path, kind)
+            _check_positions_follow_grid(groups, g, pos, path, kind)
     calibration = _match_calibration(by_kind["calibration"], list(groups), pos, kind, path, labels)
     darks = [(e.path, e.exposure_s) for e in by_kind["dark"]]
     flats = [(e.path, e.exposure_s) for e in by_kind["flat"]]
@@ -1135,12 +1136,70 @@ def _check_grouped_positions(groups: dict, pos: np.ndarray, path: Path, kind: st
     step = float(dist[dist > 0].min()) if (dist > 0).any() else 0.0
     scale = 1e-3 if kind == "stage" else 1.0
     for (key, entries), centre in zip(groups.items(), pos):
-        spread = max(np.hypot(((e.stage_y_mm if kind == "stage" else e.ky_norm) * scale - centre[0]),
-                              ((e.stage_x_mm if kind == "stage" else e.kx_norm) * scale - centre[1]))
-                     for e in entries)
-        if step > 0 and spread > 0.25 * step:
+        offsets = [np.hypot(((e.stage_y_mm if kind == "stage" else e.ky_norm) * scale - centre[0]),
+                            ((e.stage_x_mm if kind == "stage" else e.kx_norm) * scale - centre[1])) for e in entries]
+        if step > 0 and max(offsets) > 0.25 * step:
+            lines = [e._origin for e in entries if e._origin is not None]
+            if len(lines) == len(entries) == 2:   # rows of a table: by their lines
+                where = f"; lines {lines[0][1]} and {lines[1][1]} of {lines[0][0]} disagree"
+            elif len(lines) == len(entries):   # the one farthest from the others
+                at = _odd_one_out(entries, kind)
+                where = f"; line {entries[at]._origin[1]} of {entries[at]._origin[0]} differs from the others"
+            else:
+                where = ""
             raise ConfigError(f"{path}: rows at {_position_text(key)} give positions that differ by more than a "
-                              "quarter of the grid step; fix the positions or the grid indices")
+                              f"quarter of the grid step{where}; fix the positions or the grid indices")
+
+
+def _odd_one_out(entries: list[ImageEntry], kind: str) -> int:
+    """Index of the row whose position lies farthest from the median of its group's."""
+    xy = np.array([[e.stage_y_mm, e.stage_x_mm] if kind == "stage" else [e.ky_norm, e.kx_norm] for e in entries],
+                  np.float64)
+    return int(np.argmax(np.hypot(*(xy - np.median(xy, axis=0)).T)))
+
+
+#: A position given with grid indices may lie this share of the grid step from where the other positions put
+#: its row and column (a stage's repeatability, a camera mounted a little off).
+GRID_TOLERANCE = 0.5
+
+
+def _check_positions_follow_grid(groups: dict, grid: np.ndarray, pos: np.ndarray, path: Path, kind: str) -> None:
+    """Positions given with grid indices must lie on one lattice: a slipped digit in one position is refused.
+
+    The lattice's step along each index is the median difference between neighbours in the grid, and its origin
+    the median of what each position implies, so one wrong position cannot move it.
+    """
+    grid = np.asarray(grid, np.int64)
+    index = {tuple(row): i for i, row in enumerate(grid)}
+    steps = []
+    for unit in ((1, 0), (0, 1)):
+        differences = [pos[index[(r + unit[0], c + unit[1])]] - pos[i] for i, (r, c) in enumerate(grid)
+                       if (r + unit[0], c + unit[1]) in index]
+        if not differences:
+            return
+        steps.append(np.median(differences, axis=0))
+    lattice = np.asarray(steps)                       # position change per row, per column
+    origin = np.median(pos - grid @ lattice, axis=0)
+    expected = origin + grid @ lattice
+    step = float(min(np.hypot(*lattice[0]), np.hypot(*lattice[1])))
+    if not step > 0:
+        return
+    off = np.hypot(*(pos - expected).T)
+    worst = int(np.argmax(off))
+    if off[worst] <= GRID_TOLERANCE * step:
+        return
+    key, entries = list(groups.items())[worst]
+    origin_of = entries[0]._origin
+    where = f" (line {origin_of[1]} of {origin_of[0]})" if origin_of is not None else ""
+    if kind == "stage":
+        (y, x), (ey, ex) = pos[worst] * 1e3, expected[worst] * 1e3
+        given, near = f"x {x:.4g}, y {y:.4g} mm", f"x {ex:.4g}, y {ey:.4g} mm"
+    else:
+        (y, x), (ey, ex) = pos[worst], expected[worst]
+        given, near = f"kx {x:.4g}, ky {y:.4g}", f"kx {ex:.4g}, ky {ey:.4g}"
+    raise ConfigError(f"{path}: {_position_text(key)}{where} is at {given}, {off[worst] / step:.3g} grid steps from "
+                      f"where the other positions put that row and col ({near}); fix that position (a slipped "
+                      "digit?) or its grid indices")
 
 
 def _match_calibration(rows: list[ImageEntry], keys: list[tuple], positions: np.ndarray, kind: str, path: Path,

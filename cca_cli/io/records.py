@@ -76,4 +76,6 @@ def carry_capture_records(source: h5py.File, target: h5py.File, *, keep=None) ->
         data = views[()] if keep is None else views[()][np.asarray(keep)]
         copy = target.create_dataset("/registration/board_views", data=data)
         for key, value in views.attrs.items():
+            if key == "files" and keep is not None:   # each view's file names, one entry a view
+                value = [value[i] for i in np.asarray(keep)]
             copy.attrs[key] = value

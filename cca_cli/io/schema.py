@@ -218,7 +218,8 @@ DATASETS: tuple[DatasetSpec, ...] = (
     DatasetSpec("/registration/board_views", "float32", "(K, H, W)", "counts/s",
                 "Calibration images of the board at each position (rows of kind calibration), linearised; the "
                 "board is found in these instead of the captures. Views at another bit depth than the captures "
-                "are in their own codes per second (gain map applied, no black level subtracted)."),
+                "are in their own codes per second (gain map applied, no black level subtracted). Attribute "
+                "files: each view's image file(s)."),
     DatasetSpec("/registration/kept_index", "int32", "(K,)", "1", "Index of each registered view among the ingested ones."),
     DatasetSpec("/registration/corners", "float32", "(K, N, 2)", "px", "Detected inner corners (x, y) in each view."),
     DatasetSpec("/registration/dropped", "str", "(D,)", "text", "Positions lost because no checkerboard was found."),

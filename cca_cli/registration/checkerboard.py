@@ -43,7 +43,9 @@ _log = logging.getLogger(__name__)
 # CALIB_CB_ACCURACY is left out on purpose: its refinement is replaced by
 # cornerSubPix below (results differ by < 0.001 px on the OpenCV sample
 # photos) and it makes detection about twice as slow.
-_SB_FLAGS = cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE
+#: The sector-based detector's settings, tried in turn: its defaults find boards without a white margin that the
+#: exhaustive search misses, which in turn rescues dim or uneven views.
+_SB_FLAG_SETS = (0, cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE)
 _CLASSIC_FLAGS = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-4)
 # The colour test must separate the two ends by this fraction of the
@@ -260,7 +262,7 @@ def find_checkerboard(image, pattern: tuple[int, int], *, source: str = "image")
     Notes
     -----
     Detection uses ``cv2.findChessboardCorners`` (fast); if that fails,
-    ``cv2.findChessboardCornersSB`` (normalize and exhaustive flags). Either
+    ``cv2.findChessboardCornersSB`` (its defaults, then normalize and exhaustive flags). Either
     result is refined with ``cv2.cornerSubPix`` on the unquantised (float)
     scaled image with a window of about a third of the corner spacing: on
     synthetic boards this cuts the sector detector's 0.1-0.4 px error to
@@ -283,8 +285,11 @@ def find_checkerboard(image, pattern: tuple[int, int], *, source: str = "image")
     found, corners = cv2.findChessboardCorners(gray, (cols, rows), flags=_CLASSIC_FLAGS)
     if not found or corners is None:
         _log.debug("%s: findChessboardCorners failed, trying findChessboardCornersSB", source)
-        found, corners = cv2.findChessboardCornersSB(gray, (cols, rows), flags=_SB_FLAGS)
-        if not found or corners is None:
+        for flags in _SB_FLAG_SETS:
+            found, corners = cv2.findChessboardCornersSB(gray, (cols, rows), flags=flags)
+            if found and corners is not None:
+                break
+        else:
             raise CheckerboardNotFound(source, (cols, rows))
     corners = np.asarray(corners, dtype=np.float32).reshape(-1, 2)
     if corners.shape[0] != cols * rows:

@@ -357,7 +357,8 @@ def ingest(manifest_path: Path, *, progress: ProgressFn = silent) -> Ingested:
     if plan.camera_index is not None:
         geometry = replace(geometry, camera_index=plan.camera_index)
     check_geometry(plan, geometry, (h, w))
-    notes += (stray_positions(plan, geometry) + apart_neighbours(plan, geometry) + crowded_neighbours(plan, geometry)
+    check_neighbours_overlap(plan, geometry)
+    notes += (stray_positions(plan, geometry) + crowded_neighbours(plan, geometry)
               + dark_bright_field(plan, geometry, frames))
     if manifest.sensor.frame_scale == "per_frame":
         notes.append("sensor.frame_scale is per_frame: the images' relative brightness is unknown, so reconstruct's "
@@ -449,20 +450,22 @@ def stray_positions(plan: CapturePlan, geometry: CaptureGeometry) -> list[str]:
             for i in np.flatnonzero(beyond)]
 
 
-def apart_neighbours(plan: CapturePlan, geometry: CaptureGeometry) -> list[str]:
-    """A note when the captures' usual spacing exceeds the pupil's diameter: no two share any part of the spectrum
-    (a position unit wrong by a thousand, or optics that make the pupil too small).
+def check_neighbours_overlap(plan: CapturePlan, geometry: CaptureGeometry) -> None:
+    """Refuse captures whose usual spacing exceeds the pupil's diameter: no two share any part of the spectrum, so
+    phase retrieval cannot join them (a position unit wrong by a thousand, or optics that make the pupil too small).
 
-    Returns
-    -------
-    list of str
-        Empty, or one note naming the spacing, the diameter and what to check.
+    Raises
+    ------
+    ConfigError
+        One line naming the spacing, the diameter and what to check.
     """
     spacing, diameter = _usual_spacing(geometry), 2 * geometry.pupil_radius_px
     if not spacing > diameter:
-        return []
-    return [f"neighbouring captures lie {spacing:.4g} spectrum px apart, more than the pupil's diameter "
-            f"({diameter:.4g} px): no two overlap, so phase retrieval cannot join them; {_spacing_fix(plan)}"]
+        return
+    raise ConfigError(f"{plan.path}: neighbouring captures lie {spacing:.4g} spectrum px apart, more than the pupil's "
+                      f"diameter ({diameter:.4g} px): no two overlap, so phase retrieval cannot join them "
+                      f"(synthetic aperture {geometry.synthetic_aperture_ratio:.4g} times the lens's); "
+                      f"{_spacing_fix(plan)}")
 
 
 def _usual_spacing(geometry: CaptureGeometry) -> float:
@@ -628,7 +631,8 @@ def write_raw(path: Path, data: Ingested, provenance: Provenance, *, force: bool
             if manifest.checkerboard.square_m is not None:
                 board.attrs["square_m"] = manifest.checkerboard.square_m
             if data.board_views is not None:
-                write_dataset(handle, "/registration/board_views", data.board_views)
+                write_dataset(handle, "/registration/board_views", data.board_views,
+                              files=[", ".join(path.name for path, _ in views) for views in data.plan.calibration])
         k, e, h, w = data.frames.shape
         if e == 1:
             counts = data.frames[:, 0]

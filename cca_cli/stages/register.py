@@ -59,7 +59,7 @@ class Registration:
 def register_views(intensity: np.ndarray, weight: np.ndarray | None, pattern: tuple[int, int], *, reference: int,
                    crop_xywh, labels: list[str], drop_missing: bool = False, ransac_threshold_px: float = 1.0,
                    interpolation: str = "cubic", board_views: np.ndarray | None = None, object_xywh=None,
-                   progress: ProgressFn = silent) -> Registration:
+                   board_files: list[str] | None = None, progress: ProgressFn = silent) -> Registration:
     """Register ``intensity`` views (K, H, W) to view ``reference`` and cut out ``crop_xywh``.
 
     Parameters
@@ -67,6 +67,8 @@ def register_views(intensity: np.ndarray, weight: np.ndarray | None, pattern: tu
     board_views : ndarray, (K, H, W), optional
         Calibration images of the board at each position; the board is
         looked for in ``intensity`` itself when None.
+    board_files : list of str, optional
+        The file(s) of each position's calibration image, for messages.
     object_xywh : tuple of int, optional
         Where the object is (reference px), for the registration error
         estimate; default ``crop_xywh``.
@@ -88,7 +90,12 @@ def register_views(intensity: np.ndarray, weight: np.ndarray | None, pattern: tu
         raise InputError(f"calibration views are {search.shape[2]}x{search.shape[1]} px but the captures are "
                          f"{w}x{h} px; photograph the board with the same camera settings")
     def view_name(i: int) -> str:
-        return labels[i] if board_views is None else f"{labels[i]} calibration view"
+        if board_views is None:
+            return labels[i]
+        if board_files is None:
+            return f"{labels[i]} calibration view"
+        position = labels[i][:labels[i].rindex(" (")] if labels[i].endswith(")") and " (" in labels[i] else labels[i]
+        return f"{board_files[i]} (the board's view at {position})"
 
     try:   # first: without the reference's board no view can be registered
         ref = find_checkerboard(search[reference], pattern, source=view_name(reference))
@@ -156,14 +163,18 @@ def run(captures_path: Path, section: RegisterSection | None, output: Path, *, p
             raise InputError(f"{captures_path}: no checkerboard pattern recorded; add checkerboard: {{pattern: [9, 6]}} "
                              "to the manifest and re-run ingest")
         pattern = tuple(int(v) for v in src["registration/board"].attrs["pattern"])
-        board_views = (np.asarray(src["/registration/board_views"], np.float32)
-                       if "/registration/board_views" in src else None)
+        board_views, board_files = None, None
+        if "/registration/board_views" in src:
+            board_views = np.asarray(src["/registration/board_views"], np.float32)
+            files = src["/registration/board_views"].attrs.get("files")
+            board_files = None if files is None else [f.decode() if isinstance(f, bytes) else str(f) for f in files]
         k, h, w = intensity.shape
         rect = tuple(section.crop_xywh) if section.crop_xywh is not None else (0, 0, w, h)
         reg = register_views(intensity, weight, pattern, reference=geometry.centre_index, crop_xywh=rect,
                              labels=labels, drop_missing=section.drop_missing,
                              ransac_threshold_px=section.ransac_threshold_px, interpolation=section.interpolation,
-                             board_views=board_views, object_xywh=section.object_xywh, progress=progress)
+                             board_views=board_views, object_xywh=section.object_xywh, board_files=board_files,
+                             progress=progress)
         new_geometry = with_field_width(geometry, rect[2] * object_pixel_m(geometry), keep=reg.kept)
         with atomic_h5(output, provenance, force=force) as handle:
             units = src["/measurements/intensity"].attrs.get("units", "")

@@ -385,6 +385,41 @@ def test_a_position_far_from_every_other_is_reported(tmp_path, slip):
         assert "p22.png" in text and "a mistyped position? check that row's stage position" in text
 
 
+def _scan_table(tmp_path, edit=None, exposures=(10,)) -> None:
+    """A 4 x 4 stage scan whose table gives both the grid indices and the positions."""
+    lines = ["file,kind,exposure_ms,x_mm,y_mm,r,c"]
+    for r in range(4):
+        for c in range(4):
+            for t in exposures:
+                write_image(tmp_path / f"p{r}{c}_{t}.png", _codes(80 * t), bit_depth=16)
+                lines.append(f"p{r}{c}_{t}.png,coherent,{t},{0.4 * c - 0.6:.3f},{0.4 * r - 0.6:.3f},{r},{c}")
+    lines = edit(lines) if edit is not None else lines
+    (tmp_path / "table.csv").write_text("\n".join(lines) + "\n")
+    mapping = {"path": "file", "kind": "kind", "exposure": "exposure_ms", "stage_x": "x_mm", "stage_y": "y_mm",
+               "row": "r", "col": "c"}
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump({"images_csv": "table.csv", "optics": OPTICS, "columns": mapping,
+                                                       "units": {"exposure": "ms", "position": "mm"}}))
+
+
+def test_a_position_off_its_grid_row_and_col_is_refused_by_its_table_line(tmp_path):
+    """A slipped digit (x 2.000 for 0.200) in a table that also gives row and col: refused, naming the line."""
+    _scan_table(tmp_path)
+    assert _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5").exit_code == 0   # the clean table
+    (tmp_path / "raw.h5").unlink()
+    _scan_table(tmp_path, edit=lambda lines: [line.replace(",0.200,", ",2.000,") if line.startswith("p12_10.png") else line
+                                              for line in lines])
+    text = _refused(tmp_path, "lab.yaml", "grid position (row 1, col 2) (line 8 of table.csv)", "x 2, y -0.2 mm",
+                    "(x 0.2, y -0.2 mm)", "fix that position")
+    assert "4.5 grid steps" in text
+
+
+def test_rows_of_one_grid_position_that_disagree_name_the_odd_line(tmp_path):
+    """Two exposures at each position; the second row of position (1, 2) has a slipped digit."""
+    _scan_table(tmp_path, exposures=(10, 20), edit=lambda lines: [
+        line.replace(",0.200,", ",2.000,") if line.startswith("p12_20.png") else line for line in lines])
+    _refused(tmp_path, "rows at grid position (row 1, col 2)", "lines 14 and 15 of table.csv disagree")
+
+
 def test_a_negative_wavelength_is_named_with_its_unit(tmp_path):
     """YAML reads ``-550e-9`` (no decimal point) as text: the message shows the number and the unit the key is in."""
     write_image(tmp_path / "a.png", np.full((16, 16), 100, np.uint16), bit_depth=16)
@@ -445,8 +480,9 @@ def test_images_scaled_each_on_its_own_reach_reconstruct_with_brightness_fitted(
 
 @pytest.mark.parametrize("factor", [1000.0, 20000.0])
 def test_positions_in_the_wrong_unit_are_noted_or_refused(tmp_path, factor):
-    """Micrometres read as millimetres: no two captures overlap (a note); far enough out, the recovery grid with
-    its guard band could not hold them (refused, although the pupils alone would fit in 65536 px)."""
+    """Micrometres read as millimetres: no two captures overlap (refused: phase retrieval cannot join them); far
+    enough out, the recovery grid with its guard band could not hold them (although the pupils alone would fit in
+    65536 px)."""
     rows = []
     for r in range(3):
         for c in range(3):
@@ -455,10 +491,7 @@ def test_positions_in_the_wrong_unit_are_noted_or_refused(tmp_path, factor):
                          "stage_y_mm": 0.5 * (r - 1) * factor})
     (tmp_path / "lab.yaml").write_text(yaml.safe_dump({"optics": OPTICS, "images": rows}))
     if factor == 1000.0:
-        result = _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
-        assert result.exit_code == 0, result.output
-        text = " ".join(result.output.split())
-        assert "no two overlap" in text and "units.position" in text
+        _refused(tmp_path, "lab.yaml", "no two overlap", "units.position")
     else:
         _refused(tmp_path, "lab.yaml", "the recovery grid would be", "at most 65536")
 
@@ -894,3 +927,17 @@ def test_a_row_with_empty_position_cells_is_not_told_its_table_lacks_position_co
     _led_table(tmp_path, rows, {"led_distance_m": 0.06})
     text = _refused(tmp_path, "leds.csv: line 2 (led0.png)")
     assert "no position column found" not in text
+
+
+def test_a_calibration_view_without_the_board_is_named_by_its_own_file(tmp_path):
+    """The board is looked for in the calibration images: the error names that image, not the position's capture."""
+    _lab(tmp_path, calibration=True)   # the calibration images hold noise, no board
+    assert _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5").exit_code == 0
+    assert runner.invoke(app, ["hdr", str(tmp_path / "raw.h5"), "-o", str(tmp_path / "hdr.h5"), "-q"]).exit_code == 0
+    with h5py.File(tmp_path / "hdr.h5") as f:
+        assert list(f["/registration/board_views"].attrs["files"]) == ["cal00.tif", "cal01.tif", "cal10.tif",
+                                                                       "cal11.tif"]
+    result = runner.invoke(app, ["register", str(tmp_path / "hdr.h5"), "-o", str(tmp_path / "reg.h5"), "-q"])
+    text = " ".join(result.output.split())
+    assert result.exit_code == 3 and text.startswith("error: cal"), text
+    assert "tif (the board's view at grid position (row" in text and "p0" not in text and "no 4x3 checkerboard" in text

@@ -153,3 +153,12 @@ def test_real_pair_homography(real_corners):
     assert fit.inliers >= 50
     assert fit.rms_px < 1.0
     assert fit.max_px < 3.0
+
+
+def test_a_board_without_a_white_margin_is_found_by_the_sector_detector_s_defaults():
+    """A 7 x 5 board filling a camera-scan view edge to edge (no white margin around it): the classic detector
+    and the sector-based one's exhaustive search miss it, the sector-based one's defaults find it."""
+    image = read_image(Path(__file__).parent / "data" / "board_without_margin.png").pixels
+    found = find_checkerboard(image, PATTERN)
+    ideal = checkerboard_corners(PATTERN, 1.0, (0.0, 0.0))
+    assert estimate_homography(ideal, found).rms_px < 0.3
