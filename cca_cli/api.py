@@ -498,7 +498,7 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
         Unknown engine or option (the message lists the valid ones); images
         that do not match the geometry; intensities or weights the CLI would
         refuse in a captures file (complex, NaN or infinite values, an image
-        with a negative mean, every image flat, weights outside [0, 1]), each
+        with a mean below zero beyond its noise, every image flat, weights outside [0, 1]), each
         naming ``intensities`` or ``weight``; or more dead (constant) images
         than can be left out, or a dead centre image. Up to 5% dead images are
         left out with a warning, as ``cca reconstruct`` does. ``device="cuda"`` where CuPy or a GPU

@@ -1,7 +1,8 @@
 """Reading /measurements with the checks that keep a recovery from running on nothing.
 
 An intensity stack must hold finite, real numbers; no image may have a
-negative mean (noise may dip below zero, a signal may not); and not every
+mean below zero by more than its noise allows (noise may dip below zero, a
+signal may not); and not every
 image may be all zero or flat, since then there is no contrast to recover an
 object from. A weight stack must match the images, lie in [0, 1] and not be
 zero everywhere (that would ignore every pixel and return the starting guess).
@@ -41,7 +42,10 @@ def _prefix(source) -> str:
 def read_intensity(handle: h5py.File, path: Path) -> np.ndarray:
     """/measurements/intensity as float32 (K, N, N'), checked (see the module notes)."""
     intensity = np.asarray(_real(handle, INTENSITY, 3), dtype=np.float32)
-    check_intensity(intensity, INTENSITY, source=path, error=InputError)
+    labels = handle["/capture/labels"].asstr()[()].tolist() if "/capture/labels" in handle else None
+    if labels is not None and len(labels) != len(intensity):
+        labels = None
+    check_intensity(intensity, INTENSITY, source=path, error=InputError, labels=labels)
     return intensity
 
 

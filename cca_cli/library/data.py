@@ -7,7 +7,7 @@ The command line's files hold exactly these (``captures.h5`` and
 ``recon.h5``, read and written by :mod:`cca_cli.io`).
 
 The checks here keep a recovery from running on nothing: an intensity stack
-must hold finite, real numbers, no image may have a negative mean (noise may
+must hold finite, real numbers, no image may have a mean below zero beyond its noise (noise may
 dip below zero, a signal may not), and not every image may be flat. Weights
 must match the images, lie in [0, 1] and not be zero everywhere. An image that
 holds one value is a dead capture (:func:`constant_images`).
@@ -264,7 +264,8 @@ def _prefix(source) -> str:
     return f"{source}: " if source else ""
 
 
-def check_intensity(intensity: np.ndarray, name: str = "intensities", *, source=None, error=ValueError) -> None:
+def check_intensity(intensity: np.ndarray, name: str = "intensities", *, source=None, error=ValueError,
+                    labels=None) -> None:
     """Refuse an intensity stack (K, H, W) that no recovery can use (see the module notes).
 
     Parameters
@@ -277,6 +278,8 @@ def check_intensity(intensity: np.ndarray, name: str = "intensities", *, source=
         The file they come from, which the messages begin with.
     error : type
         The exception raised (``ValueError`` for arrays; files raise :class:`~cca_cli.errors.InputError`).
+    labels : sequence of str, optional
+        Each image's name (its position and file), added to the messages.
     """
     where = _prefix(source)
     k = intensity.shape[0]
@@ -295,10 +298,17 @@ def check_intensity(intensity: np.ndarray, name: str = "intensities", *, source=
                     "to recover an object from")
     # A constant image (a dead capture, black level subtracted) is judged by constant_images, not here.
     means = np.where(live, flat.mean(axis=1, dtype=np.float64), 0.0)
-    if (means < 0).any():
-        bad = int(np.argmin(means))
-        raise error(f"{where}image {bad} of {name} has a negative mean ({means[bad]:.3g}); intensities "
-                    "are ≥ 0 (noise may dip below zero, the signal may not): check the black level or the sign")
+    # An image that recorded (nearly) no light has a mean of zero up to its noise: only a mean below zero by more
+    # than its noise allows (five standard errors) says the black level or the sign is wrong.
+    spread = np.where(live, flat.std(axis=1, dtype=np.float64), 0.0) / np.sqrt(flat.shape[1])
+    below = means < -5.0 * spread
+    if below.any():
+        bad = int(np.argmin(np.where(below, means, np.inf)))
+        which = f"image {bad}" if labels is None else f"image {bad} ({labels[bad]})"
+        more = f" (and {int(below.sum()) - 1} more)" if below.sum() > 1 else ""
+        raise error(f"{where}{which}{more} of {name} has a negative mean ({means[bad]:.3g}, {-means[bad] / spread[bad]:.3g} "
+                    "times its noise); intensities are ≥ 0 (noise may dip below zero, the signal may not): check "
+                    "the black level or the sign")
 
 
 def constant_images(intensity: np.ndarray) -> np.ndarray:

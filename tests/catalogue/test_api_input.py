@@ -38,12 +38,22 @@ def _with(images, index, value):
 
 
 # --- intensities and weights: as the CLI reads /measurements -----------------------------------------------------------
+def test_an_unlit_image_whose_mean_noise_puts_a_hair_under_zero_is_kept(scan):
+    """A dark-field capture that recorded no light, black level subtracted: zero mean up to its noise."""
+    geometry, _, images = scan
+    unlit = np.random.default_rng(1).normal(0, 1, images[7].shape).astype(np.float32)
+    unlit -= unlit.mean() + 0.5 * unlit.std() / np.sqrt(unlit.size)   # half a standard error below zero
+    assert cca.reconstruct(_with(images, 7, unlit), geometry, iterations=2).iterations == 2
+    with pytest.raises(ValueError, match=r"^image 7 of intensities has a negative mean \(-1.0\d, [\d.]+ times its noise\)"):
+        cca.reconstruct(_with(images, 7, unlit - 1), geometry, iterations=2)   # a black level one count too high
+
+
 @pytest.mark.parametrize("case, match", [
     ("complex", r"^intensities holds complex values"),
     ("text", r"^intensities must be real numbers"),
     ("nan-pixel", r"^image 3 of intensities contains NaN or Inf"),
     ("inf-pixel", r"^image 3 of intensities contains NaN or Inf"),
-    ("negated", r"^image \d+ of intensities has a negative mean"),
+    ("negated", r"^image \d+ \(and \d+ more\) of intensities has a negative mean"),
     ("one-negated", r"^image 7 of intensities has a negative mean"),
     ("zero", r"^every image of intensities is zero"),
     ("flat", r"^every image of intensities is flat"),
@@ -374,3 +384,14 @@ def test_lengths_typed_in_millimetres_or_micrometres_are_named_before_anything_i
                 distance_m=50, field_width_m=64e-3, grid=5, overlap=0.61)
     with pytest.raises(ValueError, match=re.escape(message)):
         cca.camera_scan(**{**base, **change})
+
+
+def test_a_file_s_image_with_a_negative_mean_is_named_by_its_capture():
+    from cca_cli.errors import InputError
+    from cca_cli.library.data import check_intensity
+
+    images = np.abs(np.random.default_rng(2).normal(5, 1, (4, 16, 16))).astype(np.float32)
+    images[2] -= 20
+    with pytest.raises(InputError, match=r"^raw.h5: image 2 \(LED 3 \(img_002.tif\)\) of /measurements/intensity has"):
+        check_intensity(images, "/measurements/intensity", source="raw.h5", error=InputError,
+                        labels=[f"LED {i + 1} (img_00{i}.tif)" for i in range(4)])
