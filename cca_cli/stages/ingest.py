@@ -32,6 +32,7 @@ from cca_cli.io.h5 import Provenance, atomic_h5, check_output, write_dataset
 from cca_cli.io.images import read_stored
 from cca_cli.io.manifest import CapturePlan, plan_captures, read_manifest, read_pupil
 from cca_cli.io.records import write_sensor_records
+from cca_cli.io.stacks import read_stack
 from cca_cli.io.sensor import (Decoding, FrameValues, SensorRule, board_decodings, decide_decoding, frame_values,
                                same_depth)
 from cca_cli.sampling.capture import led_array_geometry, stage_scan_geometry
@@ -67,28 +68,38 @@ class Ingested:
 
 
 def _read_mat(plan: CapturePlan) -> np.ndarray:
-    from scipy.io import loadmat
-
+    """The images of ``source.mat`` (K, 1, H, W), float32, one per row of the illumination table."""
     source = plan.manifest.source
-    if not source.mat.is_file():
-        raise InputError(f"{source.mat}: file not found (manifest source.mat); check the path")
-    try:
-        data = loadmat(source.mat, variable_names=[source.variable])
-    except Exception as exc:  # noqa: BLE001 - any decoder failure is an unreadable file
-        raise InputError(f"{source.mat}: cannot read MATLAB file ({' '.join(str(exc).split())})") from None
-    if source.variable not in data:
-        raise InputError(f"{source.mat}: has no variable {source.variable!r} (manifest source.variable)")
-    stack = np.asarray(data[source.variable])
-    if stack.ndim != 3:
-        raise InputError(f"{source.mat}: {source.variable} has shape {stack.shape}; expected (H, W, K)")
-    stack = np.moveaxis(stack, -1, 0).astype(np.float32)
-    if stack.shape[0] != len(plan.labels):
-        raise InputError(f"{source.mat}: {stack.shape[0]} images but {source.illumination_csv.name} "
-                         f"lists {len(plan.labels)} illuminations")
+    stack = read_stack(source.mat, source.variable, len(plan.labels), table=source.illumination_csv.name)
     bad = ~np.isfinite(stack).reshape(stack.shape[0], -1).all(axis=1)
     if bad.any():
         raise InputError(f"{source.mat}: {plan.labels[int(np.argmax(bad))]} contains NaN or infinite pixels; fix or drop it")
     return stack[:, None]
+
+
+#: Sensor keys that decode stored codes (containers, colour sites): a MATLAB variable's values are read as they are.
+_DECODING_KEYS = ("container_bits", "alignment", "channel", "bayer")
+
+
+def _mat_levels(frames: np.ndarray, manifest, manifest_path: Path) -> tuple[np.ndarray, float | None]:
+    """A MATLAB stack less ``sensor.black_level``, and its clipping level (white level, or that of ``bit_depth``).
+
+    Keys that decode stored codes cannot apply to a variable's numbers and are refused naming the key.
+    """
+    sensor = manifest.sensor
+    stated = sorted(key for key in _DECODING_KEYS if key in sensor.model_fields_set and getattr(sensor, key) is not None)
+    if stated:
+        raise ConfigError(f"{manifest_path}: sensor.{stated[0]} does not apply to a MATLAB variable (source.mat): its "
+                          "values are read as they are; remove it (or store the images as files)")
+    white = sensor.white_level
+    if white is None and sensor.bit_depth is not None:
+        white = float(2 ** sensor.bit_depth - 1)
+    if white is not None and white <= sensor.black_level:
+        raise ConfigError(f"{manifest_path}: sensor.black_level ({sensor.black_level:g}) is not below the white level "
+                          f"({white:g}); check both")
+    if sensor.black_level:
+        frames -= np.float32(sensor.black_level)
+    return frames, None if white is None else float(white - sensor.black_level)
 
 
 def _sensor_rule(plan: CapturePlan) -> SensorRule:
@@ -320,7 +331,7 @@ def ingest(manifest_path: Path, *, progress: ProgressFn = silent) -> Ingested:
     calibration = None
     binning = 1
     if manifest.source is not None:
-        frames, saturation = _read_mat(plan), None
+        frames, saturation = _mat_levels(_read_mat(plan), manifest, manifest_path)
     else:
         frames, darks, flats, board_frames, decoding = _read_files(plan, progress)
         notes += decoding.notes

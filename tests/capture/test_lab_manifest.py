@@ -941,3 +941,33 @@ def test_a_calibration_view_without_the_board_is_named_by_its_own_file(tmp_path)
     text = " ".join(result.output.split())
     assert result.exit_code == 3 and text.startswith("error: cal"), text
     assert "tif (the board's view at grid position (row" in text and "p0" not in text and "no 4x3 checkerboard" in text
+
+
+def _mat_lab(tmp_path, sensor: dict) -> None:
+    """A 3 x 3 LED stack in a MATLAB file (H, W, K), 16-bit counts over a black level of 100."""
+    import scipy.io
+
+    k = 9
+    stack = np.full((32, 32, k), 100, np.uint16)
+    stack[..., 4] += 3000                              # the centre LED: bright field
+    stack[8:24, 8:24, :] += 400                        # something to see in every image
+    scipy.io.savemat(tmp_path / "stack.mat", {"frames": stack})
+    sines = [(0.06 * (i % 3 - 1), 0.06 * (i // 3 - 1)) for i in range(k)]
+    (tmp_path / "sines.csv").write_text("kx_norm,ky_norm\n" + "".join(f"{x},{y}\n" for x, y in sines))
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump({
+        "illumination": {"wavelength_m": 5.3e-7, "numerical_aperture": 0.1, "pixel_pitch_object_m": 1.6e-6},
+        "source": {"mat": "stack.mat", "variable": "frames", "illumination_csv": "sines.csv"}, "sensor": sensor}))
+
+
+def test_a_matlab_stack_takes_the_sensor_s_black_and_white_levels(tmp_path):
+    _mat_lab(tmp_path, {"black_level": 100, "bit_depth": 12})
+    assert _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5").exit_code == 0
+    with h5py.File(tmp_path / "raw.h5") as f:
+        intensity = f["/measurements/intensity"][()]
+        assert f["/raw/frames"].attrs["saturation_level"] == 4095 - 100
+    assert intensity.min() == 0 and intensity[4].max() == 3400   # the black level is subtracted
+    (tmp_path / "raw.h5").unlink()
+    _mat_lab(tmp_path, {"black_level": 100, "channel": "G"})
+    _refused(tmp_path, "sensor.channel does not apply to a MATLAB variable (source.mat)", "remove it")
+    _mat_lab(tmp_path, {"black_level": 5000, "white_level": 7})
+    _refused(tmp_path, "sensor.black_level (5000) is not below the white level (7)")
