@@ -177,7 +177,8 @@ def _where(geometry, index: int) -> str:
 
 def without_dead_captures(captures: CaptureSet, *, name: str = "intensities", source=None,
                           error: type[Exception] = ValueError) -> CaptureSet:
-    """Leave out the captures whose images hold one value only (a camera that recorded nothing).
+    """Leave out the captures whose images hold one value only (a camera that recorded nothing), and the LED-array
+    bright-field captures whose LED did not fire (:func:`unlit_bright_field`).
 
     Such an image carries no information, and fitting it would pull the recovery
     towards a dark (or flat) patch of spectrum. Up to :data:`MAX_DEAD_FRACTION` of
@@ -199,11 +200,88 @@ def without_dead_captures(captures: CaptureSet, *, name: str = "intensities", so
         (``dropped`` lists the indices left out).
     """
     dead = constant_images(captures.intensity)
-    if dead.size == 0:
-        return captures
     values = [float(captures.intensity[i].flat[0]) for i in dead]
     check_dead_captures(dead, values, captures.geometry, name=name, source=source, error=error)
-    return drop_captures(captures, dead)
+    unlit, darker = unlit_bright_field(captures)
+    unlit, darker = unlit[~np.isin(unlit, dead)], darker[~np.isin(unlit, dead)]
+    if unlit.size:
+        _check_unlit(unlit, darker, dead.size, captures.geometry, name=name, source=source, error=error)
+    gone = np.union1d(dead, unlit)
+    return captures if gone.size == 0 else drop_captures(captures, gone)
+
+
+#: An LED-array capture in the bright field that recorded this many times less light than the median bright-field
+#: capture did not get its light (an LED that did not fire) and is left out with the dead ones.
+UNLIT_FACTOR = 10.0
+#: More than this share of the bright-field captures so dark (three or more) says the LEDs' geometry is wrong, not
+#: that LEDs failed: ingest says so, and nothing is left out.
+UNLIT_GEOMETRY_SHARE = 0.25
+
+
+def unlit_bright_field(captures: CaptureSet) -> tuple[np.ndarray, np.ndarray]:
+    """The LED-array captures in the bright field whose LED did not fire, and how many times less light each got.
+
+    A capture counts when the geometry puts its pupil's centre well inside the bright field (within 0.9 pupil
+    radii of the spectrum's origin) and its mean is :data:`UNLIT_FACTOR` times below the median bright-field
+    capture's. Frames scaled each on its own (``frame_scale: per_frame``), fewer than three bright-field captures,
+    or so many dark ones that the geometry must be wrong (:data:`UNLIT_GEOMETRY_SHARE`), give none.
+
+    Returns
+    -------
+    indices : ndarray of int
+    times_darker : ndarray of float
+        The median bright-field mean over each one's (inf where it recorded no light).
+    """
+    none = np.zeros(0, np.int64), np.zeros(0)
+    geometry = captures.geometry
+    if geometry.kind != "led_array" or captures.frame_scale != "shared":
+        return none
+    centres = np.asarray(geometry.spectrum_centres_yx_px, np.float64)
+    bright = np.flatnonzero(np.hypot(centres[:, 0], centres[:, 1]) < 0.9 * geometry.pupil_radius_px)
+    if bright.size < 3:
+        return none
+    means = np.asarray(captures.intensity[bright], np.float32).mean(axis=(-2, -1), dtype=np.float64)
+    typical, brightest = float(np.median(means)), float(np.percentile(means, 90))
+    if not typical > 0:
+        return none
+    dark_against_brightest = int(np.sum(means * UNLIT_FACTOR < brightest))
+    if dark_against_brightest >= 3 and dark_against_brightest > UNLIT_GEOMETRY_SHARE * bright.size:
+        return none
+    off = means * UNLIT_FACTOR < typical
+    with np.errstate(divide="ignore"):
+        darker = np.where(means[off] > 0, typical / np.maximum(means[off], 1e-300), np.inf)
+    return bright[off], darker
+
+
+def _check_unlit(unlit, darker, dead: int, geometry: CaptureGeometry, *, name: str, source, error) -> None:
+    """Refuse an unlit centre capture, or more left out (dead and unlit) than :data:`MAX_DEAD_FRACTION`; warn once,
+    naming each, about the rest."""
+    where = f"{source}: " if source else ""
+    count = geometry.n_images
+
+    def how_much(times: float) -> str:
+        return "no light" if not np.isfinite(times) else \
+            f"{times:.3g} times less light than the median bright-field capture"
+
+    def less(times: float) -> str:
+        return "none" if not np.isfinite(times) else f"{times:.3g} times less"
+
+    if geometry.centre_index in unlit:
+        times = float(darker[int(np.flatnonzero(unlit == geometry.centre_index)[0])])
+        raise error(f"{where}image {geometry.centre_index} of {name}, the centre capture "
+                    f"{_where(geometry, geometry.centre_index)}, recorded {how_much(times)}: did its LED fire? The "
+                    "recovery needs it for the object's lowest frequencies; re-take it")
+    allowed = int(MAX_DEAD_FRACTION * count)
+    listed = "; ".join(f"image {int(i)} {_where(geometry, int(i))} {less(t)}" for i, t in zip(unlit[:6], darker)) \
+        + ("; …" if unlit.size > 6 else "")
+    if unlit.size + dead > allowed:
+        raise error(f"{where}{unlit.size} bright-field images of {name} recorded {UNLIT_FACTOR:g} times less light "
+                    f"than the median one or less ({listed}){f' and {dead} hold one value' if dead else ''}; at most "
+                    f"{MAX_DEAD_FRACTION:.0%} of the captures ({allowed} here) may be left out: check the LEDs and "
+                    "re-take them")
+    _log.warning("%sleft out %d of %d images of %s in the bright field that recorded far less light than the median "
+                 "bright-field capture (did their LEDs fire?): %s; the recovery uses the other %d", where, unlit.size,
+                 count, name, listed, count - unlit.size - dead)
 
 
 def check_dead_captures(dead, values, geometry: CaptureGeometry, *, name: str = "intensities", source=None,

@@ -305,13 +305,20 @@ def _board_views(plan: CapturePlan, boards: list[list[tuple[np.ndarray, bool]]],
 def _same_peak_note(frames: np.ndarray, sensor, full_scale: float | None) -> list[str]:
     """A note when every frame (one exposure a position) peaks at exactly one value, at different pixels: frames
     scaled each to its own maximum look so, and recorded ones do not (unless each clips there, or one hot pixel
-    is every frame's brightest)."""
+    is every frame's brightest). A pixel at that value in every frame is named as a hot pixel instead."""
     if sensor.frame_scale != "shared" or sensor.white_level is not None or frames.shape[1] != 1 or len(frames) < 4:
         return []
     flat = frames[:, 0].reshape(len(frames), -1)
     peaks = flat.max(axis=1)
     if not (peaks[0] > 0 and np.all(peaks == peaks[0])) or len(np.unique(flat.argmax(axis=1))) == 1:
         return []
+    everywhere = np.all(flat == peaks[0], axis=0)
+    if everywhere.any():   # one pixel at the peak in every frame: a hot pixel, not frames scaled each on its own
+        y, x = divmod(int(np.argmax(everywhere)), frames.shape[-1])
+        clipped = (full_scale is not None and peaks[0] >= full_scale)
+        fate = ("it counts as clipped (weight 0)" if clipped else
+                f"it is fitted as recorded unless sensor.white_level is at most {float(peaks[0]):g}")
+        return [f"pixel (x {x}, y {y}) sits at {float(peaks[0]):g} in every frame: a hot pixel? {fate}"]
     clipped = "" if full_scale is not None and peaks[0] >= full_scale else " (if each clips there, sensor.white_level)"
     return [f"every frame peaks at exactly {float(peaks[0]):g}: if they were scaled each to its own maximum, say "
             f"sensor.frame_scale: per_frame{clipped}"]
@@ -579,7 +586,7 @@ def dark_bright_field(plan: CapturePlan, geometry: CaptureGeometry, frames: np.n
 
     dark = [(i, float(r)) for i, r in zip(bright, rate) if r * DARK_BRIGHT_FIELD < typical]
     return [f"{plan.labels[i]} is in the bright field but recorded {how_much(r)} than the median bright-field "
-            "capture: did its LED fire? (check that row, or leave it out)" for i, r in dark]
+            "capture: did its LED fire? (reconstruct leaves it out; check that row)" for i, r in dark]
 
 
 def _optics_keys(plan: CapturePlan) -> str:

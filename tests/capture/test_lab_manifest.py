@@ -542,10 +542,50 @@ def test_a_bright_field_led_that_did_not_fire_is_named(tmp_path):
     geometry = cca.led_array(sines, wavelength_m=532e-9, numerical_aperture=0.1, pixel_pitch_object_m=1.845e-6,
                              image_pixels=32)
     images = cca.simulate(cca.resolution_chart(64, widths=(4, 3, 2)).image, geometry, snr_db=None)
-    bright = np.flatnonzero(np.hypot(*geometry.spectrum_centres_yx_px.T) < 0.5 * geometry.pupil_radius_px)
+    bright = np.flatnonzero(np.hypot(*geometry.spectrum_centres_yx_px.T) < 0.9 * geometry.pupil_radius_px)
     dead = int(bright[-1])
+    assert dead != geometry.centre_index and bright.size == 5
     text = _ingested_led_lab(tmp_path, images, sines, dead=dead)
-    assert text.count("did its LED fire?") == 1 and f"led{dead}.png" in text
+    assert text.count("did its LED fire?") == 1 and f"led{dead}.png" in text and "reconstruct leaves it out" in text
+    result = runner.invoke(app, ["reconstruct", str(tmp_path / "raw.h5"), "-o", str(tmp_path / "recon.h5"),
+                                 "--iterations", "3"])
+    assert result.exit_code == 0, result.output
+    said = " ".join(result.output.split())
+    assert f"left out 1 of 25 images of /measurements/intensity in the bright field" in said
+    assert f"image {dead} (its pupil at" in said and "the recovery uses the other 24" in said
+    with h5py.File(tmp_path / "recon.h5") as f:
+        assert list(f["/recon"].attrs["dropped_captures"]) == [dead]
+
+
+def test_an_unlit_centre_capture_or_many_unlit_ones_are_refused_and_a_wrong_geometry_leaves_out_none():
+    import cca_cli as cca
+
+    sines = cca.led_grid_sines(9, pitch_m=2e-3, height_m=60e-3)
+    geometry = cca.led_array(sines, wavelength_m=532e-9, numerical_aperture=0.1, pixel_pitch_object_m=1.845e-6,
+                             image_pixels=32)
+    images = cca.simulate(cca.resolution_chart(64, widths=(4, 3, 2)).image, geometry, snr_db=None)
+    unlit = np.abs(RNG.normal(0, 1e-3 * images.mean(), images.shape[1:])).astype(np.float32)
+    bright = np.flatnonzero(np.hypot(*geometry.spectrum_centres_yx_px.T) < 0.9 * geometry.pupil_radius_px)
+    centre = geometry.centre_index
+    others = [int(i) for i in bright if i != centre]
+    assert len(others) >= 12
+
+    def with_unlit(indices, dead=()):
+        out = images.copy()
+        out[list(indices)] = unlit
+        out[list(dead)] = 7.0
+        return out
+
+    with pytest.raises(ValueError, match=rf"^image {centre} of intensities, the centre capture .* recorded "
+                                         r"[\d.e+]+ times less light than the median bright-field capture"):
+        cca.reconstruct(with_unlit([centre]), geometry, iterations=1)
+    # 4 of 81 may be left out (5%): three unlit and two dead are too many
+    with pytest.raises(ValueError, match=r"^3 bright-field images of intensities recorded 10 times less light .* and "
+                                         r"2 hold one value; at most 5% of the captures \(4 here\)"):
+        cca.reconstruct(with_unlit(others[:3], dead=(0, 80)), geometry, iterations=1)
+    assert cca.reconstruct(with_unlit(others[:3], dead=(0,)), geometry, iterations=1).dropped == (0, *others[:3])
+    # most bright-field captures dark: the LEDs are not where the geometry says, and nothing is left out
+    assert cca.reconstruct(with_unlit(others[:len(others) // 2 + 1]), geometry, iterations=1).dropped == ()
 
 
 @pytest.mark.parametrize("sensor, noted", [({"bit_depth": 12, "container_bits": 16, "alignment": "msb"}, False),
