@@ -18,6 +18,7 @@ import difflib
 import json
 import math
 import os
+import re
 import string
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -505,6 +506,21 @@ def read_table(table: Path, source: str) -> tuple[list[str], list[tuple[int, dic
     return header, rows, None if separator is None else _SEPARATORS[separator]
 
 
+#: A number written with a decimal comma (``-20,5``; no thousands separators).
+_DECIMAL_COMMA = re.compile(r"[+-]?(\d+,\d*|,\d+)([eE][+-]?\d+)?")
+
+
+def _unknown_kind(word: str, kind_words: dict, table: Path, line: int, source: str) -> str:
+    """The message for a table's kind word that is neither cca's nor one ``kind_values`` maps."""
+    mapped = difflib.get_close_matches(word.lower(), list(kind_words), n=1, cutoff=0.6)
+    if mapped:
+        return (f"{table}: line {line}: kind {word!r} is not one of cca's kinds ({', '.join(KINDS)}); kind_values in "
+                f"{source} maps {mapped[0]!r}: did you mean {word!r} there?")
+    words = f" nor a word kind_values maps ({', '.join(kind_words)})" if kind_words else ""
+    return (f"{table}: line {line}: kind {word!r} is not one of cca's kinds ({', '.join(KINDS)}){words}; map the "
+            f"table's words in {source}, e.g. kind_values: {{{word}: coherent}} (or calibration, dark, flat)")
+
+
 #: Where a row's file name made from ``image_files`` is kept among its cells.
 _PATTERN_PATH = "\0image_files"
 
@@ -592,6 +608,7 @@ def _table_entries(table: Path, manifest: Manifest, source: str) -> tuple[list[d
     kind_words = {k.lower(): v for k, v in (manifest.kind_values or {}).items()}
     stated = "exposure" in used and any(row.get(used["exposure"], "") for _, row in rows)
     entries = []
+    decimal_commas = []
     for line, row in rows:
         def number(name: str):
             text = row.get(used[name], "") if name in used else ""
@@ -600,8 +617,13 @@ def _table_entries(table: Path, manifest: Manifest, source: str) -> tuple[list[d
             try:
                 value = float(text)
             except ValueError:
-                raise ConfigError(f"{table}: line {line}: column {used[name]!r} is {text!r}, not a number; "
-                                  "fix the row") from None
+                # a spreadsheet in a locale with decimal commas separates its columns otherwise: 1,5 is 1.5
+                if separator is not None and _DECIMAL_COMMA.fullmatch(text):
+                    decimal_commas.append(used[name])
+                    value = float(text.replace(",", "."))
+                else:
+                    raise ConfigError(f"{table}: line {line}: column {used[name]!r} is {text!r}, not a number; "
+                                      "fix the row") from None
             if not math.isfinite(value):
                 where = f" ({row.get(used['path'])})" if row.get(used["path"]) else ""
                 raise ConfigError(f"{table}: line {line}{where}: column {used[name]!r} is {text!r}; every position "
@@ -615,10 +637,7 @@ def _table_entries(table: Path, manifest: Manifest, source: str) -> tuple[list[d
             word = row[used["kind"]].lower()
             kind = kind_words.get(word, word)
             if kind not in KINDS:
-                accepted = ", ".join(KINDS + tuple(kind_words))
-                raise ConfigError(f"{table}: line {line}: kind {row[used['kind']]!r} is not one of {accepted}; "
-                                  f"map the table's words with kind_values: {{{row[used['kind']]}: coherent}} "
-                                  f"in {source}")
+                raise ConfigError(_unknown_kind(row[used["kind"]], kind_words, table, line, source))
             entry["kind"] = kind
         if stated and not row.get(used["exposure"], "") and entry.get("kind") != "calibration":
             raise ConfigError(f"{table}: line {line} ({entry['path']}): column {used['exposure']!r} is empty; give "
@@ -671,6 +690,8 @@ def _table_entries(table: Path, manifest: Manifest, source: str) -> tuple[list[d
             raise ConfigError(f"{table}: line {line} ({entry['path']}): {column + ': ' if loc else ''}"
                               f"{error_message(err)}{got}{hint}") from None
         out.append(entry)
+    if decimal_commas:
+        notes.append(f"{table.name}: decimal commas in {', '.join(sorted(set(decimal_commas)))} read as decimal points")
     return out, notes, [line for line, _, _ in entries]
 
 

@@ -182,6 +182,18 @@ def test_unknown_kind_and_kind_values(tmp_path):
     assert _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5").exit_code == 0
 
 
+def test_a_misspelt_kind_values_word_is_pointed_at(tmp_path):
+    _lab(tmp_path, calibration=True, manifest_extra={"kind_values": {"calibraton": "calibration"}},
+         edit=lambda rows: [r[:1] + ["calibraton" if r[1] == "calibration" else r[1]] + r[2:] for r in rows])
+    assert _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5").exit_code == 0
+    (tmp_path / "raw.h5").unlink()
+    _lab(tmp_path, calibration=True, manifest_extra={"kind_values": {"calibraton": "calibration"}},
+         edit=lambda rows: [r[:1] + ["calibratoin" if r[1] == "calibration" else r[1]] + r[2:] for r in rows])
+    text = _refused(tmp_path, "kind 'calibratoin' is not one of cca's kinds (coherent, calibration, dark, flat)",
+                    "kind_values in", "maps 'calibraton': did you mean 'calibratoin' there?")
+    assert "{calibratoin: coherent}" not in text
+
+
 def test_calibration_view_missing_at_a_position(tmp_path):
     _lab(tmp_path, calibration=True, edit=lambda rows: [r for r in rows if r[0] != "cal11.tif"])
     _refused(tmp_path, "lab.yaml", "grid position (row 1, col 1)", "no calibration image")
@@ -877,13 +889,19 @@ def test_unit_columns_with_spaces_two_candidates_and_beside_sines(tmp_path):
 
 
 def test_a_spreadsheet_s_table_is_read_as_it_is_saved(tmp_path):
-    """A byte-order mark ("CSV UTF-8") is dropped; semicolon- or tab-separated tables are read so, with a note."""
+    """A byte-order mark ("CSV UTF-8") is dropped; semicolon- or tab-separated tables are read so, with a note, and
+    so are their decimal commas."""
     rows = _grid_rows()
     _led_table(tmp_path, rows, {"led_distance_m": 0.06})
     assert _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5").exit_code == 0
     expected = _sines(tmp_path / "raw.h5")
+    import re
+
+    german = re.sub(r"(\d)\.(\d)", r"\1,\2", rows.replace(",", ";"))   # Excel in a decimal-comma locale
+    assert "4,0" in german
     for text, note in (("\ufeff" + rows, None), (rows.replace(",", ";"), "separated by semicolons"),
-                       ("\ufeff" + rows.replace(",", "\t"), "separated by tabs")):
+                       ("\ufeff" + rows.replace(",", "\t"), "separated by tabs"),
+                       (german, "decimal commas in led_x_mm, led_y_mm read as decimal points")):
         (tmp_path / "raw.h5").unlink()
         (tmp_path / "leds.csv").write_text(text, encoding="utf-8")
         result = _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
