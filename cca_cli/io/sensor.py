@@ -24,6 +24,7 @@ and the fix.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -86,6 +87,26 @@ class FrameValues:
     max_value: float
     low_bits: int                   # bitwise OR of every integer value (0 for float data)
     distinct: int = 0               # number of distinct integer values (0 for float data)
+    at_max: int = 0                 # pixels at max_value
+
+
+#: Pixels at one value below the container's full scale that say a sensor of fewer bits clipped there.
+_CLIPPED_PIXELS = 10
+
+
+def _clipped_below_full_scale(frames: list[FrameValues], container: int, top: float) -> list[str]:
+    """A note when many pixels sit at exactly ``2**b − 1`` (b < the container's bits) and none above: a ``b``-bit
+    sensor clipping there, whose clipped pixels would otherwise be fitted as recorded."""
+    bits = next((b for b in range(8, container) if top == 2**b - 1), None)
+    if bits is None:
+        return []
+    at_top = [(f.at_max, f.path) for f in frames if f.max_value == top]
+    count, path = max(at_top)
+    if count < _CLIPPED_PIXELS:
+        return []
+    return [f"{count} pixels of {os.path.basename(path)} sit at exactly {top:g} = 2^{bits} − 1, and no frame's go "
+            f"above: {bits}-bit data clipping there? state sensor.bit_depth: {bits} (or sensor.white_level: {top:g}) "
+            "so that they count as clipped"]
 
 
 @dataclass(frozen=True)
@@ -183,9 +204,11 @@ def frame_values(stored: StoredImage, rule: SensorRule) -> FrameValues:
     distinct = 0
     if stored.container_bits is not None and stored.container_bits <= 16 and values.size:
         distinct = int(np.count_nonzero(np.bincount(np.asarray(stored.data, np.int64).ravel())))
+    top = float(values.max()) if values.size else 0.0
     return FrameValues(values=values, path=stored.path, container_bits=stored.container_bits,
                        significant_bits=stored.significant_bits, channels=stored.data.shape[-1],
-                       max_value=float(values.max()) if values.size else 0.0, low_bits=low, distinct=distinct)
+                       max_value=top, low_bits=low, distinct=distinct,
+                       at_max=int(np.count_nonzero(values == top)) if values.size else 0)
 
 
 def _trailing_zero_bits(value: int, limit: int) -> int:
@@ -262,7 +285,9 @@ def decide_decoding(frames: list[FrameValues], rule: SensorRule, *, white_level:
                          f"state sensor.bit_depth: {bits} to work in {bits}-bit codes")
             return _checked(frames, Decoding(0, container, float((2**bits - 1) << zeros), "stored", notes),
                             white_level, rule)
-        return _checked(frames, Decoding(0, container, float(2**container - 1), "stored"), white_level, rule)
+        if white_level is None:
+            notes += _clipped_below_full_scale(frames, container, top)
+        return _checked(frames, Decoding(0, container, float(2**container - 1), "stored", notes), white_level, rule)
     if n > container:
         raise ConfigError(f"{rule.source}: sensor.bit_depth {n} does not fit the {container}-bit files "
                           f"({first.path}); fix sensor.bit_depth")

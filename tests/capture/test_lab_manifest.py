@@ -1029,3 +1029,21 @@ def test_a_matlab_stack_takes_the_sensor_s_black_and_white_levels(tmp_path):
     _refused(tmp_path, "sensor.channel does not apply to a MATLAB variable (source.mat)", "remove it")
     _mat_lab(tmp_path, {"black_level": 5000, "white_level": 7})
     _refused(tmp_path, "sensor.black_level (5000) is not below the white level (7)")
+
+
+@pytest.mark.parametrize("clipped, noted", [(40, True), (3, False)])
+def test_twelve_bit_frames_clipping_in_sixteen_bit_files_without_a_bit_depth_are_noted(tmp_path, clipped, noted):
+    """LSB-aligned 12-bit codes (nothing in the low bits to tell) with a bright spot clipped at 4095."""
+    rows = []
+    for i in range(4):
+        frame = _codes(900 + 300 * i)
+        if i == 3:
+            frame.flat[:clipped] = 4095
+        write_image(tmp_path / f"p{i}.png", frame, bit_depth=16)
+        rows.append({"path": f"p{i}.png", "exposure_s": 0.01, "stage_x_mm": 0.5 * (i % 2), "stage_y_mm": 0.5 * (i // 2)})
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump({"optics": OPTICS, "images": rows}))
+    result = _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
+    assert result.exit_code == 0, result.output
+    text = " ".join(result.output.split())
+    assert (f"{clipped} pixels of p3.png sit at exactly 4095 = 2^12 − 1" in text
+            and "state sensor.bit_depth: 12 (or sensor.white_level: 4095)" in text) is noted
