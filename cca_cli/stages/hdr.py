@@ -153,6 +153,7 @@ def _flag_flux(flux: np.ndarray, sigma: np.ndarray, labels: list[str], tolerance
     if flagged:
         worst = int(np.nanargmax(np.where(bad, off, -1).max(axis=1)))
         _log.warning("%d view(s) have flux ratios between exposures off by more than %.0f%% (worst: %s, ratios %s); "
-                     "check the exposure times, the black level, the white level (sensor.bit_depth or white_level: clipped pixels) and the sensor's linearity", len(flagged),
-                     100 * tolerance, labels[worst], ", ".join(f"{v:.3f}" for v in flux[worst]))
+                     "check the exposure times, the black level, the white level (sensor.bit_depth or white_level: "
+                     "clipped pixels) and the sensor's linearity", len(flagged), 100 * tolerance, labels[worst],
+                     ", ".join(f"{v:.3f}" for v in flux[worst]))
     return flagged
