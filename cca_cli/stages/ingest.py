@@ -33,6 +33,7 @@ from cca_cli.io.images import read_stored
 from cca_cli.io.manifest import CapturePlan, plan_captures, read_manifest, read_pupil
 from cca_cli.io.records import write_sensor_records
 from cca_cli.io.stacks import read_stack
+from cca_cli.library.orientation import recorded_orientation_advice
 from cca_cli.io.sensor import (Decoding, FrameValues, SensorRule, board_decodings, decide_decoding, frame_values,
                                same_depth)
 from cca_cli.sampling.capture import led_array_geometry, stage_scan_geometry
@@ -622,6 +623,29 @@ def _write_sensor(handle, calibration: SensorCalibration) -> None:
                          noise_source=calibration.noise_source)
 
 
+def single_exposure_measurements(data: Ingested) -> tuple[np.ndarray, np.ndarray] | None:
+    """Intensities (counts/s) and weights (0 where clipped) of captures of one exposure each; None for brackets."""
+    manifest = data.plan.manifest
+    k, e, h, w = data.frames.shape
+    if e != 1:
+        return None
+    counts = data.frames[:, 0]
+    intensity = counts / data.exposure_s[:, 0, None, None].astype(np.float32)
+    if manifest.values == "amplitude":
+        intensity = intensity * intensity
+    weight = np.ones_like(counts)
+    if manifest.sensor.frame_scale == "per_frame" and manifest.sensor.white_level is None:
+        pass   # each frame was scaled so that its brightest pixel sits at full scale: nothing clipped there
+    elif data.sensor is not None and data.sensor.white_level is not None:
+        for i in range(k):
+            weight[i] = counts[i] < np.float32(0.99) * data.sensor.saturation_at(float(data.exposure_s[i, 0]))
+    elif data.sensor is not None:
+        pass   # float values with no white level stated: no full scale, nothing clipped
+    else:
+        weight = (counts < np.float32(data.saturation_level * 0.99)).astype(np.float32)
+    return intensity, weight
+
+
 def write_raw(path: Path, data: Ingested, provenance: Provenance, *, force: bool = False) -> None:
     """Write ``raw.h5`` atomically."""
     manifest = data.plan.manifest
@@ -651,22 +675,9 @@ def write_raw(path: Path, data: Ingested, provenance: Provenance, *, force: bool
             if data.board_views is not None:
                 write_dataset(handle, "/registration/board_views", data.board_views,
                               files=[", ".join(path.name for path, _ in views) for views in data.plan.calibration])
-        k, e, h, w = data.frames.shape
-        if e == 1:
-            counts = data.frames[:, 0]
-            intensity = counts / data.exposure_s[:, 0, None, None].astype(np.float32)
-            if manifest.values == "amplitude":
-                intensity = intensity * intensity
-            weight = np.ones_like(counts)
-            if manifest.sensor.frame_scale == "per_frame" and manifest.sensor.white_level is None:
-                pass   # each frame was scaled so that its brightest pixel sits at full scale: nothing clipped there
-            elif data.sensor is not None and data.sensor.white_level is not None:
-                for i in range(k):
-                    weight[i] = counts[i] < np.float32(0.99) * data.sensor.saturation_at(float(data.exposure_s[i, 0]))
-            elif data.sensor is not None:
-                pass   # float values with no white level stated: no full scale, nothing clipped
-            else:
-                weight = (counts < np.float32(data.saturation_level * 0.99)).astype(np.float32)
+        measured = single_exposure_measurements(data)
+        if measured is not None:
+            intensity, weight = measured
             ds = write_dataset(handle, "/measurements/intensity", intensity.astype(np.float32), units="counts/s")
             ds.attrs["boundary"] = BOUNDARY_OPEN
             ds.attrs["frame_scale"] = manifest.sensor.frame_scale
@@ -678,5 +689,10 @@ def run(manifest_path: Path, output: Path, *, provenance: Provenance, force: boo
     """Ingest ``manifest_path`` and write ``output``."""
     check_output(output, force=force)
     data = ingest(Path(manifest_path), progress=progress)
+    measured = single_exposure_measurements(data)
+    if measured is not None and data.plan.manifest.checkerboard is None:   # a board: registration comes first
+        warning = recorded_orientation_advice(*measured, data.geometry, data.plan.manifest.sensor.frame_scale)
+        if warning is not None:
+            _log.warning("%s: %s", manifest_path, warning)
     write_raw(output, data, provenance, force=force)
     return data

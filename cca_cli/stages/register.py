@@ -28,6 +28,7 @@ from cca_cli.registration.homography import crop, estimate_homography, warp_view
 from cca_cli.sampling.capture import object_pixel_m, with_field_width
 from cca_cli.io.records import carry_capture_records
 from cca_cli.io.captures import BOUNDARY_OPEN, read_frame_scale, read_labels, write_labels, write_strings
+from cca_cli.library.orientation import recorded_orientation_advice
 from cca_cli.stages.progress import ProgressEvent, ProgressFn, silent
 
 __all__ = ["SECTIONS", "Registration", "register_views", "run"]
@@ -176,6 +177,9 @@ def run(captures_path: Path, section: RegisterSection | None, output: Path, *, p
                              board_views=board_views, object_xywh=section.object_xywh, board_files=board_files,
                              progress=progress)
         new_geometry = with_field_width(geometry, rect[2] * object_pixel_m(geometry), keep=reg.kept)
+        warning = recorded_orientation_advice(reg.intensity, reg.weight, new_geometry, frame_scale)
+        if warning is not None:
+            _log.warning("%s: %s", captures_path, warning)
         with atomic_h5(output, provenance, force=force) as handle:
             units = src["/measurements/intensity"].attrs.get("units", "")
             ds = write_dataset(handle, "/measurements/intensity", reg.intensity, units=units)

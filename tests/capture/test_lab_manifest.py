@@ -1047,3 +1047,18 @@ def test_twelve_bit_frames_clipping_in_sixteen_bit_files_without_a_bit_depth_are
     text = " ".join(result.output.split())
     assert (f"{clipped} pixels of p3.png sit at exactly 4095 = 2^12 − 1" in text
             and "state sensor.bit_depth: 12 (or sensor.white_level: 4095)" in text) is noted
+
+
+def test_an_led_table_with_its_sines_swapped_is_warned_of_at_ingest(tmp_path):
+    import cca_cli as cca
+
+    sines = cca.led_grid_sines(7, pitch_m=3e-3, height_m=60e-3)
+    geometry = cca.led_array(sines, wavelength_m=532e-9, numerical_aperture=0.1, pixel_pitch_object_m=1.845e-6,
+                             image_pixels=48)
+    images = cca.simulate(cca.resolution_chart(96, widths=(6, 4, 3, 2)).image, geometry, snr_db=40)
+    assert "far better" not in _ingested_led_lab(tmp_path, images, sines)
+    (tmp_path / "raw.h5").unlink()
+    text = _ingested_led_lab(tmp_path, images, np.asarray(sines)[:, ::-1])
+    assert text.count("warning:") == 1
+    assert "lab.yaml: the captures fit far better with their positions' x and y swapped" in text
+    assert "exchange the x and y position columns" in text
