@@ -82,7 +82,15 @@ def load_config(path: str | Path | None = None) -> RunConfig:
     if data is None or data == {}:
         raise ConfigError(f"{path}: the config is empty; write its sections (see configs/headline.yaml), "
                           "or give no CONFIG to run the built-in default")
-    return _resolve_relative_paths(parse_config(data, source=str(path)), path.parent)
+    config = _resolve_relative_paths(parse_config(data, source=str(path)), path.parent)
+    manifest = config.ingest.manifest if config.ingest is not None else None
+    if manifest is not None and "ingest" in config.run.stages and not manifest.exists():
+        given = data.get("ingest", {}).get("manifest") if isinstance(data.get("ingest"), dict) else None
+        relative = f"; a relative path is read from the config's folder ({path.parent.resolve()})" \
+            if given is not None and not Path(str(given)).is_absolute() else ""
+        raise ConfigError(f"{path}: ingest.manifest: {given if given is not None else manifest} not found "
+                          f"({manifest.resolve()}){relative}; check the path")
+    return config
 
 
 def _resolve_relative_paths(config: RunConfig, base: Path) -> RunConfig:
