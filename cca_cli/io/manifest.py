@@ -471,6 +471,20 @@ def _column_in_any_unit(header: list[str], stem: str, units: dict[str, float], s
     return found[0] if found else None
 
 
+def _is_value(cell: str) -> bool:
+    """Whether a table cell is a number or an image file's name (a header line holds neither)."""
+    try:
+        float(cell.replace(",", "."))
+        return True
+    except ValueError:
+        return Path(cell).suffix.lower() in (".tif", ".tiff", ".png", ".jpg", ".jpeg", ".exr", ".fits", ".dpx",
+                                             ".bmp", ".pgm", ".raw", ".npy")
+
+
+#: Column names (lower case, no spaces or underscores) that hold exposure times, though without a unit.
+_EXPOSURE_WORDS = ("exposure", "exposuretime", "exptime", "exp", "integrationtime", "shutter", "shutterspeed")
+
+
 #: Separators a table may use instead of commas (spreadsheets in locales with decimal commas write ``;``).
 _SEPARATORS = {";": "semicolons", "\t": "tabs"}
 
@@ -549,6 +563,10 @@ def _file_of_row(pattern: str, row: dict, table: Path, line: int) -> str:
 def _table_entries(table: Path, manifest: Manifest, source: str) -> tuple[list[dict], list[str], list[int]]:
     """Rows of an image table as ImageEntry mappings (cca names, SI-ish units), the notes, and each row's line."""
     header, rows, separator = read_table(table, source)
+    if header and sum(_is_value(cell) for cell in header) >= max(2, len(header) / 2):
+        raise ConfigError(f"{table}: its first line holds values ({', '.join(header[:4])}), not column names: add a "
+                          "header line naming the columns (path, exposure_ms, stage_x_mm, …; see columns: to map "
+                          "the lab's own names)")
     mapping = dict(TABLE_COLUMNS)
     explicit = manifest.columns or {}
     mapping.update(explicit)
@@ -564,6 +582,12 @@ def _table_entries(table: Path, manifest: Manifest, source: str) -> tuple[list[d
         if column not in header:
             raise ConfigError(f"{source}: columns.{name}: {table.name} has no column {column!r} "
                               f"(its columns: {', '.join(header)})")
+    if mapping["exposure"] not in header:
+        unitless = [h for h in header if re.sub(r"[\s_]", "", _plain_name(h)) in _EXPOSURE_WORDS]
+        if unitless:
+            raise ConfigError(f"{source}: {table.name}'s column {unitless[0]!r} gives no unit, so it is not read as "
+                              f"the exposure: name it with its unit ({unitless[0]}_ms, _s or _us), or map it with "
+                              f"columns: {{exposure: {unitless[0]}}} and units: {{exposure: ms}} (or s, us)")
     used = {name: column for name, column in mapping.items() if column in header}
     pattern = manifest.image_files
     if pattern is not None:

@@ -1062,3 +1062,25 @@ def test_an_led_table_with_its_sines_swapped_is_warned_of_at_ingest(tmp_path):
     assert text.count("warning:") == 1
     assert "lab.yaml: the captures fit far better with their positions' x and y swapped" in text
     assert "exchange the x and y position columns" in text
+
+
+def test_an_exposure_column_without_a_unit_says_how_to_give_it(tmp_path):
+    _scan_table(tmp_path, exposures=(10, 20))
+    table = (tmp_path / "table.csv").read_text().replace("exposure_ms", "Exposure")
+    (tmp_path / "table.csv").write_text(table)
+    manifest = yaml.safe_load((tmp_path / "lab.yaml").read_text())
+    del manifest["columns"]["exposure"]
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump(manifest))
+    _refused(tmp_path, "table.csv's column 'Exposure' gives no unit", "columns: {exposure: Exposure}",
+             "units: {exposure: ms}")
+    manifest["columns"]["exposure"] = "Exposure"
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump(manifest))
+    assert _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5").exit_code == 0
+
+
+def test_a_table_without_a_header_line_says_so(tmp_path):
+    _scan_table(tmp_path)
+    lines = (tmp_path / "table.csv").read_text().splitlines()
+    (tmp_path / "table.csv").write_text("\n".join(lines[1:]) + "\n")
+    _refused(tmp_path, "table.csv: its first line holds values (p00_10.png, coherent, 10, -0.600)",
+             "add a header line naming the columns")
