@@ -129,9 +129,11 @@ def register_views(intensity: np.ndarray, weight: np.ndarray | None, pattern: tu
     if (hull < 1).any():
         worst_px = max(e.max_px for e in errors)
         serious = worst_px > EXTRAPOLATION_LIMIT_PX
-        _log.warning("%sthe object region lies %.0f%% outside the board corners' hull (worst view %s): the "
+        region = ("the object region" if object_xywh is not None else
+                  "the object region (the whole crop: registration.object_xywh says where the object is)")
+        _log.warning("%s%s lies %.0f%% outside the board corners' hull (worst view %s): the "
                      "homographies extrapolate there (estimated error up to %.3f px%s)", "" if serious else "note: ",
-                     100 * (1 - hull.min()), labels[kept[int(np.argmin(hull))]], worst_px,
+                     region, 100 * (1 - hull.min()), labels[kept[int(np.argmin(hull))]], worst_px,
                      "; photograph the board over the object region" if serious else
                      f", below the {EXTRAPOLATION_LIMIT_PX} px that would matter")
     views, masks = warp_views(intensity[kept], mats, (h, w), interpolation=interpolation, with_mask=True)
