@@ -45,15 +45,17 @@ def derived_lines(derived: dict) -> list[str]:
     formula = "1.22·λ/NA" if led else "2.44·λ·z/d"
     lines.append(f"  spot at object  {length_text(derived['spot_size_object_m'])} ({formula}); synthetic aperture "
                  f"{length_text(derived['spot_size_synthetic_object_m'])}")
-    if "output_grid_px" in derived:
+    if "guard_band" in derived:   # what reconstruct recovers recorded frames on: only that grid is said
+        g = derived["guard_band"]
+        pixel = f" of {length_text(g['object_pixel_m'])}" if g.get("object_pixel_m") else ""
+        band = f", {g['lowres_grid_px']} px band grid per capture" if g.get("lowres_grid_px") else ""
+        lines.append(f"  reconstruct     recorded {g['frame'][1]} x {g['frame'][0]} px frames on a {g['grid_px']} px "
+                     f"grid with a guard band (pupil radius {g['pupil_radius_px']:.2f} px there), output grid "
+                     f"{g['output_grid_px']} x {g['output_grid_px']} px{pixel}{band}")
+    elif "output_grid_px" in derived:
         band = f", {derived['lowres_grid_px']} px band grid per capture" if "lowres_grid_px" in derived else ""
         lines.append(f"  output grid     {derived['output_grid_px']} x {derived['output_grid_px']} px of "
                      f"{length_text(derived['object_pixel_m'])}{band}")
-    if "guard_band" in derived:
-        g = derived["guard_band"]
-        lines.append(f"  reconstruct     recorded {g['frame'][1]} x {g['frame'][0]} px frames on a {g['grid_px']} px "
-                     f"grid with a guard band (pupil radius {g['pupil_radius_px']:.2f} px there), output grid "
-                     f"{g['output_grid_px']} x {g['output_grid_px']} px")
     if "recovered_shape_px" in derived and "object_pixel_m" in derived:
         rows, cols = derived["recovered_shape_px"]
         pixel = derived["object_pixel_m"]
@@ -99,7 +101,9 @@ def _derived(handle) -> dict | None:
             return derived
         derived["guard_band"] = {"frame": [int(h), int(w)], "grid_px": int(region.size),
                                  "pupil_radius_px": float(padded.pupil_radius_px),
-                                 "output_grid_px": grid.get("output_grid_px")}
+                                 "output_grid_px": grid.get("output_grid_px"),
+                                 "object_pixel_m": grid.get("object_pixel_m"),
+                                 "lowres_grid_px": grid.get("lowres_grid_px")}
     return derived
 
 
