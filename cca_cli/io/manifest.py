@@ -913,16 +913,22 @@ def _led_positions_as_sines(manifest: Manifest, path: Path) -> Manifest:
         first = next(e for e in placed if e.led_z_mm is None)
         raise ConfigError(f"{source}: {first.path.name} gives its LED's position but not its height above the "
                           "sample: set illumination.led_distance_m (or give each image led_z_mm)")
-    axis_x, axis_y = (1e3 * v for v in manifest.illumination.led_axis_m)
     images = []
     for entry in manifest.images:
         if entry.led_x_mm is not None:
-            x, y = entry.led_x_mm - axis_x, entry.led_y_mm - axis_y
             z = entry.led_z_mm if entry.led_z_mm is not None else distance * 1e3
-            r = math.sqrt(x * x + y * y + z * z)
-            entry = entry.model_copy(update={"kx_norm": x / r, "ky_norm": y / r})
+            kx, ky = _led_sines(entry.led_x_mm, entry.led_y_mm, z, manifest.illumination.led_axis_m)
+            entry = entry.model_copy(update={"kx_norm": kx, "ky_norm": ky})
         images.append(entry)
     return manifest.model_copy(update={"images": images})
+
+
+def _led_sines(x_mm, y_mm, z_mm, axis_m) -> tuple:
+    """sin θx, sin θy of an LED at ``(x, y)`` mm in its plane, ``z`` mm from the sample, the optical axis meeting
+    the plane at ``axis_m`` (metres): ``sin θx = (x − x₀) / √((x − x₀)² + (y − y₀)² + z²)``."""
+    x, y = np.subtract(x_mm, 1e3 * axis_m[0]), np.subtract(y_mm, 1e3 * axis_m[1])
+    r = np.sqrt(x * x + y * y + np.square(z_mm))
+    return x / r, y / r
 
 
 def _led_grid_as_positions(manifest: Manifest, path: Path) -> Manifest:
@@ -949,11 +955,46 @@ def _led_grid_as_positions(manifest: Manifest, path: Path) -> Manifest:
     return manifest.model_copy(update={"images": images})
 
 
+def _led_columns(header: list[str]) -> tuple[str, str, str | None] | None:
+    """The LED x, y (and z) columns of a table, each with a length unit in its name (``led_x_mm``), or None."""
+    found = [next((h for h in header if _plain_name(h) in {f"led_{axis}_{unit}" for unit in _POSITION_MM}), None)
+             for axis in "xyz"]
+    return None if found[0] is None or found[1] is None else (found[0], found[1], found[2])
+
+
+def _mat_rows_with_sines(rows: list[dict], header: list[str], manifest: Manifest, table: Path,
+                         path: Path) -> list[dict]:
+    """An illumination table's rows with kx_norm, ky_norm worked out from its LED positions (as an image table's)."""
+    x_col, y_col, z_col = _led_columns(header)
+    distance = manifest.illumination.led_distance_m
+    if z_col is None and distance is None:
+        raise ConfigError(f"{path}: {table.name} gives LED positions ({x_col}, {y_col}) but not their height above "
+                          "the sample: set illumination.led_distance_m (or give a led_z_mm column)")
+
+    def mm(row: dict, column: str, line: int) -> float:
+        try:
+            return float(row[column]) * _POSITION_MM[_unit_of_name(column, _POSITION_MM)]
+        except (TypeError, ValueError):
+            raise InputError(f"{table}: row {line}: {column} is {row.get(column)!r}, not a number; fix the row") \
+                from None
+
+    out = []
+    for line, row in enumerate(rows, start=1):
+        z = mm(row, z_col, line) if z_col is not None else distance * 1e3
+        kx, ky = _led_sines(mm(row, x_col, line), mm(row, y_col, line), z, manifest.illumination.led_axis_m)
+        out.append({**row, "kx_norm": str(float(kx)), "ky_norm": str(float(ky))})
+    return out
+
+
 def _mat_plan(manifest: Manifest, path: Path) -> CapturePlan:
     table = manifest.source.illumination_csv
     header, numbered, _ = read_table(table, str(path))
     rows = [row for _, row in numbered]
     missing = [name for name in ("kx_norm", "ky_norm") if name not in header]
+    if missing and _led_columns(header):
+        rows = _mat_rows_with_sines(rows, header, manifest, table, path)
+        header = [*header, "kx_norm", "ky_norm"]
+        missing = []
     if missing:
         raise InputError(f"{table}: needs the columns kx_norm and ky_norm (sin θ of each LED's light; its columns: "
                          f"{', '.join(header) or 'none'}); from LED positions x, y and the LEDs' distance z, "

@@ -938,9 +938,31 @@ def test_a_matlab_file_s_table_without_sines_is_one_line_naming_its_columns(tmp_
     (tmp_path / "lab.yaml").write_text(yaml.safe_dump({
         "illumination": {"wavelength_m": 5e-7, "numerical_aperture": 0.1, "pixel_pitch_object_m": 1e-6},
         "source": {"mat": "stack.mat", "illumination_csv": "leds.csv"}}))
-    text = _refused(tmp_path, "leds.csv: needs the columns kx_norm and ky_norm", "its columns: led_x_mm, led_y_mm",
+    _refused(tmp_path, "leds.csv gives LED positions (led_x_mm, led_y_mm) but not their height above the sample",
+             "illumination.led_distance_m")
+    (tmp_path / "leds.csv").write_text("\ufeffx,y\n" + "".join(f"{i},{i}\n" for i in range(4)))
+    text = _refused(tmp_path, "leds.csv: needs the columns kx_norm and ky_norm", "its columns: x, y",
                     "kx_norm = x / √(x² + y² + z²)")
     assert "('kx_norm')" not in text
+
+
+def test_a_matlab_file_s_table_of_led_positions_gives_the_sines_an_image_table_would(tmp_path):
+    import scipy.io
+
+    stack = np.full((16, 16, 9), 100, np.uint16)
+    stack[4:12, 4:12, :] += 50
+    stack[..., 4] += 900
+    scipy.io.savemat(tmp_path / "stack.mat", {"imlow_HDR": stack})
+    (tmp_path / "leds.csv").write_text("led_x_mm,led_y_mm\n" + "".join(f"{4.0 * (i % 3 - 1)},{4.0 * (i // 3 - 1)}\n"
+                                                                       for i in range(9)))
+    illumination = {"wavelength_m": 5e-7, "numerical_aperture": 0.1, "pixel_pitch_object_m": 1e-6,
+                    "led_distance_m": 0.06, "led_axis_m": [0.001, 0.0]}
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump({"illumination": illumination,
+                                                       "source": {"mat": "stack.mat", "illumination_csv": "leds.csv"}}))
+    assert _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5").exit_code == 0
+    offsets = np.array([[4.0 * (i // 3 - 1), 4.0 * (i % 3 - 1) - 1.0] for i in range(9)])   # [y, x] mm from the axis
+    expected = offsets / np.sqrt(np.sum(offsets ** 2, axis=1, keepdims=True) + 60.0 ** 2)
+    assert np.allclose(_sines(tmp_path / "raw.h5"), -expected, atol=1e-12)
 
 
 def test_a_table_without_a_file_column_names_its_files_by_a_pattern(tmp_path):
