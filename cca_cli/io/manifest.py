@@ -93,7 +93,11 @@ class IlluminationSpec(_KnownPupil):
 
     wavelength_m: PositiveFloat
     numerical_aperture: float = Field(..., gt=0, lt=1)
-    pixel_pitch_object_m: PositiveFloat
+    pixel_pitch_object_m: PositiveFloat | None = Field(
+        None, description="Camera pixel at the sample (m): the camera's pixel over the magnification; or give "
+                          "pixel_pitch_m and magnification.")
+    pixel_pitch_m: PositiveFloat | None = Field(None, description="The camera's own pixel (m), with magnification.")
+    magnification: PositiveFloat | None = Field(None, description="The objective's (and tube lens') magnification.")
     sign: Literal[-1, 1] = Field(-1, description="Pupil at sign·sinθ·W/λ (−1: Zheng's reference convention).")
     led_distance_m: PositiveFloat | None = Field(
         None, allow_inf_nan=False, description="Distance of the LED plane from the sample (m), stored as /geometry "
@@ -106,7 +110,27 @@ class IlluminationSpec(_KnownPupil):
         None, allow_inf_nan=False, description="Spacing of an LED matrix (m): images that give grid indices [row, col] "
                                                "are then at (col, row) × pitch from the grid's middle.")
 
-    _metres = field_validator("wavelength_m", "pixel_pitch_object_m", "led_pitch_m", "led_distance_m")(_in_metres)
+    _metres = field_validator("wavelength_m", "pixel_pitch_object_m", "pixel_pitch_m", "led_pitch_m",
+                              "led_distance_m")(_in_metres)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _object_pixel(cls, data):
+        """The pixel at the sample: given, or the camera's pixel over the magnification (never both)."""
+        if not isinstance(data, dict):
+            return data
+        camera = [data.get("pixel_pitch_m"), data.get("magnification")]
+        if data.get("pixel_pitch_object_m") is not None:
+            if any(v is not None for v in camera):
+                raise ValueError("give either pixel_pitch_object_m or pixel_pitch_m with magnification, not both")
+            return data
+        if None in camera:
+            raise ValueError("give pixel_pitch_object_m (the camera pixel at the sample, m), or the camera's "
+                             "pixel_pitch_m and the magnification")
+        try:
+            return {**data, "pixel_pitch_object_m": float(camera[0]) / float(camera[1])}
+        except (TypeError, ValueError, ZeroDivisionError):
+            return data   # the fields' own checks name what is wrong
 
     @field_validator("led_axis_m")
     @classmethod

@@ -594,7 +594,8 @@ def _optics_keys(plan: CapturePlan) -> str:
     """The manifest keys that set the pupil's size in the spectrum."""
     if plan.kind == "camera_scan":
         return "optics.aperture_diameter_m, pixel_pitch_m, focal_length_m, distance_m and wavelength_m (all in metres)"
-    return "illumination.numerical_aperture, pixel_pitch_object_m and wavelength_m"
+    return ("illumination.numerical_aperture, pixel_pitch_object_m (the camera's pixel over the magnification) and "
+            "wavelength_m")
 
 
 def _positions_from(plan: CapturePlan) -> str:

@@ -1106,3 +1106,22 @@ def test_a_table_without_a_header_line_says_so(tmp_path):
     (tmp_path / "table.csv").write_text("\n".join(lines[1:]) + "\n")
     _refused(tmp_path, "table.csv: its first line holds values (p00_10.png, coherent, 10, -0.600)",
              "add a header line naming the columns")
+
+
+def test_an_led_array_s_object_pixel_may_be_the_camera_s_over_the_magnification(tmp_path):
+    _led_table(tmp_path, _grid_rows(), {"led_distance_m": 0.06})
+    assert _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5").exit_code == 0
+    with h5py.File(tmp_path / "raw.h5") as f:
+        given = dict(f["geometry"].attrs)
+    manifest = yaml.safe_load((tmp_path / "lab.yaml").read_text())
+    del manifest["illumination"]["pixel_pitch_object_m"]          # 1 µm at the sample
+    manifest["illumination"].update(pixel_pitch_m=6.5e-6, magnification=6.5)
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump(manifest))
+    (tmp_path / "raw.h5").unlink()
+    assert _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5").exit_code == 0
+    with h5py.File(tmp_path / "raw.h5") as f:
+        assert dict(f["geometry"].attrs)["pixel_pitch_m"] == pytest.approx(given["pixel_pitch_m"], rel=1e-12)
+    manifest["illumination"]["pixel_pitch_object_m"] = 1e-6
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump(manifest))
+    (tmp_path / "raw.h5").unlink()
+    _refused(tmp_path, "illumination: give either pixel_pitch_object_m or pixel_pitch_m with magnification, not both")
