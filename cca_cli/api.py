@@ -224,8 +224,8 @@ def stage_scan(positions_yx_m, *, wavelength_m: float, focal_length_m: float, ap
     return replace(geometry, camera_index=cameras.astype(np.int32))
 
 
-def led_grid_sines(grid: int, *, pitch_m: float, height_m: float) -> np.ndarray:
-    """Illumination sines [sin θy, sin θx] of a flat ``grid x grid`` LED array centred under the sample.
+def led_grid_sines(grid: int, *, pitch_m: float, height_m: float, axis_m=(0.0, 0.0)) -> np.ndarray:
+    """Illumination sines [sin θy, sin θx] of a flat ``grid x grid`` LED array under the sample.
 
     Parameters
     ----------
@@ -235,6 +235,10 @@ def led_grid_sines(grid: int, *, pitch_m: float, height_m: float) -> np.ndarray:
         LED spacing (m).
     height_m : float
         Distance from the LED plane to the sample (m).
+    axis_m : (float, float)
+        [x, y] where the optical axis meets the LED plane, from the grid's middle (m): a manifest's
+        ``illumination.led_axis_m``. An even grid whose LED at (row 4, col 5) of 10 sits on the axis has it at
+        ``[0.5 * pitch, -0.5 * pitch]``.
 
     Returns
     -------
@@ -261,8 +265,11 @@ def led_grid_sines(grid: int, *, pitch_m: float, height_m: float) -> np.ndarray:
         slip = unit_slip(meaning, float(value))
         if slip is not None:
             raise ValueError(f"{name}: {slip}")
+    axis = np.asarray(axis_m, np.float64).reshape(-1)
+    if axis.shape != (2,) or not np.isfinite(axis).all():
+        raise ValueError(f"axis_m: give [x, y] in metres, two finite numbers; got {axis_m!r}")
     offsets = (np.arange(grid) - (grid - 1) / 2) * float(pitch_m)
-    y, x = np.meshgrid(offsets, offsets, indexing="ij")
+    y, x = np.meshgrid(offsets - axis[1], offsets - axis[0], indexing="ij")
     r = np.sqrt(x**2 + y**2 + float(height_m) ** 2)
     return np.stack([(y / r).ravel(), (x / r).ravel()], axis=1)
 
@@ -274,7 +281,8 @@ def led_array(sin_yx, *, wavelength_m: float, numerical_aperture: float, pixel_p
     Parameters
     ----------
     sin_yx : array_like, (K, 2)
-        Illumination direction of each capture, [sin θy, sin θx] (see :func:`led_grid_sines`).
+        Illumination direction of each capture, [sin θy, sin θx] (see :func:`led_grid_sines`): the reverse
+        of a manifest's ``kx_norm, ky_norm`` columns.
     wavelength_m : float
         Wavelength (m).
     numerical_aperture : float
@@ -282,7 +290,7 @@ def led_array(sin_yx, *, wavelength_m: float, numerical_aperture: float, pixel_p
     pixel_pitch_object_m : float
         Camera pixel at the sample (m).
     image_pixels : int
-        Side of the (square) images in pixels.
+        Width of the images in pixels (their side, for square ones).
     sign : {-1, +1}
         Which side of DC the pupil of a positive ``sin θ`` sits on (-1: the usual FPM convention).
 

@@ -348,3 +348,12 @@ def test_a_callback_that_returns_false_ends_the_run_there():
     assert seen == [1, 2, 3, 4] and result.iterations == 4 and result.stopped_by == "callback"
     full = cca.reconstruct(images, g, engine="altmin", iterations=6, tol=0, callback=lambda record: None)
     assert full.iterations == 6 and full.stopped_by == "cap"
+
+
+def test_an_led_grid_whose_axis_is_off_its_middle_puts_that_led_on_axis():
+    sines = cca.led_grid_sines(10, pitch_m=4e-3, height_m=70e-3, axis_m=(2e-3, -2e-3))
+    np.testing.assert_array_equal(sines[4 * 10 + 5], [0.0, 0.0])          # row 4, column 5
+    centred = cca.led_grid_sines(10, pitch_m=4e-3, height_m=70e-3)
+    assert np.all(centred[4 * 10 + 5] != 0)
+    with pytest.raises(ValueError, match=r"^axis_m: give \[x, y\] in metres"):
+        cca.led_grid_sines(3, pitch_m=4e-3, height_m=70e-3, axis_m=(0.0,))
