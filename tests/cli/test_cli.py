@@ -300,3 +300,19 @@ def test_an_mtf20_at_the_chart_s_finest_bar_reads_as_a_bound():
                      (str(c) for c in summary_table(summary).columns[1].cells)))
     assert cells["MTF20 recovered (px)"] == "≤ 1 (the chart's finest bar)"
     assert cells["MTF20 observed (px)"] == "4" and cells["resolution gain"] == "≥ 4.00"
+
+
+@pytest.mark.parametrize("residual, marked", [(0.11, False), (0.36, True)])
+def test_the_report_gives_the_fit_before_the_gains_and_marks_gains_read_from_a_poor_fit(residual, marked):
+    from cca_cli.commands.console import summary_table
+
+    summary = {"seconds": 1.0, "spot_size_object_m": 1e-5, "residual_all": residual, "sharpness_gain": 3.74,
+               "energy_beyond_cutoff_recovered": 0.28, "dropped_captures": [49]}
+    table = summary_table(summary)
+    labels = [str(c) for c in table.columns[0].cells]
+    cells = dict(zip(labels, (str(c) for c in table.columns[1].cells)))
+    assert labels.index("data residual, all images") < labels.index("spot size at object") \
+        < labels.index("sharpness gain (reach)")
+    assert (cells["sharpness gain (reach)"] == "3.74 (from a poor fit: artefacts raise it)") is marked
+    assert cells["sharpness gain (reach)"].startswith("3.74")
+    assert cells["captures left out, dead or unlit (images)"] == "49"
