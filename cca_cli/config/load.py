@@ -12,7 +12,7 @@ from pydantic import BaseModel, ValidationError
 from cca_cli.config.messages import accepted_keys, error_message, shown_value
 from cca_cli.config.model import RunConfig
 from cca_cli.config.yaml_text import read_yaml_file
-from cca_cli.errors import ConfigError, short
+from cca_cli.errors import ConfigError, InputError, short
 
 __all__ = ["load_config", "parse_config", "dump_config", "preset_path", "PRESETS", "apply_overrides"]
 
@@ -76,6 +76,8 @@ def load_config(path: str | Path | None = None) -> RunConfig:
     ------
     ConfigError
         One line naming ``path``: not a readable YAML text file, empty, not a config, or an invalid key.
+    InputError
+        The manifest ``ingest.manifest`` names is not there (when the config's stages ingest).
     """
     path = preset_path() if path is None else Path(path)
     data = read_yaml_file(path, what="config")
@@ -88,7 +90,7 @@ def load_config(path: str | Path | None = None) -> RunConfig:
         given = data.get("ingest", {}).get("manifest") if isinstance(data.get("ingest"), dict) else None
         relative = f"; a relative path is read from the config's folder ({path.parent.resolve()})" \
             if given is not None and not Path(str(given)).is_absolute() else ""
-        raise ConfigError(f"{path}: ingest.manifest: {given if given is not None else manifest} not found "
+        raise InputError(f"{path}: ingest.manifest: {given if given is not None else manifest} not found "
                           f"({manifest.resolve()}){relative}; check the path")
     return config
 

@@ -5,14 +5,14 @@ from __future__ import annotations
 import pytest
 
 from cca_cli.config.load import load_config
-from cca_cli.errors import ConfigError
+from cca_cli.errors import InputError
 
 
 def test_a_manifest_the_config_names_that_is_not_there_names_the_key_and_where_it_was_looked_for(tmp_path):
     (tmp_path / "configs").mkdir()
     config = tmp_path / "configs" / "lab.yaml"
     config.write_text("run: {stages: [ingest, reconstruct, report]}\ningest: {manifest: ../lab/manifest.yaml}\n")
-    with pytest.raises(ConfigError, match=r"lab.yaml: ingest.manifest: ../lab/manifest.yaml not found \(.*/lab/"
+    with pytest.raises(InputError, match=r"lab.yaml: ingest.manifest: ../lab/manifest.yaml not found \(.*/lab/"
                                           r"manifest.yaml\); a relative path is read from the config's folder"):
         load_config(config)
     (tmp_path / "lab").mkdir()
