@@ -28,3 +28,47 @@ def test_the_headlines_band_grid_is_what_the_readme_says():
     assert f"{layout.lowres_size} px band grid per capture" in README
     assert f"{layout.lowres_size}² for the headline" in README
     assert np.isclose(layout.pupil_radius_px, 20.95, atol=0.005)
+
+
+def _readme_block(marker: str) -> str:
+    """The fenced block after ``<!-- led-lab-example: NAME -->`` in the README."""
+    start = README.index(f"<!-- led-lab-example: {marker}")
+    fence = README.index("```", start)
+    body = README.index("\n", fence) + 1
+    return README[body:README.index("```", body)]
+
+
+def test_the_readme_s_led_array_lab_example_ingests_and_reconstructs_as_written(tmp_path):
+    from typer.testing import CliRunner
+
+    import cca_cli as cca
+    from cca_cli.commands.app import app
+    from cca_cli.io.images import write_image
+
+    (tmp_path / "lab.yaml").write_text(_readme_block("lab.yaml"))
+    shown = _readme_block("leds.csv").strip().splitlines()
+    assert shown[0] == "path,row,col,exposure_ms"
+    # the whole table the example's rows come from: 9 x 9 LEDs, the bright field at a tenth of the exposure
+    sines = cca.led_grid_sines(9, pitch_m=4e-3, height_m=70e-3)
+    geometry = cca.led_array(sines, wavelength_m=530e-9, numerical_aperture=0.1, pixel_pitch_object_m=1.625e-6,
+                             image_pixels=48)
+    images = cca.simulate(cca.resolution_chart(144, widths=(6, 4, 3, 2)).image, geometry, snr_db=40)
+    bright = np.hypot(*geometry.spectrum_centres_yx_px.T) < geometry.pupil_radius_px
+    rows = ["path,row,col,exposure_ms"]
+    for i in range(81):
+        exposure = 20 if bright[i] else 200
+        write_image(tmp_path / f"img_{i:03d}.tif",
+                    np.clip(np.rint(100 + images[i] / images.max() * 40000 * exposure / 200), 0, 65535).astype(np.uint16),
+                    bit_depth=16)
+        rows.append(f"img_{i:03d}.tif,{i // 9},{i % 9},{exposure}")
+    assert all(line in rows for line in shown[1:]), "the README's rows are rows of this table"
+    (tmp_path / "leds.csv").write_text("\n".join(rows) + "\n")
+    runner = CliRunner()
+    for argv in (["ingest", "lab.yaml", "-o", "raw.h5"], ["reconstruct", "raw.h5", "-o", "recon.h5"],
+                 ["report", "recon.h5", "-o", "report"]):
+        quiet = ["-q"] if argv[0] != "report" else []
+        result = runner.invoke(app, [*argv[:1], str(tmp_path / argv[1]), argv[2], str(tmp_path / argv[3]), *quiet])
+        assert result.exit_code == 0, (argv, result.output)
+        assert "warning" not in result.output, result.output
+    recovered = cca.load(tmp_path / "recon.h5")
+    assert recovered.fit.all < 0.1
