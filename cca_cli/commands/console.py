@@ -282,7 +282,7 @@ def summary_table(summary: dict, title: str = "Result") -> Table:
         ("registration RMS max (px)", "registration_rms_px_max", "{:.3f}"),
         ("registration error over the object, RMS, worst view (px)", "registration_object_rms_px_max", "{:.3f}"),
         ("registration error over the object, max (px)", "registration_object_max_px", "{:.3f}"),
-        ("HDR flux ratio, worst view", "hdr_flux_ratio_worst", "{:.3f}"),
+        ("HDR flux ratio, worst view (± its noise)", "hdr_flux_ratio_worst", "flux"),
         ("HDR dynamic-range gain (median)", "hdr_dynamic_range_gain_median", "{:.1f}"),
         ("data residual, all, brightness 1", "residual_all_without_brightness", "{:.4f}"),
         ("capture brightness min / median / max", "brightness_min_median_max", "triple"),
@@ -307,6 +307,9 @@ def summary_table(summary: dict, title: str = "Result") -> Table:
             text = length_text(value)
         elif fmt == "seconds":   # three digits below 100 s (0.04 s does not read 0.0), whole seconds above
             text = f"{value:.3g}" if value < 100 else f"{value:.0f}"
+        elif fmt == "flux":
+            sigma = summary.get("hdr_flux_ratio_worst_sigma")
+            text = f"{value:.3f}" + (f" ± {sigma:.3f}" if sigma is not None else "")
         elif fmt == "triple":
             text = " / ".join(f"{v:.3g}" for v in value)
         elif fmt == "image":

@@ -61,8 +61,13 @@ def read_capture_summary(handle: h5py.File) -> dict:
     if "/hdr/valid_fraction" in handle:
         out["hdr_valid_fraction_mean"] = round(float(np.mean(handle["/hdr/valid_fraction"])), 4)
     if "/hdr/flux_ratio" in handle:
-        ratio = np.asarray(handle["/hdr/flux_ratio"])
-        finite = ratio[np.isfinite(ratio)]
-        if finite.size:
-            out["hdr_flux_ratio_worst"] = round(float(finite[np.argmax(np.abs(finite - 1))]), 4)
+        ratio = np.asarray(handle["/hdr/flux_ratio"], np.float64)
+        finite = np.isfinite(ratio)
+        if finite.any():
+            worst = np.unravel_index(np.argmax(np.where(finite, np.abs(ratio - 1), -1)), ratio.shape)
+            out["hdr_flux_ratio_worst"] = round(float(ratio[worst]), 4)
+            if "/hdr/flux_ratio_sigma" in handle:   # its noise: a dim exposure's ratio may stray by chance
+                sigma = float(np.asarray(handle["/hdr/flux_ratio_sigma"], np.float64)[worst])
+                if np.isfinite(sigma):
+                    out["hdr_flux_ratio_worst_sigma"] = round(sigma, 4)
     return out
