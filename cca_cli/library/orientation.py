@@ -34,7 +34,8 @@ TRIAL_PASSES = 8
 #: An arrangement must fit this much better than the positions as given to be named. On the recorded corpus's
 #: eight sets (benchmarks/corpus) every other arrangement fitted at least 0.98 times the given one's residual
 #: (the line-pair chart, where the trial cannot tell them apart); given their positions swapped, the right
-#: arrangement fitted 0.65-0.84 times the swapped one's on five sets and 0.93-1.01 on the other three.
+#: arrangement fitted 0.48-0.88 times the swapped one's on five sets and 0.93-0.99 on the other three
+#: (``python benchmarks/orientation_trial.py``).
 CLEARLY_BETTER = 0.9
 #: What to change for each arrangement that fits better.
 _FIXES = {
