@@ -637,22 +637,29 @@ def _table_entries(table: Path, manifest: Manifest, source: str) -> tuple[list[d
         for name in ("led_x", "led_y", "led_z"):   # the table's own positions given: LED positions are notes beside
             if name not in explicit:
                 used.pop(name, None)
-    for name, table_units, chosen in (("exposure", _EXPOSURE_S, manifest.units.exposure),
-                                      *((column, _POSITION_MM, manifest.units.position)
-                                        for column in _POSITION_COLUMNS)):
-        if name in used:
-            announced = _unit_of_name(used[name], table_units)
-            if announced is not None and announced != chosen:
-                key = "exposure" if name == "exposure" else "position"
-                raise ConfigError(f"{source}: column {used[name]!r} of {table.name} looks like {announced} but "
-                                  f"units.{key} is {chosen}; set units: {{{key}: {announced}}}")
+    # A column whose name announces its unit is read in it where units: leaves that unit unstated; a stated one
+    # must agree with every column's name.
+    stated = manifest.units.model_fields_set
+    chosen_units = {"exposure": manifest.units.exposure, "position": manifest.units.position}
+    for key, table_units, names in (("exposure", _EXPOSURE_S, ("exposure",)),
+                                    ("position", _POSITION_MM, _POSITION_COLUMNS)):
+        announced = {used[name]: _unit_of_name(used[name], table_units) for name in names if name in used}
+        announced = {column: unit for column, unit in announced.items() if unit is not None}
+        if key not in stated and len(set(announced.values())) == 1:
+            chosen_units[key] = next(iter(announced.values()))
+        for column, unit in announced.items():
+            if unit != chosen_units[key]:
+                why = f"units.{key} is {chosen_units[key]}" if key in stated else ", ".join(
+                    f"{c!r} looks like {u}" for c, u in announced.items() if u != unit)
+                raise ConfigError(f"{source}: column {column!r} of {table.name} looks like {unit} but {why}; "
+                                  f"set units: {{{key}: {unit}}} (or rename the columns to agree)")
     notes = [] if separator is None else [f"{table.name}: columns separated by {separator}, read so"]
     named = set(used.values()) | ({n for _, n, _, _ in string.Formatter().parse(pattern) if n} if pattern else set())
     ignored = [h for h in header if h not in named]
     if ignored:
         notes.append(f"{table.name}: columns not used by cca, ignored: {', '.join(ignored)}")
-    exposure_factor = _EXPOSURE_S[manifest.units.exposure]
-    position_factor = _POSITION_MM[manifest.units.position]
+    exposure_factor = _EXPOSURE_S[chosen_units["exposure"]]
+    position_factor = _POSITION_MM[chosen_units["position"]]
     kind_words = {k.lower(): v for k, v in (manifest.kind_values or {}).items()}
     stated = "exposure" in used and any(row.get(used["exposure"], "") for _, row in rows)
     entries = []
@@ -670,8 +677,10 @@ def _table_entries(table: Path, manifest: Manifest, source: str) -> tuple[list[d
                     decimal_commas.append(used[name])
                     value = float(text.replace(",", "."))
                 else:
-                    raise ConfigError(f"{table}: line {line}: column {used[name]!r} is {text!r}, not a number; "
-                                      "fix the row") from None
+                    image = row.get(used["path"], "") if "path" in used else ""
+                    image = f" ({Path(image).name})" if image else ""
+                    raise ConfigError(f"{table}: line {line}{image}: column {used[name]!r} is {text!r}, not a "
+                                      "number; fix the row") from None
             if not math.isfinite(value):
                 where = f" ({row.get(used['path'])})" if row.get(used["path"]) else ""
                 raise ConfigError(f"{table}: line {line}{where}: column {used[name]!r} is {text!r}; every position "
@@ -1138,7 +1147,8 @@ def plan_captures(manifest: Manifest, path: str | Path, *, notes: list[str] | No
             pos = (g - centre) * manifest.stage_pitch_mm * 1e-3
         else:
             _check_grouped_positions(groups, pos, path, kind)
-            _check_positions_follow_grid(groups, g, pos, path, kind)
+            if kind == "stage":   # an LED board's sines are not linear in its indices (a flat board's bend outwards)
+                _check_positions_follow_grid(groups, g, pos, path, kind)
     calibration = _match_calibration(by_kind["calibration"], list(groups), pos, kind, path, labels)
     darks = [(e.path, e.exposure_s) for e in by_kind["dark"]]
     flats = [(e.path, e.exposure_s) for e in by_kind["flat"]]

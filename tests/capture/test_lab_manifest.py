@@ -755,15 +755,17 @@ def _ingested_sines_table(tmp_path, columns: str, values: str) -> str:
 
 
 def test_an_exposure_column_named_in_its_unit_is_read_without_a_mapping(tmp_path):
-    """A table with exposure_ms (and units.exposure ms) needs no columns: entry; without the unit stated it is
-    the suffix-against-units error, never a silent 1 s."""
-    _lab(tmp_path, manifest_extra={"columns": {k: v for k, v in MAPPING.items() if k != "exposure"}})
-    assert _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5").exit_code == 0
-    with h5py.File(tmp_path / "raw.h5") as handle:
-        assert np.allclose(np.unique(handle["/raw/exposure_s"][()]), [1e-3, 4e-3])
-    (tmp_path / "raw.h5").unlink()
+    """A table with exposure_ms needs no columns: entry, and its name says its unit where units: does not; a
+    stated unit that the name contradicts is refused, never a silent reading in the other unit."""
+    for units in ({"exposure": "ms", "position": "mm"}, {"position": "mm"}):
+        _lab(tmp_path, manifest_extra={"columns": {k: v for k, v in MAPPING.items() if k != "exposure"},
+                                       "units": units})
+        assert _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5").exit_code == 0
+        with h5py.File(tmp_path / "raw.h5") as handle:
+            assert np.allclose(np.unique(handle["/raw/exposure_s"][()]), [1e-3, 4e-3])
+        (tmp_path / "raw.h5").unlink()
     _lab(tmp_path, manifest_extra={"columns": {k: v for k, v in MAPPING.items() if k != "exposure"},
-                                   "units": {"position": "mm"}})
+                                   "units": {"exposure": "s", "position": "mm"}})
     _refused(tmp_path, "column 'exposure_ms' of table.csv looks like ms but units.exposure is s",
              "set units: {exposure: ms}")
 
@@ -864,11 +866,18 @@ def test_led_positions_crowded_into_the_bright_field_are_one_note_on_the_geometr
 
 
 def test_unit_columns_with_spaces_two_candidates_and_beside_sines(tmp_path):
-    # "exposure [ ms]" announces ms like "exposure_ms": read only when units say so
+    # "exposure [ ms]" announces ms like "exposure_ms": read so unless units say otherwise
     _lab(tmp_path, manifest_extra={"columns": {k: v for k, v in MAPPING.items() if k != "exposure"},
                                    "units": {"position": "mm"}})
     text = (tmp_path / "table.csv").read_text()
     (tmp_path / "table.csv").write_text(text.replace("exposure_ms", "exposure [ ms]", 1))
+    assert _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5").exit_code == 0
+    with h5py.File(tmp_path / "raw.h5") as handle:
+        assert np.allclose(np.unique(handle["/raw/exposure_s"][()]), [1e-3, 4e-3])
+    (tmp_path / "raw.h5").unlink()
+    manifest = yaml.safe_load((tmp_path / "lab.yaml").read_text())
+    manifest["units"]["exposure"] = "s"
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump(manifest))
     _refused(tmp_path, "'exposure [ ms]' of table.csv looks like ms but units.exposure is s")
 
     def led_table(header: str, rows: list[str]) -> None:
@@ -1125,3 +1134,25 @@ def test_an_led_array_s_object_pixel_may_be_the_camera_s_over_the_magnification(
     (tmp_path / "lab.yaml").write_text(yaml.safe_dump(manifest))
     (tmp_path / "raw.h5").unlink()
     _refused(tmp_path, "illumination: give either pixel_pitch_object_m or pixel_pitch_m with magnification, not both")
+
+
+def test_a_wide_led_board_given_by_its_indices_is_not_taken_for_slipped_digits(tmp_path):
+    """A flat 17 x 17 board reaching sin θ 0.45: its sines bend away from a lattice, and nothing is wrong."""
+    lines = ["path,row,col"]
+    for i in range(17 * 17):
+        write_image(tmp_path / f"led{i}.png", np.full((16, 16), 2000 if i == 144 else 200, np.uint16) + (
+            np.arange(256, dtype=np.uint16).reshape(16, 16) % 7), bit_depth=16)
+        lines.append(f"led{i}.png,{i // 17},{i % 17}")
+    (tmp_path / "leds.csv").write_text("\n".join(lines) + "\n")
+    illumination = {"wavelength_m": 5e-7, "numerical_aperture": 0.1, "pixel_pitch_object_m": 1e-6,
+                    "led_pitch_m": 5e-3, "led_distance_m": 0.08}
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump({"images_csv": "leds.csv", "illumination": illumination}))
+    result = _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
+    assert result.exit_code == 0, result.output
+    assert np.abs(_sines(tmp_path / "raw.h5")).max() > 0.4
+
+
+def test_a_cell_that_is_not_a_number_is_named_with_its_line_and_image(tmp_path):
+    _scan_table(tmp_path, edit=lambda lines: [line.replace(",10,", ",ten,") if line.startswith("p12_10.png") else line
+                                              for line in lines])
+    _refused(tmp_path, "table.csv: line 8 (p12_10.png): column 'exposure_ms' is 'ten', not a number; fix the row")
