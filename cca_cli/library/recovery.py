@@ -119,12 +119,25 @@ def reconstruct(captures: CaptureSet, *, engine: str = "auto", options: dict | E
                              f"{pixel:.6g} m; start from a result of the same geometry")
     result = recover(padded, engine, engine_options, progress=progress, on_iteration=on_iteration, init=init,
                      checkpoint=checkpoint, device=device)
+    if _one_capture_per_camera(live, engine_options):
+        _log.warning("note: each camera's pupil is seen by its one capture only, so its aberration is weakly "
+                     "determined: on simulated 3 x 3 arrays the recovered defocus and astigmatism erred by about as "
+                     "much as the cameras' aberrations (benchmarks/camera_array_pupils.py); the image gains from "
+                     "them, but read the coefficients as no lens test")
     observed = live.centre_image
     obj = result.object
     if region is not None:
         y0, x0, rows, cols = region.hires_box(result.hires_size)
         obj = np.ascontiguousarray(obj[y0:y0 + rows, x0:x0 + cols])
     return replace(result, object=obj, observed=observed, region=region, dropped=live.dropped)
+
+
+def _one_capture_per_camera(captures: CaptureSet, options: EngineOptions) -> bool:
+    """Whether the run recovers one pupil per camera and each camera took a single capture."""
+    cameras = captures.geometry.camera_index
+    if getattr(options, "pupil_recovery", "none") != "per_camera" or cameras is None:
+        return False
+    return int(np.bincount(np.asarray(cameras, np.int64)).max()) == 1
 
 
 def engine_device(device: str, engine: str, options: EngineOptions) -> str:
