@@ -301,7 +301,7 @@ def summary_table(summary: dict, title: str = "Result") -> Table:
         if key not in summary:
             continue
         value = summary[key]
-        if value is None:
+        if value is None or (isinstance(value, float) and math.isnan(value)):   # none to show (no dark field)
             text = "—"
         elif fmt == "length":
             text = length_text(value)
@@ -352,7 +352,8 @@ def _nested_rows(summary: dict) -> list[tuple[str, str]]:
     zernike = summary.get("zernike_waves") or {}
     if zernike:
         largest = sorted(zernike.items(), key=lambda item: -abs(item[1]))[:3]
-        rows.append(("largest pupil aberrations (waves RMS)", ", ".join(f"{k} {v:+.3f}" for k, v in largest)))
+        whose = f", camera {summary['zernike_waves_camera']}" if "zernike_waves_camera" in summary else ""
+        rows.append((f"largest pupil aberrations (waves RMS{whose})", ", ".join(f"{k} {v:+.3f}" for k, v in largest)))
     tiles = summary.get("tiles") or {}
     if tiles.get("residual_all_median_max"):
         rows.append(("tiles: data residual, median / max", " / ".join(f"{v:.4f}" for v in

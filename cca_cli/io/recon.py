@@ -344,6 +344,8 @@ def _read_calibration(handle, geometry: CaptureGeometry) -> dict | None:
         "pupil": np.asarray(handle["/calibration/pupil"]) if "/calibration/pupil" in handle else None,
         "pixels_per_sine": (geometry.field_width_m / geometry.wavelength_m) if geometry.kind == "led_array" else None,
     }
+    if geometry.camera_index is not None:   # the lab's camera numbers, in the order of the pupils
+        out["camera_ids"] = [int(v) for v in np.unique(np.asarray(geometry.camera_index))]
     group = handle["calibration"] if "calibration" in handle else None
     if group is not None and "/calibration/zernike_waves" in handle:
         waves = np.asarray(handle["/calibration/zernike_waves"])

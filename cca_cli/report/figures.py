@@ -710,7 +710,9 @@ def _pupil_figure(plt, path: Path, calibration: dict) -> Path:
         reference = np.sum(flat[inside])
         phase = np.angle(flat * np.exp(-1j * np.angle(reference)))
         amplitude = np.abs(pupil)
-        label = "pupil" if len(pupils) == 1 else f"camera {row}"
+        ids = calibration.get("camera_ids")
+        label = "pupil" if len(pupils) == 1 else \
+            f"camera {ids[row] if ids is not None and len(ids) == len(pupils) else row}"
         tilt_waves = float(np.hypot(*tilt)) * 2.0 * radius / (2.0 * np.pi)
         phase_title = f"{label}: phase" + (f"\n(a tilt of {tilt_waves:.2f} waves across the NA removed)"
                                            if tilt_waves >= 0.005 else "")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -124,10 +125,21 @@ def run(recon_path: Path, section: ReportSection, output: Path, *, provenance: P
             summary["figures"] = [p.name for p in figures]
         document = dict(summary)
         document["provenance"] = {k: (v if isinstance(v, str) else str(v)) for k, v in provenance.items()}
-        (tmp / REPORT_JSON).write_text(json.dumps(document, indent=2))
+        (tmp / REPORT_JSON).write_text(json.dumps(_json_safe(document), indent=2, allow_nan=False))
         write_marker(tmp, "report")
     progress(ProgressEvent("report", "figures", 2, 2))
     return summary
+
+
+def _json_safe(value):
+    """``value`` with every NaN or infinity as None: JSON has no such numbers (an empty set's residual is NaN)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    return value
 
 
 def _bar_reading(section: ReportSection, geometry, observed, recovered_object, hires_size: int, region_px) -> dict:
@@ -214,6 +226,10 @@ def calibration_summary(calibration: dict, geometry) -> dict:
         out["zernike_waves"] = {k: round(v, 4) for k, v in calibration["zernike"].items()}
         if len(calibration["zernike_per_pupil"]) > 1:
             out["zernike_waves_per_camera"] = np.round(calibration["zernike_per_pupil"], 4).tolist()
+            ids = calibration.get("camera_ids")
+            if ids is not None and len(ids) == len(calibration["zernike_per_pupil"]):
+                out["camera_ids"] = list(ids)   # the lab's number of each row of zernike_waves_per_camera
+                out["zernike_waves_camera"] = ids[0]   # zernike_waves is this camera's
         if geometry.kind == "led_array" and "defocus" in calibration["zernike"]:
             from cca_cli.engines.calibration import defocus_zernike
 

@@ -316,3 +316,31 @@ def test_the_report_gives_the_fit_before_the_gains_and_marks_gains_read_from_a_p
     assert (cells["sharpness gain (reach)"] == "3.74 (from a poor fit: artefacts raise it)") is marked
     assert cells["sharpness gain (reach)"].startswith("3.74")
     assert cells["captures left out, dead or unlit (images)"] == "49"
+
+
+def test_a_report_of_a_set_without_dark_field_is_valid_json_and_shows_no_nan(tmp_path):
+    import json
+
+    import numpy as np
+
+    import cca_cli as cca
+    from cca_cli.commands.console import summary_table
+
+    g = cca.camera_scan(wavelength_m=550e-9, focal_length_m=0.8, aperture_diameter_m=45e-3, pixel_pitch_m=2e-6,
+                        distance_m=50, field_width_m=8e-3, grid=3, overlap=0.61)
+    images = cca.simulate(cca.resolution_chart(64, widths=(4, 3, 2)).image, g, snr_db=40)
+    array = cca.stage_scan(g.aperture_centres_yx_m, wavelength_m=550e-9, focal_length_m=0.8,
+                           aperture_diameter_m=45e-3, pixel_pitch_m=2e-6, distance_m=50, image_pixels=64,
+                           camera_index=np.arange(9) + 1)   # the lab numbers its cameras from 1
+    result = cca.reconstruct(images, array, engine="momentum", pupil_recovery="per_camera", iterations=2)
+    cca.save(result, tmp_path / "recon.h5")
+    run = CliRunner().invoke(app, ["report", str(tmp_path / "recon.h5"), "-o", str(tmp_path / "report")])
+    assert run.exit_code == 0, run.output
+    text = (tmp_path / "report" / "report.json").read_text()
+    document = json.loads(text, parse_constant=lambda name: pytest.fail(f"report.json holds {name}"))
+    assert document["camera_ids"] == list(range(1, 10)) and document["zernike_waves_camera"] == 1
+    assert len(document["zernike_waves_per_camera"]) == 9
+    cells = dict(zip((str(c) for c in summary_table(document).columns[0].cells),
+                     (str(c) for c in summary_table(document).columns[1].cells)))
+    assert "nan" not in " ".join(cells.values())
+    assert "largest pupil aberrations (waves RMS, camera 1)" in cells
