@@ -110,6 +110,7 @@ def report_cli(
     figures: Annotated[Optional[bool], typer.Option("--figures/--no-figures", help="Write the PNG figures "
                                                     "\\[default: figures].")] = None,
     force: Force = False,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="Print where the report went, not its table.")] = False,
 ) -> None:
     """Metrics (report.json) and figures (PNG) of RECON → a report directory."""
     from cca_cli.stages import report as report_stage
@@ -120,4 +121,7 @@ def report_cli(
     summary = run_stage("report", report_stage.run, recon, section, output=output, sections={"report": section},
                         inputs=[recon], force=force, quiet=True, kind="folder", protect=[config] if config else [],
                         footprint=lambda: report_footprint(recon))
-    console.print(summary_table(summary, title=f"cca report → {output}"))
+    if quiet:
+        console.print(f"{output}: report.json and {len(summary.get('figures', []))} figure(s)", highlight=False)
+    else:
+        console.print(summary_table(summary, title=f"cca report → {output}"))

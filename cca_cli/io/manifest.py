@@ -49,7 +49,7 @@ TABLE_COLUMNS = {"path": "path", "kind": "kind", "exposure": "exposure_s", "stag
 #: Position columns of a table, read in ``units.position``.
 _POSITION_COLUMNS = ("stage_x", "stage_y", "led_x", "led_y", "led_z")
 _EXPOSURE_S = {"s": 1.0, "ms": 1e-3, "us": 1e-6}
-_POSITION_MM = {"m": 1e3, "mm": 1.0, "um": 1e-3}
+_POSITION_MM = {"m": 1e3, "cm": 10.0, "mm": 1.0, "um": 1e-3}
 _SECTION_KEYS = ("optics", "illumination", "sensor", "checkerboard", "stage_pitch_mm", "values", "columns", "units",
                  "kind_values")
 
@@ -194,7 +194,7 @@ class UnitsSpec(_Strict):
     """Units of an image table's exposure and position columns."""
 
     exposure: Literal["s", "ms", "us"] = "s"
-    position: Literal["m", "mm", "um"] = "mm"
+    position: Literal["m", "cm", "mm", "um"] = "mm"
 
 
 class ImageEntry(_Strict):
@@ -1158,7 +1158,29 @@ def plan_captures(manifest: Manifest, path: str | Path, *, notes: list[str] | No
     return CapturePlan(manifest, path, files, np.asarray(exposures, np.float64), pos, grid_idx, labels,
                        calibration=calibration, darks=darks, flats=flats, bit_depth=bit_depth,
                        calibration_bit_depths=board_bits, notes=notes,
-                       camera_index=_camera_index(groups, kind, manifest, path))
+                       camera_index=_cameras_checked(groups, by_kind["calibration"], kind, manifest, path, notes))
+
+
+def _cameras_checked(groups: dict[tuple, list[ImageEntry]], calibration: list[ImageEntry], kind: str,
+                     manifest: Manifest, path: Path, notes: list[str]) -> np.ndarray | None:
+    """:func:`_camera_index`, a calibration row that names another camera than its position's images refused, and
+    a camera that took the images of several positions named in a note (one pupil for them all)."""
+    cameras = _camera_index(groups, kind, manifest, path)
+    if cameras is None:
+        return None
+    at = {key: int(camera) for key, camera in zip(groups, cameras)}
+    for row in calibration:
+        key = _key(row)
+        if row.camera is not None and key in at and row.camera != at[key]:
+            raise ConfigError(f"{_source(manifest, path)}: calibration image {row.path.name} names camera {row.camera} "
+                              f"but the images at {_position_text(key)} name camera {at[key]}; fix one of them")
+    numbers, counts = np.unique(cameras, return_counts=True)
+    for number in numbers[counts > 1]:
+        where = [_position_text(key) for key, camera in at.items() if camera == number]
+        notes.append(f"camera {int(number)} took the images at {len(where)} positions ({'; '.join(where[:3])}"
+                     f"{'; …' if len(where) > 3 else ''}): they share one pupil; if they are different cameras, fix "
+                     "the camera column")
+    return cameras
 
 
 def _camera_index(groups: dict[tuple, list[ImageEntry]], kind: str, manifest: Manifest,

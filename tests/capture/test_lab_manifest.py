@@ -1156,3 +1156,59 @@ def test_a_cell_that_is_not_a_number_is_named_with_its_line_and_image(tmp_path):
     _scan_table(tmp_path, edit=lambda lines: [line.replace(",10,", ",ten,") if line.startswith("p12_10.png") else line
                                               for line in lines])
     _refused(tmp_path, "table.csv: line 8 (p12_10.png): column 'exposure_ms' is 'ten', not a number; fix the row")
+
+
+def test_positions_in_centimetres_are_read_by_their_column_s_name_or_units(tmp_path):
+    _scan_table(tmp_path)
+    expected = None
+    for header, units in (("x_mm,y_mm", {"exposure": "ms", "position": "mm"}),
+                          ("x_cm,y_cm", {"exposure": "ms"}), ("x,y", {"exposure": "ms", "position": "cm"})):
+        table = (tmp_path / "table.csv").read_text().splitlines()
+        cells = [line.split(",") for line in table[1:]]
+        scale = 1.0 if header == "x_mm,y_mm" else 0.1
+        rows = [",".join([c[0], c[1], c[2], f"{float(c[3]) * scale:g}", f"{float(c[4]) * scale:g}", c[5], c[6]])
+                for c in cells]
+        (tmp_path / f"t_{units.get('position', 'name')}.csv").write_text(
+            "\n".join([f"file,kind,exposure_ms,{header},r,c", *rows]) + "\n")
+        x, y = header.split(",")
+        manifest = {"images_csv": f"t_{units.get('position', 'name')}.csv", "optics": OPTICS, "units": units,
+                    "columns": {"path": "file", "kind": "kind", "exposure": "exposure_ms", "stage_x": x,
+                                "stage_y": y, "row": "r", "col": "c"}}
+        (tmp_path / "lab.yaml").write_text(yaml.safe_dump(manifest))
+        out = tmp_path / f"raw_{units.get('position', 'name')}.h5"
+        result = _ingest(tmp_path / "lab.yaml", out)
+        assert result.exit_code == 0, (header, result.output)
+        with h5py.File(out) as f:
+            centres = f["/geometry/aperture_centres_yx_m"][()]
+        expected = centres if expected is None else expected
+        np.testing.assert_allclose(centres, expected, rtol=1e-12)
+
+
+def _camera_table(tmp_path, camera_of, board_camera=None) -> None:
+    """The 4 x 4 scan as a camera array: a camera column (``camera_of(r, c)``), and board rows when asked."""
+    _scan_table(tmp_path)
+    lines = (tmp_path / "table.csv").read_text().splitlines()
+    rows = [lines[0] + ",cam"] + [f"{line},{camera_of(int(line.split(',')[5]), int(line.split(',')[6]))}"
+                                  for line in lines[1:]]
+    if board_camera is not None:   # a board photo at every position, the one at (0, 0) naming board_camera
+        for r in range(4):
+            for c in range(4):
+                write_image(tmp_path / f"board{r}{c}.png", _codes(900), bit_depth=16)
+                camera = board_camera if (r, c) == (0, 0) else camera_of(r, c)
+                rows.append(f"board{r}{c}.png,calibration,10,{0.4 * c - 0.6:.3f},{0.4 * r - 0.6:.3f},{r},{c},{camera}")
+    (tmp_path / "table.csv").write_text("\n".join(rows) + "\n")
+    manifest = yaml.safe_load((tmp_path / "lab.yaml").read_text())
+    manifest["columns"]["camera"] = "cam"
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump(manifest))
+
+
+def test_a_camera_named_at_two_positions_is_noted_and_a_board_of_another_camera_refused(tmp_path):
+    _camera_table(tmp_path, lambda r, c: 4 * r + c if (r, c) != (0, 1) else 0)
+    result = _ingest(tmp_path / "lab.yaml", tmp_path / "raw.h5")
+    assert result.exit_code == 0, result.output
+    text = " ".join(result.output.split())
+    assert "camera 0 took the images at 2 positions" in text and "fix the camera column" in text
+    (tmp_path / "raw.h5").unlink()
+    _camera_table(tmp_path, lambda r, c: 4 * r + c, board_camera=5)
+    _refused(tmp_path, "calibration image board00.png names camera 5 but the images at grid position (row 0, col 0) "
+                       "name camera 0")
