@@ -176,8 +176,10 @@ def _describe(handle, path: Path, out) -> None:
             group_attrs = _attrs(handle[group])
             # an LED array's geometry is stored as a camera array's; those stand-ins are no facts of the setup
             hidden = _LED_STAND_INS if _text(group_attrs.get("kind", "")) == "led_array" else ()
+            # a quantity that does not apply (a camera scan's NA, measured positions' overlap) is stored as NaN
+            unset = {k for k, v in group_attrs.items() if group == "geometry" and isinstance(v, float) and v != v}
             items = [f"{k}={v:.6g}" if isinstance(v, float) else f"{k}={_text(v)}"
-                     for k, v in group_attrs.items() if k != "units" and k not in hidden]
+                     for k, v in group_attrs.items() if k != "units" and k not in hidden and k not in unset]
             out()
             out(f"{group}: " + ", ".join(items))
     derived = _derived(handle)
