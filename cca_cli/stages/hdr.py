@@ -23,6 +23,7 @@ from cca_cli.io.geometry import read_geometry, write_geometry
 from cca_cli.io.h5 import Provenance, atomic_h5, check_output, open_input, require, write_dataset
 from cca_cli.io.records import carry_capture_records
 from cca_cli.io.captures import BOUNDARY_OPEN, read_frame_scale, read_labels, read_sensor, write_labels
+from cca_cli.library.orientation import recorded_orientation_advice
 from cca_cli.stages.progress import ProgressEvent, ProgressFn, silent
 
 __all__ = ["SECTIONS", "HdrOutcome", "run"]
@@ -120,6 +121,10 @@ def run(raw_path: Path, section: HdrSection | None, output: Path, *, provenance:
         flagged = _flag_flux(flux, flux_sigma, labels, section.flux_tolerance)
         if values == "amplitude":
             radiance = np.square(np.maximum(radiance, 0))
+        if "registration/board" not in src:   # no registration to come: the merged captures are what is recovered
+            warning = recorded_orientation_advice(radiance, weight, geometry, frame_scale)
+            if warning is not None:
+                _log.warning("%s: %s", raw_path, warning)
         with atomic_h5(output, provenance, force=force) as handle:
             ds = write_dataset(handle, "/measurements/intensity", radiance, units="counts/s")
             ds.attrs["boundary"] = BOUNDARY_OPEN
