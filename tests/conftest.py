@@ -52,3 +52,24 @@ def tiny_run_config():
     from cca_cli.config.load import parse_config
 
     return parse_config(copy.deepcopy(TINY_CONFIG), source="tiny")
+
+
+@pytest.fixture(scope="session")
+def small_camera_array():
+    """A simulated 3 x 3 array of cameras that each took one capture: ``make(first_id)`` gives its images and
+    its geometry, the cameras numbered from ``first_id``."""
+    import numpy as np
+
+    import cca_cli as cca
+
+    g = cca.camera_scan(wavelength_m=550e-9, focal_length_m=0.8, aperture_diameter_m=45e-3, pixel_pitch_m=2e-6,
+                        distance_m=50, field_width_m=8e-3, grid=3, overlap=0.61)
+    images = cca.simulate(cca.resolution_chart(64, widths=(4, 3, 2)).image, g, snr_db=40)
+
+    def make(first_id: int = 0):
+        array = cca.stage_scan(g.aperture_centres_yx_m, wavelength_m=550e-9, focal_length_m=0.8,
+                               aperture_diameter_m=45e-3, pixel_pitch_m=2e-6, distance_m=50, image_pixels=64,
+                               camera_index=np.arange(9) + first_id)
+        return images, array
+
+    return make

@@ -359,13 +359,8 @@ def test_an_led_grid_whose_axis_is_off_its_middle_puts_that_led_on_axis():
         cca.led_grid_sines(3, pitch_m=4e-3, height_m=70e-3, axis_m=(0.0,))
 
 
-def test_per_camera_pupils_of_one_capture_each_are_said_to_be_weakly_determined(caplog):
-    g = cca.camera_scan(wavelength_m=550e-9, focal_length_m=0.8, aperture_diameter_m=45e-3, pixel_pitch_m=2e-6,
-                        distance_m=50, field_width_m=8e-3, grid=3, overlap=0.61)
-    images = cca.simulate(cca.resolution_chart(64, widths=(4, 3, 2)).image, g, snr_db=40)
-    array = cca.stage_scan(g.aperture_centres_yx_m, wavelength_m=550e-9, focal_length_m=0.8,
-                           aperture_diameter_m=45e-3, pixel_pitch_m=2e-6, distance_m=50, image_pixels=64,
-                           camera_index=np.arange(9))
+def test_per_camera_pupils_of_one_capture_each_are_said_to_be_weakly_determined(caplog, small_camera_array):
+    images, array = small_camera_array()
     with caplog.at_level("WARNING", logger="cca"):
         cca.reconstruct(images, array, engine="momentum", pupil_recovery="per_camera", iterations=2)
     assert sum("its one capture only" in r.getMessage() for r in caplog.records) == 1

@@ -182,34 +182,34 @@ def test_frames_that_all_peak_at_one_value_are_noted_when_nothing_is_said(tmp_pa
 
 
 def test_one_hot_pixel_brightest_in_every_frame_is_not_taken_for_scaled_frames(tmp_path):
-    images = []
-    for i in range(4):
-        frame = np.full((16, 16), 500 + 100 * i, np.uint16)
+    frames = [np.full((16, 16), 500 + 100 * i, np.uint16) for i in range(4)]
+    for frame in frames:
         frame[3, 5] = 4095   # a hot pixel: every frame's brightest, at one place
-        write_image(tmp_path / f"v{i}.png", frame, bit_depth=16)
-        images.append({"path": f"v{i}.png", "exposure_s": 0.01, "stage_x_mm": float(i), "stage_y_mm": 0.0})
-    optics = {"wavelength_m": 550e-9, "focal_length_m": 0.1, "aperture_diameter_m": 4.6e-3, "pixel_pitch_m": 2.5e-6,
-              "distance_m": 10.0}
-    (tmp_path / "m.yaml").write_text(yaml.safe_dump({"optics": optics, "images": images}))
-    result = _cli("ingest", tmp_path / "m.yaml", "-o", tmp_path / "raw.h5")
+    result = _ingest_frames(tmp_path, frames)
     assert result.exit_code == 0, result.output
     assert "peaks at exactly" not in result.output
 
 
-def test_a_hot_pixel_at_full_scale_beside_clipped_frames_is_named_and_not_taken_for_scaled_frames(tmp_path):
-    """Bright-field frames clip at full scale here and there, and one hot pixel sits there in every frame."""
+def _ingest_frames(tmp_path, frames):
+    """Ingest 16-bit ``frames`` of a four-position stage scan (the CLI's result)."""
     images = []
-    for i in range(4):
-        frame = np.full((16, 16), 500 + 100 * i, np.uint16)
-        if i % 2:
-            frame[:2, :] = 65535   # clipped, ahead of the hot pixel in raster order
-        frame[3, 5] = 65535
+    for i, frame in enumerate(frames):
         write_image(tmp_path / f"v{i}.png", frame, bit_depth=16)
         images.append({"path": f"v{i}.png", "exposure_s": 0.01, "stage_x_mm": float(i), "stage_y_mm": 0.0})
     optics = {"wavelength_m": 550e-9, "focal_length_m": 0.1, "aperture_diameter_m": 4.6e-3, "pixel_pitch_m": 2.5e-6,
               "distance_m": 10.0}
     (tmp_path / "m.yaml").write_text(yaml.safe_dump({"optics": optics, "images": images}))
-    result = _cli("ingest", tmp_path / "m.yaml", "-o", tmp_path / "raw.h5")
+    return _cli("ingest", tmp_path / "m.yaml", "-o", tmp_path / "raw.h5")
+
+
+def test_a_hot_pixel_at_full_scale_beside_clipped_frames_is_named_and_not_taken_for_scaled_frames(tmp_path):
+    """Bright-field frames clip at full scale here and there, and one hot pixel sits there in every frame."""
+    frames = [np.full((16, 16), 500 + 100 * i, np.uint16) for i in range(4)]
+    for i, frame in enumerate(frames):
+        if i % 2:
+            frame[:2, :] = 65535   # clipped, ahead of the hot pixel in raster order
+        frame[3, 5] = 65535
+    result = _ingest_frames(tmp_path, frames)
     assert result.exit_code == 0, result.output
     text = " ".join(result.output.split())
     assert "pixel (x 5, y 3) sits at 65535 in every frame: a hot pixel? it counts as clipped (weight 0)" in text
