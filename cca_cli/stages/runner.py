@@ -23,7 +23,7 @@ from pathlib import Path
 from pydantic import BaseModel
 
 from cca_cli.config.model import RunConfig
-from cca_cli.errors import OutputError, OutputExistsError, check_interrupt
+from cca_cli.errors import ConfigError, OutputError, OutputExistsError, check_interrupt
 from cca_cli.io.h5 import file_sha256, read_provenance, unique_paths
 from cca_cli.io.lock import folder_lock
 from cca_cli.io.outputs import check_folder, folder_complete, foreign_part, prepare_folder, remove_stale_temporaries
@@ -306,6 +306,7 @@ def _run_stages(config: RunConfig, plans: list[StagePlan], *, force: bool, progr
                     if on_stage:
                         on_stage(plan, "skipped")
                     outcomes.append(StageOutcome(plan.name, "skipped", plan.output, 0.0))
+                    _check_crop(config, plans, plan, source)
                     continue
         if on_stage:
             on_stage(plan, "start")
@@ -327,4 +328,24 @@ def _run_stages(config: RunConfig, plans: list[StagePlan], *, force: bool, progr
         check_interrupt()
         outcomes.append(StageOutcome(plan.name, "ran", plan.output, time.perf_counter() - start, result))
         rewritten.add(plan.output)
+        _check_crop(config, plans, plan, source)
     return outcomes
+
+
+def _check_crop(config: RunConfig, plans: list[StagePlan], done: StagePlan, source) -> None:
+    """Once ingest has written the frames: a ``registration.crop_xywh`` they cannot hold is refused before the later
+    stages (hdr) spend their time, as register itself would refuse it."""
+    crop = config.registration.crop_xywh if config.registration is not None else None
+    if done.name != "ingest" or crop is None or "register" not in [p.name for p in plans]:
+        return
+    import h5py
+
+    with h5py.File(done.output, "r") as handle:
+        if "/raw/frames" not in handle:
+            return
+        h, w = handle["/raw/frames"].shape[-2:]
+    x0, y0, cw, ch = (int(v) for v in crop)
+    if x0 < 0 or y0 < 0 or x0 + cw > w or y0 + ch > h:
+        where = f"{source}: " if source else ""
+        raise ConfigError(f"{where}registration.crop_xywh: ({x0}, {y0}, {cw}, {ch}) does not fit in the {w}x{h} px "
+                          f"frames of {done.output}; fix it (hdr and register have not run)")

@@ -1212,3 +1212,15 @@ def test_a_camera_named_at_two_positions_is_noted_and_a_board_of_another_camera_
     _camera_table(tmp_path, lambda r, c: 4 * r + c, board_camera=5)
     _refused(tmp_path, "calibration image board00.png names camera 5 but the images at grid position (row 0, col 0) "
                        "name camera 0")
+
+
+def test_a_crop_the_frames_cannot_hold_is_refused_right_after_ingest(tmp_path):
+    _lab(tmp_path, calibration=True)
+    (tmp_path / "run.yaml").write_text(yaml.safe_dump({
+        "run": {"stages": ["ingest", "hdr", "register", "reconstruct", "report"]},
+        "ingest": {"manifest": "lab.yaml"}, "registration": {"crop_xywh": [10, 4, 16, 16]}}))
+    result = runner.invoke(app, ["run", str(tmp_path / "run.yaml"), "--out-dir", str(tmp_path / "out"), "-q"])
+    text = " ".join(result.output.split())
+    assert result.exit_code == 2, text
+    assert "run.yaml: registration.crop_xywh: (10, 4, 16, 16) does not fit in the 20x16 px frames" in text
+    assert sorted(p.name for p in (tmp_path / "out").iterdir() if not p.name.startswith(".")) == ["raw.h5"]
