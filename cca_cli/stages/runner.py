@@ -338,9 +338,9 @@ def _check_crop(config: RunConfig, plans: list[StagePlan], done: StagePlan, sour
     crop = config.registration.crop_xywh if config.registration is not None else None
     if done.name != "ingest" or crop is None or "register" not in [p.name for p in plans]:
         return
-    import h5py
+    from cca_cli.io.h5 import open_input
 
-    with h5py.File(done.output, "r") as handle:
+    with open_input(done.output) as handle:
         if "/raw/frames" not in handle:
             return
         h, w = handle["/raw/frames"].shape[-2:]
