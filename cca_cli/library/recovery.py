@@ -17,7 +17,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -224,46 +224,92 @@ def without_dead_captures(captures: CaptureSet, *, name: str = "intensities", so
 
 
 #: An LED-array capture in the bright field that recorded this many times less light than the median bright-field
-#: capture did not get its light (an LED that did not fire) and is left out with the dead ones.
+#: capture did not get its light (an LED that did not fire): ingest names it, reconstruct leaves it out.
 UNLIT_FACTOR = 10.0
 #: More than this share of the bright-field captures so dark (three or more) says the LEDs' geometry is wrong, not
 #: that LEDs failed: ingest says so, and nothing is left out.
 UNLIT_GEOMETRY_SHARE = 0.25
 
 
-def unlit_bright_field(captures: CaptureSet) -> tuple[np.ndarray, np.ndarray]:
-    """The LED-array captures in the bright field whose LED did not fire, and how many times less light each got.
+@dataclass(frozen=True)
+class BrightFieldLight:
+    """How much light an LED array's bright-field captures recorded, judged (:func:`judge_bright_field`).
 
-    A capture counts when the geometry puts its pupil's centre well inside the bright field (within 0.9 pupil
-    radii of the spectrum's origin) and its mean is :data:`UNLIT_FACTOR` times below the median bright-field
-    capture's. Frames scaled each on its own (``frame_scale: per_frame``), fewer than three bright-field captures,
-    or so many dark ones that the geometry must be wrong (:data:`UNLIT_GEOMETRY_SHARE`), give none.
+    Attributes
+    ----------
+    bright : ndarray of int
+        The captures the geometry puts well inside the bright field (within 0.9 pupil radii of the origin).
+    typical : float
+        Their median light.
+    unlit : ndarray of int
+        Those :data:`UNLIT_FACTOR` times darker than ``typical`` or more (none when the geometry is wrong).
+    times_darker : ndarray of float
+        ``typical`` over each unlit one's light (inf where it recorded none).
+    wrong_geometry : ndarray of int
+        When more than :data:`UNLIT_GEOMETRY_SHARE` of them (three or more) are that much darker than the
+        brightest tenth, those captures: the geometry, not an LED, is off. Empty otherwise.
+    """
+
+    bright: np.ndarray
+    typical: float
+    unlit: np.ndarray
+    times_darker: np.ndarray
+    wrong_geometry: np.ndarray
+
+
+def judge_bright_field(light: np.ndarray, centres_px: np.ndarray, radius_px: float) -> BrightFieldLight | None:
+    """The bright-field captures' light judged: LEDs that did not fire, or a geometry that does not match.
+
+    Parameters
+    ----------
+    light : ndarray, (K,)
+        Each capture's mean intensity (per unit exposure).
+    centres_px : ndarray, (K, 2)
+        Pupil centres relative to the spectrum's origin (spectrum px).
+    radius_px : float
+        Pupil radius (spectrum px).
+
+    Returns
+    -------
+    BrightFieldLight or None
+        None with fewer than three bright-field captures, or none of them lit.
+    """
+    centres = np.asarray(centres_px, np.float64)
+    bright = np.flatnonzero(np.hypot(centres[:, 0], centres[:, 1]) < 0.9 * radius_px)
+    if bright.size < 3:
+        return None
+    means = np.asarray(light, np.float64)[bright]
+    typical, brightest = float(np.median(means)), float(np.percentile(means, 90))
+    if not brightest > 0:
+        return None
+    # Judged against the brighter captures too: where the geometry is wrong, most "bright-field" captures may be
+    # dark, and so is their median.
+    against_brightest = bright[means * UNLIT_FACTOR < brightest]
+    wrong = against_brightest if against_brightest.size >= 3 and \
+        against_brightest.size > UNLIT_GEOMETRY_SHARE * bright.size else np.zeros(0, np.int64)
+    off = (means * UNLIT_FACTOR < typical) if typical > 0 and wrong.size == 0 else np.zeros(bright.size, bool)
+    with np.errstate(divide="ignore"):
+        darker = np.where(means[off] > 0, typical / np.maximum(means[off], 1e-300), np.inf)
+    return BrightFieldLight(bright, typical, bright[off], darker, wrong)
+
+
+def unlit_bright_field(captures: CaptureSet) -> tuple[np.ndarray, np.ndarray]:
+    """The LED-array captures in the bright field whose LED did not fire, and how many times less light each got
+    (:func:`judge_bright_field` on the images' means); none for frames scaled each on its own
+    (``frame_scale: per_frame``).
 
     Returns
     -------
     indices : ndarray of int
     times_darker : ndarray of float
-        The median bright-field mean over each one's (inf where it recorded no light).
     """
     none = np.zeros(0, np.int64), np.zeros(0)
     geometry = captures.geometry
     if geometry.kind != "led_array" or captures.frame_scale != "shared":
         return none
-    centres = np.asarray(geometry.spectrum_centres_yx_px, np.float64)
-    bright = np.flatnonzero(np.hypot(centres[:, 0], centres[:, 1]) < 0.9 * geometry.pupil_radius_px)
-    if bright.size < 3:
-        return none
-    means = np.asarray(captures.intensity[bright], np.float32).mean(axis=(-2, -1), dtype=np.float64)
-    typical, brightest = float(np.median(means)), float(np.percentile(means, 90))
-    if not typical > 0:
-        return none
-    dark_against_brightest = int(np.sum(means * UNLIT_FACTOR < brightest))
-    if dark_against_brightest >= 3 and dark_against_brightest > UNLIT_GEOMETRY_SHARE * bright.size:
-        return none
-    off = means * UNLIT_FACTOR < typical
-    with np.errstate(divide="ignore"):
-        darker = np.where(means[off] > 0, typical / np.maximum(means[off], 1e-300), np.inf)
-    return bright[off], darker
+    light = np.asarray(captures.intensity, np.float32).mean(axis=(-2, -1), dtype=np.float64)
+    judged = judge_bright_field(light, geometry.spectrum_centres_yx_px, geometry.pupil_radius_px)
+    return none if judged is None else (judged.unlit, judged.times_darker)
 
 
 def _check_unlit(unlit, darker, dead: int, geometry: CaptureGeometry, *, name: str, source, error) -> None:

@@ -34,6 +34,7 @@ from cca_cli.io.manifest import CapturePlan, plan_captures, read_manifest, read_
 from cca_cli.io.records import write_sensor_records
 from cca_cli.io.stacks import read_stack
 from cca_cli.library.orientation import recorded_orientation_advice
+from cca_cli.library.recovery import UNLIT_FACTOR, judge_bright_field
 from cca_cli.io.sensor import (Decoding, FrameValues, SensorRule, board_decodings, decide_decoding, frame_values,
                                same_depth)
 from cca_cli.sampling.capture import led_array_geometry, stage_scan_geometry
@@ -543,51 +544,36 @@ def crowded_neighbours(plan: CapturePlan, geometry: CaptureGeometry) -> list[str
             f"{geometry.synthetic_aperture_ratio:.3g} times the lens's (SAR); {_spacing_fix(plan)}"]
 
 
-#: A bright-field LED capture this many times darker than the median bright-field one is named in a note.
-DARK_BRIGHT_FIELD = 10.0
-#: Above this share of the bright-field captures so dark, one note says the geometry is off instead.
-MANY_DARK_BRIGHT_FIELD = 0.25
-
-
 def dark_bright_field(plan: CapturePlan, geometry: CaptureGeometry, frames: np.ndarray) -> list[str]:
     """Notes on LED-array captures the geometry puts in the bright field that recorded far less light than the
-    others there (an LED that did not fire, or a row of the table that names another LED).
+    others there (an LED that did not fire, or a row of the table that names another LED), judged as reconstruct
+    judges them (:func:`~cca_cli.library.recovery.judge_bright_field`).
 
     Returns
     -------
     list of str
-        One note per such capture, naming its row; or, when more than :data:`MANY_DARK_BRIGHT_FIELD` of the
-        bright-field captures (and at least three) are so dark, one note that the LEDs' geometry is off.
+        One note per such capture, naming its row; or, when too many bright-field captures are so dark, one note
+        that the LEDs' geometry is off.
     """
     if plan.kind != "led_array" or plan.manifest.sensor.frame_scale != "shared":   # per_frame: brightness unknown
         return []
-    centres = np.asarray(geometry.spectrum_centres_yx_px, np.float64)
-    bright = np.flatnonzero(np.hypot(centres[:, 0], centres[:, 1]) < 0.9 * geometry.pupil_radius_px)
-    if bright.size < 3:
+    rate = frames[:, 0].mean(axis=(-2, -1)) / plan.exposure_s[:, 0]
+    judged = judge_bright_field(rate, geometry.spectrum_centres_yx_px, geometry.pupil_radius_px)
+    if judged is None:
         return []
-    rate = frames[bright, 0].mean(axis=(-2, -1)) / plan.exposure_s[bright, 0]
-    typical = float(np.median(rate))
-    # Judged against the brighter captures too: where the geometry is wrong, most "bright-field" captures may
-    # be dark, and so is their median.
-    bright_ones = float(np.percentile(rate, 90))
-    if not bright_ones > 0:
-        return []
-    off = [(i, float(r)) for i, r in zip(bright, rate) if r * DARK_BRIGHT_FIELD < bright_ones]
-    if len(off) >= 3 and len(off) > MANY_DARK_BRIGHT_FIELD * bright.size:   # the geometry, not an LED, is wrong
-        return [f"{len(off)} of the {bright.size} captures the geometry puts in the bright field recorded "
-                f"{DARK_BRIGHT_FIELD:g} times less light than the brightest of them or less (first: "
-                f"{plan.labels[off[0][0]]}): "
+    if judged.wrong_geometry.size:
+        return [f"{judged.wrong_geometry.size} of the {judged.bright.size} captures the geometry puts in the bright "
+                f"field recorded {UNLIT_FACTOR:g} times less light than the brightest of them or less (first: "
+                f"{plan.labels[judged.wrong_geometry[0]]}): "
                 f"the LEDs' geometry does not match the light recorded; check the illumination's positions "
                 f"(led_pitch_m, led_distance_m, led_axis_m, or kx_norm/ky_norm), its sign and {_optics_keys(plan)}"]
-    if not typical > 0:
-        return []
 
-    def how_much(r: float) -> str:
-        return "no light" if r <= 0 else f"{typical / r:.3g} times less light"
+    def how_much(times: float) -> str:
+        return "no light" if not np.isfinite(times) else f"{times:.3g} times less light"
 
-    dark = [(i, float(r)) for i, r in zip(bright, rate) if r * DARK_BRIGHT_FIELD < typical]
-    return [f"{plan.labels[i]} is in the bright field but recorded {how_much(r)} than the median bright-field "
-            "capture: did its LED fire? (reconstruct leaves it out; check that row)" for i, r in dark]
+    return [f"{plan.labels[i]} is in the bright field but recorded {how_much(t)} than the median bright-field "
+            "capture: did its LED fire? (reconstruct leaves it out; check that row)"
+            for i, t in zip(judged.unlit, judged.times_darker)]
 
 
 def _optics_keys(plan: CapturePlan) -> str:
