@@ -18,7 +18,8 @@ Prints, on a machine with CuPy and a CUDA GPU (``pip install 'cca[gpu]'``), in a
 4. the wide field (``configs/widefield.yaml``: a 2048² frame, 25 captures), recovered whole for
    ``--iterations`` passes on both devices;
 5. the same wide field in the config's tiles (81 tiles of 256², each with its pupil), whole runs on the GPU
-   (cca's local Dask cluster, one worker per GPU) and, unless ``--skip-cpu``, on the CPU (a worker per core),
+   (cca's local Dask cluster: a worker per core, as many per GPU as its memory holds) and, unless ``--skip-cpu``,
+   on the CPU (a worker per core),
    with the blended objects' agreement.
 
 Each comparison runs the CPU engine (``device: cpu``) and the GPU engine on the same captures and options
@@ -256,7 +257,10 @@ def tiles(skip_cpu: bool) -> dict:
     config = load_config(ROOT / "configs" / "widefield.yaml")
     simulation = simulate(config)
     layout = config.reconstruct.tiles
-    out: dict = {"tiles_px": layout.size_px, "overlap_px": layout.overlap_px}
+    from cca_cli.workflows.tiled import local_tile_workers
+
+    out: dict = {"tiles_px": layout.size_px, "overlap_px": layout.overlap_px,
+                 "gpu_workers": local_tile_workers(None, None, "cuda")}
     objects = {}
     with tempfile.TemporaryDirectory(prefix="cca-gpu-tiles-") as folder:
         path = api.save(CaptureSet(simulation.intensity, simulation.geometry), Path(folder) / "captures.h5")

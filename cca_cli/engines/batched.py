@@ -96,7 +96,7 @@ def _squared_norm(xp: ModuleType, array) -> float:
     return float(xp.sum(xp.square(xp.abs(array)), dtype=xp.float64))
 
 
-def _capture_groups(count: int, size: int) -> list[slice]:
+def capture_groups(count: int, size: int) -> list[slice]:
     """``range(count)`` in contiguous groups whose m x m complex64 fields fit :data:`FIELD_BYTES`."""
     per_call = max(1, FIELD_BYTES // (size * size * 8))
     return [slice(start, min(start + per_call, count)) for start in range(0, count, per_call)]
@@ -233,7 +233,7 @@ class BatchedAlternatingMinimization(IterativeEngine):
         self._inverse_normal = backend.to_device(inverse_normal, xp)
         self._amplitudes = backend.to_device(problem.amplitudes, xp, xp.float32)
         self._weights = None if problem.weights is None else backend.to_device(problem.weights, xp, xp.float32)
-        self._groups = _capture_groups(model.n_images, model.layout.lowres_size)
+        self._groups = capture_groups(model.n_images, model.layout.lowres_size)
         self._plans = [self._operator.gather_plan(group) for group in self._groups]
         self._data_norm = problem.energy
         self._eps = problem.amplitude_floor
@@ -430,11 +430,20 @@ class BatchedMomentum(MomentumBase):
         if self._operator.fused and self.options.cost == "amplitude":
             m = self._layout.lowres_size
             self._misfit_pixels = xp.empty((int(ends[-1]) if len(ends) else 0, m, m), xp.float32)
-        targets = problem.amplitudes[order] * calibrator.target_scale(order)[:, None, None]
-        self._targets = backend.to_device(targets, xp, xp.float32)
-        self._weights = None if problem.weights is None else backend.to_device(problem.weights[order], xp, xp.float32)
+        # The captures go to the device once, in the problem's order; each arrangement reorders them there.
+        if getattr(self, "_measured", None) is None:
+            self._measured = backend.to_device(problem.amplitudes, xp, xp.float32)
+            self._confidence = None if problem.weights is None else backend.to_device(problem.weights, xp, xp.float32)
+        on_device = backend.to_device(order, xp)
+        scale = calibrator.target_scale(order)
+        if np.all(scale == 1):
+            self._targets = xp.take(self._measured, on_device, axis=0)
+        else:
+            self._targets = xp.take(self._measured, on_device, axis=0) * backend.to_device(scale, xp)[:, None, None]
+        self._weights = None if self._confidence is None else xp.take(self._confidence, on_device, axis=0)
         self._intensities = self._floors = None
         if self.options.cost == "poisson":
+            targets = problem.amplitudes[order] * scale[:, None, None]
             intensities = np.square(targets, dtype=np.float32)
             eps = problem.amplitude_floor
             floors = np.empty(order.size, np.float32)

@@ -11,15 +11,18 @@ of DC); in them the object's unscattered light reaches the sensor.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from types import ModuleType
 
 import numpy as np
 
+from cca_cli.engines.batched import BoxOperator, capture_groups
 from cca_cli.engines.illumination import CaptureStatistics, capture_statistics
 from cca_cli.engines.problem import PhaseRetrievalProblem
+from cca_cli.optics import backend
 from cca_cli.optics.forward import ForwardModel
 from cca_cli.sampling.grid import band_layout
 
-__all__ = ["FitReport", "fit_report", "bright_field"]
+__all__ = ["FitReport", "fit_report", "bright_field", "device_statistics"]
 
 
 @dataclass(frozen=True)
@@ -66,7 +69,7 @@ def _split(statistics: CaptureStatistics, brightness: np.ndarray, masks: list[np
 
 
 def fit_report(problem: PhaseRetrievalProblem, spectrum: np.ndarray, calibration=None, *,
-               threads: int = 1) -> FitReport:
+               threads: int = 1, device: str = "cpu") -> FitReport:
     """Residuals of ``spectrum`` (and an engine's calibration) against the problem's captures.
 
     Parameters
@@ -78,6 +81,9 @@ def fit_report(problem: PhaseRetrievalProblem, spectrum: np.ndarray, calibration
         problem's own model (nominal pupils and positions, brightness 1).
     threads : int
         Threads that evaluate the model (:func:`~cca_cli.engines.illumination.capture_statistics`).
+    device : str
+        ``cpu``, or ``cuda`` to evaluate the model on the GPU (:func:`device_statistics`; the figures then
+        differ from the CPU's in float32 rounding only).
 
     Returns
     -------
@@ -93,9 +99,50 @@ def fit_report(problem: PhaseRetrievalProblem, spectrum: np.ndarray, calibration
     # Every recorded pixel counts alike (a guard band or a saturated pixel, weight 0, does not): the engines'
     # confidence weights taper region edges, which would leave the misfit there out of the figure.
     recorded = None if problem.weights is None else problem.weights > 0   # a quarter of float32's bytes
-    statistics = capture_statistics(model, spectrum, problem.amplitudes, recorded, threads=threads)
+    if device == "cpu":
+        statistics = capture_statistics(model, spectrum, problem.amplitudes, recorded, threads=threads)
+    else:
+        statistics = device_statistics(backend.array_module(device), model, spectrum, problem.amplitudes, recorded)
     bright = bright_field(problem)
     masks = [np.ones_like(bright), bright, ~bright]
     per_image, (every, light, dark) = _split(statistics, brightness, masks)
     _, (every_plain, light_plain, dark_plain) = _split(statistics, np.ones_like(brightness), masks)
     return FitReport(per_image, every, light, dark, every_plain, light_plain, dark_plain, bright)
+
+
+def device_statistics(xp: ModuleType, model: ForwardModel, spectrum: np.ndarray, amplitudes: np.ndarray,
+                      recorded: np.ndarray | None = None) -> CaptureStatistics:
+    """:func:`~cca_cli.engines.illumination.capture_statistics` (no position terms) on the device of ``xp``.
+
+    The model's fields are formed by the batched engines' box operator, a group of captures per call, and
+    only the four sums per capture come back to the host.
+
+    Parameters
+    ----------
+    xp : module
+        numpy or CuPy.
+    model : ForwardModel
+    spectrum : ndarray, complex64, (M, M)
+    amplitudes : ndarray, float32, (K, m, m)
+        Measured amplitudes (field layout, model units).
+    recorded : ndarray, bool, (K, m, m), optional
+        Pixels that count (all without it).
+
+    Returns
+    -------
+    CaptureStatistics
+    """
+
+    operator = BoxOperator(xp, model.layout)
+    on_device = backend.to_device(np.asarray(spectrum, np.complex64), xp)
+    pupils = backend.to_device(np.ascontiguousarray(model.pupil_boxes, np.complex64), xp)
+    sums = xp.zeros((4, model.n_images), xp.float64)
+    for group in capture_groups(model.n_images, model.layout.lowres_size):
+        magnitude = xp.abs(operator.fields(on_device, group, pupils[group]))
+        measured = backend.to_device(amplitudes[group], xp, xp.float32)
+        weight = 1 if recorded is None else backend.to_device(recorded[group], xp).astype(xp.float32)
+        for row, term in enumerate((xp.square(magnitude - measured), xp.square(magnitude), magnitude * measured,
+                                    xp.square(measured))):
+            sums[row, group] = xp.sum(weight * term, axis=(1, 2), dtype=xp.float64)
+    misfit, power, cross, energy = backend.to_host(sums)
+    return CaptureStatistics(misfit, power, cross, energy, None, None)

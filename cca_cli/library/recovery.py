@@ -623,7 +623,8 @@ def _recover(captures: CaptureSet, engine: str, options: EngineOptions, *, progr
         units=captures.units, band_grid_px=model.layout.lowres_size,
         pupil=None if found is None else calibrated_pupils(found, captures.geometry.pupil_radius_px),
         positions_px=None if found is None else found.centres_px, calibration=found,
-        fit=fit_report(problem, spectrum, found, threads=getattr(options, "threads", None) or fft.default_threads()),
+        fit=fit_report(problem, spectrum, found, threads=getattr(options, "threads", None) or fft.default_threads(),
+                       device=device),
         dropped=captures.dropped,
         held_back=tuple(int(i) for i in runner.held_back), device=device)
 

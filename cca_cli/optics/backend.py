@@ -145,6 +145,19 @@ def gpu_count() -> int:
         return 0
 
 
+def gpu_memory_bytes() -> int:
+    """Memory of the smallest CUDA GPU CuPy sees, in bytes (0 without CuPy, a driver or a GPU)."""
+    cupy = cupy_module()
+    if cupy is None:
+        return 0
+    try:
+        count = int(cupy.cuda.runtime.getDeviceCount())
+        return min((int(cupy.cuda.runtime.getDeviceProperties(i)["totalGlobalMem"]) for i in range(count)),
+                   default=0)
+    except Exception:  # noqa: BLE001 - no driver, no device: CuPy raises its own CUDA errors
+        return 0
+
+
 def gpu_for_worker(number: int, count: int) -> int:
     """The GPU (0 … count − 1) the local worker numbered ``number`` takes: workers spread over the GPUs."""
     if count < 1:

@@ -260,12 +260,25 @@ def plan_tiled(captures_path: Path, section: ReconstructSection) -> TiledPlan:
     return TiledPlan(Path(captures_path), frame, geometry, tiles, int(math.ceil(ratio - 1e-9)))
 
 
+#: GPU memory a local tile worker on a GPU is given room for: its CUDA context (about 0.5 GB) and CuPy's pool of a
+#: tile's arrays, with room to spare.
+GPU_BYTES_PER_TILE_WORKER = 2 << 30
+
+
 def local_tile_workers(workers: int | None, scheduler: str | None, device: str) -> int | None:
-    """The local workers a tiled run starts: ``workers`` as asked; none at a ``scheduler``; on a GPU
-    (``device`` ``cuda``, resolved) one per GPU (one CUDA context each); else None, one per core."""
+    """The local workers a tiled run starts: ``workers`` as asked; none at a ``scheduler``; else None, one per core.
+
+    On a GPU (``device`` ``cuda``, resolved) one per core as well, the workers spread over the GPUs, but no more
+    per GPU than its memory holds at :data:`GPU_BYTES_PER_TILE_WORKER` each. A tile's GPU work is small and each
+    pass waits on its host's Python, so several processes keep one GPU busy where one would leave it idle.
+    """
     if workers is not None or scheduler is not None:
         return workers
-    return max(1, backend.gpu_count()) if device == "cuda" else None
+    if device != "cuda":
+        return None
+    gpus = max(1, backend.gpu_count())
+    per_gpu = min(max(1, fft.cpu_count() // gpus), max(1, backend.gpu_memory_bytes() // GPU_BYTES_PER_TILE_WORKER))
+    return gpus * per_gpu
 
 
 def _tile_device(section: ReconstructSection, plan: TiledPlan) -> str:

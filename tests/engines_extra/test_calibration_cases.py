@@ -228,3 +228,32 @@ def test_capture_statistics_read_a_recorded_mask_as_weights_of_one_and_zero():
     for name in ("misfit", "power", "cross", "energy"):
         assert np.array_equal(getattr(as_bool, name), getattr(as_float, name))
         assert np.all(getattr(as_bool, name) < getattr(every, name))
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_the_device_fit_statistics_are_the_cpu_s(masked, monkeypatch):
+    """The GPU's fit report (here its arithmetic on numpy arrays) sums what the CPU's does, with or without a
+    mask of recorded pixels, and the report built on it reads the same."""
+    from cca_cli.engines.fit import device_statistics
+    from cca_cli.engines.illumination import capture_statistics
+
+    problem, _, spectrum = led_case()
+    recorded = None
+    if masked:
+        recorded = np.ones_like(problem.amplitudes, dtype=bool)
+        recorded[:, :3] = False
+    cpu = capture_statistics(problem.model, spectrum, problem.amplitudes, recorded, threads=1)
+    device = device_statistics(np, problem.model, spectrum, problem.amplitudes, recorded)
+    for name in ("misfit", "power", "cross", "energy"):
+        assert np.allclose(getattr(device, name), getattr(cpu, name), rtol=1e-5, atol=0)
+    assert device.gradient is None and device.curvature is None
+    from cca_cli.engines import fit
+    from cca_cli.optics import backend
+
+    taken = []
+    monkeypatch.setattr(backend, "array_module", lambda device: taken.append(device) or np)
+    monkeypatch.setattr(fit, "capture_statistics", None)   # the CPU's path is not taken
+    on_device = fit_report(problem, spectrum, device="cuda", threads=2)
+    monkeypatch.undo()
+    assert taken == ["cuda"]
+    assert on_device.all == pytest.approx(fit_report(problem, spectrum).all, rel=1e-5)

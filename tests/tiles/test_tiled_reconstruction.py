@@ -280,6 +280,22 @@ def test_local_workers_spread_over_the_gpus_and_others_keep_theirs(monkeypatch):
     monkeypatch.delenv(LOCAL_WORKER)
 
 
+@pytest.mark.parametrize("gpus, cores, gib, expected", [(1, 16, 139, 16), (1, 16, 8, 4), (1, 2, 80, 2),
+                                                          (2, 16, 80, 16), (4, 2, 80, 4), (1, 16, 1, 1)])
+def test_a_tiled_run_on_gpus_starts_a_worker_per_core_that_their_memory_holds(monkeypatch, gpus, cores, gib,
+                                                                              expected):
+    from cca_cli.optics import backend, fft
+    from cca_cli.workflows import tiled
+
+    monkeypatch.setattr(backend, "gpu_count", lambda: gpus)
+    monkeypatch.setattr(backend, "gpu_memory_bytes", lambda: gib << 30)
+    monkeypatch.setattr(fft, "cpu_count", lambda: cores)
+    assert tiled.local_tile_workers(None, None, "cuda") == expected
+    assert tiled.local_tile_workers(None, None, "cpu") is None          # one per core, the cluster's default
+    assert tiled.local_tile_workers(3, None, "cuda") == 3               # --workers as asked
+    assert tiled.local_tile_workers(None, "tcp://host:8786", "cuda") is None
+
+
 @pytest.mark.gpu
 def test_tiles_on_the_gpu_match_the_cpu_tiles(tmp_path, frame_captures, frame_config, client):
     """The same tiled run on the GPU and on the CPU: the same tiles, the blended objects alike."""
