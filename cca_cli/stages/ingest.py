@@ -33,6 +33,7 @@ from cca_cli.io.images import read_stored
 from cca_cli.io.manifest import CapturePlan, plan_captures, read_manifest, read_pupil
 from cca_cli.io.records import write_sensor_records
 from cca_cli.io.stacks import read_stack
+from cca_cli.library.axis import axis_offset
 from cca_cli.library.orientation import recorded_orientation_advice
 from cca_cli.library.recovery import UNLIT_FACTOR, judge_bright_field
 from cca_cli.io.sensor import (Decoding, FrameValues, SensorRule, board_decodings, decide_decoding, frame_values,
@@ -378,8 +379,12 @@ def ingest(manifest_path: Path, *, progress: ProgressFn = silent) -> Ingested:
         geometry = replace(geometry, camera_index=plan.camera_index)
     check_geometry(plan, geometry, (h, w))
     check_neighbours_overlap(plan, geometry)
+    off_axis = off_axis_board(plan, geometry, frames)
+    # captures an off-axis board puts in the bright field look unlit: the board, not their LEDs, is the cause
     notes += (stray_positions(plan, geometry) + crowded_neighbours(plan, geometry)
-              + dark_bright_field(plan, geometry, frames))
+              + ([] if off_axis else dark_bright_field(plan, geometry, frames)))
+    if manifest.source is None and not plan.darks and "black_level" not in manifest.sensor.model_fields_set:
+        notes += offset_left_in(plan, geometry, frames)
     if manifest.sensor.frame_scale == "per_frame":
         notes.append("sensor.frame_scale is per_frame: the images' relative brightness is unknown, so reconstruct's "
                      "momentum engine (engine: auto on recorded captures) fits each capture's brightness "
@@ -388,6 +393,9 @@ def ingest(manifest_path: Path, *, progress: ProgressFn = silent) -> Ingested:
     unique_notes = [n for n in notes if not (n in seen or seen.add(n))]
     for note in unique_notes:
         _log.warning("note: %s", note)
+    if off_axis:
+        _log.warning("%s: %s", manifest_path, off_axis)
+        unique_notes.append(off_axis)
     return Ingested(plan=plan, frames=frames, exposure_s=plan.exposure_s, saturation_level=saturation,
                     geometry=geometry, sensor=calibration, board_views=boards, initial_pupil=pupil,
                     notes=unique_notes)
@@ -574,6 +582,80 @@ def dark_bright_field(plan: CapturePlan, geometry: CaptureGeometry, frames: np.n
     return [f"{plan.labels[i]} is in the bright field but recorded {how_much(t)} than the median bright-field "
             "capture: did its LED fire? (reconstruct leaves it out; check that row)"
             for i, t in zip(judged.unlit, judged.times_darker)]
+
+
+def off_axis_board(plan: CapturePlan, geometry: CaptureGeometry, frames: np.ndarray) -> str:
+    """A warning where the bright-field images put the optical axis elsewhere among the LEDs than the manifest
+    does (:func:`~cca_cli.library.axis.axis_offset`), with the ``led_axis_m`` (or the sines' correction) that
+    puts it there; empty otherwise.
+
+    An LED board half a pitch off its axis, or a grid whose listed rows and columns do not centre on it, passes
+    every other check: the recovery fits it with a tilted phase and stripes.
+    """
+    if plan.kind != "led_array":
+        return ""
+    found = axis_offset(frames[:, 0], geometry.spectrum_centres_yx_px, geometry.pupil_radius_px)
+    if found is None or not found.off_axis:
+        return ""
+    illumination = plan.manifest.illumination
+    per_sine = geometry.field_width_m / geometry.wavelength_m          # spectrum px per unit of sin θ
+    sine_y, sine_x = illumination.sign * found.shift_yx_px / per_sine   # what the given sines lack
+    text = (f"the bright-field images put the optical axis {found.radii:.2f} pupil radii from where the LED positions "
+            f"put it: their sin θ [x, y] read [{sine_x:+.4f}, {sine_y:+.4f}] off (from the edges of the pupil circles "
+            f"in the images' spectra, {found.gain:.1f} times sharper there). ")
+    depth = _led_depths_mm(plan)
+    if depth is not None:
+        axis = illumination.led_axis_m
+        moved = (axis[0] - sine_x * depth / 1e3, axis[1] - sine_y * depth / 1e3)
+        text += (f"Is the LED board off the axis? Set illumination.led_axis_m: [{round(moved[0], 5):g}, {round(moved[1], 5):g}] "
+                 "(metres, where the axis meets the LED plane)")
+    else:
+        text += f"Add [{sine_x:+.4f}, {sine_y:+.4f}] to every [kx_norm, ky_norm]"
+    return text + ("; reconstruct cannot fit a shift common to every LED (it tilts the object's phase), and its "
+                   "images then show stripes")
+
+
+#: Dark-field images whose darkest 1% of pixels read this fraction of their mean or more (the median over them)
+#: carry an offset the object did not scatter. The recorded corpus's sets read 0 with their black levels (a
+#: blood smear's dense cells, HDR-merged, 0.10); a 16-bit camera's 100-count offset left in, 0.31.
+OFFSET_SHARE = 0.2
+
+
+def offset_left_in(plan: CapturePlan, geometry: CaptureGeometry, frames: np.ndarray) -> list[str]:
+    """A note where an LED array's dark-field images never fall near zero: a camera offset (black level) left in.
+
+    It adds light to every dark-field capture that the object did not scatter, which the recovery then takes
+    for the object's (a haze, and a worse fit of the dark field).
+    """
+    if plan.kind != "led_array":
+        return []
+    centres = np.asarray(geometry.spectrum_centres_yx_px, np.float64)
+    dark = np.flatnonzero(np.hypot(centres[:, 0], centres[:, 1]) > 1.2 * geometry.pupil_radius_px)
+    if dark.size < 5:
+        return []
+    images = frames[dark, 0].reshape(dark.size, -1)
+    means = images.mean(axis=1, dtype=np.float64)
+    lit = means > 0
+    if lit.sum() < 5:
+        return []
+    share = float(np.median(np.percentile(images[lit], 1, axis=1) / means[lit]))
+    if share < OFFSET_SHARE:
+        return []
+    return [f"the dark-field images never fall near zero (their darkest 1% of pixels at {share:.0%} of their mean, "
+            f"the median of {int(lit.sum())} images): is the camera's offset left in? Set sensor.black_level (the "
+            "reading with no light) or give dark frames; an offset adds light the object did not scatter"]
+
+
+def _led_depths_mm(plan: CapturePlan) -> float | None:
+    """The LEDs' median distance from the sample (mm) where the manifest gives their positions in its plane, else
+    None (sines given)."""
+    coherent = [e for e in plan.manifest.images if e.kind == "coherent"]
+    if not coherent or any(e.led_x_mm is None for e in coherent):
+        return None
+    distance = plan.manifest.illumination.led_distance_m
+    depths = [e.led_z_mm if e.led_z_mm is not None else (None if distance is None else distance * 1e3)
+              for e in coherent]
+    return None if any(d is None for d in depths) else float(np.median(depths))
 
 
 def _optics_keys(plan: CapturePlan) -> str:
