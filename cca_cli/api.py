@@ -592,7 +592,7 @@ def reconstruct_tiles(captures, geometry: CaptureGeometry | None = None, *, size
         Also write the result as a recon.h5 there (``cca report`` reads it).
     client : distributed.Client, optional
         Where the tiles run; default a local cluster of ``workers`` processes (one per core; with
-        ``device="cuda"`` one per GPU), or ``scheduler``.
+        ``device="cuda"`` also one per core, as many per GPU as its memory holds), or ``scheduler``.
     device : {"cpu", "cuda", "auto"}
         Where every tile's engine runs, as ``reconstruct.device``.
     **options
