@@ -22,8 +22,8 @@ __all__ = ["ingest_cli", "hdr_cli", "register_cli"]
 
 @handle_errors
 def ingest_cli(
-    manifest: Annotated[Path, typer.Argument(help="Capture manifest (YAML, or CSV with a YAML sidecar).",
-                                             show_default=False)],
+    manifest: Annotated[Path, typer.Argument(help="Capture manifest (YAML, or CSV with a YAML sidecar), or a "
+                                                  "PtyLab FPM dataset (.hdf5).", show_default=False)],
     output: Annotated[Path, typer.Option("--output", "-o", help="raw file to write.")] = Path("raw.h5"),
     force: Force = False,
     quiet: Quiet = False,

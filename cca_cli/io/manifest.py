@@ -32,6 +32,7 @@ from cca_cli.config.messages import accepted_keys, error_message, shown_value
 from cca_cli.config.yaml_text import read_text_file, read_yaml_file
 from cca_cli.errors import ConfigError, InputError, short
 from cca_cli.io.h5 import unique_paths
+from cca_cli.io.ptylab import is_ptylab_file, read_ptylab
 from cca_cli.sampling.geometry import unit_slip
 
 __all__ = ["Manifest", "ImageEntry", "CapturePlan", "LoadedManifest", "KINDS", "TABLE_COLUMNS", "load_manifest",
@@ -183,11 +184,23 @@ class CheckerboardSpec(_Strict):
 
 
 class SourceSpec(_Strict):
-    """Images stored in one MATLAB file (already merged, one image per illumination)."""
+    """Images stored in one file (already merged, one image per illumination): a MATLAB variable with a table of
+    the LEDs' sines, or a PtyLab FPM dataset (its images and geometry, :mod:`cca_cli.io.ptylab`)."""
 
-    mat: Path
+    mat: Path | None = None
     variable: str = "imlow_HDR"
-    illumination_csv: Path
+    illumination_csv: Path | None = None
+    ptylab: Path | None = Field(None, description="A PtyLab FPM dataset (HDF5: ptychogram, encoder, zled, …).")
+
+    @model_validator(mode="after")
+    def _one_file(self):
+        if (self.mat is None) == (self.ptylab is None):
+            raise ValueError("give one of mat (with illumination_csv) or ptylab")
+        if self.mat is not None and self.illumination_csv is None:
+            raise ValueError("mat needs illumination_csv: the table of each image's LED (kx_norm, ky_norm)")
+        if self.ptylab is not None and self.illumination_csv is not None:
+            raise ValueError("a ptylab file holds its LEDs' positions: remove illumination_csv")
+        return self
 
 
 class UnitsSpec(_Strict):
@@ -296,6 +309,8 @@ class Manifest(_Strict):
             raise ValueError("give exactly one of images, images_csv or source")
         if self.source is not None and self.illumination is None:
             raise ValueError("source (a .mat of LED-array images) needs an illumination section")
+        if self.source is not None and self.source.ptylab is not None and self.optics is not None:
+            raise ValueError("source.ptylab holds an LED-array microscope: give illumination keys, not optics")
         if self.image_files is not None and self.images_csv is None:
             raise ValueError("image_files names the files of an image table's rows; give images_csv too")
         return self
@@ -390,6 +405,28 @@ def _first_error(exc: ValidationError) -> dict:
     """A misspelled key explains a missing one, so report unknown keys first."""
     errors = exc.errors()
     return next((e for e in errors if e["type"] == "extra_forbidden"), errors[0])
+
+
+def _with_ptylab(data: dict, path: Path, source: str, files: list[Path], notes: list[str]) -> LoadedManifest:
+    """A manifest whose images are a PtyLab FPM file: its illumination keys from the file, the manifest's own
+    ``illumination`` keys over them (``numerical_aperture`` where the file has no ``NA``)."""
+    ptylab = Path(data["source"]["ptylab"])
+    if not ptylab.is_file():
+        raise InputError(f"{ptylab}: file not found (manifest source.ptylab); check the path")
+    found = read_ptylab(ptylab)
+    given = data.get("illumination") or {}
+    if not isinstance(given, dict):
+        raise ConfigError(f"{source}: illumination must be a mapping of keys")
+    if found.numerical_aperture is None and "numerical_aperture" not in given:
+        where = "in a manifest beside it: source: {ptylab: " + ptylab.name + "}, illumination: {numerical_aperture: …}" \
+            if path == ptylab else f"in {source}'s illumination section"
+        raise ConfigError(f"{ptylab}: has no NA, and cca needs the objective's numerical aperture: give it {where}")
+    data = {**data, "illumination": {**found.illumination(), **given}}
+    try:
+        manifest = Manifest.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(_describe(_first_error(exc), source)) from None
+    return LoadedManifest(manifest, [*files, ptylab] if ptylab not in files else files, [*notes, *found.notes])
 
 
 def _read_mapping(path: Path, what: str) -> dict:
@@ -766,6 +803,9 @@ def read_manifest(path: str | Path) -> LoadedManifest:
     """
     path = Path(path)
     files = [path]
+    if path.suffix.lower() in (".h5", ".hdf5") and is_ptylab_file(path):
+        data = {"source": {"ptylab": str(path.resolve())}}
+        return _with_ptylab(data, path, str(path), files, [])
     if path.suffix.lower() == ".csv":
         if not path.is_file():
             raise InputError(f"{path}: manifest not found; check the path")
@@ -790,6 +830,10 @@ def read_manifest(path: str | Path) -> LoadedManifest:
         data, from_setup, setup_ignored = _merge_setup(data, setup_path, source, notes)
         data["setup"] = str(setup_path)
         files.append(setup_path)
+    given = data.get("source")
+    if isinstance(given, dict) and given.get("ptylab") is not None:
+        data = {**data, "source": {**given, "ptylab": str(_resolve(path.parent, given["ptylab"]))}}
+        return _with_ptylab(data, path, source, files, notes)
     try:
         manifest = Manifest.model_validate(data)
     except ValidationError as exc:
@@ -823,7 +867,7 @@ def read_manifest(path: str | Path) -> LoadedManifest:
     if manifest.images_csv is None and manifest.images is not None:
         manifest = manifest.model_copy(update={"images": [e.model_copy(update={"path": _resolve(base, e.path)})
                                                           for e in manifest.images]})
-    if manifest.source is not None:
+    if manifest.source is not None and manifest.source.mat is not None:
         manifest = manifest.model_copy(update={"source": manifest.source.model_copy(update={
             "mat": _resolve(base, manifest.source.mat),
             "illumination_csv": _resolve(base, manifest.source.illumination_csv)})})
@@ -871,7 +915,8 @@ def manifest_files(path: str | Path) -> list[Path]:
     if manifest.images is not None:
         files += [e.path for e in manifest.images]
     if manifest.source is not None:
-        files += [manifest.source.mat, manifest.source.illumination_csv]
+        files += [f for f in (manifest.source.mat, manifest.source.illumination_csv, manifest.source.ptylab)
+                  if f is not None]
     return unique_paths(files)   # a CSV manifest is also its own table
 
 
@@ -1050,6 +1095,15 @@ def _mat_plan(manifest: Manifest, path: Path) -> CapturePlan:
     return CapturePlan(manifest, path, [[] for _ in rows], np.ones((len(rows), 1)), positions, grid, labels)
 
 
+def _ptylab_plan(manifest: Manifest, path: Path, notes: list[str]) -> CapturePlan:
+    """One position per image of a PtyLab file, at its LED's sines."""
+    found = read_ptylab(manifest.source.ptylab)
+    ky, kx = found.sines_yx[:, 0], found.sines_yx[:, 1]
+    labels = [f"image {i + 1} (kx {a:+.4f}, ky {b:+.4f})" for i, (a, b) in enumerate(zip(kx, ky))]
+    return CapturePlan(manifest, path, [[] for _ in labels], np.ones((len(labels), 1)), found.sines_yx.copy(), None,
+                       labels, notes=list(notes))
+
+
 def plan_captures(manifest: Manifest, path: str | Path, *, notes: list[str] | None = None) -> CapturePlan:
     """Group a manifest's images by kind and position and check the exposure brackets.
 
@@ -1068,6 +1122,8 @@ def plan_captures(manifest: Manifest, path: str | Path, *, notes: list[str] | No
         the reverse), rows stating different bit depths, or no coherent rows.
     """
     path = Path(path)
+    if manifest.source is not None and manifest.source.ptylab is not None:
+        return _ptylab_plan(manifest, path, notes or [])
     if manifest.source is not None:
         return _mat_plan(manifest, path)
     manifest = _led_positions_as_sines(manifest, path)

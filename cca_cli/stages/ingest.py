@@ -31,6 +31,7 @@ from cca_cli.io.geometry import write_geometry
 from cca_cli.io.h5 import Provenance, atomic_h5, check_output, write_dataset
 from cca_cli.io.images import read_stored
 from cca_cli.io.manifest import CapturePlan, plan_captures, read_manifest, read_pupil
+from cca_cli.io.ptylab import read_ptylab_images
 from cca_cli.io.records import write_sensor_records
 from cca_cli.io.stacks import read_stack
 from cca_cli.library.axis import axis_offset
@@ -71,12 +72,17 @@ class Ingested:
 
 
 def _read_mat(plan: CapturePlan) -> np.ndarray:
-    """The images of ``source.mat`` (K, 1, H, W), float32, one per row of the illumination table."""
+    """The images of ``source.mat`` (one per row of the illumination table) or of ``source.ptylab``, (K, 1, H, W),
+    float32."""
     source = plan.manifest.source
-    stack = read_stack(source.mat, source.variable, len(plan.labels), table=source.illumination_csv.name)
+    if source.ptylab is not None:
+        stack, where = read_ptylab_images(source.ptylab, len(plan.labels)), source.ptylab
+    else:
+        stack, where = read_stack(source.mat, source.variable, len(plan.labels), table=source.illumination_csv.name), \
+            source.mat
     bad = ~np.isfinite(stack).reshape(stack.shape[0], -1).all(axis=1)
     if bad.any():
-        raise InputError(f"{source.mat}: {plan.labels[int(np.argmax(bad))]} contains NaN or infinite pixels; fix or drop it")
+        raise InputError(f"{where}: {plan.labels[int(np.argmax(bad))]} contains NaN or infinite pixels; fix or drop it")
     return stack[:, None]
 
 
