@@ -300,6 +300,7 @@ def merge_exposures(
     min_weight: float = 1e-3,
     saturation_margin: float = 0.01,
     smoothing_px: int = 2,
+    warn_saturated: bool = True,
 ) -> HdrResult:
     """Merge linear exposures into a radiance map in counts per second.
 
@@ -329,6 +330,9 @@ def merge_exposures(
     smoothing_px : int, optional
         Radius of the box filter applied to the first estimate before it sets
         the weights (0: none).
+    warn_saturated : bool, optional
+        Log a warning where over 1% of the pixels are saturated in every exposure (a caller merging many
+        brackets says it once for all of them instead).
 
     Returns
     -------
@@ -392,7 +396,7 @@ def merge_exposures(
     saturated_fraction = float(all_saturated.sum()) / n_pix
     underexposed_fraction = float((valid & (snr < 1)).sum()) / n_pix
     exposure_ratio = float(np.max(t.max(axis=-1) / t.min(axis=-1)))
-    if saturated_fraction > 0.01:
+    if warn_saturated and saturated_fraction > 0.01:
         _log.warning("%.1f%% of pixels are saturated in every exposure; add a shorter exposure",
                      100 * saturated_fraction)
     return HdrResult(radiance=radiance, variance=merged_var, weight=weight, valid=valid, flux_ratio=flux_ratio,

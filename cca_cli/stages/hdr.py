@@ -104,11 +104,13 @@ def run(raw_path: Path, section: HdrSection | None, output: Path, *, provenance:
         weight = np.empty_like(radiance)
         gain, dynamic_range, valid = np.empty(k), np.empty(k), np.empty(k)
         flux, flux_sigma = np.empty((k, e)), np.empty((k, e))
+        saturated = np.zeros(k)
         ratio = 1.0
         for i in range(k):
             try:
                 res = merge_exposures(frames[i], exposure[i], saturation_level=levels(i), noise=noise,
-                                      min_weight=section.min_weight, saturation_margin=section.saturation_margin)
+                                      min_weight=section.min_weight, saturation_margin=section.saturation_margin,
+                                      warn_saturated=False)
             except ValueError as exc:
                 if "saturation" in str(exc):
                     raise ConfigError(f"hdr: {exc}") from None
@@ -117,7 +119,11 @@ def run(raw_path: Path, section: HdrSection | None, output: Path, *, provenance:
             gain[i], dynamic_range[i], valid[i] = res.dynamic_range_gain, res.dynamic_range, float(res.valid.mean())
             flux[i], flux_sigma[i] = res.flux_ratio, res.flux_ratio_sigma
             ratio = max(ratio, res.exposure_ratio)
+            saturated[i] = res.saturated_fraction
             progress(ProgressEvent("hdr", "positions", i + 1, k))
+        warning = saturated_note(saturated, labels)
+        if warning:
+            _log.warning("%s: %s", raw_path, warning)
         flagged = _flag_flux(flux, flux_sigma, labels, section.flux_tolerance)
         if values == "amplitude":
             radiance = np.square(np.maximum(radiance, 0))
@@ -148,6 +154,23 @@ def run(raw_path: Path, section: HdrSection | None, output: Path, *, provenance:
             carry_capture_records(src, handle)
     return HdrOutcome(n_positions=k, n_exposures=e, dynamic_range_gain=gain, valid_fraction=valid,
                       exposure_ratio=ratio, flux_ratio=flux, noise=noise, flagged=tuple(flagged))
+
+
+#: Share of a position's pixels saturated in every exposure above which it is named.
+SATURATED_SHARE = 0.01
+
+
+def saturated_note(saturated: np.ndarray, labels: list[str]) -> str:
+    """One warning naming the positions whose pixels are saturated in every exposure beyond :data:`SATURATED_SHARE`
+    (the worst three first), or an empty string."""
+    over = np.flatnonzero(np.asarray(saturated) > SATURATED_SHARE)
+    if not over.size:
+        return ""
+    worst = over[np.argsort(-np.asarray(saturated)[over], kind="stable")][:3]
+    named = ", ".join(f"{labels[i]} {100 * saturated[i]:.1f}%" for i in worst)
+    more = f" and {over.size - worst.size} more" if over.size > worst.size else ""
+    return (f"{over.size} of {len(saturated)} positions have pixels saturated in every exposure ({named}{more}): "
+            "their radiance there is only a lower bound; add a shorter exposure at those positions")
 
 
 def _flag_flux(flux: np.ndarray, sigma: np.ndarray, labels: list[str], tolerance: float) -> list[str]:

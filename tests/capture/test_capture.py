@@ -103,6 +103,20 @@ def test_hdr_stage_recovers_radiance_within_one_percent(tmp_path):
     assert not ok[:3].any() and ok[3:].all()
     rel = np.abs(merged[ok] - radiance[ok]) / radiance[ok]
     assert rel.max() < 0.01, rel.max()
+    # one warning for the whole set, naming the position and its share (3 rows of 24: 12.5%)
+    said = " ".join(result.output.split())
+    assert said.count("saturated in every exposure") == 1
+    assert "1 of 1 positions have pixels saturated in every exposure (" in said and "12.5%)" in said
+
+
+def test_positions_saturated_in_every_exposure_are_named_in_one_line():
+    from cca_cli.stages.hdr import saturated_note
+
+    labels = [f"image {i}" for i in range(6)]
+    assert saturated_note(np.array([0, 0.005, 0, 0, 0, 0]), labels) == ""
+    note = saturated_note(np.array([0.02, 0.5, 0, 0.03, 0.2, 0.011]), labels)
+    assert note.startswith("5 of 6 positions have pixels saturated in every exposure (image 1 50.0%, image 4 20.0%, "
+                           "image 3 3.0% and 2 more)")
 
 
 def _small_set(tmp_path: Path, n: int = 2, size=(16, 16), **extra) -> Path:
