@@ -41,9 +41,10 @@ CLEARLY_BETTER = 0.9
 _FIXES = {
     "x and y swapped": "exchange the x and y position columns (stage_x/stage_y, led_x/led_y, kx_norm/ky_norm, or "
                        "row/col for a board given by its indices; columns: in the manifest)",
-    "x flipped": "negate the x positions (or the y ones; for a board given by its indices, count the columns the "
-                 "other way): one axis runs the other way (for a camera scan, check which way the stage moves the "
-                 "camera)",
+    "x flipped": "negate the x positions or the y ones (for a board given by its indices, count the columns or "
+                 "the rows the other way): one axis runs the other way; the intensities cannot tell which, and the "
+                 "two differ only in the sign of the object's phase (for a camera scan, check which way the stage "
+                 "moves the camera)",
     "x and y swapped, then x flipped": "exchange the x and y position columns (or row/col) and negate one of them "
                                        "(or count one index the other way)",
 }
