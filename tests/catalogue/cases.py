@@ -952,6 +952,16 @@ case("config-is-a-manifest", "messages", ["simulate", "lab/manifest.yaml", "-o",
      {"lab": Copy("manifest_dir")}, exit=2, says=("manifest.yaml",))
 case("workers-huge", "resources", ["sweep", "grid", "cfg.yaml", "--set", "noise.snr_db=20,30", "--workers", "100000",
                                    "--out-dir", "sw"], {"cfg.yaml": Config()}, exit=2, says=("--workers",))
+BOTH_CLUSTERS = ["--workers", "2", "--scheduler", "tcp://127.0.0.1:{dead_port}"]
+case("workers-and-scheduler-sweep", "usage", ["sweep", "grid", "cfg.yaml", "--set", "noise.snr_db=20,30", "--out-dir",
+                                              "sw", *BOTH_CLUSTERS], {"cfg.yaml": Config()}, exit=2,
+     says=("--workers", "--scheduler", "exclude each other"), seconds=5)
+case("workers-and-scheduler-run", "usage", RUN + BOTH_CLUSTERS, {"cfg.yaml": Config()}, exit=2,
+     says=("--workers", "--scheduler", "exclude each other"), seconds=5)
+case("workers-and-scheduler-reconstruct", "usage", REC + BOTH_CLUSTERS, {"in.h5": Copy("captures")}, exit=2,
+     says=("--workers", "--scheduler", "exclude each other"), seconds=5)
+
+
 def _no_probe_left(folder: Path, result) -> None:
     assert not list((folder / "out").glob(".cca-probe*"))
 
