@@ -72,3 +72,19 @@ def test_the_readme_s_led_array_lab_example_ingests_and_reconstructs_as_written(
         assert "warning" not in result.output, result.output
     recovered = cca.load(tmp_path / "recon.h5")
     assert recovered.fit.all < 0.1
+
+
+def _flat(text: str) -> str:
+    """``text`` with every run of white space (line breaks included) as one space."""
+    return " ".join(text.split())
+
+
+def test_the_exit_codes_the_readme_lists_are_the_errors_codes():
+    from cca_cli.errors import ConfigError, InputError, OutputError, ResourceError, RunLockedError
+
+    text = _flat(README)
+    assert (f"config or command line {ConfigError.exit_code}, input file {InputError.exit_code}, "
+            f"output {OutputError.exit_code} (an unwritable output folder too), memory or disk "
+            f"{ResourceError.exit_code}, a run folder or output that another cca command is writing "
+            f"{RunLockedError.exit_code}, Ctrl-C 130") in text
+    assert "in use 6" not in text
