@@ -88,3 +88,22 @@ def test_the_exit_codes_the_readme_lists_are_the_errors_codes():
             f"{ResourceError.exit_code}, a run folder or output that another cca command is writing "
             f"{RunLockedError.exit_code}, Ctrl-C 130") in text
     assert "in use 6" not in text
+
+
+def test_the_python_section_names_the_force_that_save_and_export_take(tmp_path, small_camera_array):
+    import inspect
+
+    import pytest
+
+    import cca_cli as cca
+    from cca_cli.errors import OutputExistsError
+
+    section = _flat(README[README.index("## Python\n"):README.index("## Config format\n")])
+    assert "`OutputExistsError`" in section and "pass `force=True`" in section
+    for function in (cca.save, cca.export):
+        assert inspect.signature(function).parameters["force"].default is False
+    captures = cca.CaptureSet(*small_camera_array())
+    path = cca.save(captures, tmp_path / "captures.h5")
+    with pytest.raises(OutputExistsError):   # the example run a second time
+        cca.save(captures, path)
+    assert cca.save(captures, path, force=True) == path
