@@ -107,3 +107,14 @@ def test_the_python_section_names_the_force_that_save_and_export_take(tmp_path, 
     with pytest.raises(OutputExistsError):   # the example run a second time
         cca.save(captures, path)
     assert cca.save(captures, path, force=True) == path
+
+
+def test_the_readme_s_python_versions_are_pyproject_s():
+    import re
+
+    pyproject = (Path(__file__).resolve().parents[1] / "pyproject.toml").read_text()
+    oldest = re.search(r'requires-python = ">=(3\.\d+)"', pyproject).group(1)
+    ci = (Path(__file__).resolve().parents[1] / ".ci" / "run").read_text()
+    tested = sorted(set(re.findall(r"find_python (3\.\d+)", ci)), key=lambda v: int(v.split(".")[1]))
+    assert f"(Python {oldest} or newer; CI tests {' and '.join(tested)})" in _flat(README)
+    assert not re.search(r"Python 3\.\d+ to 3\.\d+", README)   # no upper bound that pyproject does not state
