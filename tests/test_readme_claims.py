@@ -72,3 +72,49 @@ def test_the_readme_s_led_array_lab_example_ingests_and_reconstructs_as_written(
         assert "warning" not in result.output, result.output
     recovered = cca.load(tmp_path / "recon.h5")
     assert recovered.fit.all < 0.1
+
+
+def _flat(text: str) -> str:
+    """``text`` with every run of white space (line breaks included) as one space."""
+    return " ".join(text.split())
+
+
+def test_the_exit_codes_the_readme_lists_are_the_errors_codes():
+    from cca_cli.errors import ConfigError, InputError, OutputError, ResourceError, RunLockedError
+
+    text = _flat(README)
+    assert (f"config or command line {ConfigError.exit_code}, input file {InputError.exit_code}, "
+            f"output {OutputError.exit_code} (an unwritable output folder too), memory or disk "
+            f"{ResourceError.exit_code}, a run folder or output that another cca command is writing "
+            f"{RunLockedError.exit_code}, Ctrl-C 130") in text
+    assert "in use 6" not in text
+
+
+def test_the_python_section_names_the_force_that_save_and_export_take(tmp_path, small_camera_array):
+    import inspect
+
+    import pytest
+
+    import cca_cli as cca
+    from cca_cli.errors import OutputExistsError
+
+    section = _flat(README[README.index("## Python\n"):README.index("## Config format\n")])
+    assert "`OutputExistsError`" in section and "pass `force=True`" in section
+    for function in (cca.save, cca.export):
+        assert inspect.signature(function).parameters["force"].default is False
+    captures = cca.CaptureSet(*small_camera_array())
+    path = cca.save(captures, tmp_path / "captures.h5")
+    with pytest.raises(OutputExistsError):   # the example run a second time
+        cca.save(captures, path)
+    assert cca.save(captures, path, force=True) == path
+
+
+def test_the_readme_s_python_versions_are_pyproject_s():
+    import re
+
+    pyproject = (Path(__file__).resolve().parents[1] / "pyproject.toml").read_text()
+    oldest = re.search(r'requires-python = ">=(3\.\d+)"', pyproject).group(1)
+    ci = (Path(__file__).resolve().parents[1] / ".ci" / "run").read_text()
+    tested = sorted(set(re.findall(r"find_python (3\.\d+)", ci)), key=lambda v: int(v.split(".")[1]))
+    assert f"(Python {oldest} or newer; CI tests {' and '.join(tested)})" in _flat(README)
+    assert not re.search(r"Python 3\.\d+ to 3\.\d+", README)   # no upper bound that pyproject does not state

@@ -12,7 +12,7 @@ from cca_cli.config.messages import error_message
 from cca_cli.errors import ConfigError, short
 
 __all__ = ["ConfigArg", "OptionalConfigArg", "Force", "Output", "Quiet", "Workers", "Scheduler", "Device",
-           "cluster_options", "section_from_options"]
+           "check_cluster_options", "cluster_options", "section_from_options"]
 
 SectionT = TypeVar("SectionT", bound=BaseModel)
 
@@ -33,17 +33,40 @@ Device = Annotated[Optional[str], typer.Option(
     show_default=False)]
 
 
+def check_cluster_options(workers: int | None, scheduler: str | None) -> None:
+    """Refuse ``--workers`` given with ``--scheduler`` (they exclude each other), and a bad worker count.
+
+    Parameters
+    ----------
+    workers : int, optional
+        ``--workers``: local Dask worker processes.
+    scheduler : str, optional
+        ``--scheduler``: address of an existing Dask scheduler.
+
+    Raises
+    ------
+    ConfigError
+        One line naming both options when both are given, or ``--workers`` when its count is refused.
+    """
+    from cca_cli.workflows.cluster import check_workers
+
+    if workers is not None and scheduler:
+        raise ConfigError(f"--workers {workers} and --scheduler {scheduler} exclude each other: give --workers for "
+                          "local worker processes or --scheduler for an existing cluster (its workers are its own)")
+    check_workers(workers)
+
+
 def cluster_options(workers: int | None, scheduler: str | None, *, used: bool):
-    """Context in which tiled reconstructions run on ``--workers`` / ``--scheduler`` (checked first).
+    """Context in which tiled reconstructions run on ``--workers`` or ``--scheduler`` (checked first).
 
     ``used`` says whether anything will run on Dask (a config with ``reconstruct.tiles``); when not,
     the options are only noted as unused.
     """
     import contextlib
 
-    from cca_cli.workflows.cluster import check_scheduler, check_workers, scheduler_timeout, use_cluster
+    from cca_cli.workflows.cluster import check_scheduler, scheduler_timeout, use_cluster
 
-    check_workers(workers)
+    check_cluster_options(workers, scheduler)
     if not used:
         if workers is not None or scheduler:
             import logging

@@ -11,7 +11,7 @@ from rich.table import Table
 from rich.text import Text
 
 from cca_cli.commands.console import console, err_console, handle_errors, styled
-from cca_cli.commands.options import ConfigArg, Force, Quiet, Scheduler, Workers
+from cca_cli.commands.options import ConfigArg, Force, Quiet, Scheduler, Workers, check_cluster_options
 from cca_cli.errors import CcaError, ConfigError, keeping_what_finished
 from cca_cli.io.lock import folder_lock
 from cca_cli.io.outputs import check_folder, prepare_folder
@@ -34,7 +34,7 @@ def _sweep(study: str, config: Path, sets: list[str] | None, workers: int | None
     from cca_cli.config.load import load_config
     from cca_cli.stages import sweep as sw
 
-    sw.check_workers(workers)
+    check_cluster_options(workers, scheduler)
     cfg = load_config(config)
     spec = sw.study_spec(cfg, study, sets=list(sets or []), source=str(config))
     sweep_dir = Path(out_dir or cfg.run.out_dir or Path("cca-runs") / f"{config.stem}-{study}")

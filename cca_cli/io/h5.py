@@ -248,8 +248,35 @@ def open_input(path: str | Path, *, stage: str | None = None) -> h5py.File:
     if stage is not None and stage not in str(handle.attrs.get("stage", "")).split(","):
         actual = handle.attrs.get("stage")
         handle.close()
-        raise InputError(f"{path}: written by stage {actual!r}, expected {stage!r}")
+        raise _wrong_stage(path, actual, stage)
     return handle
+
+
+#: What to give a command that reads the output of ``stage``, by that stage.
+_STAGE_OUTPUTS = {"reconstruct": "the recon.h5 that cca reconstruct writes",
+                  "ingest": "the raw.h5 that cca ingest writes (exposure brackets, /raw/frames)"}
+
+#: Stages whose files hold captures: what cca reconstruct reads.
+_CAPTURE_STAGES = ("simulate", "ingest", "hdr", "register", "api")
+
+
+def _wrong_stage(path: str | Path, actual: object, stage: str) -> InputError:
+    """The one-line error for a file of stage ``actual`` given where one of ``stage`` is read, naming the fix.
+
+    Parameters
+    ----------
+    path : path
+        The file given.
+    actual : object
+        Its ``stage`` attribute (None when it has none).
+    stage : str
+        The stage whose output the command reads.
+    """
+    wanted = _STAGE_OUTPUTS.get(stage, f"a file that cca {stage} writes")
+    fix = f"give {wanted}"
+    if stage == "reconstruct" and str(actual) in _CAPTURE_STAGES:
+        fix += "; this file holds captures, so run cca reconstruct on it first"
+    return InputError(f"{path}: written by stage {actual!r}, expected {stage!r}; {fix}")
 
 
 def missing_dataset(handle: h5py.File, path: str) -> InputError:

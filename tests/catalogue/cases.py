@@ -489,7 +489,11 @@ for name, files in INPUTS.items():
          exit=3, says=("in.h5",))
 case("reconstruct-input-fifo", "hang", REC, {"in.h5": Fifo()}, exit=3, says=("in.h5",), seconds=5)
 case("reconstruct-given-recon", "validation", REC, {"in.h5": Copy("recon")}, exit=3, says=("in.h5", "/measurements"))
-case("report-given-captures", "validation", REP, {"in.h5": Copy("captures")}, exit=3, says=("in.h5", "reconstruct"))
+case("report-given-captures", "validation", REP, {"in.h5": Copy("captures")}, exit=3,
+     says=("in.h5", "expected 'reconstruct'", "give the recon.h5 that cca reconstruct writes",
+           "run cca reconstruct on it first"))
+case("report-given-a-sweep-table", "validation", REP, {"in.h5": Copy("recon", set_attr("/", "stage", "sweep"))},
+     exit=3, says=("in.h5", "give the recon.h5 that cca reconstruct writes"), not_says=("Traceback", "internal error", "holds captures"))
 case("reconstruct-intensity-inf", "validation", REC,
      {"in.h5": Copy("captures", set_data("/measurements/intensity", lambda a: np.where(a > 0.3, np.inf, a)))},
      exit=3, says=("in.h5", "Inf"))
@@ -920,7 +924,7 @@ case("scene-image-not-an-image", "validation", SIM,
      {"cfg.yaml": Config({"scene.kind": "image", "scene.image_path": "notes.png"}), "notes.png": Text("hello\n")},
      exit=3, says=("notes.png",))
 case("hdr-given-captures", "validation", ["hdr", "c.h5", "-o", "h.h5", "-q"], {"c.h5": Copy("captures")}, exit=3,
-     says=("c.h5", "ingest"))
+     says=("c.h5", "expected 'ingest'", "give the raw.h5 that cca ingest writes"))
 case("register-given-recon", "validation", ["register", "r.h5", "-o", "g.h5", "-q"], {"r.h5": Copy("recon")},
      exit=3, says=("r.h5",))
 case("sweep-set-list-value", "usage", SWEEP + ["--set", "scene.widths_px=[4,3]"], {"cfg.yaml": Config()}, exit=2,
@@ -952,6 +956,16 @@ case("config-is-a-manifest", "messages", ["simulate", "lab/manifest.yaml", "-o",
      {"lab": Copy("manifest_dir")}, exit=2, says=("manifest.yaml",))
 case("workers-huge", "resources", ["sweep", "grid", "cfg.yaml", "--set", "noise.snr_db=20,30", "--workers", "100000",
                                    "--out-dir", "sw"], {"cfg.yaml": Config()}, exit=2, says=("--workers",))
+BOTH_CLUSTERS = ["--workers", "2", "--scheduler", "tcp://127.0.0.1:{dead_port}"]
+case("workers-and-scheduler-sweep", "usage", ["sweep", "grid", "cfg.yaml", "--set", "noise.snr_db=20,30", "--out-dir",
+                                              "sw", *BOTH_CLUSTERS], {"cfg.yaml": Config()}, exit=2,
+     says=("--workers", "--scheduler", "exclude each other"), seconds=5)
+case("workers-and-scheduler-run", "usage", RUN + BOTH_CLUSTERS, {"cfg.yaml": Config()}, exit=2,
+     says=("--workers", "--scheduler", "exclude each other"), seconds=5)
+case("workers-and-scheduler-reconstruct", "usage", REC + BOTH_CLUSTERS, {"in.h5": Copy("captures")}, exit=2,
+     says=("--workers", "--scheduler", "exclude each other"), seconds=5)
+
+
 def _no_probe_left(folder: Path, result) -> None:
     assert not list((folder / "out").glob(".cca-probe*"))
 
