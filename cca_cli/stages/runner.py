@@ -131,11 +131,22 @@ def _state(plan: StagePlan, digest: str, section: BaseModel | None = None) -> st
     report.json); ``outdated`` (a reconstruction of the same config and inputs whose engine and options, cca's
     defaults included, were others: made by another cca; checked when its ``section`` is given); ``other``
     (another config or inputs); ``foreign`` (not written by cca, or unreadable)."""
-    if foreign_part(plan.output) is not None:
-        return "foreign"
+    part = foreign_part(plan.output)
+    if part is not None:
+        # a file of the user's in a folder cca wrote: the folder is never replaced, but where it is up to date
+        # nothing needs replacing either
+        inside = plan.output.is_dir() and Path(part) != plan.output
+        return "current" if inside and _state_of_own(plan, digest, section) == "current" else "foreign"
+    return _state_of_own(plan, digest, section)
+
+
+def _state_of_own(plan: StagePlan, digest: str, section: BaseModel | None) -> str:
+    """:func:`_state` of an output cca wrote."""
     if plan.output.is_dir() and not (plan.output / report_stage.REPORT_JSON).is_file():
         return "incomplete"  # cca's folder (its marker lists its files) without the file that records its provenance
     recorded = _recorded_provenance(plan.output)
+    if plan.output.is_dir() and not recorded:
+        return "incomplete"  # its report.json damaged: the report is made again
     if recorded.get("config_hash") != digest:
         return "other"
     try:
@@ -279,7 +290,8 @@ def _refuse_existing(plan: StagePlan, state: str) -> None:
             f"{plan.output}: exists but cca did not write it (or cannot read it: a damaged file), so it is never "
             "replaced, not even with --force; move it away, or choose another output folder")
     raise OutputExistsError(f"{plan.output}: exists but was made from another config or inputs; "
-                            "use --force to recompute it, or choose another output folder")
+                            "use --force to recompute it (--force recomputes every stage of the run), or choose "
+                            "another output folder")
 
 
 def _run_stages(config: RunConfig, plans: list[StagePlan], *, force: bool, progress: ProgressFn, on_stage,

@@ -276,6 +276,20 @@ def test_a_user_s_file_in_a_report_folder_cca_wrote_is_named_when_it_blocks_the_
     reports = [p for p in tmp_path.iterdir() if p.is_dir()]
     assert reports, "the tiny config writes a report folder"
     (reports[0] / "my_notes.txt").write_text("mine")
+    # up to date: nothing would be replaced, so the run goes on and skips the report
+    outcomes = run_pipeline(tiny_run_config, tmp_path)
+    assert [o.status for o in outcomes] == ["skipped"] * len(outcomes)
     with pytest.raises(OutputError, match="cca wrote this folder, but not my_notes.txt in it"):
         run_pipeline(tiny_run_config, tmp_path, force=True)
     assert (reports[0] / "my_notes.txt").read_text() == "mine"
+
+
+def test_a_damaged_report_json_is_made_again_without_force(tiny_run_config, tmp_path):
+    from cca_cli.stages.runner import run_pipeline
+
+    run_pipeline(tiny_run_config, tmp_path)
+    report = next(p for p in tmp_path.iterdir() if p.is_dir()) / "report.json"
+    report.write_text("junk")
+    outcomes = {o.name: o.status for o in run_pipeline(tiny_run_config, tmp_path)}
+    assert outcomes["report"] == "ran" and {s for k, s in outcomes.items() if k != "report"} == {"skipped"}
+    assert report.read_text().startswith("{")
