@@ -98,6 +98,9 @@ def _sweep(study: str, config: Path, sets: list[str] | None, workers: int | None
                 with keeping_what_finished():
                     _write_partial_table(sw, points, finished, earlier, sweep_dir, spec, cfg)
                 raise
+            except sw.SchedulerLost:   # its scheduler went away: the finished points' table, as after Ctrl-C
+                _write_partial_table(sw, points, finished, earlier, sweep_dir, spec, cfg)
+                raise
         rows = sw.earlier_rows(earlier) + rows
         everything = earlier + points
         csv_path, h5_path = sw.write_table(rows, sweep_dir, spec=spec, base=cfg)
@@ -112,7 +115,8 @@ def _sweep(study: str, config: Path, sets: list[str] | None, workers: int | None
 
 
 def _write_partial_table(sw, points, finished: dict, earlier, sweep_dir: Path, spec, cfg) -> None:
-    """After Ctrl-C: the table of the points finished so far (the others ``pending``), before cca stops.
+    """After Ctrl-C (or a lost scheduler): the table of the points finished so far (the others ``pending``), before
+    cca stops.
 
     Nothing is written when no point, of this sweep or an earlier one in the folder, has finished; a second
     Ctrl-C while it is written leaves the earlier table (or none): the table is written whole or not at all.

@@ -45,11 +45,12 @@ from cca_cli.io.h5 import Provenance, atomic_h5, atomic_path, remove_temporaries
 from cca_cli.io.outputs import is_cca_hdf5, starts_with
 from cca_cli.io.sweep_table import read_table, read_table_layout
 from cca_cli.workflows.scenes import check_scene
-from cca_cli.workflows.cluster import (check_scheduler, check_workers, open_client, scheduler_gone, scheduler_lost,
-                                      scheduler_timeout)
+from cca_cli.workflows.cluster import (SchedulerLost, check_scheduler, check_workers, open_client, scheduler_gone,
+                                      scheduler_lost, scheduler_timeout)
 
 __all__ = [
     "PAPER_STUDIES",
+    "SchedulerLost",
     "METRICS",
     "SweepPoint",
     "PointCost",

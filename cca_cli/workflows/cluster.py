@@ -21,7 +21,7 @@ from typing import Any, Iterator
 from cca_cli.errors import CcaError, ConfigError, ctrl_c_pressed
 
 __all__ = ["open_client", "check_workers", "check_scheduler", "scheduler_timeout", "ClusterSettings",
-           "cluster_settings", "use_cluster", "scheduler_gone", "scheduler_lost"]
+           "cluster_settings", "use_cluster", "scheduler_gone", "scheduler_lost", "SchedulerLost"]
 
 #: Loggers of dask.distributed: their messages (a lost scheduler logs tracebacks) would break the one-line rule.
 _DASK_LOGGERS = ("distributed", "distributed.client", "distributed.nanny", "distributed.scheduler",
@@ -67,12 +67,16 @@ def scheduler_gone() -> tuple[type[BaseException], ...]:
     return CancelledError, CommClosedError
 
 
-def scheduler_lost(what: str, kept: str) -> CcaError:
+class SchedulerLost(CcaError):
+    """A run's Dask scheduler went away mid-run (exit 1, as a failed point or tile)."""
+
+
+def scheduler_lost(what: str, kept: str) -> SchedulerLost:
     """The one-line error of ``what`` (``sweep``, ``reconstruct``) when its Dask scheduler went away mid-run.
 
     ``kept`` says what the finished tasks left behind (``the finished tiles are kept in recon.h5.tiles (3 of 4)``).
     """
-    return CcaError(f"{what}: lost the Dask scheduler (its tasks were cancelled); {kept}; start the scheduler again "
+    return SchedulerLost(f"{what}: lost the Dask scheduler (its tasks were cancelled); {kept}; start the scheduler again "
                     "(or run without --scheduler) and re-run to do only the rest")
 
 
