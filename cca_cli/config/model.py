@@ -90,7 +90,8 @@ class SceneSection(Section):
 
     kind: Literal["resolution_chart", "usaf", "image", "natural", "fingerprint", "face", "label"] = Field(
         "resolution_chart",
-        description="resolution_chart (bars 20…1 px), usaf (USAF-1951), image, or natural (synthetic portrait-like photo).")
+        description="resolution_chart (bars 20…1 px), usaf (USAF-1951), image, natural (synthetic portrait-like "
+                    "photo), fingerprint, face or label (synthetic scenes of the paper's figures).")
     size_px: PositiveInt = Field(512, description="Scene pixels across (chart or resampled image).")
     field_width_m: PositiveFloat = Field(0.064, description="Object-plane width of the scene (m).")
     widths_px: list[PositiveInt] | None = Field(None, description="Bar widths of the resolution chart (px).")
