@@ -610,7 +610,12 @@ def off_axis_board(plan: CapturePlan, geometry: CaptureGeometry, frames: np.ndar
             f"put it: their sin θ [x, y] read [{sine_x:+.4f}, {sine_y:+.4f}] off (from the edges of the pupil circles "
             f"in the images' spectra, {found.gain:.1f} times sharper there). ")
     depth = _led_depths_mm(plan)
-    if depth is not None:
+    source = plan.manifest.source
+    if source is not None and source.ptylab is not None:
+        found_z = plan.manifest.illumination.led_distance_m
+        text += (f"Is the LED board off the axis? Add [{round(sine_y * found_z, 5):g}, {round(sine_x * found_z, 5):g}] "
+                 f"(metres, [y, x]) to every position of {source.ptylab.name}'s encoder")
+    elif depth is not None:
         axis = illumination.led_axis_m
         moved = (axis[0] - sine_x * depth / 1e3, axis[1] - sine_y * depth / 1e3)
         text += (f"Is the LED board off the axis? Set illumination.led_axis_m: [{round(moved[0], 5):g}, {round(moved[1], 5):g}] "
@@ -655,7 +660,7 @@ def offset_left_in(plan: CapturePlan, geometry: CaptureGeometry, frames: np.ndar
 def _led_depths_mm(plan: CapturePlan) -> float | None:
     """The LEDs' median distance from the sample (mm) where the manifest gives their positions in its plane, else
     None (sines given)."""
-    coherent = [e for e in plan.manifest.images if e.kind == "coherent"]
+    coherent = [e for e in plan.manifest.images or [] if e.kind == "coherent"]
     if not coherent or any(e.led_x_mm is None for e in coherent):
         return None
     distance = plan.manifest.illumination.led_distance_m

@@ -114,3 +114,27 @@ def test_a_camera_offset_left_in_the_dark_field_is_noted(tmp_path):
     assert note in said and "Set sensor.black_level" in said
     assert note not in _lab(tmp_path, images, offset=offset, sensor={"black_level": round(offset)})
     assert note not in _lab(tmp_path, images)
+
+
+def test_a_ptylab_file_off_the_axis_is_told_how_far_its_encoder_is_off(tmp_path):
+    import h5py
+
+    images, _, nominal = _board(axis_m=(-PITCH_M / 2, 0.0))
+    sines = cca.led_grid_sines(GRID, pitch_m=PITCH_M, height_m=HEIGHT_M)
+
+    def ingest(encoder):
+        with h5py.File(tmp_path / "fpm.hdf5", "w") as f:
+            f["ptychogram"], f["encoder"], f["zled"] = images, encoder, HEIGHT_M
+            f["wavelength"], f["dxd"], f["magnification"] = OPTICS["wavelength_m"], OPTICS["pixel_pitch_object_m"], 1.0
+            f["NA"] = OPTICS["numerical_aperture"]
+        result = runner.invoke(app, ["ingest", str(tmp_path / "fpm.hdf5"), "-o", str(tmp_path / "raw.h5"), "-q",
+                                     "--force"])
+        assert result.exit_code == 0, result.output
+        return " ".join(result.output.split())
+
+    encoder = sines * HEIGHT_M / np.sqrt(1 - np.sum(sines ** 2, axis=1, keepdims=True))     # [y, x] in the LED plane
+    said = ingest(encoder)
+    told = said.split("Add [")[1].split("]")[0]
+    y, x = (float(v) for v in told.split(","))
+    assert x == pytest.approx(PITCH_M / 2, rel=0.2) and abs(y) < 0.05 * PITCH_M and "fpm.hdf5's encoder" in said
+    assert "the bright-field images put" not in ingest(encoder + [y, x])      # as told: nothing to say
