@@ -246,7 +246,11 @@ def expand_points(base: RunConfig, spec: SweepSection, sweep_dir: Path, *, sourc
 
     Each point gets ``noise.seed = base seed + index`` unless the sweep sets
     ``noise.seed``, and ``reconstruct.options.threads = 1`` unless the config
-    sets it (the sweep parallelises across points, not inside them).
+    sets it (the sweep parallelises across points, not inside them). The index
+    is the point's position in the sweep; in a folder where earlier sweeps ran
+    points, a point one of them ran keeps its index and a new one takes the
+    next after the folder's last, so that the folder's table never holds one
+    index (or derived seed) twice.
 
     Raises
     ------
@@ -262,15 +266,44 @@ def expand_points(base: RunConfig, spec: SweepSection, sweep_dir: Path, *, sourc
             raise ConfigError(f"{source}: {key}: give a non-empty list of values")
     explicit = spec.points or [{}]
     product = [dict(zip(spec.parameters, combo)) for combo in itertools.product(*spec.parameters.values())]
+    seeded = "noise.seed" in spec.parameters or any("noise.seed" in p for p in spec.points)
+    known = _indices_in_folder(Path(sweep_dir), seeded)
+    taken = set(known.values())
+    free = (i for i in itertools.count(max(taken, default=-1) + 1) if i not in taken)
     points = []
-    for index, (fixed, varied) in enumerate(itertools.product(explicit, product)):
+    for position, (fixed, varied) in enumerate(itertools.product(explicit, product)):
         overrides = {**fixed, **varied}
+        # A point an earlier sweep in the folder finished keeps its index (and seed); another takes its position in
+        # this sweep where no finished point holds it (an interrupted point resumes), else the next after the
+        # folder's last: every row of the folder's table has its own index and noise draw.
+        key = _values_key(overrides, seeded)
+        index = known[key] if key in known else (position if position not in taken else next(free))
+        taken.add(index)
         if "noise.seed" not in overrides:
             overrides["noise.seed"] = base.noise.seed + index
         point_id = f"{_slug(overrides)}-{_hash(overrides)[:8]}"
         points.append(_make_point(base, index, point_id, overrides, Path(sweep_dir) / "points" / point_id,
                                   source=source))
     return points
+
+
+def _values_key(overrides: dict[str, Any], seeded: bool) -> str:
+    """A point's swept values (its seed only where the sweep sets it, ``seeded``): what makes it the same point."""
+    values = overrides if seeded else {k: v for k, v in overrides.items() if k != "noise.seed"}
+    return json.dumps(values, sort_keys=True, default=str)
+
+
+def _indices_in_folder(sweep_dir: Path, seeded: bool) -> dict[str, int]:
+    """The index of each point earlier sweeps left in ``sweep_dir``, by :func:`_values_key` of its swept values
+    (a point whose record names no index is left out)."""
+    found = {}
+    for directory in _point_dirs(sweep_dir):
+        record = _point_record(directory)
+        overrides = None if record is None else record.get("overrides")
+        index = None if record is None else record.get("index")
+        if isinstance(overrides, dict) and isinstance(index, int) and not isinstance(index, bool):
+            found.setdefault(_values_key(overrides, seeded), index)
+    return found
 
 
 def _make_point(base: RunConfig, index: int, point_id: str, overrides: dict[str, Any], out_dir: Path, *,
@@ -618,7 +651,8 @@ def table_columns(rows: list[dict[str, Any]]) -> list[str]:
 #: Units and meaning of the sweep table's columns (parameter columns are described by :func:`_column_info`).
 TABLE_COLUMNS: dict[str, tuple[str, str]] = {
     "point_id": ("text", "Point directory name: a readable slug of its overrides plus a short hash of them."),
-    "index": ("1", "Position of the point in the sweep that ran it (also its seed offset)."),
+    "index": ("1", "The point's number in the folder's table: its position in the sweep that ran it, or the next "
+                   "free number where an earlier sweep's point holds that (also its seed offset)."),
     "status": ("text", "ok (ran now), cached (complete from an earlier run), failed, or pending (interrupted)."),
     "error": ("text", "Why the point failed, in one line; empty otherwise."),
     "wall_s": ("s", "Wall time of the point's whole run (every stage)."),

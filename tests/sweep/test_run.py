@@ -128,6 +128,14 @@ def test_a_second_sweep_into_the_folder_adds_its_points_to_the_table(client, tmp
     assert [r["noise.snr_db"] for r in table] == [10, 20, 30, 40]
     assert [r["status"] for r in table] == ["cached", "cached", "ok", "ok"]
     assert {f.name for f in figures} >= {"rmse_vs_noise_snr_db.png", "montage.png"}
+    # every row its own index and noise draw: the new points follow the folder's last
+    assert [r["index"] for r in table] == [0, 1, 2, 3]
+    assert [r["noise.seed"] for r in table] == [base.noise.seed + i for i in range(4)]
+    # run again, a sweep's points are found where they are (the same indices, seeds and results)
+    again = expand_points(base, first, tmp_path)
+    assert [(p.index, p.point_id) for p in again] == [(0, earlier[0].point_id), (1, earlier[1].point_id)]
+    assert [p.index for p in expand_points(base, SweepSection(parameters={"noise.snr_db": [40, 25]}), tmp_path)] \
+        == [3, 4]
 
     # points of an older cca (no overrides in point.json) are found through the table
     for point in earlier:
