@@ -302,8 +302,8 @@ def led_array(sin_yx, *, wavelength_m: float, numerical_aperture: float, pixel_p
     Raises
     ------
     ValueError
-        Sines that are not finite (K, 2) pairs in [-1, 1], an NA outside (0, 1), or a quantity that
-        is not a positive, finite number (named).
+        Sines that are not finite, real (K, 2) pairs in [-1, 1], an NA outside (0, 1), a quantity that
+        is not a positive, finite number (named), or a pixel too coarse for the NA (over λ/(2 NA)).
 
     Examples
     --------
@@ -316,10 +316,19 @@ def led_array(sin_yx, *, wavelength_m: float, numerical_aperture: float, pixel_p
     from cca_cli.sampling.geometry import check_positive
 
     check_positive(pixel_pitch_object_m=pixel_pitch_object_m)
-    return led_array_geometry(sin_yx, wavelength_m=wavelength_m, numerical_aperture=numerical_aperture,
-                              pixel_pitch_object_m=pixel_pitch_object_m,
-                              field_width_m=_count("image_pixels", image_pixels) * float(pixel_pitch_object_m),
-                              sign=sign)
+    if np.iscomplexobj(np.asarray(sin_yx)):
+        raise ValueError("sin_yx holds complex numbers; give the real sines [sin θy, sin θx]")
+    pixels = _count("image_pixels", image_pixels)
+    geometry = led_array_geometry(sin_yx, wavelength_m=wavelength_m, numerical_aperture=numerical_aperture,
+                                  pixel_pitch_object_m=pixel_pitch_object_m,
+                                  field_width_m=pixels * float(pixel_pitch_object_m), sign=sign)
+    if geometry.pupil_radius_px > pixels / 2:
+        finest = float(wavelength_m) / (2 * float(numerical_aperture))
+        raise ValueError(f"numerical_aperture: an NA of {float(numerical_aperture):g} at {float(wavelength_m):g} m "
+                         f"needs a camera pixel at the sample of at most λ/(2 NA) = {finest:.3g} m, and "
+                         f"pixel_pitch_object_m is {float(pixel_pitch_object_m):g} m: the images cannot sample the "
+                         "objective's band; check both (and the magnification)")
+    return geometry
 
 
 # ------------------------------------------------------------------------------------------------------ scenes

@@ -368,3 +368,20 @@ def test_per_camera_pupils_of_one_capture_each_are_said_to_be_weakly_determined(
     with caplog.at_level("WARNING", logger="cca"):
         cca.reconstruct(images, array, engine="momentum", pupil_recovery="shared", iterations=2)
     assert not any("its one capture only" in r.getMessage() for r in caplog.records)
+
+
+@pytest.mark.parametrize("build, named", [
+    (lambda s: cca.led_array(s, wavelength_m=532e-9, numerical_aperture=0.5, pixel_pitch_object_m=1.845e-6,
+                             image_pixels=64), r"^numerical_aperture: an NA of 0.5 .* at most λ/\(2 NA\) = 5.32e-07 m"),
+    (lambda s: cca.led_array(s, wavelength_m=550e-6, numerical_aperture=0.1, pixel_pitch_object_m=1.845e-6,
+                             image_pixels=64), r"^wavelength_m is 0.00055 m \(550 µm\).*\(550e-9 for 550 nm\)"),
+    (lambda s: cca.led_array(s + 0j, wavelength_m=532e-9, numerical_aperture=0.1, pixel_pitch_object_m=1.845e-6,
+                             image_pixels=64), r"^sin_yx holds complex numbers"),
+    (lambda s: cca.camera_scan(wavelength_m=550e-9, focal_length_m=0.075, aperture_diameter_m=2.5,
+                               pixel_pitch_m=2e-6, distance_m=50, field_width_m=0.064, grid=5, overlap=0.6),
+     r"^aperture_diameter_m: 2.5 m behind a lens of focal_length_m 0.075 m is f/0.03"),
+])
+def test_optics_no_setup_has_are_refused_naming_the_argument(build, named):
+    sines = cca.led_grid_sines(5, pitch_m=4e-3, height_m=60e-3)
+    with pytest.raises(ValueError, match=named):
+        build(sines)

@@ -12,7 +12,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from cca_cli.sampling.geometry import CaptureGeometry, check_positive
+from cca_cli.sampling.geometry import CaptureGeometry, check_lens, check_positive
 from cca_cli.units import FourierScale, led_fourier_scale, object_pixel_pitch_m
 
 __all__ = ["stage_scan_geometry", "led_array_geometry", "with_field_width", "object_pixel_m", "grid_from_positions"]
@@ -70,6 +70,7 @@ def stage_scan_geometry(positions_yx_m, *, wavelength_m: float, focal_length_m: 
     """
     check_positive(wavelength_m=wavelength_m, focal_length_m=focal_length_m, aperture_diameter_m=aperture_diameter_m,
                    pixel_pitch_m=pixel_pitch_m, distance_m=distance_m, field_width_m=field_width_m)
+    check_lens(focal_length_m, aperture_diameter_m)
     pos = _pairs(positions_yx_m, "positions_yx_m")
     scale = FourierScale.fraunhofer(wavelength_m, distance_m, field_width_m)
     grid = grid_from_positions(pos) if grid_indices is None else np.asarray(grid_indices, np.int32)

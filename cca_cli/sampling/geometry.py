@@ -16,6 +16,8 @@ __all__ = ["CaptureGeometry", "camera_scan_geometry", "check_positive", "unit_sl
 
 #: Longest wavelength taken as light (m): a larger value is a unit slip (nanometres typed as metres).
 MAX_WAVELENGTH_M = 1e-3
+#: The longest wavelength of light a camera images with (m): long-wave infrared ends near 15 µm.
+MAX_LIGHT_WAVELENGTH_M = 30e-6
 
 #: Lengths (m) no setup reaches, by the name's ending, with the unit a larger value was most likely typed in.
 _LARGEST_M = {"pixel_pitch_m": (1e-3, "µm"), "pixel_pitch_object_m": (1e-3, "µm"), "focal_length_m": (10.0, "mm"),
@@ -72,6 +74,10 @@ def check_positive(**values) -> None:
             unit, power = ("nm", "e-9") if number >= 100 else ("µm", "e-6")
             raise ValueError(f"{name} is {number:g} m, not a wavelength of light (cca takes waves under 1 mm): give "
                              f"it in metres ({number:g}{power} for {number:g} {unit})")
+        if name.endswith("wavelength_m") and number >= MAX_LIGHT_WAVELENGTH_M:   # 550e-6: µm typed for nm
+            nm = number * 1e6
+            raise ValueError(f"{name} is {number:g} m ({nm:g} µm), beyond the far infrared: give it in metres "
+                             f"({nm:g}e-9 for {nm:g} nm)")
         slip = unit_slip(name, number)
         if slip is not None:
             raise ValueError(f"{name}: {slip}")
@@ -163,6 +169,22 @@ class CaptureGeometry:
                        camera_index=None if self.camera_index is None else np.asarray(self.camera_index)[index])
 
 
+def check_lens(focal_length_m: float, aperture_diameter_m: float) -> None:
+    """Refuse an aperture wider than twice the focal length (faster than f/0.5, which no lens is).
+
+    Examples
+    --------
+    >>> check_lens(0.075, 2.5)
+    Traceback (most recent call last):
+    ...
+    ValueError: aperture_diameter_m: 2.5 m behind a lens of focal_length_m 0.075 m is f/0.03, faster than any lens (f/0.5); check both, in metres
+    """
+    if aperture_diameter_m > 2 * focal_length_m:
+        raise ValueError(f"aperture_diameter_m: {aperture_diameter_m:g} m behind a lens of focal_length_m "
+                         f"{focal_length_m:g} m is f/{focal_length_m / aperture_diameter_m:.2g}, faster than any lens "
+                         "(f/0.5); check both, in metres")
+
+
 def camera_scan_geometry(*, wavelength_m: float, focal_length_m: float, aperture_diameter_m: float,
                          pixel_pitch_m: float, distance_m: float, field_width_m: float, grid: int,
                          overlap: float) -> tuple[CaptureGeometry, int]:
@@ -186,6 +208,7 @@ def camera_scan_geometry(*, wavelength_m: float, focal_length_m: float, aperture
     """
     check_positive(wavelength_m=wavelength_m, focal_length_m=focal_length_m, aperture_diameter_m=aperture_diameter_m,
                    pixel_pitch_m=pixel_pitch_m, distance_m=distance_m, field_width_m=field_width_m)
+    check_lens(focal_length_m, aperture_diameter_m)
     sensor_pixels = sensor_pixels_across(field_width_m, pixel_pitch_m, focal_length_m, distance_m)
     if sensor_pixels < 8:
         raise ValueError(f"the field of view spans only {sensor_pixels} sensor pixels; widen the scene or use smaller pixels")
