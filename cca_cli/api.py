@@ -119,6 +119,10 @@ def _real_images(values, name: str) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------------- geometry
 
 
+#: Most aperture positions along a side of a camera scan (a million captures).
+MAX_GRID = 1001
+
+
 def camera_scan(*, wavelength_m: float, focal_length_m: float, aperture_diameter_m: float, pixel_pitch_m: float,
                 distance_m: float, field_width_m: float, grid: int | None = None, overlap: float = 0.61,
                 sar: float | None = None) -> CaptureGeometry:
@@ -148,7 +152,7 @@ def camera_scan(*, wavelength_m: float, focal_length_m: float, aperture_diameter
     ------
     ValueError
         Neither or both of ``grid`` and ``sar``, a quantity that is not a positive, finite
-        number (named), or optics that leave too few pixels.
+        number (named), optics that leave too few pixels, or a grid over :data:`MAX_GRID` a side.
 
     Examples
     --------
@@ -166,6 +170,10 @@ def camera_scan(*, wavelength_m: float, focal_length_m: float, aperture_diameter
     if not 0 <= overlap < 1:
         raise ValueError(f"overlap must be in [0, 1), got {overlap!r}")
     n = _count("grid", grid) if grid is not None else grid_for_sar(_number("sar", sar, low=1.0), overlap)
+    if n > MAX_GRID:
+        what = f"grid {n}" if grid is not None else f"sar {sar!r} needs a grid of {n} positions per side, which"
+        raise ValueError(f"{what} is beyond any array (at most {MAX_GRID} positions per side); check "
+                         f"{'grid' if grid is not None else 'sar and overlap'}")
     geometry, _ = camera_scan_geometry(wavelength_m=wavelength_m, focal_length_m=focal_length_m,
                                        aperture_diameter_m=aperture_diameter_m, pixel_pitch_m=pixel_pitch_m,
                                        distance_m=distance_m, field_width_m=field_width_m, grid=n, overlap=overlap)
@@ -406,8 +414,9 @@ def simulate(obj, geometry: CaptureGeometry, *, snr_db: float | None = 30.0, pho
     Raises
     ------
     ValueError
-        An ``obj`` that is not a finite, square 2-D array of numbers, or a noise
-        setting out of range (each names its argument).
+        An ``obj`` that is not a finite, square 2-D array of numbers, a noise
+        setting out of range (each names its argument), or images that would
+        not fit the machine's memory (named ``geometry``).
 
     Examples
     --------
@@ -422,7 +431,25 @@ def simulate(obj, geometry: CaptureGeometry, *, snr_db: float | None = 30.0, pho
     if not isinstance(geometry, CaptureGeometry):
         raise TypeError(f"geometry: give a CaptureGeometry (camera_scan, stage_scan or led_array), got "
                         f"{type(geometry).__name__}")
-    return simulate_images(_object_field(obj), geometry, noise=_noise(snr_db, photons_per_unit, read_noise_e, seed))
+    field_in = _object_field(obj)
+    noise = _noise(snr_db, photons_per_unit, read_noise_e, seed)
+    _check_simulation_memory(geometry)
+    return simulate_images(field_in, geometry, noise=noise)
+
+
+def _check_simulation_memory(geometry: CaptureGeometry) -> None:
+    """Refuse, before anything is allocated, images that would not fit the machine's memory (ValueError naming
+    ``geometry``): the float32 images themselves, a lower bound of what simulating them takes."""
+    from cca_cli.sampling.capture import object_pixel_m
+    from cca_cli.stages.footprint import memory_available, size_text
+
+    pixels = geometry.field_width_m / object_pixel_m(geometry)
+    need = 4.0 * geometry.n_images * pixels * pixels
+    have = memory_available()
+    if need > have:
+        raise ValueError(f"geometry: {geometry.n_images} images of {pixels:.4g}² px need at least {size_text(need)} of "
+                         f"memory, more than the {size_text(have)} there is; check the field width and pixel (in "
+                         "metres) or use fewer captures")
 
 
 def _object_field(obj) -> np.ndarray:
@@ -809,6 +836,15 @@ def export(data, path, *, quantity: str = "amplitude", pixel_size_m: float | Non
     Returns
     -------
     Path
+        The file written.
+
+    Raises
+    ------
+    ValueError
+        A path whose suffix names no format (and no ``format``), an unknown ``quantity``, an array without a
+        ``pixel_size_m`` under 1 m, or one that is not a finite, real 2-D image (each names its argument).
+    OutputExistsError
+        ``path`` exists and ``force`` is not set.
 
     Examples
     --------
@@ -820,6 +856,7 @@ def export(data, path, *, quantity: str = "amplitude", pixel_size_m: float | Non
     """
     from cca_cli.io.export import QUANTITIES, export_image, export_recon
 
+    _check_export_path(path, format)
     if isinstance(data, (str, Path)):
         return export_recon(data, path, quantity=quantity, format=format, force=force)
     if isinstance(data, Reconstruction):
@@ -834,7 +871,31 @@ def export(data, path, *, quantity: str = "amplitude", pixel_size_m: float | Non
         raise ValueError(f"quantity {quantity!r}: choose one of {', '.join(QUANTITIES)}")
     if pixel_size_m is None:
         raise ValueError("pixel_size_m: give the object pixel size (m) when exporting an array")
-    return export_image(data, path, pixel_size_m=pixel_size_m, quantity=quantity, format=format, force=force)
+    size = _number("pixel_size_m", pixel_size_m, low=0.0)
+    if not 0 < size < 1:
+        raise ValueError(f"pixel_size_m {pixel_size_m!r}: give the object pixel size in metres (under 1 m; 125e-6 "
+                         "for 125 µm)")
+    values = np.asarray(data)
+    if values.dtype.kind not in "biuf" or values.ndim != 2 or not np.isfinite(values).all():
+        raise ValueError(f"data: give a finite, real 2-D image (H, W), got {values.dtype} values of shape "
+                         f"{values.shape}" + ("" if values.dtype.kind not in "biuf" or values.ndim != 2 else
+                                              ", some not finite"))
+    return export_image(values, path, pixel_size_m=size, quantity=quantity, format=format, force=force)
+
+
+def _check_export_path(path, format) -> None:
+    """A ``format`` cca writes (:data:`~cca_cli.io.export.FORMATS`), or a ``path`` whose suffix names one
+    (ValueError naming which)."""
+    from cca_cli.io.export import FORMATS
+
+    if format is not None:
+        if format not in set(FORMATS.values()):
+            raise ValueError(f"format {format!r}: choose one of tiff, png, npy")
+        return
+    suffix = Path(path).suffix.lower()
+    if suffix not in FORMATS:
+        raise ValueError(f"path {str(path)!r}: its suffix {suffix or '(none)'} names no format cca writes; end it in "
+                         ".tif, .png or .npy, or give format")
 
 
 # ----------------------------------------------------------------------------------------------------- metrics

@@ -385,3 +385,34 @@ def test_optics_no_setup_has_are_refused_naming_the_argument(build, named):
     sines = cca.led_grid_sines(5, pitch_m=4e-3, height_m=60e-3)
     with pytest.raises(ValueError, match=named):
         build(sines)
+
+
+@pytest.mark.parametrize("data, name, kwargs, named", [
+    (np.ones((4, 4)), "a.jpg", {"pixel_size_m": 1e-6}, r"^path .*a\.jpg': its suffix \.jpg names no format"),
+    (np.ones((4, 4)), "a.tif", {"pixel_size_m": 125}, r"^pixel_size_m 125: give the object pixel size in metres"),
+    (np.ones((4, 4)) + 0j, "a.tif", {"pixel_size_m": 1e-6}, r"^data: give a finite, real 2-D image"),
+    (np.full((4, 4), np.nan), "a.tif", {"pixel_size_m": 1e-6}, r"^data: .* some not finite"),
+    (np.ones((4, 4)), "a.tif", {"pixel_size_m": 1e-6, "format": "jpeg"}, r"^format 'jpeg': choose one of"),
+])
+def test_export_refuses_a_bad_argument_with_a_value_error_naming_it(tmp_path, data, name, kwargs, named):
+    with pytest.raises(ValueError, match=named):
+        cca.export(data, tmp_path / name, **kwargs)
+    assert not (tmp_path / name).exists()
+
+
+def test_sizes_no_machine_holds_are_refused_before_anything_is_allocated(monkeypatch):
+    with pytest.raises(ValueError, match=r"^grid 100000 is beyond any array \(at most 1001"):
+        cca.camera_scan(wavelength_m=550e-9, focal_length_m=0.8, aperture_diameter_m=18e-3, pixel_pitch_m=2e-6,
+                        distance_m=50, field_width_m=0.064, grid=100000)
+    with pytest.raises(ValueError, match=r"^sar 1000000.0 needs a grid of \d+ positions per side"):
+        cca.camera_scan(wavelength_m=550e-9, focal_length_m=0.8, aperture_diameter_m=18e-3, pixel_pitch_m=2e-6,
+                        distance_m=50, field_width_m=0.064, sar=1e6)
+    wide = cca.camera_scan(wavelength_m=550e-9, focal_length_m=0.8, aperture_diameter_m=18e-3, pixel_pitch_m=2e-6,
+                           distance_m=50, field_width_m=64, grid=3)          # 64 m typed for 64 mm
+    with pytest.raises(ValueError, match=r"^geometry: 9 images of 5.12e\+05² px need at least .* of memory"):
+        cca.simulate(np.ones((64, 64)), wide)
+    monkeypatch.setenv("CCA_MEMORY_LIMIT", "1M")                                   # a small one, over its limit too
+    small = cca.camera_scan(wavelength_m=550e-9, focal_length_m=0.8, aperture_diameter_m=18e-3, pixel_pitch_m=2e-6,
+                            distance_m=50, field_width_m=0.064, grid=3)
+    with pytest.raises(ValueError, match=r"^geometry: 9 images of 512² px need at least 9\.44 MB"):
+        cca.simulate(np.ones((64, 64)), small)
