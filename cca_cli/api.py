@@ -345,6 +345,25 @@ def led_array(sin_yx, *, wavelength_m: float, numerical_aperture: float, pixel_p
 def resolution_chart(size_px: int = 512, *, widths=(20, 18, 16, 14, 12, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1)):
     """A bar chart with a known layout (the paper's Fig. 5 target): ``.image`` (amplitude) and ``.groups``.
 
+    Parameters
+    ----------
+    size_px : int
+        Side of the square chart (pixels).
+    widths : sequence of int
+        Bar widths (pixels), one group of three bars each way per width.
+
+    Returns
+    -------
+    BarChart
+        ``image`` (float32 (size_px, size_px) amplitude in [0, 1]), ``groups`` (where each bar group lies)
+        and ``widths``.
+
+    Raises
+    ------
+    ValueError
+        A size that is not a whole number ≥ 1, widths that are not integers ≥ 1, or a chart that does
+        not fit ``size_px`` (named).
+
     Examples
     --------
     >>> chart = resolution_chart(64, widths=(4, 2))
@@ -370,6 +389,26 @@ def usaf_chart(size_px: int, *, pixel_pitch_m: float, groups=(-1, 0, 1, 2, 3)):
 
     Elements too large for ``size_px`` are left out.
 
+    Parameters
+    ----------
+    size_px : int
+        Side of the square chart (pixels).
+    pixel_pitch_m : float
+        Size of one pixel at the object (m).
+    groups : sequence of int
+        USAF groups to draw (elements 1-6 of each).
+
+    Returns
+    -------
+    UsafChart
+        ``image`` (float32 (size_px, size_px) amplitude in [0, 1]), ``elements`` (group, element, lp/mm and
+        where each lies) and ``size``.
+
+    Raises
+    ------
+    ValueError
+        A size that is not a whole number ≥ 1, or a pixel pitch that is not a positive number (named).
+
     Examples
     --------
     >>> chart = usaf_chart(512, pixel_pitch_m=25e-6, groups=(0, 1))
@@ -378,7 +417,10 @@ def usaf_chart(size_px: int, *, pixel_pitch_m: float, groups=(-1, 0, 1, 2, 3)):
     """
     from cca_cli.targets import usaf1951_chart
 
-    return usaf1951_chart(int(size_px), pixel_pitch_m=pixel_pitch_m, groups=tuple(groups))
+    from cca_cli.sampling.geometry import check_positive
+
+    check_positive(pixel_pitch_m=pixel_pitch_m)
+    return usaf1951_chart(_count("size_px", size_px), pixel_pitch_m=pixel_pitch_m, groups=tuple(groups))
 
 
 # -------------------------------------------------------------------------------------------- imaging, recovery
@@ -722,6 +764,12 @@ def load(path) -> CaptureSet | Reconstruction:
         ``captures.h5`` (simulate), ``raw.h5`` of single exposures (ingest),
         ``hdr.h5``, ``registered.h5`` or ``recon.h5``.
 
+    Returns
+    -------
+    Reconstruction or CaptureSet
+        A ``recon.h5``'s recovery (object, spectrum, pupil, history, fit); else the captures (intensity,
+        weight, geometry) that :func:`reconstruct` takes.
+
     Raises
     ------
     InputError
@@ -779,14 +827,37 @@ def save(data: CaptureSet | Reconstruction, path, *, force: bool = False) -> Pat
     ``cca report`` and ``cca export`` the second. They appear atomically and an
     existing file is replaced only with ``force``.
 
+    Parameters
+    ----------
+    data : CaptureSet or Reconstruction
+    path : path
+        The file to write.
+    force : bool
+        Replace an existing file that cca wrote.
+
     Returns
     -------
     Path
+        The file written.
 
     Raises
     ------
     OutputExistsError
         ``path`` exists and ``force`` is False.
+    ValueError
+        A CaptureSet whose images do not match its geometry (count or width).
+    TypeError
+        ``data`` is neither.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> g = camera_scan(wavelength_m=550e-9, focal_length_m=0.8, aperture_diameter_m=45e-3,
+    ...                 pixel_pitch_m=2e-6, distance_m=50, field_width_m=12e-3, grid=3, overlap=0.61)
+    >>> path = save(CaptureSet(simulate(np.ones((96, 96)), g, snr_db=None), g),
+    ...             pathlib.Path(tempfile.mkdtemp()) / "captures.h5")
+    >>> path.name, save(load(path), path, force=True) == path
+    ('captures.h5', True)
     """
     import hashlib
 
@@ -930,7 +1001,23 @@ def contrast(intensity, chart):
 def mtf20(intensity, chart, *, threshold: float = 0.2) -> int | None:
     """Finest bar width (px) whose contrast, and every wider one's, reaches ``threshold`` in both orientations.
 
-    Returns None when not even the widest group is resolved.
+    Parameters
+    ----------
+    intensity : array_like, (S, S)
+        Intensity (not amplitude) on the chart's grid.
+    chart : BarChart
+    threshold : float
+        Michelson contrast every group down to the limit must reach, in (0, 1).
+
+    Returns
+    -------
+    int or None
+        The limit in pixels of the chart's grid; None when not even the widest group is resolved.
+
+    Raises
+    ------
+    ValueError
+        An image that is not finite, or a threshold outside (0, 1).
 
     Examples
     --------
@@ -940,7 +1027,13 @@ def mtf20(intensity, chart, *, threshold: float = 0.2) -> int | None:
     """
     from cca_cli.metrics import contrast_table, mtf_limit
 
-    return mtf_limit(contrast_table(np.asarray(intensity), chart), threshold=threshold)
+    threshold = _number("threshold", threshold)
+    if not 0 < threshold < 1:
+        raise ValueError(f"threshold must be a contrast in (0, 1), got {threshold!r}")
+    image = np.asarray(intensity)
+    if image.dtype.kind not in "biuf" or not np.isfinite(image).all():
+        raise ValueError("intensity must be finite, real numbers (an intensity image on the chart's grid)")
+    return mtf_limit(contrast_table(image, chart), threshold=threshold)
 
 
 def usaf_reading(intensity, chart, *, threshold: float = 0.2):
@@ -973,6 +1066,21 @@ def usaf_reading(intensity, chart, *, threshold: float = 0.2):
 
 def rmse(recovered, truth) -> float:
     """RMSE of an intensity against the truth after a least-squares intensity scale, over the truth's maximum.
+
+    Parameters
+    ----------
+    recovered, truth : array_like, (S, S)
+        Intensities on one grid.
+
+    Returns
+    -------
+    float
+        ``‖s·recovered − truth‖_rms / max(truth)`` with ``s`` the least-squares scale.
+
+    Raises
+    ------
+    ValueError
+        Arrays of different shapes, or values that are not finite.
 
     Examples
     --------

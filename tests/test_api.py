@@ -416,3 +416,12 @@ def test_sizes_no_machine_holds_are_refused_before_anything_is_allocated(monkeyp
                             distance_m=50, field_width_m=0.064, grid=3)
     with pytest.raises(ValueError, match=r"^geometry: 9 images of 512² px need at least 9\.44 MB"):
         cca.simulate(np.ones((64, 64)), small)
+
+
+def test_an_iteration_record_reads_like_the_history_it_joins():
+    from cca_cli.engines.base import IterationRecord
+
+    record = IterationRecord(3, 0.25, 0.01, 1.5)
+    assert record["residual"] == record.residual == 0.25 and record["iteration"] == 3
+    with pytest.raises(KeyError, match="'misfit': a record holds iteration, residual"):
+        record["misfit"]

@@ -50,6 +50,12 @@ class IterationRecord:
     seconds: float
     held_back: float = float("nan")
 
+    def __getitem__(self, name: str) -> float:
+        """``record["residual"]`` as ``record.residual`` (a history's columns are read the same way)."""
+        if name not in self.__dataclass_fields__:
+            raise KeyError(f"{name!r}: a record holds {', '.join(self.__dataclass_fields__)}")
+        return getattr(self, name)
+
 
 @dataclass
 class History:
