@@ -44,16 +44,6 @@ def _count(n: int) -> str:
     return str(n) if n < 10 ** 7 else format(Decimal(n), ".3e")
 
 
-def _bytes(n: int) -> str:
-    if n >= 1024 ** 5:
-        return f"{_count(n)} B"
-    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
-        if n < 1024 or unit == "TiB":
-            return f"{n:.1f} {unit}" if unit != "B" else f"{n} B"
-        n /= 1024
-    return f"{n} B"
-
-
 def _option_names(exc: ValueError) -> str:
     """The message of a planning error with its keys spelled as the command's options (--wavelength-m …)."""
     text = str(exc)
@@ -208,6 +198,8 @@ def design_cli(
         data["seconds_per_iteration"] = seconds
         console.print_json(json.dumps(data))
     else:
+        from cca_cli.stages.footprint import size_text
+
         table = Table(title="cca design", header_style="bold")
         table.add_column("quantity")
         table.add_column("value", justify="right")
@@ -227,12 +219,13 @@ def design_cli(
             ("images", _count(plan.n_images)),
             ("object pixel (sensor)", _si(plan.object_pixel_m)),
             ("field / pixels per capture", f"{_si(plan.field_width_m)} / {plan.capture_px} px"),
-            ("capture data (float32)", _bytes(plan.capture_bytes)),
+            ("capture data (float32)", size_text(plan.capture_bytes)),
             ("output image", f"{_count(plan.output_px)} x {_count(plan.output_px)} px at {_si(plan.output_pixel_m)}"),
             ("per-capture model grid", f"{plan.lowres_px} px (pupil radius {plan.pupil_radius_px:.1f} px)"),
-            ("reconstruction memory (est.)", _bytes(plan.memory_bytes)),
+            ("reconstruction memory (est.)", size_text(plan.memory_bytes)),
             (f"time per iteration, {engine} (est.)", _time_text(seconds, cost)),
-            ("fits the sensor", "yes" if plan.fits_sensor else "NO"),
+            ("fits the sensor", ("yes" if plan.fits_sensor else "NO") if sensor_px is not None
+             else "not checked (give --sensor-px)"),
         ]
         for label, value in rows:
             table.add_row(label, value)

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["AxisOffset", "axis_offset", "OFF_AXIS", "CLEAR_GAIN", "EDGE_WIDTH_PX"]
+__all__ = ["AxisOffset", "axis_offset", "misplaced", "lit_level", "OFF_AXIS", "CLEAR_GAIN", "EDGE_WIDTH_PX"]
 
 #: A shift at least this fraction of the pupil radius is reported. The recorded corpus's sets where the
 #: discs can be read (benchmarks/corpus) read 0.07-0.08 radii; an LED board half a pitch off its axis, 0.29.
@@ -47,20 +47,65 @@ class AxisOffset:
         How much stronger the discs' edges are at the shift than at the positions as given (1: alike).
     images : int
         Bright-field images read.
+    misplaced_given, misplaced_shifted : int
+        Captures whose light contradicts the bright or dark field the positions as given, and as shifted,
+        put them in (:func:`misplaced`).
     """
 
     shift_yx_px: np.ndarray
     radii: float
     gain: float
     images: int
+    misplaced_given: int = 0
+    misplaced_shifted: int = 0
+
+    @property
+    def confirmed(self) -> bool:
+        """Whether the shift puts fewer captures on the wrong side of the pupil's edge than the positions as
+        given (:func:`misplaced`): the captures' brightness, not the circles alone, says the axis moved."""
+        return self.misplaced_shifted < self.misplaced_given
 
     @property
     def off_axis(self) -> bool:
-        """Whether the shift is large and clear enough to report (:data:`OFF_AXIS`, :data:`CLEAR_GAIN`)."""
-        return self.radii >= OFF_AXIS and self.gain >= CLEAR_GAIN
+        """Whether the shift is large and clear enough to report (:data:`OFF_AXIS`, :data:`CLEAR_GAIN`) and the
+        captures' light confirms it (:attr:`confirmed`)."""
+        return self.radii >= OFF_AXIS and self.gain >= CLEAR_GAIN and self.confirmed
 
 
-def axis_offset(images: np.ndarray, centres_px: np.ndarray, radius_px: float) -> AxisOffset | None:
+def misplaced(light: np.ndarray, centres_px: np.ndarray, radius_px: float, lit: float) -> int:
+    """Captures whose light contradicts the field the centres put them in.
+
+    A capture whose pupil holds the unscattered light (centre more than a pixel inside the pupil's edge)
+    records at least ``lit``; one more than a pixel outside it records less. Captures on the edge itself
+    count for neither.
+
+    Parameters
+    ----------
+    light : ndarray, (K,)
+        Each capture's mean intensity (per unit exposure).
+    centres_px : ndarray, (K, 2)
+    radius_px : float
+    lit : float
+        The least light of a bright-field capture (:func:`lit_level`).
+    """
+    light = np.asarray(light, np.float64)
+    distance = np.hypot(*np.asarray(centres_px, np.float64).T)
+    bright, dark = distance < radius_px - 1, distance > radius_px + 1
+    return int(np.sum(bright & (light < lit)) + np.sum(dark & (light >= lit)))
+
+
+def lit_level(light: np.ndarray, *arrangements: np.ndarray, radius_px: float) -> float:
+    """Half the median light of the bright-field captures, under whichever ``arrangements`` of the centres gives
+    the brighter median: every bright-field capture holds the unscattered light, and a dark-field one only what
+    the object scatters (far less for all but the densest samples, even beside the pupil's edge)."""
+    light = np.asarray(light, np.float64)
+    medians = [np.median(light[np.hypot(*np.asarray(c, np.float64).T) < radius_px - 1])
+               for c in arrangements if np.any(np.hypot(*np.asarray(c, np.float64).T) < radius_px - 1)]
+    return 0.5 * max(medians, default=0.0)
+
+
+def axis_offset(images: np.ndarray, centres_px: np.ndarray, radius_px: float,
+                light: np.ndarray | None = None) -> AxisOffset | None:
     """The shift of every pupil centre that the bright-field images' spectra show.
 
     Parameters
@@ -71,6 +116,9 @@ def axis_offset(images: np.ndarray, centres_px: np.ndarray, radius_px: float) ->
         The captures' pupil centres [y, x] as given (spectrum px over the frame's width ``W``).
     radius_px : float
         Pupil radius (spectrum px over ``W``).
+    light : ndarray, (K,), optional
+        Each capture's mean intensity per unit exposure (default: the images' means), which confirms a shift
+        (:attr:`AxisOffset.confirmed`).
 
     Returns
     -------
@@ -105,7 +153,12 @@ def axis_offset(images: np.ndarray, centres_px: np.ndarray, radius_px: float) ->
     at_given = float(_scores(edges, centres[bright], np.zeros((1, 2)))[0])
     found = float(scores.max())
     gain = found / at_given if at_given > 0 else (np.inf if found > at_given else 1.0)
-    return AxisOffset(shift / to_crop, float(np.hypot(*shift) / radius), float(gain), int(bright.size))
+    light = images.mean(axis=(-2, -1), dtype=np.float64) if light is None else np.asarray(light, np.float64)
+    given = np.asarray(centres_px, np.float64)
+    shifted = given + shift / to_crop
+    lit = lit_level(light, given, shifted, radius_px=radius_px)
+    return AxisOffset(shift / to_crop, float(np.hypot(*shift) / radius), float(gain), int(bright.size),
+                      misplaced(light, given, radius_px, lit), misplaced(light, shifted, radius_px, lit))
 
 
 def _edge_maps(images: np.ndarray, radius: float) -> np.ndarray:

@@ -600,7 +600,8 @@ def off_axis_board(plan: CapturePlan, geometry: CaptureGeometry, frames: np.ndar
     """
     if plan.kind != "led_array":
         return ""
-    found = axis_offset(frames[:, 0], geometry.spectrum_centres_yx_px, geometry.pupil_radius_px)
+    light = frames[:, 0].mean(axis=(-2, -1), dtype=np.float64) / plan.exposure_s[:, 0]
+    found = axis_offset(frames[:, 0], geometry.spectrum_centres_yx_px, geometry.pupil_radius_px, light)
     if found is None or not found.off_axis:
         return ""
     illumination = plan.manifest.illumination
@@ -608,7 +609,9 @@ def off_axis_board(plan: CapturePlan, geometry: CaptureGeometry, frames: np.ndar
     sine_y, sine_x = illumination.sign * found.shift_yx_px / per_sine   # what the given sines lack
     text = (f"the bright-field images put the optical axis {found.radii:.2f} pupil radii from where the LED positions "
             f"put it: their sin θ [x, y] read [{sine_x:+.4f}, {sine_y:+.4f}] off (from the edges of the pupil circles "
-            f"in the images' spectra, {found.gain:.1f} times sharper there). ")
+            f"in the images' spectra, {found.gain:.1f} times sharper there; the shift puts "
+            f"{found.misplaced_shifted} captures' light on the wrong side of the pupil's edge, the positions as given "
+            f"{found.misplaced_given}). ")
     depth = _led_depths_mm(plan)
     source = plan.manifest.source
     if source is not None and source.ptylab is not None:

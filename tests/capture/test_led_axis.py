@@ -138,3 +138,20 @@ def test_a_ptylab_file_off_the_axis_is_told_how_far_its_encoder_is_off(tmp_path)
     y, x = (float(v) for v in told.split(","))
     assert x == pytest.approx(PITCH_M / 2, rel=0.2) and abs(y) < 0.05 * PITCH_M and "fpm.hdf5's encoder" in said
     assert "the bright-field images put" not in ingest(encoder + [y, x])      # as told: nothing to say
+
+
+def test_a_phase_object_s_rings_do_not_pass_for_an_off_axis_board():
+    """Round cells of phase scatter rings into the bright-field spectra that the circles' edges can lock onto; the
+    captures' brightness, which the given positions explain, keeps such a shift from being reported."""
+    rng = np.random.default_rng(3)
+    size = 128
+    y, x = np.mgrid[:size, :size]
+    phase = np.zeros((size, size))
+    for cy, cx in rng.uniform(8, size - 8, (40, 2)):
+        phase += 1.5 * (np.hypot(y - cy, x - cx) < rng.uniform(4, 7))
+    cells = (0.95 * np.exp(1j * np.clip(phase, 0, 2))).astype(np.complex64)
+    geometry = cca.led_array(cca.led_grid_sines(GRID, pitch_m=PITCH_M, height_m=HEIGHT_M), image_pixels=64, **OPTICS)
+    images = cca.simulate(cells, geometry, snr_db=40, seed=1)
+    found = axis_offset(images, geometry.spectrum_centres_yx_px, geometry.pupil_radius_px)
+    assert not found.off_axis
+    assert found.radii < OFF_AXIS or found.misplaced_shifted >= found.misplaced_given
