@@ -389,8 +389,8 @@ def ingest(manifest_path: Path, *, progress: ProgressFn = silent) -> Ingested:
     # captures an off-axis board puts in the bright field look unlit: the board, not their LEDs, is the cause
     notes += (stray_positions(plan, geometry) + crowded_neighbours(plan, geometry)
               + ([] if off_axis else dark_bright_field(plan, geometry, frames)))
-    if manifest.source is None and not plan.darks and "black_level" not in manifest.sensor.model_fields_set:
-        notes += offset_left_in(plan, geometry, frames)
+    levelled = bool(plan.darks) or "black_level" in manifest.sensor.model_fields_set
+    notes += offset_left_in(plan, geometry, frames, levelled=levelled)
     if manifest.sensor.frame_scale == "per_frame":
         notes.append("sensor.frame_scale is per_frame: the images' relative brightness is unknown, so reconstruct's "
                      "momentum engine (engine: auto on recorded captures) fits each capture's brightness "
@@ -635,11 +635,12 @@ def off_axis_board(plan: CapturePlan, geometry: CaptureGeometry, frames: np.ndar
 OFFSET_SHARE = 0.2
 
 
-def offset_left_in(plan: CapturePlan, geometry: CaptureGeometry, frames: np.ndarray) -> list[str]:
-    """A note where an LED array's dark-field images never fall near zero: a camera offset (black level) left in.
+def offset_left_in(plan: CapturePlan, geometry: CaptureGeometry, frames: np.ndarray, *, levelled: bool) -> list[str]:
+    """A note where an LED array's dark-field images never fall near zero: a camera offset (black level) left in
+    or, where ``levelled`` (a black level or dark frames given), stray light.
 
-    It adds light to every dark-field capture that the object did not scatter, which the recovery then takes
-    for the object's (a haze, and a worse fit of the dark field).
+    Either adds light to every dark-field capture that the object did not scatter, which the recovery then takes
+    for the object's (a haze over a faint object, and a worse fit of the dark field).
     """
     if plan.kind != "led_array":
         return []
@@ -655,9 +656,14 @@ def offset_left_in(plan: CapturePlan, geometry: CaptureGeometry, frames: np.ndar
     share = float(np.median(np.percentile(images[lit], 1, axis=1) / means[lit]))
     if share < OFFSET_SHARE:
         return []
-    return [f"the dark-field images never fall near zero (their darkest 1% of pixels at {share:.0%} of their mean, "
-            f"the median of {int(lit.sum())} images): is the camera's offset left in? Set sensor.black_level (the "
-            "reading with no light) or give dark frames; an offset adds light the object did not scatter"]
+    said = (f"the dark-field images never fall near zero (their darkest 1% of pixels at {share:.0%} of their mean, "
+            f"the median of {int(lit.sum())} images): ")
+    if not levelled:
+        return [said + "is the camera's offset left in? Set sensor.black_level (the reading with no light) or give "
+                       "dark frames; an offset adds light the object did not scatter"]
+    return [said + "stray light, or an offset beyond the black level? It adds light the object did not scatter, "
+                   "which the recovery takes for the object's (a haze over a faint one): shield the setup from room "
+                   "and LED light, and check sensor.black_level or the dark frames"]
 
 
 def _led_depths_mm(plan: CapturePlan) -> float | None:

@@ -114,6 +114,9 @@ def test_a_camera_offset_left_in_the_dark_field_is_noted(tmp_path):
     assert note in said and "Set sensor.black_level" in said
     assert note not in _lab(tmp_path, images, offset=offset, sensor={"black_level": round(offset)})
     assert note not in _lab(tmp_path, images)
+    # a black level stated, and light beyond it: stray light
+    said = _lab(tmp_path, images, offset=2 * offset, sensor={"black_level": round(offset)})
+    assert note in said and "stray light" in said and "Set sensor.black_level" not in said
 
 
 def test_a_ptylab_file_off_the_axis_is_told_how_far_its_encoder_is_off(tmp_path):
