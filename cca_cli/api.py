@@ -483,7 +483,7 @@ def _check_simulation_memory(geometry: CaptureGeometry) -> None:
     """Refuse, before anything is allocated, images that would not fit the machine's memory (ValueError naming
     ``geometry``): the float32 images themselves, a lower bound of what simulating them takes."""
     from cca_cli.sampling.capture import object_pixel_m
-    from cca_cli.stages.footprint import memory_available, size_text
+    from cca_cli.io.capacity import memory_available, size_text
 
     pixels = geometry.field_width_m / object_pixel_m(geometry)
     need = 4.0 * geometry.n_images * pixels * pixels

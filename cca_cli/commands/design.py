@@ -58,7 +58,7 @@ def _option_names(exc: ValueError) -> str:
 
 def _machine_warnings(plan) -> tuple[str, ...]:
     """Warnings when this machine cannot hold the plan's captures or its reconstruction."""
-    from cca_cli.stages.footprint import memory_available, size_text
+    from cca_cli.io.capacity import memory_available, size_text
 
     available = memory_available()
     if plan.memory_bytes > available:
@@ -198,7 +198,7 @@ def design_cli(
         data["seconds_per_iteration"] = seconds
         console.print_json(json.dumps(data))
     else:
-        from cca_cli.stages.footprint import size_text
+        from cca_cli.io.capacity import size_text
 
         table = Table(title="cca design", header_style="bold")
         table.add_column("quantity")

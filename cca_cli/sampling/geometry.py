@@ -177,12 +177,12 @@ def check_lens(focal_length_m: float, aperture_diameter_m: float) -> None:
     >>> check_lens(0.075, 2.5)
     Traceback (most recent call last):
     ...
-    ValueError: aperture_diameter_m: 2.5 m behind a lens of focal_length_m 0.075 m is f/0.03, faster than any lens (f/0.5); check both, in metres
+    ValueError: aperture_diameter_m: 2.5 m behind a lens of focal_length_m 0.075 m is f/0.03: no lens has so wide a pupil (f/0.5 at most); check both, in metres
     """
     if aperture_diameter_m > 2 * focal_length_m:
         raise ValueError(f"aperture_diameter_m: {aperture_diameter_m:g} m behind a lens of focal_length_m "
-                         f"{focal_length_m:g} m is f/{focal_length_m / aperture_diameter_m:.2g}, faster than any lens "
-                         "(f/0.5); check both, in metres")
+                         f"{focal_length_m:g} m is f/{focal_length_m / aperture_diameter_m:.2g}: no lens has so wide a "
+                         "pupil (f/0.5 at most); check both, in metres")
 
 
 def camera_scan_geometry(*, wavelength_m: float, focal_length_m: float, aperture_diameter_m: float,

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,6 +23,7 @@ import numpy as np
 
 from cca_cli.config.model import RunConfig
 from cca_cli.errors import ConfigError, InputError, ResourceError
+from cca_cli.io.capacity import memory_available, size_text
 from cca_cli.sampling.design import reconstruction_memory_bytes
 from cca_cli.sampling.grid import band_sizes
 from cca_cli.sampling.overlap import grid_for_sar
@@ -63,17 +63,6 @@ class Footprint:
     disk_bytes: float
     detail: str
     fix: str
-
-
-def size_text(n: float) -> str:
-    """Bytes as ``10.7 GB`` (decimal units)."""
-    if not math.isfinite(n):
-        return "more than any machine has"
-    for unit in ("B", "kB", "MB", "GB", "TB", "PB"):
-        if abs(n) < 1000 or unit == "PB":
-            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.3g} {unit}"
-        n /= 1000
-    return f"{n:.3g} PB"
 
 
 def _fft_size(n: float) -> float:
@@ -367,24 +356,6 @@ def report_footprint(recon_path: Path) -> Footprint:
 
 def _about(n: float) -> str:
     return f"about {size_text(n)}" if math.isfinite(n) else size_text(n)
-
-
-def memory_available() -> float:
-    """Bytes of memory a stage may plan to use: ``CCA_MEMORY_LIMIT`` or the free memory now."""
-    limit = os.environ.get("CCA_MEMORY_LIMIT", "").strip()
-    if limit:
-        scale = {"K": 1e3, "M": 1e6, "G": 1e9, "T": 1e12}.get(limit[-1].upper(), 1.0)
-        try:
-            return float(limit[:-1] if scale != 1.0 else limit) * scale
-        except ValueError:
-            raise ConfigError(f"CCA_MEMORY_LIMIT={limit!r}: give bytes, e.g. 8G or 512M") from None
-    try:
-        import psutil
-
-        return float(psutil.virtual_memory().available)
-    except ImportError:  # pragma: no cover - psutil comes with dask.distributed
-        pages = os.sysconf("SC_AVPHYS_PAGES") if hasattr(os, "sysconf") else 0
-        return float(pages * os.sysconf("SC_PAGE_SIZE")) if pages else math.inf
 
 
 def _free_disk(path: Path) -> float:

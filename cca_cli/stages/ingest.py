@@ -370,10 +370,13 @@ def ingest(manifest_path: Path, *, progress: ProgressFn = silent) -> Ingested:
         o = manifest.optics
         pitch = o.pixel_pitch_m * binning
         field_width = w * pitch * o.distance_m / o.focal_length_m
-        geometry = stage_scan_geometry(plan.positions, wavelength_m=o.wavelength_m, focal_length_m=o.focal_length_m,
-                                       aperture_diameter_m=o.aperture_diameter_m, pixel_pitch_m=pitch,
-                                       distance_m=o.distance_m, field_width_m=field_width,
-                                       grid_indices=plan.grid_indices)
+        try:
+            geometry = stage_scan_geometry(plan.positions, wavelength_m=o.wavelength_m,
+                                           focal_length_m=o.focal_length_m, aperture_diameter_m=o.aperture_diameter_m,
+                                           pixel_pitch_m=pitch, distance_m=o.distance_m, field_width_m=field_width,
+                                           grid_indices=plan.grid_indices)
+        except ValueError as exc:   # optics no lens has (the keys are named)
+            raise ConfigError(f"{manifest_path}: optics.{exc}") from None
     else:
         il = manifest.illumination
         pitch = il.pixel_pitch_object_m * binning

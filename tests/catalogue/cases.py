@@ -1208,7 +1208,8 @@ def _sweep_table_holds(*values):
 SWEEP_MORE = ["sweep", "grid", "cfg.yaml", "--set", "noise.snr_db=30", "--out-dir", "sw", "-q", "--workers", "1"]
 case("sweep-adds-to-an-earlier-sweep", "data-loss", SWEEP_MORE,
      {"cfg.yaml": Config(), "sw": SweepFolder({"noise.snr_db": [10, 20]})}, exit=0,
-     writes=("sw/sweep.csv", "sw/sweep.h5", "sw/figures", f"sw/points/{_sweep_point_id(30, 1)}"),
+     # the new point follows the folder's two (index 2, seed 1 + 2): no noise draw of the table repeats
+     writes=("sw/sweep.csv", "sw/sweep.h5", "sw/figures", f"sw/points/{_sweep_point_id(30, 3)}"),
      check=_sweep_table_holds(10, 20, 30), seconds=120)
 case("sweep-into-another-base-config", "data-loss", SWEEP_MORE,
      {"cfg.yaml": Config(), "sw": SweepFolder({"noise.snr_db": [10, 20]}, {"reconstruct.iterations": 5})}, exit=4,
