@@ -5,7 +5,7 @@ scatters into the pupil. The image's spectrum therefore carries two discs of the
 plus and minus the illumination's spatial frequency, with a sharp edge (Eckert, Phillips & Waller, Appl.
 Opt. 57(19), 2018). Where the LED positions given are all off by one shift (a board whose middle LED is not
 on the axis, or a table counted from another origin), every disc sits that shift away from where the
-positions put it. The recovery cannot see such a shift (it only tilts the object's phase: thousands of
+positions put it. The recovery cannot see such a shift (it only tilts the object's phase, by tens of
 radians over the field, which no run unwinds), and a recovery with it has stripes and a wrong phase.
 
 :func:`axis_offset` finds the one shift that puts the discs' edges of every bright-field image where the
@@ -99,9 +99,8 @@ def lit_level(light: np.ndarray, *arrangements: np.ndarray, radius_px: float) ->
     the brighter median: every bright-field capture holds the unscattered light, and a dark-field one only what
     the object scatters (far less for all but the densest samples, even beside the pupil's edge)."""
     light = np.asarray(light, np.float64)
-    medians = [np.median(light[np.hypot(*np.asarray(c, np.float64).T) < radius_px - 1])
-               for c in arrangements if np.any(np.hypot(*np.asarray(c, np.float64).T) < radius_px - 1)]
-    return 0.5 * max(medians, default=0.0)
+    inside = [np.hypot(*np.asarray(c, np.float64).T) < radius_px - 1 for c in arrangements]
+    return 0.5 * max((np.median(light[bright]) for bright in inside if bright.any()), default=0.0)
 
 
 def axis_offset(images: np.ndarray, centres_px: np.ndarray, radius_px: float,

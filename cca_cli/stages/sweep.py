@@ -248,9 +248,10 @@ def expand_points(base: RunConfig, spec: SweepSection, sweep_dir: Path, *, sourc
     ``noise.seed``, and ``reconstruct.options.threads = 1`` unless the config
     sets it (the sweep parallelises across points, not inside them). The index
     is the point's position in the sweep; in a folder where earlier sweeps ran
-    points, a point one of them ran keeps its index and a new one takes the
-    next after the folder's last, so that the folder's table never holds one
-    index (or derived seed) twice.
+    points, a point one of them finished keeps its index, and a new one takes
+    its position where no finished point holds it, else the next after the
+    folder's last, so that the folder's table never holds one index (or
+    derived seed) twice.
 
     Raises
     ------
