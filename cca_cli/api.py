@@ -417,10 +417,10 @@ def usaf_chart(size_px: int, *, pixel_pitch_m: float, groups=(-1, 0, 1, 2, 3)):
     """
     from cca_cli.targets import usaf1951_chart
 
-    from cca_cli.sampling.geometry import check_positive
-
-    check_positive(pixel_pitch_m=pixel_pitch_m)
-    return usaf1951_chart(_count("size_px", size_px), pixel_pitch_m=pixel_pitch_m, groups=tuple(groups))
+    pitch = _number("pixel_pitch_m", pixel_pitch_m)
+    if not pitch > 0:
+        raise ValueError(f"pixel_pitch_m must be a positive size at the object (m), got {pixel_pitch_m!r}")
+    return usaf1951_chart(_count("size_px", size_px), pixel_pitch_m=pitch, groups=tuple(groups))
 
 
 # -------------------------------------------------------------------------------------------- imaging, recovery

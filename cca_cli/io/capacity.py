@@ -27,9 +27,12 @@ def memory_available() -> float:
     if limit:
         scale = {"K": 1e3, "M": 1e6, "G": 1e9, "T": 1e12}.get(limit[-1].upper(), 1.0)
         try:
-            return float(limit[:-1] if scale != 1.0 else limit) * scale
+            value = float(limit[:-1] if scale != 1.0 else limit) * scale
         except ValueError:
-            raise ConfigError(f"CCA_MEMORY_LIMIT={limit!r}: give bytes, e.g. 8G or 512M") from None
+            value = math.nan
+        if not (math.isfinite(value) and value > 0):
+            raise ConfigError(f"CCA_MEMORY_LIMIT={limit!r}: give a positive number of bytes, e.g. 8G or 512M")
+        return value
     try:
         import psutil
 

@@ -421,6 +421,9 @@ def _with_ptylab(data: dict, path: Path, source: str, files: list[Path], notes: 
         where = "in a manifest beside it: source: {ptylab: " + ptylab.name + "}, illumination: {numerical_aperture: …}" \
             if path == ptylab else f"in {source}'s illumination section"
         raise ConfigError(f"{ptylab}: has no NA, and cca needs the objective's numerical aperture: give it {where}")
+    if given.get("pupil") is not None:   # a known pupil beside the manifest
+        given = {**given, "pupil": str(_resolve(path.parent, given["pupil"]))}
+        files = [*files, Path(given["pupil"])]
     data = {**data, "illumination": {**found.illumination(), **given}}
     try:
         manifest = Manifest.model_validate(data)

@@ -31,6 +31,8 @@ EDGE_WIDTH_PX = 2.0
 MAX_IMAGES = 32
 #: Farthest the search looks, as a fraction of the pupil radius.
 SEARCH_RADII = 0.75
+#: Side of the centred square the spectra are read on (px): wider frames are cut to it (memory stays bounded).
+MAX_SIDE = 256
 
 
 @dataclass(frozen=True)
@@ -129,7 +131,7 @@ def axis_offset(images: np.ndarray, centres_px: np.ndarray, radius_px: float,
     if images.ndim != 3 or len(images) != len(centres_px):
         raise ValueError(f"images must be (K, H, W) with one per centre, got {images.shape} for {len(centres_px)}")
     h, w = images.shape[-2:]
-    n = min(h, w)
+    n = min(h, w, MAX_SIDE)
     to_crop = n / w                      # spectrum px over the square crop's width
     centres = np.asarray(centres_px, np.float64) * to_crop
     radius = float(radius_px) * to_crop
@@ -142,16 +144,18 @@ def axis_offset(images: np.ndarray, centres_px: np.ndarray, radius_px: float,
     crop = np.asarray(images[bright, top:top + n, left:left + n], np.float64)
     edges = _edge_maps(crop, radius)
     reach = SEARCH_RADII * radius
-    steps = np.arange(-reach, reach + 1e-9, 0.5)
-    coarse = _scores(edges, centres[bright], np.stack(np.meshgrid(steps, steps, indexing="ij"), -1).reshape(-1, 2))
-    best = np.stack(np.meshgrid(steps, steps, indexing="ij"), -1).reshape(-1, 2)[int(np.argmax(coarse))]
-    fine = np.arange(-0.5, 0.5 + 1e-9, 0.1)
+    step = max(0.5, radius / 48)          # at most about 72² shifts on the coarse grid
+    steps = np.arange(-reach, reach + 1e-9, step)
+    grid = np.stack(np.meshgrid(steps, steps, indexing="ij"), -1).reshape(-1, 2)
+    best = grid[int(np.argmax(_scores(edges, centres[bright], grid)))]
+    fine = np.arange(-step, step + 1e-9, step / 5)
     trial = best + np.stack(np.meshgrid(fine, fine, indexing="ij"), -1).reshape(-1, 2)
     scores = _scores(edges, centres[bright], trial)
     shift = trial[int(np.argmax(scores))]
     at_given = float(_scores(edges, centres[bright], np.zeros((1, 2)))[0])
     found = float(scores.max())
-    gain = found / at_given if at_given > 0 else (np.inf if found > at_given else 1.0)
+    # edges that read nowhere (found ≤ 0) claim nothing; none where the positions put them, ten times
+    gain = 1.0 if found <= 0 else found / max(at_given, 0.1 * found)
     light = images.mean(axis=(-2, -1), dtype=np.float64) if light is None else np.asarray(light, np.float64)
     given = np.asarray(centres_px, np.float64)
     shifted = given + shift / to_crop

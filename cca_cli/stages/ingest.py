@@ -35,6 +35,7 @@ from cca_cli.io.ptylab import read_ptylab_images
 from cca_cli.io.records import write_sensor_records
 from cca_cli.io.stacks import read_stack
 from cca_cli.library.axis import axis_offset
+from cca_cli.library.defects import MOST_PIXELS, fill_pixels, hot_pixels
 from cca_cli.library.orientation import recorded_orientation_advice
 from cca_cli.library.recovery import UNLIT_FACTOR, judge_bright_field
 from cca_cli.io.sensor import (Decoding, FrameValues, SensorRule, board_decodings, decide_decoding, frame_values,
@@ -375,8 +376,10 @@ def ingest(manifest_path: Path, *, progress: ProgressFn = silent) -> Ingested:
                                            focal_length_m=o.focal_length_m, aperture_diameter_m=o.aperture_diameter_m,
                                            pixel_pitch_m=pitch, distance_m=o.distance_m, field_width_m=field_width,
                                            grid_indices=plan.grid_indices)
-        except ValueError as exc:   # optics no lens has (the keys are named)
-            raise ConfigError(f"{manifest_path}: optics.{exc}") from None
+        except ValueError as exc:   # optics no lens has (their keys named), or positions no geometry takes
+            key = str(exc).split(" ")[0].rstrip(":")
+            where = "optics." if key in type(o).model_fields else ""
+            raise ConfigError(f"{manifest_path}: {where}{exc}") from None
     else:
         il = manifest.illumination
         pitch = il.pixel_pitch_object_m * binning
@@ -388,6 +391,7 @@ def ingest(manifest_path: Path, *, progress: ProgressFn = silent) -> Ingested:
         geometry = replace(geometry, camera_index=plan.camera_index)
     check_geometry(plan, geometry, (h, w))
     check_neighbours_overlap(plan, geometry)
+    notes += fill_hot_pixels(frames)
     off_axis = off_axis_board(plan, geometry, frames)
     # captures an off-axis board puts in the bright field look unlit: the board, not their LEDs, is the cause
     notes += (stray_positions(plan, geometry) + crowded_neighbours(plan, geometry)
@@ -591,6 +595,28 @@ def dark_bright_field(plan: CapturePlan, geometry: CaptureGeometry, frames: np.n
     return [f"{plan.labels[i]} is in the bright field but recorded {how_much(t)} than the median bright-field "
             "capture: did its LED fire? (reconstruct leaves it out; check that row)"
             for i, t in zip(judged.unlit, judged.times_darker)]
+
+
+def fill_hot_pixels(frames: np.ndarray) -> list[str]:
+    """Fill the sensor's hot pixels (:func:`~cca_cli.library.defects.hot_pixels`, found on each position's first
+    exposure) in ``frames`` (K, E, H, W), in place, with the mean of their good neighbours; a note naming them.
+
+    Not filled where more than :data:`~cca_cli.library.defects.MOST_PIXELS` of the frame would be.
+    """
+    if len(frames) < 5:
+        return []
+    hot = hot_pixels(frames[:, 0])
+    count = int(hot.sum())
+    if not count:
+        return []
+    y, x = np.argwhere(hot)[0]
+    said = (f"{count} pixel(s) stand far above their neighbours by the same amount in every capture (first at x {x}, "
+            f"y {y}): hot pixels of the sensor")
+    if hot.mean() > MOST_PIXELS:
+        return [said + f"? Over {MOST_PIXELS:.0%} of the frame, so they are left as they are: check the sensor's "
+                       "settings (black level, binning)"]
+    fill_pixels(frames, hot)
+    return [said + "; each now reads the mean of its good neighbours"]
 
 
 def off_axis_board(plan: CapturePlan, geometry: CaptureGeometry, frames: np.ndarray) -> str:

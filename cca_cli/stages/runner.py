@@ -244,6 +244,8 @@ def _check_before_running(config: RunConfig, plans: list[StagePlan], *, force: b
                 _refuse_existing(plan, state)
             if state == "current":
                 continue
+        if exists and foreign_part(plan.output) is not None:   # to be replaced, and a file of the user's is in it
+            _refuse_existing(plan, "foreign")
         rewritten.add(plan.output)
         if plan.name == "simulate":
             simulate = plan

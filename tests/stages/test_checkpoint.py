@@ -279,9 +279,11 @@ def test_a_user_s_file_in_a_report_folder_cca_wrote_is_named_when_it_blocks_the_
     # up to date: nothing would be replaced, so the run goes on and skips the report
     outcomes = run_pipeline(tiny_run_config, tmp_path)
     assert [o.status for o in outcomes] == ["skipped"] * len(outcomes)
+    written = {p: p.stat().st_mtime_ns for p in tmp_path.glob("*.h5")}
     with pytest.raises(OutputError, match="cca wrote this folder, but not my_notes.txt in it"):
         run_pipeline(tiny_run_config, tmp_path, force=True)
     assert (reports[0] / "my_notes.txt").read_text() == "mine"
+    assert {p: p.stat().st_mtime_ns for p in tmp_path.glob("*.h5")} == written   # refused before any stage ran
 
 
 def test_a_damaged_report_json_is_made_again_without_force(tiny_run_config, tmp_path):

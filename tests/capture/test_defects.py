@@ -1,0 +1,76 @@
+"""A sensor's hot pixels: found in every capture, filled from their neighbours at ingest."""
+
+from __future__ import annotations
+
+import numpy as np
+import yaml
+from typer.testing import CliRunner
+
+import cca_cli as cca
+from cca_cli.commands.app import app
+from cca_cli.io.captures import read_captures
+from cca_cli.io.images import write_image
+from cca_cli.library.defects import fill_pixels, hot_pixels
+
+runner = CliRunner()
+OPTICS = dict(wavelength_m=532e-9, numerical_aperture=0.1, pixel_pitch_object_m=0.9e-6)
+SINES = cca.led_grid_sines(9, pitch_m=4e-3, height_m=60e-3)
+RNG = np.random.default_rng(5)
+
+
+def _captures():
+    geometry = cca.led_array(SINES, image_pixels=64, **OPTICS)
+    images = cca.simulate(cca.resolution_chart(128, widths=(6, 4, 3, 2)).image, geometry, snr_db=40, seed=2)
+    bright = np.hypot(*geometry.spectrum_centres_yx_px.T) < 0.9 * geometry.pupil_radius_px
+    return np.asarray(images, np.float32), geometry, bright
+
+
+HOT = [(5, 40), (30, 12), (50, 50)]
+
+
+def _with_defects(images):
+    """Three hot pixels: a fixed excess in every capture."""
+    spoilt = images.copy()
+    for y, x in HOT:
+        spoilt[:, y, x] += 0.05 * images.max()
+    return spoilt
+
+
+def test_hot_pixels_are_found_and_a_chart_s_own_bars_are_not():
+    images, _, _ = _captures()
+    assert not hot_pixels(images).any()            # bars, edges and noise: the object's, not the sensor's
+    assert sorted(map(tuple, np.argwhere(hot_pixels(_with_defects(images))).tolist())) == HOT
+
+
+def test_a_filled_pixel_reads_as_its_neighbours_do():
+    images, _, _ = _captures()
+    spoilt = _with_defects(images)
+    mask = hot_pixels(spoilt)
+    fill_pixels(spoilt, mask)
+    # each filled pixel is far nearer the clean image than the hot one was (its excess: 5% of the peak)
+    error = max(float(np.abs(spoilt[:, y, x] - images[:, y, x]).mean()) for y, x in HOT) / images.max()
+    assert error < 0.01, error
+    assert np.array_equal(spoilt[:, ~mask], images[:, ~mask])     # every other pixel as it was
+
+
+def test_ingest_fills_the_sensor_s_defects_and_says_so(tmp_path):
+    images, _, _ = _captures()
+    spoilt = _with_defects(images)
+    scale = 30000 / float(spoilt.max())
+    rows = []
+    for k, (ky, kx) in enumerate(SINES):
+        codes = np.clip(np.rint(spoilt[k] * scale) + 100, 0, 65535).astype(np.uint16)
+        write_image(tmp_path / f"led{k}.png", codes, bit_depth=16)
+        rows.append({"path": f"led{k}.png", "exposure_s": 0.01, "kx_norm": float(kx), "ky_norm": float(ky)})
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump({"illumination": OPTICS, "sensor": {"black_level": 100},
+                                                       "images": rows}))
+    result = runner.invoke(app, ["ingest", str(tmp_path / "lab.yaml"), "-o", str(tmp_path / "raw.h5"), "-q"])
+    assert result.exit_code == 0, result.output
+    said = " ".join(result.output.split())
+    assert "3 pixel(s) stand far above their neighbours by the same amount in every capture" in said
+    assert "hot pixels of the sensor; each now reads the mean of its good neighbours" in said
+    intensity = np.asarray(read_captures(tmp_path / "raw.h5").intensity)
+    clean = images * scale / 0.01                     # the files' counts per second without the hot pixels
+    for y, x in HOT:   # far nearer the clean image than the hot pixel (5% of the peak above it)
+        error = np.abs(intensity[:, y, x] - clean[:, y, x]).mean() / clean.max()
+        assert error < 0.01, error
