@@ -391,7 +391,7 @@ def ingest(manifest_path: Path, *, progress: ProgressFn = silent) -> Ingested:
         geometry = replace(geometry, camera_index=plan.camera_index)
     check_geometry(plan, geometry, (h, w))
     check_neighbours_overlap(plan, geometry)
-    notes += fill_hot_pixels(frames)
+    notes += fill_hot_pixels(frames, saturation)
     off_axis = off_axis_board(plan, geometry, frames)
     # captures an off-axis board puts in the bright field look unlit: the board, not their LEDs, is the cause
     notes += (stray_positions(plan, geometry) + crowded_neighbours(plan, geometry)
@@ -597,15 +597,17 @@ def dark_bright_field(plan: CapturePlan, geometry: CaptureGeometry, frames: np.n
             for i, t in zip(judged.unlit, judged.times_darker)]
 
 
-def fill_hot_pixels(frames: np.ndarray) -> list[str]:
+def fill_hot_pixels(frames: np.ndarray, saturation: float) -> list[str]:
     """Fill the sensor's hot pixels (:func:`~cca_cli.library.defects.hot_pixels`, found on each position's first
     exposure) in ``frames`` (K, E, H, W), in place, with the mean of their good neighbours; a note naming them.
 
-    Not filled where more than :data:`~cca_cli.library.defects.MOST_PIXELS` of the frame would be.
+    A pixel clipped (at ``saturation``) in every frame is left to the clipped pixels' rule (weight 0, named by
+    :func:`_same_peak_note`). Not filled where more than :data:`~cca_cli.library.defects.MOST_PIXELS` of the
+    frame would be.
     """
     if len(frames) < 5:
         return []
-    hot = hot_pixels(frames[:, 0])
+    hot = hot_pixels(frames[:, 0]) & ~np.all(frames[:, 0] >= np.float32(0.99 * saturation), axis=0)
     count = int(hot.sum())
     if not count:
         return []

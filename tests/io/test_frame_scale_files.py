@@ -216,3 +216,18 @@ def test_a_hot_pixel_at_full_scale_beside_clipped_frames_is_named_and_not_taken_
     assert "per_frame" not in text
     with h5py.File(tmp_path / "raw.h5") as handle:
         assert (handle["/measurements/weight"][:, 3, 5] == 0).all()
+
+
+def test_a_hot_pixel_clipped_in_every_frame_stays_clipped_rather_than_filled(tmp_path):
+    """With enough frames for the hot-pixel fill, a pixel at full scale in every frame keeps the clipped rule."""
+    frames = [np.full((16, 16), 500 + 100 * i, np.uint16) for i in range(6)]
+    for i, frame in enumerate(frames):
+        if i % 2:
+            frame[:2, :] = 65535
+        frame[3, 5] = 65535
+    result = _ingest_frames(tmp_path, frames)
+    assert result.exit_code == 0, result.output
+    text = " ".join(result.output.split())
+    assert "a hot pixel? it counts as clipped (weight 0)" in text and "stand far above" not in text
+    with h5py.File(tmp_path / "raw.h5") as handle:
+        assert (handle["/measurements/weight"][:, 3, 5] == 0).all()
