@@ -58,7 +58,7 @@ from cca_cli.optics import backend
 from cca_cli.optics.backend import DeviceUnavailable
 from cca_cli.sampling.grid import BandLayout
 
-__all__ = ["FIELD_BYTES", "BoxOperator", "unsupported_options", "check_options", "merged_steps", "RpieFactors",
+__all__ = ["FIELD_BYTES", "BoxOperator", "capture_groups", "unsupported_options", "check_options", "merged_steps", "RpieFactors",
            "BatchedAlternatingMinimization", "BatchedMomentum"]
 
 #: Most bytes of complex64 fields one batched call holds (the FFTs need about as much again).
