@@ -124,7 +124,8 @@ class Calibrator:
                 coefficients=self._fixed_coefficients, amplitude=options.pupil_amplitude,
                 step=options.pupil_step, threads=threads, maps=self._fixed_map, tilt=options.pupil_tilt,
                 smoothing=options.pupil_smoothing, lattice=options.pupil_lattice,
-                damping=options.pupil_damping, momentum=options.pupil_momentum)
+                damping=options.pupil_damping, momentum=options.pupil_momentum,
+                known=problem.aberration is not None or problem.initial_pupil is not None)
         self._workspace = None
 
     def _starting_coefficients(self) -> np.ndarray | None:

@@ -179,13 +179,18 @@ class PupilRecovery:
         Map models: each step adds ``momentum`` times the running sum of the steps
         before it (each decayed by ``momentum``), as mPIE does for its probe; the sum
         restarts when a pass fits worse than the one before. 0: plain steps.
+    known : bool
+        Whether the starting maps or coefficients are a pupil the captures came with (a known
+        aberration or pupil), not an estimate. The lattice filter then takes its patterns from the
+        map's departure from that pupil, not from 1: a known defocus has lattice harmonics too, and
+        a filter measured from 1 would strip them at every step.
     """
 
     def __init__(self, layout: BandLayout, pupil_index: np.ndarray, *, model: str = "full", order: int = 4,
                  coefficients: np.ndarray | None = None, amplitude: bool = True, step: float = 1.0,
                  threads: int = 1, offsets: np.ndarray | None = None, maps: np.ndarray | None = None,
                  tilt: str = "pupil", smoothing: float = 0.25, lattice: str = "free", damping: float = 1e-3,
-                 momentum: float = 0.0):
+                 momentum: float = 0.0, known: bool = False):
         if model not in PUPIL_MODELS:
             raise ValueError(f"pupil model must be one of {', '.join(PUPIL_MODELS)}, got {model!r}")
         if lattice not in ("free", "filtered"):
@@ -231,6 +236,8 @@ class PupilRecovery:
         elif model != "zernike" and np.any(self.coefficients):  # the map starts from the given aberration
             self.maps = self._zernike_maps(self.coefficients)
             self.coefficients[:] = 0
+        # what the lattice filter measures a map's departure from (see ``known``)
+        self._reference = self.maps.copy() if known and model != "zernike" else None
 
     @property
     def step_size(self) -> float:
@@ -566,9 +573,10 @@ class PupilRecovery:
         change = numerator / (denominator + self.damping * peak)
         maps = self.maps + (self._step * change).astype(np.complex64)
         if self._periodic is not None:
-            for p in range(self.n_pupils):   # the map's departure from 1, less its lattice-periodic patterns
-                departure = np.where(seen[p], maps[p] - 1, 0)
-                maps[p] = 1 + np.fft.ifft2(np.fft.fft2(departure) * self._periodic)
+            for p in range(self.n_pupils):   # the map's departure from 1 (or the known pupil), less its lattice patterns
+                reference = 1 if self._reference is None else self._reference[p]
+                departure = np.where(seen[p], maps[p] - reference, 0)
+                maps[p] = reference + np.fft.ifft2(np.fft.fft2(departure) * self._periodic)
         if not self.amplitude:
             maps = np.where(seen, np.exp(1j * np.angle(maps)), maps)
         maps = np.where(seen, maps, 1).astype(np.complex64)
