@@ -136,7 +136,8 @@ def sensor_amplitudes(model: ForwardModel, images: np.ndarray, weights: np.ndarr
     count : int, optional
         Required number of images k.
     threads : int
-        Threads that resample the weights, a contiguous share of the images each (the same result for any count).
+        Threads that convert the images and resample the weights, a contiguous share of the images each (the
+        same result for any count).
 
     Returns
     -------
@@ -154,32 +155,45 @@ def sensor_amplitudes(model: ForwardModel, images: np.ndarray, weights: np.ndarr
     scale = np.float32(model.intensity_scale)
     # Small blocks keep the transient full-size spectra well below the capture stack itself.
     block_size = 8
-    for start in range(0, k, block_size):
-        block = fft.fourier_resample(images[start:start + block_size], m)
-        np.clip(block, 0, None, out=block)
-        amplitudes[start:start + block_size] = to_model_layout(np.sqrt(block * scale))
+    blocks = np.array_split(np.arange(0, k, block_size), max(1, min(int(threads), -(-k // block_size))))
+
+    def share(t: int) -> None:   # numpy lets go of the GIL on whole blocks
+        for start in blocks[t]:
+            block = fft.fourier_resample(images[start:start + block_size], m)
+            np.clip(block, 0, None, out=block)
+            amplitudes[start:start + block_size] = to_model_layout(np.sqrt(block * scale))
+
+    run_side_by_side(share, len(blocks))
     resampled_weights = None
     if weights is not None:
-        resampled_weights = to_model_layout(_area_resample(np.asarray(weights, np.float32), m, threads))
+        resampled_weights = _weights_in_model_layout(np.asarray(weights, np.float32), m, threads)
     return amplitudes, resampled_weights
 
 
-def _area_resample(weights: np.ndarray, size: int, threads: int = 1) -> np.ndarray:
+def _weights_in_model_layout(weights: np.ndarray, size: int, threads: int = 1, block_size: int = 8) -> np.ndarray:
+    """Weights clipped to [0, 1], resampled by area to ``size`` when larger, in field layout (float32).
+
+    A few images at a time into one array, a contiguous share of them per thread: whole-stack temporaries
+    would each take fresh pages.
+    """
     n = weights.shape[-1]
-    if n == size:
-        return np.clip(weights, 0, 1)
-    from scipy import ndimage
-
-    factor = size / n
     out = np.empty((len(weights), size, size), np.float32)
-    shares = np.array_split(np.arange(len(weights)), max(1, min(int(threads), len(weights))))
+    blocks = np.array_split(np.arange(0, len(weights), block_size),
+                            max(1, min(int(threads), -(-len(weights) // block_size))))
+    if n != size:
+        from scipy import ndimage
 
-    def share(t: int) -> None:   # scipy.ndimage lets go of the GIL
-        for i in shares[t]:
-            out[i] = np.clip(ndimage.zoom(weights[i], factor, order=1, grid_mode=True, mode="nearest")[:size, :size],
-                             0, 1)
+    def resampled(image: np.ndarray) -> np.ndarray:
+        return ndimage.zoom(image, size / n, order=1, grid_mode=True, mode="nearest")[:size, :size]
 
-    run_side_by_side(share, len(shares))
+    def share(t: int) -> None:   # numpy and scipy.ndimage let go of the GIL
+        for start in blocks[t]:
+            block = weights[start:start + block_size]
+            if n != size:
+                block = np.stack([resampled(image) for image in block])
+            out[start:start + block_size] = to_model_layout(np.clip(block, 0, 1))
+
+    run_side_by_side(share, len(blocks))
     return out
 
 
