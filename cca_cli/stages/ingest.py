@@ -35,7 +35,7 @@ from cca_cli.io.ptylab import read_ptylab_images
 from cca_cli.io.records import write_sensor_records
 from cca_cli.io.stacks import read_stack
 from cca_cli.library.axis import axis_offset
-from cca_cli.library.defects import MOST_PIXELS, fill_pixels, hot_pixels
+from cca_cli.library.defects import MOST_PIXELS, dead_lines, fill_pixels, hot_pixels
 from cca_cli.library.orientation import recorded_orientation_advice
 from cca_cli.library.recovery import UNLIT_FACTOR, judge_bright_field
 from cca_cli.io.sensor import (Decoding, FrameValues, SensorRule, board_decodings, decide_decoding, frame_values,
@@ -392,6 +392,7 @@ def ingest(manifest_path: Path, *, progress: ProgressFn = silent) -> Ingested:
     check_geometry(plan, geometry, (h, w))
     check_neighbours_overlap(plan, geometry)
     notes += fill_hot_pixels(frames, saturation)
+    notes += fill_dead_lines(frames, saturation)
     off_axis = off_axis_board(plan, geometry, frames)
     # captures an off-axis board puts in the bright field look unlit: the board, not their LEDs, is the cause
     notes += (stray_positions(plan, geometry) + crowded_neighbours(plan, geometry)
@@ -619,6 +620,37 @@ def fill_hot_pixels(frames: np.ndarray, saturation: float) -> list[str]:
                        "settings (black level, binning)"]
     fill_pixels(frames, hot)
     return [said + "; each now reads the mean of its good neighbours"]
+
+
+#: More dead lines than this share of the frame's columns and rows are not filled: the rule is then wrong.
+MOST_LINES = 0.05
+
+
+def fill_dead_lines(frames: np.ndarray, saturation: float) -> list[str]:
+    """Fill the sensor's dead or stuck columns and rows (:func:`~cca_cli.library.defects.dead_lines`, found on
+    each position's first exposure) in ``frames`` (K, E, H, W), in place, with the mean of their good neighbours;
+    a note naming them.
+
+    A line clipped (at ``saturation``) in every frame is left to the clipped pixels' rule (weight 0). Not filled
+    where more than :data:`MOST_LINES` of the lines would be.
+    """
+    if len(frames) < 5:
+        return []
+    dead = dead_lines(frames[:, 0]) & ~np.all(frames[:, 0] >= np.float32(0.99 * saturation), axis=0)
+    if not dead.any():
+        return []
+    columns = np.flatnonzero(dead.all(axis=0))
+    rows = np.flatnonzero(dead.all(axis=1))
+    named = [f"column{'s' if len(columns) > 1 else ''} x {', '.join(map(str, columns))}"] if len(columns) else []
+    named += [f"row{'s' if len(rows) > 1 else ''} y {', '.join(map(str, rows))}"] if len(rows) else []
+    one = len(columns) + len(rows) == 1
+    if len(columns) + len(rows) > MOST_LINES * sum(dead.shape):
+        return [f"{' and '.join(named)} do not follow their neighbours in any bright capture? Over "
+                f"{MOST_LINES:.0%} of the lines, so they are left as they are: check the sensor's settings"]
+    fill_pixels(frames, dead)
+    return [f"{' and '.join(named)} {'does' if one else 'do'} not follow {'its' if one else 'their'} neighbours in "
+            "any bright capture: a dead or stuck line of the sensor; each pixel now reads the mean of its good "
+            "neighbours"]
 
 
 def off_axis_board(plan: CapturePlan, geometry: CaptureGeometry, frames: np.ndarray) -> str:

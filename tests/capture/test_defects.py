@@ -1,4 +1,4 @@
-"""A sensor's hot pixels: found in every capture, filled from their neighbours at ingest."""
+"""A sensor's hot pixels and dead lines: found in every capture, filled from their neighbours at ingest."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import cca_cli as cca
 from cca_cli.commands.app import app
 from cca_cli.io.captures import read_captures
 from cca_cli.io.images import write_image
-from cca_cli.library.defects import fill_pixels, hot_pixels
+from cca_cli.library.defects import dead_lines, fill_pixels, hot_pixels
 
 runner = CliRunner()
 OPTICS = dict(wavelength_m=532e-9, numerical_aperture=0.1, pixel_pitch_object_m=0.9e-6)
@@ -42,6 +42,25 @@ def test_hot_pixels_are_found_and_a_chart_s_own_bars_are_not():
     assert sorted(map(tuple, np.argwhere(hot_pixels(_with_defects(images))).tolist())) == HOT
 
 
+DEAD_COLUMN, STUCK_ROW = 21, 14
+
+
+def test_dead_lines_are_found_and_a_chart_s_own_bars_are_not():
+    images, _, _ = _captures()
+    assert not dead_lines(images).any()            # vertical and horizontal bars: the object's lines
+    dead = images.copy()
+    dead[:, :, DEAD_COLUMN] = RNG.normal(0, 1e-3 * images.max(), dead[:, :, DEAD_COLUMN].shape)   # noise only
+    stuck = images.copy()
+    stuck[:, STUCK_ROW, :] = 0.2 * images.max()    # a row stuck at a fifth of the peak
+    for spoilt, line in ((dead, np.s_[:, DEAD_COLUMN]), (stuck, np.s_[STUCK_ROW, :])):
+        expected = np.zeros(images.shape[1:], bool)
+        expected[line] = True
+        assert np.array_equal(dead_lines(spoilt), expected)
+    dark = images.copy()
+    dark[:, :, :20] = 0                             # a dark, featureless band: its lines follow nothing, judged not
+    assert not dead_lines(dark).any()
+
+
 def test_a_filled_pixel_reads_as_its_neighbours_do():
     images, _, _ = _captures()
     spoilt = _with_defects(images)
@@ -56,6 +75,7 @@ def test_a_filled_pixel_reads_as_its_neighbours_do():
 def test_ingest_fills_the_sensor_s_defects_and_says_so(tmp_path):
     images, _, _ = _captures()
     spoilt = _with_defects(images)
+    spoilt[:, :, DEAD_COLUMN] = 0                      # a dead column: the black level in every file
     scale = 30000 / float(spoilt.max())
     rows = []
     for k, (ky, kx) in enumerate(SINES):
@@ -69,8 +89,13 @@ def test_ingest_fills_the_sensor_s_defects_and_says_so(tmp_path):
     said = " ".join(result.output.split())
     assert "3 pixel(s) stand far above their neighbours by the same amount in every capture" in said
     assert "hot pixels of the sensor; each now reads the mean of its good neighbours" in said
+    assert f"column x {DEAD_COLUMN} does not follow its neighbours in any bright capture: a dead or stuck line" in said
     intensity = np.asarray(read_captures(tmp_path / "raw.h5").intensity)
     clean = images * scale / 0.01                     # the files' counts per second without the hot pixels
     for y, x in HOT:   # far nearer the clean image than the hot pixel (5% of the peak above it)
         error = np.abs(intensity[:, y, x] - clean[:, y, x]).mean() / clean.max()
         assert error < 0.01, error
+    bright = clean.mean(axis=(1, 2)) > 0.1 * clean.mean(axis=(1, 2)).max()
+    column = intensity[bright][:, :, DEAD_COLUMN]      # reads as the clean image would, where it had read nothing
+    # (it had read nothing: an error of 100%; the chart's 1–2 px bars are what the neighbours cannot tell)
+    assert np.abs(column - clean[bright][:, :, DEAD_COLUMN]).mean() < 0.25 * clean[bright][:, :, DEAD_COLUMN].mean()
