@@ -81,6 +81,8 @@ def unsupported_options(options: EngineOptions) -> list[str]:
     if options.brightness:
         found.append("brightness: true (set false; captures whose frame_scale is per_frame turn it on, "
                      "and they need it: run those on the CPU)")
+    if options.background:
+        found.append("background: true (set false, or run on the CPU)")
     return found
 
 

@@ -25,6 +25,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from cca_cli.engines import background as bg
 from cca_cli.engines import calibration as cal
 from cca_cli.engines import illumination as ill
 from cca_cli.engines.options import MomentumOptions
@@ -65,6 +66,11 @@ class Calibration:
         ``"led_array"`` or ``"stage"`` when a global position model was fitted.
     position_parameters : dict or None
         Its parameters by name.
+    background_planes : ndarray, float64, (K, 3), or None
+        Each capture's background plane ``[a, s, t]`` (``a + s y + t x``, model intensity units, pixels from
+        the frame's centre; :mod:`~cca_cli.engines.background`), None where none is fitted.
+    background : ndarray, float64, (K,), or None
+        The mean of each capture's background over the frame, in the captures' intensity units.
     """
 
     centres_px: np.ndarray
@@ -75,6 +81,8 @@ class Calibration:
     brightness: np.ndarray
     position_model: str | None = None
     position_parameters: dict | None = None
+    background_planes: np.ndarray | None = None
+    background: np.ndarray | None = None
 
     @property
     def coefficients(self) -> np.ndarray | None:
@@ -109,6 +117,8 @@ class Calibrator:
         if options.pupil_recovery == "shared":
             self.pupil_index = np.zeros(k, np.int64)
         self.brightness = np.ones(k)
+        self.background = np.zeros((k, 3))   # each capture's background plane (:mod:`cca_cli.engines.background`)
+        self._dark_field = bg.dark_field_captures(self.nominal.centres_px, self.nominal.pupil_radius_px)
         self.offsets = np.zeros((k, 2))
         self.position_model = problem.position_model if options.position_refinement in ("global", "both") else None
         self.parameters = None if self.position_model is None else self.position_model.initial
@@ -194,7 +204,7 @@ class Calibrator:
     def due(self, iteration: int) -> bool:
         """Whether a position / brightness round is due before pass ``iteration`` (0-based)."""
         opts = self.options
-        if opts.position_refinement == "none" and not opts.brightness:
+        if opts.position_refinement == "none" and not opts.brightness and not opts.background:
             return False
         since = iteration - opts.calibration_start
         return since >= 0 and since % opts.calibration_every == 0
@@ -220,19 +230,32 @@ class Calibrator:
             statistics = self.evaluate(spectrum)
             self.brightness = ill.shrunk_brightness(statistics, self.brightness, shrinkage=opts.brightness_prior)
             relit = not moved
+        if opts.background:
+            layout = self.layout_for(self.centres())
+            model = ForwardModel(layout, self.pupils_for(layout, self.pupil_index))
+            self.background = bg.background_planes(model, spectrum, self.problem.amplitudes, self.problem.weights,
+                                                   self.brightness, self._dark_field, self._work(model))
+            relit = not moved
         return moved, relit
+
+    def measured(self, captures: np.ndarray | slice = slice(None)) -> np.ndarray:
+        """The measured amplitudes of ``captures`` (problem order) less their fitted background, float32."""
+        return bg.less_background(self.problem.amplitudes[captures], self.background[captures])
+
+    def _work(self, model: ForwardModel):
+        if self._workspace is None:
+            self._workspace = model.workspace(min(32, model.n_images), threads=1)
+        return self._workspace
 
     def evaluate(self, spectrum: np.ndarray, *, parameters=None, offsets=None,
                  positions: bool = False) -> ill.CaptureStatistics:
         """Per-capture statistics of ``spectrum`` at the given positions."""
         layout = self.layout_for(self.centres(parameters, offsets))
         model = ForwardModel(layout, self.pupils_for(layout, self.pupil_index))
-        if self._workspace is None:
-            self._workspace = model.workspace(min(32, model.n_images), threads=1)
         derivatives = self._pupil_derivatives(layout) if positions else None
         scale = 1.0 / np.sqrt(self.brightness)
-        return ill.capture_statistics(model, spectrum, self.problem.amplitudes, self.problem.weights,
-                                      pupil_derivatives=derivatives, workspace=self._workspace, scale=scale)
+        return ill.capture_statistics(model, spectrum, self.measured(), self.problem.weights,
+                                      pupil_derivatives=derivatives, workspace=self._work(model), scale=scale)
 
     def _pupil_derivatives(self, layout: BandLayout, step: float = 1e-3) -> np.ndarray:
         """``∂P_i/∂c_i`` along y and x by central differences of the pupils, complex64 (2, K, b, b)."""
@@ -290,7 +313,16 @@ class Calibrator:
             pupil_index=self.pupil_index.copy(), pupil=None if self.recovery is None else self.recovery.estimate(),
             brightness=self.brightness.copy(),
             position_model=None if self.position_model is None else self.position_model.kind,
-            position_parameters=position_parameters)
+            position_parameters=position_parameters, **self._background_record())
+
+    def _background_record(self) -> dict:
+        """The fitted background planes and their means over the frame in capture units (empty where none)."""
+        if not self.options.background:
+            return {}
+        m = self.nominal.lowres_size
+        mean = bg.background_images(self.background, m).mean(axis=(1, 2), dtype=np.float64)
+        return {"background_planes": self.background.copy(),
+                "background": mean / float(self.problem.model.intensity_scale)}
 
     def state(self) -> dict:
         """Brightness, offsets, global parameters and the pupil recovery's maps, coefficients, step size and momentum.
@@ -298,7 +330,7 @@ class Calibrator:
         Not kept: the pupil recovery's record of its last step (after a restore the
         next pass cannot undo that step if it fits worse; the step size is kept).
         """
-        out = {"brightness": self.brightness, "offsets": self.offsets}
+        out = {"brightness": self.brightness, "offsets": self.offsets, "background": self.background}
         if self.parameters is not None:
             out["parameters"] = np.asarray(self.parameters, np.float64)
         if self.recovery is not None:
@@ -311,6 +343,8 @@ class Calibrator:
     def restore(self, state: dict) -> None:
         """Continue from :meth:`state`."""
         self.brightness = np.array(state["brightness"], np.float64)
+        if "background" in state:
+            self.background = np.array(state["background"], np.float64).reshape(self.background.shape)
         self.offsets = np.array(state["offsets"], np.float64)
         if self.parameters is not None and "parameters" in state:
             self.parameters = np.array(state["parameters"], np.float64)

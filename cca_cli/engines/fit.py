@@ -3,7 +3,8 @@
 The residual of a set ``C`` of captures is ``‖s √b_k |ψ_k| − √I_k‖ / ‖√I_k‖``
 summed over ``k ∈ C``, with ``ψ_k`` the model's field (calibrated pupils and
 positions), ``b_k`` the fitted brightness and ``s`` one least-squares scale
-shared by all captures (the recovery is scale-free). Bright-field captures are
+shared by all captures (the recovery is scale-free); ``I_k`` is the measured
+intensity less a fitted background (:mod:`~cca_cli.engines.background`). Bright-field captures are
 those whose illumination falls inside the NA (pupil centre within one radius
 of DC); in them the object's unscattered light reaches the sensor.
 """
@@ -15,6 +16,7 @@ from types import ModuleType
 
 import numpy as np
 
+from cca_cli.engines.background import less_background
 from cca_cli.engines.batched import BoxOperator, capture_groups
 from cca_cli.engines.illumination import CaptureStatistics, capture_statistics
 from cca_cli.engines.problem import PhaseRetrievalProblem
@@ -90,6 +92,9 @@ def fit_report(problem: PhaseRetrievalProblem, spectrum: np.ndarray, calibration
     FitReport
     """
     model, brightness = problem.model, np.ones(problem.model.n_images)
+    amplitudes = problem.amplitudes
+    if calibration is not None and calibration.background_planes is not None:
+        amplitudes = less_background(amplitudes, calibration.background_planes)
     if calibration is not None:
         nominal = problem.model.layout
         layout = band_layout(calibration.centres_px, nominal.pupil_radius_px, hires_size=nominal.hires_size,
@@ -100,9 +105,9 @@ def fit_report(problem: PhaseRetrievalProblem, spectrum: np.ndarray, calibration
     # confidence weights taper region edges, which would leave the misfit there out of the figure.
     recorded = None if problem.weights is None else problem.weights > 0   # a quarter of float32's bytes
     if device == "cpu":
-        statistics = capture_statistics(model, spectrum, problem.amplitudes, recorded, threads=threads)
+        statistics = capture_statistics(model, spectrum, amplitudes, recorded, threads=threads)
     else:
-        statistics = device_statistics(backend.array_module(device), model, spectrum, problem.amplitudes, recorded)
+        statistics = device_statistics(backend.array_module(device), model, spectrum, amplitudes, recorded)
     bright = bright_field(problem)
     masks = [np.ones_like(bright), bright, ~bright]
     per_image, (every, light, dark) = _split(statistics, brightness, masks)

@@ -88,7 +88,7 @@ class HeldBack:
         if self._workspace is None:
             self._workspace = model.workspace(held.size, threads=1)
         weights = None if self.problem.weights is None else self.problem.weights[held]
-        statistics = ill.capture_statistics(model, spectrum, self.problem.amplitudes[held], weights,
+        statistics = ill.capture_statistics(model, spectrum, calibrator.measured(held), weights,
                                             workspace=self._workspace, scale=calibrator.target_scale(held))
         return float(np.sqrt(statistics.misfit.sum() / max(self._norm, 1e-30)))
 

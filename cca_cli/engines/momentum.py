@@ -54,6 +54,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from cca_cli.engines.background import less_background
 from cca_cli.engines.base import CalibratingEngine
 from cca_cli.engines.calibrator import Calibration, Calibrator, subset_layout
 from cca_cli.engines.held_back import HeldBack, held_back_captures
@@ -310,9 +311,10 @@ class SequentialMomentum(MomentumBase):
         return np.ascontiguousarray(source[order], dtype=np.float32)
 
     def _set_targets(self) -> None:
-        """Measured amplitudes divided by each capture's brightness (engine order)."""
+        """Measured amplitudes less each capture's background, divided by its brightness (engine order)."""
         scale = self.calibrator.target_scale(self._order)
-        self._targets = self._amplitudes if np.all(scale == 1) else self._amplitudes * scale[:, None, None]
+        amplitudes = less_background(self._amplitudes, self.calibrator.background[self._order])
+        self._targets = amplitudes if np.all(scale == 1) else amplitudes * scale[:, None, None]
         self._intensities = np.square(self._targets) if self.options.cost == "poisson" else None
 
     def _set_model(self, pupils: np.ndarray | None, parts: tuple | None = None) -> None:

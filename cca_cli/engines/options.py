@@ -212,6 +212,11 @@ class MomentumOptions(EngineOptions):
         modelled power. With any weight the brightness is also held to 0.04 … 25 (a factor of 5 in
         amplitude); with 0 (images scaled each on its own) nothing pulls it and it may range over
         1e-6 … 1e6.
+    background : bool
+        Fit a plane of light to each dark-field capture that the object did not
+        scatter (stray light, a camera offset left in), at each calibration round,
+        and recover the object from the light less it
+        (:mod:`~cca_cli.engines.background`).
     calibration_start : int
         Passes before the first position / brightness round.
     calibration_every : int
@@ -264,6 +269,7 @@ class MomentumOptions(EngineOptions):
     position_refinement: Literal["none", "global", "per_image", "both"] = "none"
     brightness: bool = False
     brightness_prior: float = 0.05
+    background: bool = False
     calibration_start: int = 3
     calibration_every: int = 2
     hold_back: float = 0.0

@@ -226,6 +226,8 @@ def _write_calibration(handle, calibration: Calibration, geometry: CaptureGeomet
     scale = float(np.nanmedian(metres_per_px)) if np.isfinite(metres_per_px).any() else float("nan")
     write_dataset(handle, "/calibration/aperture_centres_yx_m", calibration.centres_px * scale)
     write_dataset(handle, "/calibration/brightness", calibration.brightness)
+    if calibration.background is not None:
+        write_dataset(handle, "/calibration/background", np.asarray(calibration.background, np.float64))
     if calibration.position_model is not None:
         group.attrs["position_model"] = calibration.position_model
         group.attrs["position_parameters"] = json.dumps(calibration.position_parameters)

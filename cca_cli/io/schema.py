@@ -87,6 +87,10 @@ DATASETS: tuple[DatasetSpec, ...] = (
                 "Refined aperture centre [y, x] of each capture in /geometry's convention (LED arrays: sin θ)."),
     DatasetSpec("/calibration/brightness", "float64", "(K,)", "1",
                 "Illumination brightness of each capture: the model's intensity is brightness × |ψ|² (1: not fitted)."),
+    DatasetSpec("/calibration/background", "float64", "(K,)", "capture intensity",
+                "With reconstruct option background: the mean over the frame of the plane of light fitted to each "
+                "capture that the object did not scatter (stray light, an offset), in the captures' intensity "
+                "units; 0 for bright-field captures (none fitted)."),
     DatasetSpec("/calibration/bright_field", "bool", "(K,)", "1",
                 "Whether each capture is bright-field (its illumination falls inside the NA: pupil centre within "
                 "one pupil radius of DC)."),

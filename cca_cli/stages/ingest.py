@@ -726,7 +726,8 @@ def offset_left_in(plan: CapturePlan, geometry: CaptureGeometry, frames: np.ndar
                        "dark frames; an offset adds light the object did not scatter"]
     return [said + "stray light, or an offset beyond the black level? It adds light the object did not scatter, "
                    "which the recovery takes for the object's (a haze over a faint one): shield the setup from room "
-                   "and LED light, and check sensor.black_level or the dark frames"]
+                   "and LED light, and check sensor.black_level or the dark frames; reconstruct option "
+                   "background: true fits and removes it"]
 
 
 def _led_depths_mm(plan: CapturePlan) -> float | None:

@@ -1,0 +1,66 @@
+"""Background light the object did not scatter: fitted as a plane per dark-field capture and taken off."""
+
+import numpy as np
+import pytest
+
+import cca_cli as cca
+from cca_cli.engines.background import background_images, background_planes, dark_field_captures, less_background
+from cca_cli.engines.batched import unsupported_options
+from cca_cli.engines import calibration as cal
+from cca_cli.engines.momentum import MomentumOptions
+from cca_cli.engines.problem import PhaseRetrievalProblem
+from cca_cli.optics import fft
+from cca_cli.optics.forward import ForwardModel, to_model_layout
+from cca_cli.sampling.grid import band_layout, square_scan
+from cca_cli.targets import resolution_chart
+
+OPTICS = dict(wavelength_m=532e-9, numerical_aperture=0.1, pixel_pitch_object_m=0.9e-6)
+
+
+def test_the_planes_of_the_dark_field_captures_are_found_and_taken_off():
+    layout = band_layout(square_scan(5, 9.0).centres_yx_m, 8.0, hires_size=96)
+    model = ForwardModel(layout, cal.pupil_functions(layout))
+    spectrum = fft.fft2c(resolution_chart(96, widths=(6, 4, 3, 2)).image.astype(np.complex64)).astype(np.complex64)
+    clean = model.sensor_intensity(spectrum)
+    m = clean.shape[-1]
+    dark = dark_field_captures(layout.centres_px, layout.pupil_radius_px)
+    assert 0 < dark.sum() < len(dark)
+    y, x = np.mgrid[:m, :m] - m // 2
+    planes = np.zeros((len(dark), 3))
+    planes[dark] = np.array([0.02, 1e-4, -2e-4]) * clean.max() * np.linspace(0.5, 1.5, dark.sum())[:, None]
+    added = planes[:, 0, None, None] + planes[:, 1, None, None] * y + planes[:, 2, None, None] * x
+    problem = PhaseRetrievalProblem.from_sensor_images(model, clean + added)
+    found = background_planes(model, spectrum, problem.amplitudes, None, np.ones(len(dark)), dark)
+    np.testing.assert_allclose(found, planes * model.intensity_scale, rtol=1e-3, atol=1e-6 * np.abs(found).max())
+    images = background_images(found, m)
+    np.testing.assert_allclose(images, to_model_layout(added) * model.intensity_scale, atol=1e-3 * images.max())
+    taken_off = less_background(problem.amplitudes, found)
+    truth = PhaseRetrievalProblem.from_sensor_images(model, clean).amplitudes
+    assert np.abs(taken_off - truth).max() < 2e-3 * truth.max()
+    assert less_background(problem.amplitudes, np.zeros_like(found)) is problem.amplitudes   # nothing to take off
+
+
+def test_stray_light_is_fitted_and_the_object_recovered_as_without_it():
+    # A 9 x 9 board's captures of a chart with stray light of 0.5% of the bright-field mean in every capture:
+    # fitted, the dark-field backgrounds come out at the light added, and the image is far nearer the one
+    # recovered without stray light than when the light is left in (the recovery takes it for the object's).
+    sines = cca.led_grid_sines(9, pitch_m=4e-3, height_m=60e-3)
+    geometry = cca.led_array(sines, image_pixels=64, **OPTICS)
+    chart = cca.resolution_chart(128, widths=(6, 4, 3, 2))
+    images = np.asarray(cca.simulate(chart.image, geometry, snr_db=40, seed=2), np.float32)
+    bright = np.hypot(*geometry.spectrum_centres_yx_px.T) < geometry.pupil_radius_px
+    stray = 0.005 * float(images[bright].mean())
+    options = dict(engine="momentum", iterations=60, tol=0)
+    clean = cca.reconstruct(images, geometry, **options)
+    left = cca.reconstruct(images + stray, geometry, **options)
+    fitted = cca.reconstruct(images + stray, geometry, background=True, **options)
+    away = {name: cca.rmse(result.intensity, clean.intensity) for name, result in (("left", left), ("fitted", fitted))}
+    assert away["fitted"] < 0.6 * away["left"], away
+    found = fitted.calibration.background
+    assert np.median(found[~bright]) == pytest.approx(stray, rel=0.15)
+    assert np.all(found[bright] == 0) and np.all(found >= 0)
+
+
+def test_the_gpu_engines_say_they_fit_no_background():
+    assert any("background" in line for line in unsupported_options(MomentumOptions(background=True)))
+    assert not MomentumOptions().background
