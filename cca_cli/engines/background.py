@@ -13,7 +13,10 @@ With ``background: true`` each dark-field capture ``i`` is modelled as
 a plane over the frame (``y``, ``x`` in pixels from its centre), fitted by weighted least squares to the
 capture's measured intensity less its modelled one at each calibration round; the engine then fits the
 object to ``√max(I_i − B_i, 0)``. Bright-field captures get no plane: a background is small against their
-light, and a plane fitted to them would take up what the model has not yet explained of the object.
+light, and a plane fitted to them would take up what the model has not yet explained of the object. Nor do
+dark-field captures that fall to zero somewhere (:func:`holds_floor`): light under everything would keep them
+off zero, and a dense sample's dark-field speckle, which reaches zero, would otherwise lend its own light to a
+plane. A plane is held under its capture (:data:`FLOOR_PERCENTILE`) for the same reason.
 """
 
 from __future__ import annotations
@@ -22,9 +25,13 @@ import numpy as np
 
 from cca_cli.optics.forward import ForwardModel, Workspace, chunk_slices
 
-__all__ = ["background_planes", "background_images", "less_background", "dark_field_captures", "FLOOR_PERCENTILE"]
+__all__ = ["background_planes", "background_images", "less_background", "dark_field_captures", "holds_floor",
+           "FLOOR_SHARE", "FLOOR_PERCENTILE"]
 
-#: A plane is held under its capture's measured intensity at all but this percentage of the pixels ...
+#: Only captures whose darkest 1% of pixels lie at this share of their mean or more get a plane (ingest's note
+#: on light under everything reads 0.2) ...
+FLOOR_SHARE = 0.1
+#: ... and a plane is held under its capture's measured intensity at all but this percentage of the pixels ...
 FLOOR_PERCENTILE = 5.0
 #: ... smoothed over this many pixels square (the floor of a noisy image would lie under its background).
 FLOOR_BOX = 5
@@ -88,6 +95,31 @@ def background_planes(model: ForwardModel, spectrum: np.ndarray, amplitudes: np.
         # Light under everything lies under the image: where the model has not yet explained the object's own
         # light, the fit would take that too, and rise above the image's dark parts.
         out[inside] = planes * _room_under(measured, planes, w, grid)[:, None]
+    return out
+
+
+def holds_floor(amplitudes: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """Per capture, whether its darkest 1% of recorded pixels lie at :data:`FLOOR_SHARE` of its mean or more.
+
+    An image that falls to zero somewhere holds no light under everything: a dense sample's dark field, whose
+    speckle reaches zero, would otherwise lend its own light to a plane.
+
+    Parameters
+    ----------
+    amplitudes : ndarray, (K, m, m)
+        Measured amplitudes ``√I``.
+    weights : ndarray, (K, m, m), optional
+        Confidence of each pixel (0: not recorded).
+
+    Returns
+    -------
+    ndarray, bool, (K,)
+    """
+    out = np.zeros(len(amplitudes), bool)
+    for i, image in enumerate(amplitudes):
+        values = np.square(image if weights is None else image[weights[i] > 0], dtype=np.float32)
+        mean = float(values.mean(dtype=np.float64)) if values.size else 0.0
+        out[i] = mean > 0 and float(np.percentile(values, 1)) >= FLOOR_SHARE * mean
     return out
 
 

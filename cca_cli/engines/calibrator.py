@@ -118,7 +118,11 @@ class Calibrator:
             self.pupil_index = np.zeros(k, np.int64)
         self.brightness = np.ones(k)
         self.background = np.zeros((k, 3))   # each capture's background plane (:mod:`cca_cli.engines.background`)
-        self._dark_field = bg.dark_field_captures(self.nominal.centres_px, self.nominal.pupil_radius_px)
+        # the captures a background plane is fitted to: dark-field ones that never fall to zero
+        self._floored = None
+        if options.background:
+            dark = bg.dark_field_captures(self.nominal.centres_px, self.nominal.pupil_radius_px)
+            self._floored = dark & bg.holds_floor(problem.amplitudes, problem.weights)
         self.offsets = np.zeros((k, 2))
         self.position_model = problem.position_model if options.position_refinement in ("global", "both") else None
         self.parameters = None if self.position_model is None else self.position_model.initial
@@ -234,7 +238,7 @@ class Calibrator:
             layout = self.layout_for(self.centres())
             model = ForwardModel(layout, self.pupils_for(layout, self.pupil_index))
             self.background = bg.background_planes(model, spectrum, self.problem.amplitudes, self.problem.weights,
-                                                   self.brightness, self._dark_field, self._work(model))
+                                                   self.brightness, self._floored, self._work(model))
             relit = not moved
         return moved, relit
 

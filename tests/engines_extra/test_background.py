@@ -57,8 +57,12 @@ def test_stray_light_is_fitted_and_the_object_recovered_as_without_it():
     away = {name: cca.rmse(result.intensity, clean.intensity) for name, result in (("left", left), ("fitted", fitted))}
     assert away["fitted"] < 0.6 * away["left"], away
     found = fitted.calibration.background
-    assert np.median(found[~bright]) == pytest.approx(stray, rel=0.15)
+    dim = ~bright & (images.mean(axis=(1, 2)) < 2 * stray)   # dark-field captures the stray light outshines
+    assert dim.sum() >= 10
+    np.testing.assert_allclose(found[dim], stray, rtol=0.2)
     assert np.all(found[bright] == 0) and np.all(found >= 0)
+    # without stray light nothing is fitted: the dark field falls to zero between the bars
+    assert not np.any(cca.reconstruct(images, geometry, background=True, **options).calibration.background)
 
 
 def test_the_gpu_engines_say_they_fit_no_background():
