@@ -270,7 +270,7 @@ class MomentumOptions(EngineOptions):
     brightness: bool = False
     brightness_prior: float = 0.05
     background: bool = False
-    calibration_start: int = 3
+    calibration_start: int = 10
     calibration_every: int = 2
     hold_back: float = 0.0
     hold_back_patience: int = 10
