@@ -25,8 +25,8 @@ import numpy as np
 
 from cca_cli.optics.forward import ForwardModel, Workspace, chunk_slices
 
-__all__ = ["background_planes", "background_images", "less_background", "dark_field_captures", "holds_floor",
-           "FLOOR_SHARE", "FLOOR_PERCENTILE"]
+__all__ = ["background_planes", "background_images", "less_background", "plane_means", "dark_field_captures",
+           "holds_floor", "FLOOR_SHARE", "FLOOR_PERCENTILE"]
 
 #: Only captures whose darkest 1% of pixels lie at this share of their mean or more get a plane (ingest's note
 #: on light under everything reads 0.2) ...
@@ -179,13 +179,29 @@ def background_images(planes: np.ndarray, size: int) -> np.ndarray:
             + planes[:, 2, None, None] * grid[None, None, :]).astype(np.float32)
 
 
-def less_background(amplitudes: np.ndarray, planes: np.ndarray) -> np.ndarray:
-    """``√max(A² − B, 0)``: amplitudes of the light the object scattered, float32; as given where no plane is set."""
+def less_background(amplitudes: np.ndarray, planes: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """``√max(A² − max(B, 0), 0)``: amplitudes of the light the object scattered, float32.
+
+    ``amplitudes`` itself where no plane is set; otherwise ``out`` (a new array if None), filled a few
+    captures at a time (no whole-stack temporaries). Where a plane dips under zero it takes nothing off.
+    """
     planes = np.asarray(planes, np.float64)
     if not np.any(planes):
         return amplitudes
-    out = np.array(amplitudes, np.float32, copy=True)
-    rows = np.flatnonzero(np.any(planes != 0, axis=1))
-    images = background_images(planes[rows], out.shape[-1])
-    out[rows] = np.sqrt(np.maximum(np.square(out[rows]) - images, 0))
+    if out is None:
+        out = np.empty(np.shape(amplitudes), np.float32)
+    size = out.shape[-1]
+    for sl in chunk_slices(len(out), 16):
+        block = np.square(amplitudes[sl], dtype=np.float32)
+        block -= np.maximum(background_images(planes[sl], size), 0)
+        np.maximum(block, 0, out=block)
+        np.sqrt(block, out=out[sl])
     return out
+
+
+def plane_means(planes: np.ndarray, size: int) -> np.ndarray:
+    """Each plane's mean over a ``size`` × ``size`` frame (its pixel offsets from the centre average −1/2 for an
+    even size, 0 for an odd one), float64 (K,)."""
+    planes = np.asarray(planes, np.float64)
+    offset = -0.5 if size % 2 == 0 else 0.0
+    return planes[:, 0] + (planes[:, 1] + planes[:, 2]) * offset

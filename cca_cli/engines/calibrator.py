@@ -120,6 +120,7 @@ class Calibrator:
         self.background = np.zeros((k, 3))   # each capture's background plane (:mod:`cca_cli.engines.background`)
         # the captures a background plane is fitted to: dark-field ones that never fall to zero
         self._floored = None
+        self._measured = None   # the measured amplitudes less their background (problem order), while one is fitted
         if options.background:
             dark = bg.dark_field_captures(self.nominal.centres_px, self.nominal.pupil_radius_px)
             self._floored = dark & bg.holds_floor(problem.amplitudes, problem.weights)
@@ -239,12 +240,22 @@ class Calibrator:
             model = ForwardModel(layout, self.pupils_for(layout, self.pupil_index))
             self.background = bg.background_planes(model, spectrum, self.problem.amplitudes, self.problem.weights,
                                                    self.brightness, self._floored, self._work(model))
+            self._measured = None
             relit = not moved
         return moved, relit
 
+    def exclude(self, captures: np.ndarray) -> None:
+        """Fit no background to ``captures`` (held back from the updates: they judge the fit, not join it)."""
+        if self._floored is not None:
+            self._floored[np.asarray(captures, np.int64)] = False
+
     def measured(self, captures: np.ndarray | slice = slice(None)) -> np.ndarray:
         """The measured amplitudes of ``captures`` (problem order) less their fitted background, float32."""
-        return bg.less_background(self.problem.amplitudes[captures], self.background[captures])
+        if not np.any(self.background):
+            return self.problem.amplitudes[captures]
+        if self._measured is None:   # once per background, however often the round evaluates the model
+            self._measured = bg.less_background(self.problem.amplitudes, self.background)
+        return self._measured[captures]
 
     def _work(self, model: ForwardModel):
         if self._workspace is None:
@@ -323,8 +334,7 @@ class Calibrator:
         """The fitted background planes and their means over the frame in capture units (empty where none)."""
         if not self.options.background:
             return {}
-        m = self.nominal.lowres_size
-        mean = bg.background_images(self.background, m).mean(axis=(1, 2), dtype=np.float64)
+        mean = bg.plane_means(self.background, self.nominal.lowres_size)
         return {"background_planes": self.background.copy(),
                 "background": mean / float(self.problem.model.intensity_scale)}
 
@@ -342,6 +352,8 @@ class Calibrator:
                        pupil_step=self.recovery.step_size)
             if self.recovery.velocity is not None:
                 out["pupil_velocity"] = self.recovery.velocity
+            if self.recovery.reference is not None:
+                out["pupil_reference"] = self.recovery.reference
         return out
 
     def restore(self, state: dict) -> None:
@@ -349,6 +361,7 @@ class Calibrator:
         self.brightness = np.array(state["brightness"], np.float64)
         if "background" in state:
             self.background = np.array(state["background"], np.float64).reshape(self.background.shape)
+            self._measured = None
         self.offsets = np.array(state["offsets"], np.float64)
         if self.parameters is not None and "parameters" in state:
             self.parameters = np.array(state["parameters"], np.float64)
@@ -356,4 +369,5 @@ class Calibrator:
             self.recovery.restore(np.array(state["pupil_maps"], np.complex64),
                                   np.array(state["pupil_coefficients"], np.float64), float(state["pupil_step"]),
                                   velocity=None if "pupil_velocity" not in state
-                                  else np.array(state["pupil_velocity"], np.complex64))
+                                  else np.array(state["pupil_velocity"], np.complex64),
+                                  reference=state.get("pupil_reference"))

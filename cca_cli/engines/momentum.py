@@ -122,6 +122,7 @@ class MomentumBase(CalibratingEngine):
         self.held_back, self._trained = self._held.captures, self._held.trained
         self._data_norm = self._held.trained_norm
         self.calibrator = Calibrator(problem, options, threads)
+        self.calibrator.exclude(self.held_back)
         self.stopping = StoppingPolicy(max_iterations=options.max_iterations, tol=options.tol,
                                        plateau=options.plateau, plateau_window=options.plateau_window,
                                        growth_window=options.growth_window, can_grow=self._can_grow,
@@ -313,7 +314,11 @@ class SequentialMomentum(MomentumBase):
     def _set_targets(self) -> None:
         """Measured amplitudes less each capture's background, divided by its brightness (engine order)."""
         scale = self.calibrator.target_scale(self._order)
-        amplitudes = less_background(self._amplitudes, self.calibrator.background[self._order])
+        kept = getattr(self, "_less_background", None)
+        amplitudes = less_background(self._amplitudes, self.calibrator.background[self._order],
+                                     out=kept if kept is not None and kept.shape == self._amplitudes.shape else None)
+        if amplitudes is not self._amplitudes:
+            self._less_background = amplitudes   # refilled at the next round
         self._targets = amplitudes if np.all(scale == 1) else amplitudes * scale[:, None, None]
         self._intensities = np.square(self._targets) if self.options.cost == "poisson" else None
 

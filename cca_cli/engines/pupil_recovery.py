@@ -90,6 +90,7 @@ class _Step:
     misfit: float
     scale: complex
     tilt: np.ndarray
+    reference: np.ndarray | None = None
 
 
 def resample_pupil(pupil: np.ndarray, box_size: int, radius_px: float) -> np.ndarray:
@@ -240,16 +241,23 @@ class PupilRecovery:
         self._reference = self.maps.copy() if known and model != "zernike" else None
 
     @property
+    def reference(self) -> np.ndarray | None:
+        """The known pupil the lattice filter measures the maps' departure from, on their footing (None: 1)."""
+        return self._reference
+
+    @property
     def step_size(self) -> float:
         """The current step fraction (halved each time a step is undone)."""
         return self._step
 
     def restore(self, maps: np.ndarray, coefficients: np.ndarray, step_size: float,
-                velocity: np.ndarray | None = None) -> None:
-        """Continue from saved maps, coefficients, step size and momentum (a checkpoint); the last step cannot be
-        undone."""
+                velocity: np.ndarray | None = None, reference: np.ndarray | None = None) -> None:
+        """Continue from saved maps, coefficients, step size, momentum and known pupil on the maps' footing (a
+        checkpoint); the last step cannot be undone."""
         self.maps, self.coefficients, self._step = maps, coefficients, float(step_size)
         self.velocity = velocity
+        if reference is not None and self._reference is not None:
+            self._reference = np.asarray(reference, np.complex64)
         self._previous = None
 
     # ------------------------------------------------------------------ geometry
@@ -461,6 +469,7 @@ class PupilRecovery:
             leapt = self.undoes_leaps and misfit > SHARP_RISE * previous.misfit
             if self._periodic is None or leapt:
                 self.maps, self.coefficients = previous.maps, previous.coefficients
+                self._reference = previous.reference
                 if not leapt:   # after a leap the filter's next step, from a better object, is a sound one
                     self._step *= 0.5
                 self._previous = None
@@ -469,7 +478,7 @@ class PupilRecovery:
         peak = float(denominator.max()) if denominator.size else 0.0
         if not peak > 0:
             return None
-        maps, coefficients = self.maps.copy(), self.coefficients.copy()
+        maps, coefficients, reference = self.maps.copy(), self.coefficients.copy(), self._reference
         if self.model == "zernike":
             self._zernike_step(rhs, denominator)
             scale, tilt = 1.0, np.zeros(2)
@@ -477,7 +486,7 @@ class PupilRecovery:
             scale, tilt = self._map_step(numerator, denominator, peak)
             if self.momentum:
                 self._add_momentum(maps, scale, tilt, denominator > 0)
-        self._previous = _Step(maps, coefficients, misfit, scale, tilt)
+        self._previous = _Step(maps, coefficients, misfit, scale, tilt, reference)
         self.stepped = True
         return scale, tilt
 
@@ -595,6 +604,8 @@ class PupilRecovery:
         mean = np.sum(maps * denominator) / np.sum(denominator)
         scale = mean / abs(mean) * np.sum(np.abs(maps) * denominator) / np.sum(denominator)
         self.maps = (maps / scale).astype(np.complex64)
+        if self._reference is not None:   # the known pupil, on the maps' footing
+            self._reference = (self._reference * untilt_ramp(tilt, maps.shape[-1])[None] / scale).astype(np.complex64)
         return complex(scale), tilt
 
     # ------------------------------------------------------------------ results

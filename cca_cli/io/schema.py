@@ -88,9 +88,10 @@ DATASETS: tuple[DatasetSpec, ...] = (
     DatasetSpec("/calibration/brightness", "float64", "(K,)", "1",
                 "Illumination brightness of each capture: the model's intensity is brightness × |ψ|² (1: not fitted)."),
     DatasetSpec("/calibration/background", "float64", "(K,)", "capture intensity",
-                "With reconstruct option background: the mean over the frame of the plane of light fitted to each "
-                "capture that the object did not scatter (stray light, an offset), in the captures' intensity "
-                "units; 0 for bright-field captures (none fitted)."),
+                "With reconstruct option background: the mean over the recovery's frame of the plane of light "
+                "fitted to each capture that the object did not scatter (stray light, an offset), in the captures' "
+                "intensity units; 0 where none is fitted (bright-field captures, dark-field ones that fall to zero, "
+                "held-back ones)."),
     DatasetSpec("/calibration/bright_field", "bool", "(K,)", "1",
                 "Whether each capture is bright-field (its illumination falls inside the NA: pupil centre within "
                 "one pupil radius of DC)."),

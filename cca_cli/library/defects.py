@@ -38,8 +38,11 @@ LINE_SLOPE = 0.1
 #: dark, featureless part of the frame follows nothing and is not judged) ...
 LIVE_SHARE = 0.3
 #: ... over the captures with at least this share of the brightest capture's mean (noise-dominated dark-field
-#: images would pull every line's slope down).
+#: images would pull every line's slope down) ...
 BRIGHT_SHARE = 0.1
+#: ... and only where the median line follows its neighbours with a slope of at least this (an image of
+#: detail; in a flat or featureless field the lines follow nothing, and chance would pick some).
+FOLLOWS = 0.5
 
 
 def hot_pixels(images: np.ndarray) -> np.ndarray:
@@ -79,8 +82,9 @@ def dead_lines(images: np.ndarray) -> np.ndarray:
 
     For every inner column, over every row of the bright captures, the least-squares slopes of the column's
     values on its left and on its right neighbour's; a column whose slopes are both under :data:`LINE_SLOPE`
-    times the median column's, where both neighbours vary (:data:`LIVE_SHARE`), is dead. Rows likewise. The outermost lines have one
-    neighbour and are not judged.
+    times the median column's, where both neighbours vary (:data:`LIVE_SHARE`), is dead; likewise on the
+    columns two away, under half that (two dead columns side by side; live lines follow those less). Rows likewise. The outermost lines have one neighbour
+    and are not judged; nor is a set whose median line hardly follows its neighbours (:data:`FOLLOWS`).
 
     Parameters
     ----------
@@ -103,32 +107,39 @@ def dead_lines(images: np.ndarray) -> np.ndarray:
     bright = np.flatnonzero(means >= BRIGHT_SHARE * max(float(means.max()), 0.0))
     dead = np.zeros(frames.shape[1:], bool)
     for axis in (1, 0):   # columns, then rows (the lines along each image's first axis)
-        slope, live = _line_slopes(frames, bright, axis)
-        if not live.any():
-            continue
-        lines = np.flatnonzero(live & (slope < LINE_SLOPE * np.median(slope[live]))) + 1
+        found = np.zeros(frames.shape[1 + axis], bool)
+        # judged by the lines next to each (gap 1), and by those two away (gap 2): two dead lines side by side
+        # each have a dead neighbour
+        for gap in (1, 2):
+            slope, live = _line_slopes(frames, bright, axis, gap)
+            typical = float(np.median(slope[live])) if live.any() else 0.0
+            if typical < FOLLOWS:   # lines that do not follow each other (a flat or featureless field): no judgement
+                continue
+            found[gap:-gap] |= live & (slope < LINE_SLOPE / gap * typical)
         if axis == 1:
-            dead[:, lines] = True
+            dead[:, found] = True
         else:
-            dead[lines, :] = True
+            dead[found, :] = True
     return dead
 
 
-def _line_slopes(frames: np.ndarray, captures: np.ndarray, axis: int) -> tuple[np.ndarray, np.ndarray]:
-    """Each inner line's slope on each of its two neighbours (the larger of the two), and whether both vary
-    enough to judge it by.
+def _line_slopes(frames: np.ndarray, captures: np.ndarray, axis: int, gap: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Each line's slope on each of the two lines ``gap`` away (the larger of the two), and whether both vary
+    enough to judge it by; for the lines ``gap`` … ``n − gap − 1``.
 
     Judged by each neighbour on its own, a line at the edge of a dark band (one neighbour as dark as itself) is
     not taken for dead. Sums are taken capture by capture (one image's temporaries at a time), in float64.
     """
-    inner = frames.shape[1 + axis] - 2
+    inner = frames.shape[1 + axis] - 2 * gap
+    if inner < 1:
+        return np.ones(0), np.zeros(0, bool)
     sums = {name: np.zeros(inner) for name in ("p", "l", "r", "pl", "pr", "ll", "rr")}
     count = 0
     for k in captures:
         image = np.asarray(frames[k], np.float64)
         if axis == 0:
             image = image.T
-        line, left, right = image[:, 1:-1], image[:, :-2], image[:, 2:]
+        line, left, right = image[:, gap:-gap], image[:, :-2 * gap], image[:, 2 * gap:]
         for name, value in (("p", line), ("l", left), ("r", right), ("pl", line * left), ("pr", line * right),
                             ("ll", left * left), ("rr", right * right)):
             sums[name] += value.sum(axis=0)

@@ -391,8 +391,8 @@ def ingest(manifest_path: Path, *, progress: ProgressFn = silent) -> Ingested:
         geometry = replace(geometry, camera_index=plan.camera_index)
     check_geometry(plan, geometry, (h, w))
     check_neighbours_overlap(plan, geometry)
+    notes += fill_dead_lines(frames, saturation)   # first: a stuck bright line would pass for hot pixels
     notes += fill_hot_pixels(frames, saturation)
-    notes += fill_dead_lines(frames, saturation)
     off_axis = off_axis_board(plan, geometry, frames)
     # captures an off-axis board puts in the bright field look unlit: the board, not their LEDs, is the cause
     notes += (stray_positions(plan, geometry) + crowded_neighbours(plan, geometry)
@@ -636,21 +636,22 @@ def fill_dead_lines(frames: np.ndarray, saturation: float) -> list[str]:
     """
     if len(frames) < 5:
         return []
-    dead = dead_lines(frames[:, 0]) & ~np.all(frames[:, 0] >= np.float32(0.99 * saturation), axis=0)
+    lines = dead_lines(frames[:, 0])
+    dead = lines & ~np.all(frames[:, 0] >= np.float32(0.99 * saturation), axis=0)
     if not dead.any():
         return []
-    columns = np.flatnonzero(dead.all(axis=0))
-    rows = np.flatnonzero(dead.all(axis=1))
+    columns = np.flatnonzero(lines.all(axis=0) & dead.any(axis=0))   # named whole, though a clipped pixel stays
+    rows = np.flatnonzero(lines.all(axis=1) & dead.any(axis=1))
     named = [f"column{'s' if len(columns) > 1 else ''} x {', '.join(map(str, columns))}"] if len(columns) else []
     named += [f"row{'s' if len(rows) > 1 else ''} y {', '.join(map(str, rows))}"] if len(rows) else []
     one = len(columns) + len(rows) == 1
     if len(columns) + len(rows) > MOST_LINES * sum(dead.shape):
-        return [f"{' and '.join(named)} do not follow their neighbours in any bright capture? Over "
+        return [f"{' and '.join(named)} do not follow their neighbours over the bright captures? Over "
                 f"{MOST_LINES:.0%} of the lines, so they are left as they are: check the sensor's settings"]
     fill_pixels(frames, dead)
-    return [f"{' and '.join(named)} {'does' if one else 'do'} not follow {'its' if one else 'their'} neighbours in "
-            "any bright capture: a dead or stuck line of the sensor; each pixel now reads the mean of its good "
-            "neighbours"]
+    return [f"{' and '.join(named)} {'does' if one else 'do'} not follow {'its' if one else 'their'} neighbours "
+            "over the bright captures: a dead or stuck line of the sensor; each pixel now reads the mean of its "
+            "good neighbours"]
 
 
 def off_axis_board(plan: CapturePlan, geometry: CaptureGeometry, frames: np.ndarray) -> str:

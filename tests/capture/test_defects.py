@@ -56,9 +56,16 @@ def test_dead_lines_are_found_and_a_chart_s_own_bars_are_not():
         expected = np.zeros(images.shape[1:], bool)
         expected[line] = True
         assert np.array_equal(dead_lines(spoilt), expected)
+    pair = images.copy()
+    pair[:, :, DEAD_COLUMN:DEAD_COLUMN + 2] = 0     # two dead columns side by side: each has a dead neighbour
+    expected = np.zeros(images.shape[1:], bool)
+    expected[:, DEAD_COLUMN:DEAD_COLUMN + 2] = True
+    assert np.array_equal(dead_lines(pair), expected)
     dark = images.copy()
     dark[:, :, :20] = 0                             # a dark, featureless band: its lines follow nothing, judged not
     assert not dead_lines(dark).any()
+    flat = RNG.poisson(1000.0, (25, 64, 64)).astype(np.float32)   # a flat field: lines follow nothing
+    assert not dead_lines(flat).any()
 
 
 def test_a_filled_pixel_reads_as_its_neighbours_do():
@@ -89,7 +96,7 @@ def test_ingest_fills_the_sensor_s_defects_and_says_so(tmp_path):
     said = " ".join(result.output.split())
     assert "3 pixel(s) stand far above their neighbours by the same amount in every capture" in said
     assert "hot pixels of the sensor; each now reads the mean of its good neighbours" in said
-    assert f"column x {DEAD_COLUMN} does not follow its neighbours in any bright capture: a dead or stuck line" in said
+    assert f"column x {DEAD_COLUMN} does not follow its neighbours over the bright captures: a dead or stuck line" in said
     intensity = np.asarray(read_captures(tmp_path / "raw.h5").intensity)
     clean = images * scale / 0.01                     # the files' counts per second without the hot pixels
     for y, x in HOT:   # far nearer the clean image than the hot pixel (5% of the peak above it)

@@ -68,3 +68,21 @@ def test_stray_light_is_fitted_and_the_object_recovered_as_without_it():
 def test_the_gpu_engines_say_they_fit_no_background():
     assert any("background" in line for line in unsupported_options(MomentumOptions(background=True)))
     assert not MomentumOptions().background
+
+
+def test_held_back_captures_get_no_plane_and_a_dipping_plane_adds_no_light():
+    sines = cca.led_grid_sines(9, pitch_m=4e-3, height_m=60e-3)
+    geometry = cca.led_array(sines, image_pixels=64, **OPTICS)
+    images = np.asarray(cca.simulate(cca.resolution_chart(128, widths=(6, 4, 3, 2)).image, geometry, snr_db=40,
+                                     seed=2), np.float32)
+    bright = np.hypot(*geometry.spectrum_centres_yx_px.T) < geometry.pupil_radius_px
+    stray = 0.005 * float(images[bright].mean())
+    result = cca.reconstruct(images + stray, geometry, engine="momentum", background=True, hold_back=0.1,
+                             iterations=20, tol=0)
+    held = np.asarray(result.held_back)
+    assert held.size and not np.any(result.calibration.background[held])
+    assert np.any(result.calibration.background)
+    # a plane steep enough to dip under zero in part of the frame takes nothing off there, and adds nothing
+    ones = np.ones((1, 32, 32), np.float32)
+    taken = less_background(ones, np.array([[0.1, 0.02, 0.0]]))
+    assert taken.max() <= 1.0 and taken.min() < 1.0

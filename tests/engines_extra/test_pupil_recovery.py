@@ -348,21 +348,23 @@ def test_the_led_default_recovers_through_a_defocused_objective(defocus):
     assert correlation > 0.98
 
 
-def test_a_known_pupil_keeps_its_lattice_harmonics_in_a_filtered_map():
-    # 0.15 waves of defocus, known and given with the captures, on a 9 x 9 lattice. The lattice filter takes its
-    # patterns from the map's departure from the known pupil, so the map stays at it and the image is as good as
-    # with the pupil held (measured from 1, the filter stripped the defocus to 0.09 waves: rmse 0.175 against
-    # 0.148).
+@pytest.mark.parametrize("waves", [0.15, 0.4])
+def test_a_known_pupil_keeps_its_lattice_harmonics_in_a_filtered_map(waves):
+    # Defocus known and given with the captures, on a 9 x 9 lattice. The lattice filter takes its patterns from
+    # the map's departure from the known pupil (carried through each step's normalisation), so the map stays at
+    # it and the image is as good as with the pupil held. Measured from 1, the filter stripped the defocus: RMSE
+    # 0.175 against 0.148 at 0.15 waves, 0.38 at 0.4 waves.
     from dataclasses import replace
 
-    true = np.array([0.15, 0.0, 0.0])
+    true = np.array([waves, 0.0, 0.0])
     problem, truth = make_case(true)
     known = replace(problem, aberration=true)
     fixed, _ = reconstruct(known)   # the known pupil, held
     kept, calibration = reconstruct(known, pupil_recovery="shared", pupil_model="full", pupil_lattice="filtered",
                                     pupil_damping=1e-2)
-    assert rmse(kept, truth) < 1.02 * rmse(fixed, truth)
-    np.testing.assert_allclose(calibration.pupil.coefficients[0][:3], true, atol=0.01)
+    assert rmse(kept, truth) < 1.05 * rmse(fixed, truth)
+    if waves < 0.2:   # (a larger defocus wraps the map's phase past what the projection on modes reads)
+        np.testing.assert_allclose(calibration.pupil.coefficients[0][:3], true, atol=0.01)
 
 
 def test_the_lattice_filter_measures_a_known_pupil_s_departure_from_it():
@@ -374,11 +376,14 @@ def test_the_lattice_filter_measures_a_known_pupil_s_departure_from_it():
     disc = circular_pupils(b, np.array([[(b - 1) / 2, (b - 1) / 2]]), RADIUS)[0]
     maps = {}
     for known in (True, False):
-        recovery = PupilRecovery(layout, np.zeros(layout.n_images, int), coefficients=[0.15, 0.0, 0.0], order=2,
+        recovery = PupilRecovery(layout, np.zeros(layout.n_images, int), coefficients=[0.4, 0.0, 0.0], order=2,
                                  lattice="filtered", known=known)
         before = recovery.maps.copy()
-        recovery._den[0] = disc    # light, and no correction: a step of zero
-        scale, _ = recovery.step(misfit=1.0)   # the object takes over the maps' common scale
-        maps[known] = np.abs(recovery.maps[0] * scale - before[0])[disc > 0].max()
+        total = 1.0
+        for _ in range(4):   # light, and no correction: steps of zero
+            recovery._den[0] = disc
+            scale, _ = recovery.step(misfit=1.0)   # the object takes over the maps' common scale
+            total *= scale
+        maps[known] = np.abs(recovery.maps[0] * total - before[0])[disc > 0].max()
     assert maps[True] < 1e-5          # the known pupil is kept as it is
     assert maps[False] > 0.05         # an estimate loses its lattice harmonics
