@@ -603,6 +603,7 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
     from cca_cli.engines.registry import resolve
     from cca_cli.library.data import check_intensity, check_weight
     from cca_cli.library.recovery import reconstruct as recover_captures
+    from cca_cli.library.stray_light import holds_stray_light
 
     captures = intensities if isinstance(intensities, CaptureSet) else None
     if captures is not None:
@@ -621,7 +622,7 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
     kind = captures.kind if captures is not None else geometry.kind
     frame_scale = captures.frame_scale if captures is not None else "shared"
     try:
-        engine, engine_options = resolve(engine, kind, options, frame_scale=frame_scale)
+        name, engine_options = resolve(engine, kind, options, frame_scale=frame_scale)
     except ValueError as exc:   # name the argument first, as every other refusal here does
         text = str(exc)
         name = "engine" if "is not an engine" in text else "options" if text.startswith("unknown option") else None
@@ -630,6 +631,10 @@ def reconstruct(intensities, geometry: CaptureGeometry | None = None, *, engine:
     weights = None if weight is None else _real_images(weight, "weight")
     if weights is not None:
         check_weight(weights, images.shape, "weight")
+    if kind == "led_array" and holds_stray_light(images, geometry.spectrum_centres_yx_px, geometry.pupil_radius_px,
+                                                 weights):   # the captures turn the background fit on
+        name, engine_options = resolve(engine, kind, options, frame_scale=frame_scale, stray_light=True)
+    engine = name
     if boundary not in (None, "open", "periodic"):
         raise ValueError(f"boundary: 'open' (recorded frames) or 'periodic' (simulated ones), got {boundary!r}")
     captures = (CaptureSet(images, geometry, weights) if captures is None

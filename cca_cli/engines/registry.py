@@ -136,7 +136,7 @@ def _auto_for_checking(given: dict) -> str:
 
 
 def resolve(engine: str, kind: str | None, given: Mapping | None = None, *,
-            frame_scale: str = "shared") -> tuple[str, EngineOptions]:
+            frame_scale: str = "shared", stray_light: bool = False) -> tuple[str, EngineOptions]:
     """The engine an engine name stands for on a kind of data, and its options.
 
     ``engine: auto`` takes the preset of the kind (:mod:`cca_cli.engines.presets`),
@@ -157,6 +157,10 @@ def resolve(engine: str, kind: str | None, given: Mapping | None = None, *,
     frame_scale : {"shared", "per_frame"}
         How the captures' images were scaled (:attr:`~cca_cli.library.data.CaptureSet.frame_scale`):
         ``per_frame`` starts an engine that can fit each capture's brightness with ``brightness: true``.
+    stray_light : bool
+        Whether the captures' dark-field images never fall near zero
+        (:func:`~cca_cli.library.stray_light.holds_stray_light`): starts an engine that can fit that
+        light with ``background: true``.
 
     Returns
     -------
@@ -183,6 +187,9 @@ def resolve(engine: str, kind: str | None, given: Mapping | None = None, *,
     if frame_scale == "per_frame" and kind is not None and "brightness" in spec.option_names():
         # images scaled each on its own: their brightness is unknown, and nothing says it is near 1
         start = {**start, "brightness": True, "brightness_prior": 0.0}
+    if stray_light and kind is not None and "background" in spec.option_names():
+        # light the object did not scatter under every dark-field image: fitted, not taken for the object's
+        start = {**start, "background": True}
     unknown = sorted(set(given) - set(spec.option_names()))
     if unknown:
         alias, full = ITERATIONS_ALIAS

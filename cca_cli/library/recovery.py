@@ -30,6 +30,7 @@ from cca_cli.engines.options import EngineOptions
 from cca_cli.engines.problem import PhaseRetrievalProblem
 from cca_cli.engines.registry import get_engine, resolve
 from cca_cli.errors import CcaError
+from cca_cli.library import stray_light
 from cca_cli.library.data import CaptureSet, Reconstruction, constant_images
 from cca_cli.optics import backend, fft
 from cca_cli.optics.backend import DeviceUnavailable
@@ -41,7 +42,7 @@ from cca_cli.sampling.geometry import CaptureGeometry
 from cca_cli.sampling.grid import BandLayout, band_layout, smallest_fft_size
 from cca_cli.sampling.region import RegionEmbedding, plan_embedding
 
-__all__ = ["MAX_DEAD_FRACTION", "DivergedError", "DeviceUnavailable", "reconstruct", "engine_device",
+__all__ = ["MAX_DEAD_FRACTION", "DivergedError", "DeviceUnavailable", "reconstruct", "engine_device", "holds_stray_light",
            "without_dead_captures", "check_dead_captures", "check_dead_measurements", "drop_captures", "embed_region", "build_model", "problem_calibration", "recover", "run_threads",
            "drive_engine", "calibrated_pupils"]
 
@@ -105,7 +106,12 @@ def reconstruct(captures: CaptureSet, *, engine: str = "auto", options: dict | E
     if isinstance(options, EngineOptions):
         engine_options = options
     else:
-        engine, engine_options = resolve(engine, captures.kind, options or {}, frame_scale=captures.frame_scale)
+        engine, engine_options = resolve(engine, captures.kind, options or {}, frame_scale=captures.frame_scale,
+                                         stray_light=holds_stray_light(captures))
+    if getattr(engine_options, "background", False) and holds_stray_light(captures):
+        _log.warning("note: the dark-field images never fall near zero (light the object did not scatter: stray "
+                     "light, or an offset left in), so a plane of it is fitted to each dark-field capture and taken "
+                     "off (option background; false leaves it in)")
     if captures.frame_scale == "per_frame" and not hasattr(engine_options, "brightness"):
         _log.warning("note: the images were scaled each on its own (frame_scale per_frame) but engine %s fits no "
                      "brightness; engine momentum does", engine)
@@ -138,6 +144,15 @@ def _one_capture_per_camera(captures: CaptureSet, options: EngineOptions) -> boo
     if getattr(options, "pupil_recovery", "none") != "per_camera" or cameras is None:
         return False
     return int(np.bincount(np.asarray(cameras, np.int64)).max()) == 1
+
+
+def holds_stray_light(captures: CaptureSet) -> bool:
+    """Whether an LED array's dark-field images never fall near zero (:mod:`cca_cli.library.stray_light`)."""
+    geometry = captures.geometry
+    if captures.kind != "led_array":
+        return False
+    return stray_light.holds_stray_light(captures.intensity, geometry.spectrum_centres_yx_px,
+                                         geometry.pupil_radius_px, captures.weight)
 
 
 def engine_device(device: str, engine: str, options: EngineOptions) -> str:

@@ -36,6 +36,7 @@ from cca_cli.io.records import write_sensor_records
 from cca_cli.io.stacks import read_stack
 from cca_cli.library.axis import axis_offset
 from cca_cli.library.defects import MOST_PIXELS, dead_lines, fill_pixels, hot_pixels
+from cca_cli.library.stray_light import FLOOR_SHARE, dark_field_floor
 from cca_cli.library.orientation import recorded_orientation_advice
 from cca_cli.library.recovery import UNLIT_FACTOR, judge_bright_field
 from cca_cli.io.sensor import (Decoding, FrameValues, SensorRule, board_decodings, decide_decoding, frame_values,
@@ -693,12 +694,6 @@ def off_axis_board(plan: CapturePlan, geometry: CaptureGeometry, frames: np.ndar
                    "images then show stripes")
 
 
-#: Dark-field images whose darkest 1% of pixels read this fraction of their mean or more (the median over them)
-#: carry an offset the object did not scatter. The recorded corpus's sets read 0 with their black levels (a
-#: blood smear's dense cells, HDR-merged, 0.10); a 16-bit camera's 100-count offset left in, 0.31.
-OFFSET_SHARE = 0.2
-
-
 def offset_left_in(plan: CapturePlan, geometry: CaptureGeometry, frames: np.ndarray, *, levelled: bool) -> list[str]:
     """A note where an LED array's dark-field images never fall near zero: a camera offset (black level) left in
     or, where ``levelled`` (a black level or dark frames given), stray light.
@@ -708,27 +703,21 @@ def offset_left_in(plan: CapturePlan, geometry: CaptureGeometry, frames: np.ndar
     """
     if plan.kind != "led_array":
         return []
-    centres = np.asarray(geometry.spectrum_centres_yx_px, np.float64)
-    dark = np.flatnonzero(np.hypot(centres[:, 0], centres[:, 1]) > 1.2 * geometry.pupil_radius_px)
-    if dark.size < 5:
+    found = dark_field_floor(frames[:, 0], geometry.spectrum_centres_yx_px, geometry.pupil_radius_px,
+                             amplitudes=plan.manifest.values == "amplitude")
+    if found is None or found[0] < FLOOR_SHARE:
         return []
-    images = frames[dark, 0].reshape(dark.size, -1)
-    means = images.mean(axis=1, dtype=np.float64)
-    lit = means > 0
-    if lit.sum() < 5:
-        return []
-    share = float(np.median(np.percentile(images[lit], 1, axis=1) / means[lit]))
-    if share < OFFSET_SHARE:
-        return []
+    share, read = found
     said = (f"the dark-field images never fall near zero (their darkest 1% of pixels at {share:.0%} of their mean, "
-            f"the median of {int(lit.sum())} images): ")
+            f"the median of {read} images): ")
     if not levelled:
         return [said + "is the camera's offset left in? Set sensor.black_level (the reading with no light) or give "
-                       "dark frames; an offset adds light the object did not scatter"]
+                       "dark frames; an offset adds light the object did not scatter (reconstruct fits and takes off "
+                       "a plane of it from each dark-field capture: option background)"]
     return [said + "stray light, or an offset beyond the black level? It adds light the object did not scatter, "
-                   "which the recovery takes for the object's (a haze over a faint one): shield the setup from room "
-                   "and LED light, and check sensor.black_level or the dark frames; reconstruct option "
-                   "background: true fits and removes it"]
+                   "which the recovery would take for the object's (a haze over a faint one): reconstruct fits and "
+                   "takes off a plane of it from each dark-field capture (option background); better, shield the "
+                   "setup from room and LED light, and check sensor.black_level or the dark frames"]
 
 
 def _led_depths_mm(plan: CapturePlan) -> float | None:

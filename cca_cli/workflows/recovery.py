@@ -25,16 +25,18 @@ __all__ = ["engine_options", "recipe_of", "check_device", "reconstruct_captures"
 
 
 def engine_options(section: ReconstructSection, kind: str = "simulation", *, frame_scale: str = "shared",
-                   **overrides) -> tuple[str, EngineOptions]:
+                   stray_light: bool = False, **overrides) -> tuple[str, EngineOptions]:
     """The engine the section's ``engine`` stands for on ``kind`` of data, and its options object.
 
-    ``frame_scale`` is the captures' (:attr:`~cca_cli.library.data.CaptureSet.frame_scale`);
+    ``frame_scale`` is the captures' (:attr:`~cca_cli.library.data.CaptureSet.frame_scale`), ``stray_light``
+    whether their dark-field images never fall near zero (:func:`cca_cli.library.recovery.holds_stray_light`);
     ``overrides`` go on top of what the section gives. One line naming
     ``reconstruct.options`` when the options do not fit the engine
     (:func:`cca_cli.engines.registry.resolve`).
     """
     try:
-        return resolve(section.engine, kind, {**section.given(), **overrides}, frame_scale=frame_scale)
+        return resolve(section.engine, kind, {**section.given(), **overrides}, frame_scale=frame_scale,
+                       stray_light=stray_light)
     except ValueError as exc:
         raise ConfigError(f"reconstruct.options: {exc}") from None
 
@@ -69,7 +71,8 @@ def reconstruct_captures(captures: CaptureSet, section: ReconstructSection, *, s
     ``checkpoint`` the run continues from a matching checkpoint and writes new ones. ``section.device``
     says where the engine runs; a device that cannot run it is a ConfigError naming ``reconstruct.device``.
     """
-    name, options = engine_options(section, captures.kind, frame_scale=captures.frame_scale)
+    name, options = engine_options(section, captures.kind, frame_scale=captures.frame_scale,
+                                   stray_light=library.holds_stray_light(captures))
     init = init_pixel = None
     if section.init is not None:
         init, attrs = read_spectrum(Path(section.init))

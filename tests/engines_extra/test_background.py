@@ -52,7 +52,7 @@ def test_stray_light_is_fitted_and_the_object_recovered_as_without_it():
     stray = 0.005 * float(images[bright].mean())
     options = dict(engine="momentum", iterations=60, tol=0)
     clean = cca.reconstruct(images, geometry, **options)
-    left = cca.reconstruct(images + stray, geometry, **options)
+    left = cca.reconstruct(images + stray, geometry, background=False, **options)
     fitted = cca.reconstruct(images + stray, geometry, background=True, **options)
     away = {name: cca.rmse(result.intensity, clean.intensity) for name, result in (("left", left), ("fitted", fitted))}
     assert away["fitted"] < 0.6 * away["left"], away
@@ -86,3 +86,30 @@ def test_held_back_captures_get_no_plane_and_a_dipping_plane_adds_no_light():
     ones = np.ones((1, 32, 32), np.float32)
     taken = less_background(ones, np.array([[0.1, 0.02, 0.0]]))
     assert taken.max() <= 1.0 and taken.min() < 1.0
+
+
+def test_dark_field_images_that_never_fall_near_zero_turn_the_fit_on_by_themselves(caplog):
+    # The captures decide, as a frame scale does: with stray light under every dark-field image, engine auto
+    # fits it (and says so); an option the user sets wins; without stray light nothing changes.
+    from cca_cli.engines.registry import resolve
+    from cca_cli.library.stray_light import dark_field_floor, holds_stray_light
+
+    sines = cca.led_grid_sines(9, pitch_m=4e-3, height_m=60e-3)
+    geometry = cca.led_array(sines, image_pixels=64, **OPTICS)
+    images = np.asarray(cca.simulate(cca.resolution_chart(128, widths=(6, 4, 3, 2)).image, geometry, snr_db=40,
+                                     seed=2), np.float32)
+    bright = np.hypot(*geometry.spectrum_centres_yx_px.T) < geometry.pupil_radius_px
+    lit = images + 0.02 * float(images[bright].mean())
+    centres, radius = geometry.spectrum_centres_yx_px, geometry.pupil_radius_px
+    assert holds_stray_light(lit, centres, radius) and not holds_stray_light(images, centres, radius)
+    assert dark_field_floor(images[:4], centres[:4], radius) is None           # too few dark-field images to read
+    assert resolve("auto", "led_array", {}, stray_light=True)[1].background
+    assert not resolve("auto", "led_array", {"background": False}, stray_light=True)[1].background
+    assert not resolve("auto", "led_array", {})[1].background
+    assert resolve("auto", "simulation", {}, stray_light=True)[0] == "altmin"   # no background to fit there
+    options = dict(iterations=12, tol=0)
+    with caplog.at_level("WARNING"):
+        fitted = cca.reconstruct(lit, geometry, **options)
+    assert fitted.options["background"] and "never fall near zero" in caplog.text
+    assert not cca.reconstruct(lit, geometry, background=False, **options).options["background"]
+    assert not cca.reconstruct(images, geometry, **options).options["background"]
