@@ -26,11 +26,11 @@ import numpy as np
 from cca_cli.optics.forward import ForwardModel, Workspace, chunk_slices
 
 __all__ = ["background_planes", "background_images", "less_background", "plane_means", "dark_field_captures",
-           "holds_floor", "FLOOR_SHARE", "FLOOR_PERCENTILE"]
+           "holds_floor", "ZERO_SHARE", "FLOOR_PERCENTILE"]
 
 #: Only captures whose darkest 1% of pixels lie at this share of their mean or more get a plane (ingest's note
 #: on light under everything reads 0.2) ...
-FLOOR_SHARE = 0.1
+ZERO_SHARE = 0.1
 #: ... and a plane is held under its capture's measured intensity at all but this percentage of the pixels ...
 FLOOR_PERCENTILE = 5.0
 #: ... smoothed over this many pixels square (the floor of a noisy image would lie under its background).
@@ -99,7 +99,7 @@ def background_planes(model: ForwardModel, spectrum: np.ndarray, amplitudes: np.
 
 
 def holds_floor(amplitudes: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
-    """Per capture, whether its darkest 1% of recorded pixels lie at :data:`FLOOR_SHARE` of its mean or more.
+    """Per capture, whether its darkest 1% of recorded pixels lie at :data:`ZERO_SHARE` of its mean or more.
 
     An image that falls to zero somewhere holds no light under everything: a dense sample's dark field, whose
     speckle reaches zero, would otherwise lend its own light to a plane.
@@ -119,7 +119,7 @@ def holds_floor(amplitudes: np.ndarray, weights: np.ndarray | None = None) -> np
     for i, image in enumerate(amplitudes):
         values = np.square(image if weights is None else image[weights[i] > 0], dtype=np.float32)
         mean = float(values.mean(dtype=np.float64)) if values.size else 0.0
-        out[i] = mean > 0 and float(np.percentile(values, 1)) >= FLOOR_SHARE * mean
+        out[i] = mean > 0 and float(np.percentile(values, 1)) >= ZERO_SHARE * mean
     return out
 
 

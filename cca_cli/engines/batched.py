@@ -82,7 +82,8 @@ def unsupported_options(options: EngineOptions) -> list[str]:
         found.append("brightness: true (set false; captures whose frame_scale is per_frame turn it on, "
                      "and they need it: run those on the CPU)")
     if options.background:
-        found.append("background: true (set false, or run on the CPU)")
+        found.append("background: true (set false; captures whose dark-field images never fall near zero turn it "
+                     "on, and they need it: run those on the CPU)")
     return found
 
 

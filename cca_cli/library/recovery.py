@@ -110,8 +110,9 @@ def reconstruct(captures: CaptureSet, *, engine: str = "auto", options: dict | E
                                          stray_light=holds_stray_light(captures))
     if getattr(engine_options, "background", False) and holds_stray_light(captures):
         _log.warning("note: the dark-field images never fall near zero (light the object did not scatter: stray "
-                     "light, or an offset left in), so a plane of it is fitted to each dark-field capture and taken "
-                     "off (option background; false leaves it in)")
+                     "light, or an offset left in), so from the calibration rounds on (pass %d) a plane of it is "
+                     "fitted to each dark-field capture that stays off zero, and taken off (option background; "
+                     "false leaves it in)", getattr(engine_options, "calibration_start", 0) + 1)
     if captures.frame_scale == "per_frame" and not hasattr(engine_options, "brightness"):
         _log.warning("note: the images were scaled each on its own (frame_scale per_frame) but engine %s fits no "
                      "brightness; engine momentum does", engine)

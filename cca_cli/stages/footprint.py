@@ -213,7 +213,8 @@ def reconstruct_footprint(captures_path: Path, section=None) -> Footprint:
     threads = _engine_threads(section, bool(truth[0]), geometry.kind, frame_scale)
     memory = (reconstruction_memory_bytes(k, n, lowres, hires, box) + (k * n * n * _FLOAT if weighted else 0)
               + k * h * w * _FLOAT + k * _PER_CAPTURE  # the images as read, besides the engine's own copy
-              + _thread_bytes(threads, k, hires, box))
+              + _thread_bytes(threads, k, hires, box)
+              + (2 * k * lowres * lowres * _FLOAT if _may_fit_background(section, geometry.kind) else 0))
     output = hires * hires * (2 * _COMPLEX + _FLOAT) + h * w * _FLOAT + float(truth[0]) * truth[1] * _COMPLEX
     # A checkpoint (the momentum engines' spectrum, velocity and anchor) lies beside the output until it is
     # written, and a new checkpoint beside the old one until it replaces it.
@@ -225,6 +226,13 @@ def reconstruct_footprint(captures_path: Path, section=None) -> Footprint:
                      f"{threads} thread{'s' * (threads != 1)}",
                      "reconstruct fewer or smaller images (crop them, or simulate with simulate.store: band), "
                      "or use fewer threads (reconstruct.options.threads)")
+
+
+def _may_fit_background(section, geometry_kind: str) -> bool:
+    """Whether the run may fit a background (:mod:`cca_cli.engines.background`: the measured amplitudes less it
+    are held twice more): on LED arrays, unless the options turn it off (the captures may turn it on)."""
+    options = getattr(section, "options", None)
+    return geometry_kind == "led_array" and not (isinstance(options, dict) and options.get("background") is False)
 
 
 def _refines_positions(section, has_truth: bool, geometry_kind: str, frame_scale: str) -> bool:

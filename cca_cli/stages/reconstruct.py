@@ -127,13 +127,24 @@ def captures_kind_and_scale(captures_path: Path) -> tuple[str, str]:
         return kind, read_frame_scale(require(handle, INTENSITY).attrs, captures_path)
 
 
+def captures_stray_light(captures_path: Path, kind: str) -> bool:
+    """Whether an LED array's captures file holds light under every dark-field image, which turns the background
+    fit on (:func:`cca_cli.library.recovery.holds_stray_light`; the images are read)."""
+    if kind != "led_array":
+        return False
+    from cca_cli.library.recovery import holds_stray_light
+
+    return holds_stray_light(read_captures(captures_path))
+
+
 def engine_recipe(captures_path: Path, section: ReconstructSection) -> str:
     """SHA-256 of the engine and options ``section`` resolves to on these captures, cca's defaults included.
 
     The stage records it (provenance ``engine_recipe``), so that a recon.h5 made before cca's engine
     defaults changed counts as outdated although its config and captures are the same. It resolves as
     the run does: multiplexed captures with the simulation preset, tiles with their own
-    (:func:`~cca_cli.workflows.tiled.tile_engine`), other captures by their kind. Threads are left out
+    (:func:`~cca_cli.workflows.tiled.tile_engine`), other captures by their kind and what their images say
+    (a frame scale, light under the dark field: :func:`captures_stray_light`). Threads are left out
     (results are reproducible per thread count, and the count follows the machine). Empty when the
     captures cannot be read or the section's options do not resolve (the run itself then says why).
     """
@@ -146,7 +157,8 @@ def engine_recipe(captures_path: Path, section: ReconstructSection) -> str:
             data = tile_recipe(section, captures_path)
         else:
             kind, frame_scale = captures_kind_and_scale(captures_path)
-            data = recipe_of(*engine_options(section, kind, frame_scale=frame_scale))
+            data = recipe_of(*engine_options(section, kind, frame_scale=frame_scale,
+                                             stray_light=captures_stray_light(captures_path, kind)))
     except (CcaError, OSError, KeyError, ValueError):
         return ""
     return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()

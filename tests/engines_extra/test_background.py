@@ -113,3 +113,22 @@ def test_dark_field_images_that_never_fall_near_zero_turn_the_fit_on_by_themselv
     assert fitted.options["background"] and "never fall near zero" in caplog.text
     assert not cca.reconstruct(lit, geometry, background=False, **options).options["background"]
     assert not cca.reconstruct(images, geometry, **options).options["background"]
+
+
+def test_the_stage_s_recipe_reads_the_switch_as_the_run_does(tmp_path):
+    # A recon.h5 or checkpoint made without the background fit must not pass for one made with it.
+    from cca_cli.config.model import ReconstructSection
+    from cca_cli.stages.reconstruct import engine_recipe
+
+    sines = cca.led_grid_sines(9, pitch_m=4e-3, height_m=60e-3)
+    geometry = cca.led_array(sines, image_pixels=64, **OPTICS)
+    images = np.asarray(cca.simulate(cca.resolution_chart(128, widths=(6, 4, 3, 2)).image, geometry, snr_db=40,
+                                     seed=2), np.float32)
+    bright = np.hypot(*geometry.spectrum_centres_yx_px.T) < geometry.pupil_radius_px
+    recipes = {}
+    for name, stack in (("clean", images), ("lit", images + 0.02 * float(images[bright].mean()))):
+        path = cca.save(cca.CaptureSet(stack, geometry, boundary="open"), tmp_path / f"{name}.h5")
+        recipes[name] = (engine_recipe(path, ReconstructSection()),
+                         engine_recipe(path, ReconstructSection(options={"background": False})))
+    assert recipes["clean"][0] == recipes["clean"][1] == recipes["lit"][1]   # off: the same recipe
+    assert recipes["lit"][0] not in ("", recipes["lit"][1])                  # on by itself: another one
