@@ -84,7 +84,7 @@ def dead_lines(images: np.ndarray) -> np.ndarray:
     values on its left and on its right neighbour's; a column whose slopes are both under :data:`LINE_SLOPE`
     times the median column's, where both neighbours vary (:data:`LIVE_SHARE`), is dead; likewise on the
     columns two away, under half that (two dead columns side by side; live lines follow those less). Rows likewise. The outermost lines have one neighbour
-    and are not judged; nor is a set whose median line hardly follows its neighbours (:data:`FOLLOWS`).
+    and are not judged; nor is a set whose median line hardly follows its next neighbours (:data:`FOLLOWS`).
 
     Parameters
     ----------
@@ -113,7 +113,9 @@ def dead_lines(images: np.ndarray) -> np.ndarray:
         for gap in (1, 2):
             slope, live = _line_slopes(frames, bright, axis, gap)
             typical = float(np.median(slope[live])) if live.any() else 0.0
-            if typical < FOLLOWS:   # lines that do not follow each other (a flat or featureless field): no judgement
+            if gap == 1 and typical < FOLLOWS:   # lines that do not follow each other (a flat or featureless
+                break                            # field): no judgement
+            if typical <= 0:
                 continue
             found[gap:-gap] |= live & (slope < LINE_SLOPE / gap * typical)
         if axis == 1:
