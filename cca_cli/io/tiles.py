@@ -71,6 +71,22 @@ def read_frame_centre(path: Path, centre_index: int) -> tuple[np.ndarray, dict]:
 _SCAN_BYTES = 64 << 20
 
 
+def read_stray_light(path: Path) -> bool:
+    """Whether an LED array's whole frames hold light under every dark-field image
+    (:func:`cca_cli.library.stray_light.holds_stray_light`), read one dark-field frame at a time."""
+    from cca_cli.io.geometry import read_geometry
+    from cca_cli.io.measurements import WEIGHT
+    from cca_cli.library.stray_light import holds_stray_light
+
+    with open_input(path) as handle:
+        geometry = read_geometry(handle)
+        if geometry.kind != "led_array":
+            return False
+        weights = handle[WEIGHT] if WEIGHT in handle else None
+        return holds_stray_light(require(handle, INTENSITY, ndim=3), geometry.spectrum_centres_yx_px,
+                                 geometry.pupil_radius_px, weights)
+
+
 def read_dead_frames(path: Path) -> tuple[np.ndarray, list[float]]:
     """The captures whose whole frame holds one value (dead: nothing was recorded), and those values.
 

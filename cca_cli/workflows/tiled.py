@@ -51,8 +51,8 @@ from cca_cli.io.h5 import Provenance
 from cca_cli.io.recon import TilesRecord
 from cca_cli.io.measurements import INTENSITY
 from cca_cli.io.tiles import (FrameInfo, TileResult, read_dead_frames, read_frame_centre, read_frame_info,
-                              read_tile_captures, read_tile_result, tile_file_problem, tile_folder, tile_path,
-                              write_tile_result)
+                              read_stray_light, read_tile_captures, read_tile_result, tile_file_problem, tile_folder,
+                              tile_path, write_tile_result)
 from cca_cli.library.data import CaptureSet, Reconstruction
 from cca_cli.library.recovery import DeviceUnavailable, check_dead_captures, drop_captures, engine_device, recover
 from cca_cli.optics import backend, fft
@@ -91,6 +91,9 @@ class TiledPlan:
     dropped : tuple of int
         Dead captures (their whole frame holds one value), which every tile leaves out
         (:func:`without_dead_frames`).
+    stray_light : bool
+        Whether the whole frames' dark-field images never fall near zero, which turns every tile's background
+        fit on (:func:`~cca_cli.io.tiles.read_stray_light`; a tile alone would read its own part).
     """
 
     captures_path: Path
@@ -99,6 +102,7 @@ class TiledPlan:
     tiles: TilePlan
     upsampling: int
     dropped: tuple[int, ...] = ()
+    stray_light: bool = False
 
     @property
     def frame_pixel_m(self) -> float:
@@ -285,7 +289,7 @@ def _tile_device(section: ReconstructSection, plan: TiledPlan) -> str:
     """Where every tile's engine runs, ``cpu`` or ``cuda`` (``auto`` resolved once, here), said before any
     tile runs: ``cuda`` where CuPy, a GPU or the tiles' options cannot is one line naming reconstruct.device."""
     name, options = tile_engine(section.model_copy(update={"device": "cuda"}), plan.geometry.kind,
-                                frame_scale=plan.frame.frame_scale)
+                                frame_scale=plan.frame.frame_scale, stray_light=plan.stray_light)
     try:
         return engine_device(section.device, name, options)
     except DeviceUnavailable as exc:
@@ -304,24 +308,25 @@ def without_dead_frames(plan: TiledPlan) -> TiledPlan:
 
 
 def tile_engine(section: ReconstructSection, kind: str, *, fixed: bool = False,
-                frame_scale: str = "shared") -> tuple[str, EngineOptions]:
+                frame_scale: str = "shared", stray_light: bool = False) -> tuple[str, EngineOptions]:
     """Engine and options a tile runs: ``auto`` takes the calibrating preset of the geometry's kind.
 
     Simulated captures included: a tiled reconstruction exists to recover a pupil per tile. On the CPU
     each tile runs single-threaded (``threads: 1``) unless the options say otherwise: the tiles are the
     parallelism; on a GPU (``section.device`` ``cuda``) the engine takes its own lanes. ``fixed`` holds the
-    pupil the tile starts from (no pupil recovery); ``frame_scale`` is the captures'.
+    pupil the tile starts from (no pupil recovery); ``frame_scale`` is the captures', ``stray_light`` whether
+    their whole frames hold light under the dark field (:attr:`TiledPlan.stray_light`).
     """
     if section.engine == "auto" and kind not in ("led_array", "camera_scan"):
         kind = "camera_scan"
-    name, _ = engine_options(section, kind, frame_scale=frame_scale)
+    name, _ = engine_options(section, kind, frame_scale=frame_scale, stray_light=stray_light)
     names = get_engine(name).option_names()
     overrides = {}
     if "threads" in names and "threads" not in section.options and section.device != "cuda":
         overrides["threads"] = 1
     if fixed and "pupil_recovery" in names:
         overrides["pupil_recovery"] = "none"
-    return engine_options(section, kind, frame_scale=frame_scale, **overrides)
+    return engine_options(section, kind, frame_scale=frame_scale, stray_light=stray_light, **overrides)
 
 
 @dataclass(frozen=True)
@@ -399,7 +404,8 @@ def _recover_tile(task: TileTask, section: ReconstructSection, parent: TileResul
     captures = replace(captures, geometry=tile_geometry(plan.geometry, plan.frame.frame_shape, tile))
     captures = drop_captures(captures, plan.dropped)
     padded, region = embed_region(captures, section, source=plan.captures_path)
-    name, options = tile_engine(section, plan.geometry.kind, fixed=fixed, frame_scale=plan.frame.frame_scale)
+    name, options = tile_engine(section, plan.geometry.kind, fixed=fixed, frame_scale=plan.frame.frame_scale,
+                                stray_light=plan.stray_light)
     start = None
     if parent is not None and parent.zernike_waves is not None:
         start = np.asarray(parent.zernike_waves, np.float64)
@@ -558,9 +564,11 @@ def reconstruct_tiled(captures_path: Path, section: ReconstructSection, output: 
     from cca_cli.workflows.cluster import cluster_settings, open_client
 
     plan = plan_tiled(captures_path, section)
+    plan = replace(plan, stray_light=read_stray_light(captures_path))
     start = time.perf_counter()
     section = section.model_copy(update={"device": _tile_device(section, plan)})   # the tiles all run there
-    name, options = tile_engine(section, plan.geometry.kind, frame_scale=plan.frame.frame_scale)
+    name, options = tile_engine(section, plan.geometry.kind, frame_scale=plan.frame.frame_scale,
+                                stray_light=plan.stray_light)
     plan = without_dead_frames(plan)
     order = tile_order(plan.tiles)
     total = len(order)
@@ -715,7 +723,9 @@ def tile_recipe(section: ReconstructSection, captures_path: Path) -> dict:
 
     frame_scale = read_frame_info(captures_path).frame_scale
     with open_input(captures_path) as handle:
-        recipe = recipe_of(*tile_engine(section, read_geometry(handle).kind, frame_scale=frame_scale))
+        kind = read_geometry(handle).kind
+    recipe = recipe_of(*tile_engine(section, kind, frame_scale=frame_scale,
+                                    stray_light=read_stray_light(captures_path)))
     # Dead captures are left out of every tile (earlier tiled results, made with them, are not this recipe's).
     return {**recipe, "dead_captures": "left out"}
 

@@ -132,3 +132,12 @@ def test_the_stage_s_recipe_reads_the_switch_as_the_run_does(tmp_path):
                          engine_recipe(path, ReconstructSection(options={"background": False})))
     assert recipes["clean"][0] == recipes["clean"][1] == recipes["lit"][1]   # off: the same recipe
     assert recipes["lit"][0] not in ("", recipes["lit"][1])                  # on by itself: another one
+    # tiles: decided once on the whole frames, every tile alike
+    from cca_cli.io.tiles import read_stray_light
+    from cca_cli.workflows.tiled import tile_engine, tile_recipe
+
+    assert read_stray_light(tmp_path / "lit.h5") and not read_stray_light(tmp_path / "clean.h5")
+    tiled = ReconstructSection(tiles={"size_px": 32, "overlap_px": 8})
+    assert tile_engine(tiled, "led_array", stray_light=True)[1].background
+    assert not tile_engine(tiled, "led_array")[1].background
+    assert tile_recipe(tiled, tmp_path / "lit.h5") != tile_recipe(tiled, tmp_path / "clean.h5")
