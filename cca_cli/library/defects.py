@@ -62,9 +62,7 @@ def hot_pixels(images: np.ndarray) -> np.ndarray:
     ValueError
         Images that are not (K, H, W) with K ≥ 5.
     """
-    frames = np.asarray(images, np.float32)
-    if frames.ndim != 3 or len(frames) < 5:
-        raise ValueError(f"images must be (K, H, W) with K ≥ 5, got shape {frames.shape}")
+    frames = _stack(images).astype(np.float32, copy=False)
     neighbours = ndimage.median_filter(frames, size=(1, 3, 3), mode="nearest")
     above = frames - neighbours
     centred = above - np.median(above, axis=(1, 2), keepdims=True)
@@ -77,14 +75,23 @@ def hot_pixels(images: np.ndarray) -> np.ndarray:
     return hot
 
 
+def _stack(images: np.ndarray) -> np.ndarray:
+    """``images`` as an array, refused unless (K, H, W) with K ≥ 5."""
+    frames = np.asarray(images)
+    if frames.ndim != 3 or len(frames) < 5:
+        raise ValueError(f"images must be (K, H, W) with K ≥ 5, got shape {frames.shape}")
+    return frames
+
+
 def dead_lines(images: np.ndarray) -> np.ndarray:
     """The pixels of whole columns and rows that do not follow their neighbours: dead or stuck lines.
 
     For every inner column, over every row of the bright captures, the least-squares slopes of the column's
     values on its left and on its right neighbour's; a column whose slopes are both under :data:`LINE_SLOPE`
     times the median column's, where both neighbours vary (:data:`LIVE_SHARE`), is dead; likewise on the
-    columns two away, under half that (two dead columns side by side; live lines follow those less). Rows likewise. The outermost lines have one neighbour
-    and are not judged; nor is a set whose median line hardly follows its next neighbours (:data:`FOLLOWS`).
+    columns two away, under half that (two dead columns side by side; live lines follow those less). Rows
+    likewise. The outermost lines have one neighbour and are not judged; nor is a set whose median line
+    hardly follows its next neighbours (:data:`FOLLOWS`).
 
     Parameters
     ----------
@@ -100,9 +107,7 @@ def dead_lines(images: np.ndarray) -> np.ndarray:
     ValueError
         Images that are not (K, H, W) with K ≥ 5.
     """
-    frames = np.asarray(images)
-    if frames.ndim != 3 or len(frames) < 5:
-        raise ValueError(f"images must be (K, H, W) with K ≥ 5, got shape {frames.shape}")
+    frames = _stack(images)
     means = frames.mean(axis=(1, 2), dtype=np.float64)
     bright = np.flatnonzero(means >= BRIGHT_SHARE * max(float(means.max()), 0.0))
     dead = np.zeros(frames.shape[1:], bool)
