@@ -1,5 +1,7 @@
 """Background light the object did not scatter: fitted as a plane per dark-field capture and taken off."""
 
+import functools
+
 import numpy as np
 import pytest
 
@@ -15,6 +17,17 @@ from cca_cli.sampling.grid import band_layout, square_scan
 from cca_cli.targets import resolution_chart
 
 OPTICS = dict(wavelength_m=532e-9, numerical_aperture=0.1, pixel_pitch_object_m=0.9e-6)
+
+
+@functools.lru_cache(maxsize=1)
+def _board():
+    """A 9 x 9 board's captures of a chart (40 dB), their geometry, and which captures are bright-field."""
+    geometry = cca.led_array(cca.led_grid_sines(9, pitch_m=4e-3, height_m=60e-3), image_pixels=64, **OPTICS)
+    images = np.asarray(cca.simulate(cca.resolution_chart(128, widths=(6, 4, 3, 2)).image, geometry, snr_db=40,
+                                     seed=2), np.float32)
+    images.setflags(write=False)
+    bright = np.hypot(*geometry.spectrum_centres_yx_px.T) < geometry.pupil_radius_px
+    return geometry, images, bright
 
 
 def test_the_planes_of_the_dark_field_captures_are_found_and_taken_off():
@@ -44,11 +57,7 @@ def test_stray_light_is_fitted_and_the_object_recovered_as_without_it():
     # A 9 x 9 board's captures of a chart with stray light of 0.5% of the bright-field mean in every capture:
     # fitted, the dark-field backgrounds come out at the light added, and the image is far nearer the one
     # recovered without stray light than when the light is left in (the recovery takes it for the object's).
-    sines = cca.led_grid_sines(9, pitch_m=4e-3, height_m=60e-3)
-    geometry = cca.led_array(sines, image_pixels=64, **OPTICS)
-    chart = cca.resolution_chart(128, widths=(6, 4, 3, 2))
-    images = np.asarray(cca.simulate(chart.image, geometry, snr_db=40, seed=2), np.float32)
-    bright = np.hypot(*geometry.spectrum_centres_yx_px.T) < geometry.pupil_radius_px
+    geometry, images, bright = _board()
     stray = 0.005 * float(images[bright].mean())
     options = dict(engine="momentum", iterations=60, tol=0)
     clean = cca.reconstruct(images, geometry, **options)
@@ -71,11 +80,7 @@ def test_the_gpu_engines_say_they_fit_no_background():
 
 
 def test_held_back_captures_get_no_plane_and_a_dipping_plane_adds_no_light():
-    sines = cca.led_grid_sines(9, pitch_m=4e-3, height_m=60e-3)
-    geometry = cca.led_array(sines, image_pixels=64, **OPTICS)
-    images = np.asarray(cca.simulate(cca.resolution_chart(128, widths=(6, 4, 3, 2)).image, geometry, snr_db=40,
-                                     seed=2), np.float32)
-    bright = np.hypot(*geometry.spectrum_centres_yx_px.T) < geometry.pupil_radius_px
+    geometry, images, bright = _board()
     stray = 0.005 * float(images[bright].mean())
     result = cca.reconstruct(images + stray, geometry, engine="momentum", background=True, hold_back=0.1,
                              iterations=20, tol=0)
@@ -94,11 +99,7 @@ def test_dark_field_images_that_never_fall_near_zero_turn_the_fit_on_by_themselv
     from cca_cli.engines.registry import resolve
     from cca_cli.library.stray_light import dark_field_floor, holds_stray_light
 
-    sines = cca.led_grid_sines(9, pitch_m=4e-3, height_m=60e-3)
-    geometry = cca.led_array(sines, image_pixels=64, **OPTICS)
-    images = np.asarray(cca.simulate(cca.resolution_chart(128, widths=(6, 4, 3, 2)).image, geometry, snr_db=40,
-                                     seed=2), np.float32)
-    bright = np.hypot(*geometry.spectrum_centres_yx_px.T) < geometry.pupil_radius_px
+    geometry, images, bright = _board()
     lit = images + 0.02 * float(images[bright].mean())
     centres, radius = geometry.spectrum_centres_yx_px, geometry.pupil_radius_px
     assert holds_stray_light(lit, centres, radius) and not holds_stray_light(images, centres, radius)
@@ -120,11 +121,7 @@ def test_the_stage_s_recipe_reads_the_switch_as_the_run_does(tmp_path):
     from cca_cli.config.model import ReconstructSection
     from cca_cli.stages.reconstruct import engine_recipe
 
-    sines = cca.led_grid_sines(9, pitch_m=4e-3, height_m=60e-3)
-    geometry = cca.led_array(sines, image_pixels=64, **OPTICS)
-    images = np.asarray(cca.simulate(cca.resolution_chart(128, widths=(6, 4, 3, 2)).image, geometry, snr_db=40,
-                                     seed=2), np.float32)
-    bright = np.hypot(*geometry.spectrum_centres_yx_px.T) < geometry.pupil_radius_px
+    geometry, images, bright = _board()
     recipes = {}
     for name, stack in (("clean", images), ("lit", images + 0.02 * float(images[bright].mean()))):
         path = cca.save(cca.CaptureSet(stack, geometry, boundary="open"), tmp_path / f"{name}.h5")
